@@ -1,0 +1,49 @@
+# One entry for set-up, demo and tests on a fresh Debian machine (Python >= 3.11).
+# `make demo` and `make test` create .venv and install everything they need.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+OUT     ?= out
+
+.PHONY: all venv sysdeps demo test lint typecheck unit bench clean
+
+all: test
+
+# System packages: only what the Python wheels do not bring (venv support on Debian's python3).
+sysdeps:
+	@$(PY) -c 'import ensurepip, venv' 2>/dev/null || { \
+	  echo "installing python3-venv (apt-get)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; }
+
+$(STAMP): pyproject.toml | sysdeps
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev,eval]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+# Record a short SITL dataset (hills, lawnmower) and write a PNG contact sheet of it.
+demo: venv
+	$(BIN)/companion sitl record --terrain hills --trajectory lawnmower --seconds 10 --seed 1 \
+	  --out $(OUT)/demo-hills-lawnmower --overwrite
+	$(BIN)/companion sitl sheet $(OUT)/demo-hills-lawnmower
+
+lint: venv
+	$(BIN)/ruff check companion drivers sitl tests scripts
+	$(BIN)/ruff format --check companion drivers sitl tests scripts
+
+typecheck: venv
+	$(BIN)/mypy
+
+unit: venv
+	$(BIN)/python -m pytest
+
+test: lint typecheck unit
+
+bench: venv
+	$(BIN)/companion bench render
+
+clean:
+	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

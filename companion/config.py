@@ -1,0 +1,320 @@
+"""Typed configuration: frozen dataclasses loaded from TOML, validated once at load.
+
+Every option lives in exactly one dataclass field with a default and a one-line ``help``
+(DESIGN.md section 7). The loader walks the fields, so adding an option is one line. A wrong
+type, a value outside its bounds or an unknown key raises :class:`ConfigError` naming the key
+(``camera.fx: must be > 0, got -5.0``); the CLI turns that into exit code 2.
+
+Frames: sensor mounts are given in the body frame (FRD) as a position ``xyz_m`` and ZYX angles
+``rpy_deg`` of the sensor frame; a camera with ``rpy_deg = [0, 0, 90]`` looks down with the image
+top towards the nose (DESIGN.md section 2). A range sensor's beam is +z of its own frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+
+from companion.errors import ConfigError
+from companion.geometry import se3
+from companion.geometry.camera import CameraModel
+from companion.types import F64, RangeSensorSpec
+
+
+def opt(default: Any, help: str, **bounds: float) -> Any:
+    """A config field with a one-line help text and optional numeric bounds (ge, gt, le, lt)."""
+    meta = {"help": help, **bounds}
+    if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
+        value = default
+        return field(default_factory=lambda: value, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True, slots=True)
+class MountConfig:
+    """Pose of a sensor frame in the body frame (FRD)."""
+
+    xyz_m: tuple[float, float, float] = opt((0.0, 0.0, 0.0), "sensor origin in the body frame [m]")
+    rpy_deg: tuple[float, float, float] = opt(
+        (0.0, 0.0, 0.0), "ZYX roll, pitch, yaw of the sensor frame in the body frame [deg]"
+    )
+
+    def T_body_sensor(self) -> F64:
+        """(4, 4) transform sensor -> body."""
+        return se3.from_xyz_rpy(self.xyz_m, np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True, slots=True)
+class CameraConfig:
+    """The downward colour camera: intrinsics, distortion, rate and mount (T_body_cam)."""
+
+    width: int = opt(640, "image width [px]", ge=16, le=8192)
+    height: int = opt(480, "image height [px]", ge=16, le=8192)
+    fx: float = opt(460.0, "focal length x [px]", gt=0)
+    fy: float = opt(460.0, "focal length y [px]", gt=0)
+    cx: float = opt(319.5, "principal point x [px]")
+    cy: float = opt(239.5, "principal point y [px]")
+    dist: tuple[float, float, float, float, float] = opt(
+        (-0.12, 0.05, 0.0005, -0.0003, 0.0), "distortion k1 k2 p1 p2 k3 (OpenCV)"
+    )
+    rate_hz: float = opt(30.0, "frame rate [Hz]", gt=0, le=1000)
+    mount: MountConfig = opt(
+        MountConfig(xyz_m=(0.05, 0.0, 0.08), rpy_deg=(0.0, 0.0, 90.0)),
+        "T_body_cam: camera frame in the body frame",
+    )
+
+    def model(self) -> CameraModel:
+        """The camera model of these intrinsics."""
+        k1, k2, p1, p2, k3 = self.dist
+        return CameraModel(self.width, self.height, self.fx, self.fy, self.cx, self.cy,
+                           k1, k2, p1, p2, k3)
+
+    def T_body_cam(self) -> F64:
+        """(4, 4) camera -> body."""
+        return self.mount.T_body_sensor()
+
+
+@dataclass(frozen=True, slots=True)
+class RangefinderConfig:
+    """One downward distance sensor. Noise and fault fields are used by the simulator."""
+
+    sensor_id: int = opt(0, "DISTANCE_SENSOR id (instance) of this sensor", ge=0, le=255)
+    mount: MountConfig = opt(MountConfig(), "T_body_rf: sensor frame in the body frame (beam = +z)")
+    min_m: float = opt(0.1, "minimum valid distance [m]", ge=0)
+    max_m: float = opt(40.0, "maximum valid distance [m]", gt=0)
+    sigma_a_m: float = opt(0.01, "noise sigma = a + b * range: constant part a [m]", ge=0)
+    sigma_b: float = opt(0.0, "noise sigma = a + b * range: proportional part b", ge=0, le=1)
+    rate_hz: float = opt(50.0, "measurement rate [Hz]", gt=0, le=1000)
+    dropout_prob: float = opt(0.0, "probability that a reading is missing (SITL)", ge=0, le=1)
+    outlier_prob: float = opt(0.0, "probability of a gross outlier reading (SITL)", ge=0, le=1)
+
+    def __post_init__(self) -> None:
+        if self.max_m <= self.min_m:
+            raise ConfigError(f"max_m: must be > min_m ({self.min_m}), got {self.max_m}")
+
+    def spec(self) -> RangeSensorSpec:
+        """The calibration record handed to the algorithms."""
+        return RangeSensorSpec(self.sensor_id, self.mount.T_body_sensor(), self.min_m,
+                               self.max_m, self.sigma_a_m, self.sigma_b)
+
+
+def _outward(sensor_id: int, x: float, y: float, tilt_deg: float = 4.0) -> RangefinderConfig:
+    """A downward sensor at (x, y, 0.06) in the body, its beam tilted tilt_deg away from centre."""
+    r = math.hypot(x, y)
+    pitch = tilt_deg * x / r  # beam towards +x for pitch > 0
+    roll = -tilt_deg * y / r  # beam towards +y for roll < 0
+    return RangefinderConfig(
+        sensor_id=sensor_id,
+        mount=MountConfig(xyz_m=(x, y, 0.06), rpy_deg=(round(roll, 3), round(pitch, 3), 0.0)),
+    )
+
+
+# Four downward sensors in an asymmetric quadrilateral, sides 0.33-0.42 m, diagonals ~0.5 m.
+DEFAULT_RANGEFINDERS: tuple[RangefinderConfig, ...] = (
+    _outward(0, 0.25, 0.10),
+    _outward(1, -0.08, 0.27),
+    _outward(2, -0.24, -0.12),
+    _outward(3, 0.12, -0.20),
+)
+
+TerrainName = Literal["flat", "hills", "urban", "slope"]
+TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb"]
+LaserMarkMode = Literal["off", "live", "painted"]
+
+
+@dataclass(frozen=True, slots=True)
+class RenderConfig:
+    """How the SITL camera image is made."""
+
+    noise_sigma_dn: float = opt(2.0, "Gaussian pixel noise sigma [8-bit levels]", ge=0, le=50)
+    motion_blur: bool = opt(False, "average sub-frames over the exposure time")
+    exposure_s: float = opt(0.008, "exposure time for motion blur [s]", gt=0, le=0.1)
+    blur_samples: int = opt(4, "sub-frames averaged for motion blur", ge=2, le=32)
+    laser_marks: LaserMarkMode = opt("live", "laser dots: off, live (move) or painted (stay)")
+    painted_time_s: float = opt(0.0, "time at which the painted marks are left [s]", ge=0)
+    spot_diameter_m: float = opt(0.03, "laser spot diameter on the surface [m]", gt=0, le=1)
+    sun_elevation_deg: float = opt(55.0, "sun elevation for shading [deg]", gt=0, le=90)
+    sun_azimuth_deg: float = opt(140.0, "sun azimuth from north [deg]", ge=-360, le=360)
+
+
+@dataclass(frozen=True, slots=True)
+class SitlConfig:
+    """The simulated world and flight."""
+
+    terrain: TerrainName = opt("hills", "terrain: flat, hills, urban or slope")
+    trajectory: TrajectoryName = opt("lawnmower", "hover, circle, lawnmower, figure8 or climb")
+    seed: int = opt(1, "seed of terrain, noise and faults", ge=0)
+    seconds: float = opt(60.0, "flight duration [s]", gt=0, le=36000)
+    altitude_m: float = opt(0.0, "height above ground [m]; 0 = terrain default (6, urban 12)",
+                            ge=0, le=200)
+    speed_m_s: float = opt(3.0, "cruise speed [m/s]", gt=0, le=5)
+    takeoff_landing: bool = opt(False, "start on the ground, take off, and land at the end")
+    world_size_m: float = opt(160.0, "side of the square world [m]", ge=20, le=2000)
+    height_resolution_m: float = opt(0.05, "height-map cell size [m]", gt=0, le=0.05)
+    render: RenderConfig = opt(RenderConfig(), "camera rendering")
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """The whole configuration."""
+
+    camera: CameraConfig = opt(CameraConfig(), "the downward colour camera")
+    rangefinders: tuple[RangefinderConfig, ...] = opt(
+        DEFAULT_RANGEFINDERS, "the downward distance sensors ([[rangefinders]] tables)"
+    )
+    sitl: SitlConfig = opt(SitlConfig(), "the simulator")
+
+    def __post_init__(self) -> None:
+        ids = [r.sensor_id for r in self.rangefinders]
+        if len(ids) != len(set(ids)):
+            raise ConfigError(f"rangefinders: sensor_id values must be unique, got {ids}")
+
+
+# --------------------------------------------------------------------------- loading
+
+T = TypeVar("T")
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(tp: Any, value: Any, key: str) -> Any:
+    """Convert a TOML value to the annotated type, or raise ConfigError naming key."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a table, got {value!r}")
+        return from_dict(typing.cast(type, tp), value, f"{key}.")
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{key}: must be one of {list(args)}, got {value!r}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected an array, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
+        return tuple(_convert(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin in (typing.Union, types.UnionType):
+        raise ConfigError(f"{key}: union types are not supported in config")  # pragma: no cover
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")  # pragma: no cover
+
+
+def _check_bounds(f: dataclasses.Field[Any], value: Any, key: str) -> None:
+    values = value if isinstance(value, tuple) else (value,)
+    for v in values:
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            continue
+        for name, op, text in (("ge", float.__ge__, ">="), ("gt", float.__gt__, ">"),
+                               ("le", float.__le__, "<="), ("lt", float.__lt__, "<")):
+            if name in f.metadata and not op(float(v), float(f.metadata[name])):
+                raise ConfigError(f"{key}: must be {text} {f.metadata[name]}, got {v!r}")
+
+
+def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
+    """Build dataclass ``cls`` from a TOML table; unknown keys and bad values raise ConfigError."""
+    assert dataclasses.is_dataclass(cls)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for k in data:
+        if k not in fields:
+            known = ", ".join(sorted(fields))
+            raise ConfigError(f"{prefix}{k}: unknown key (known: {known})")
+    kwargs: dict[str, Any] = {}
+    for name, f in fields.items():
+        if name not in data:
+            continue
+        key = f"{prefix}{name}"
+        value = _convert(hints[name], data[name], key)
+        _check_bounds(f, value, key)
+        kwargs[name] = value
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:
+        raise ConfigError(f"{prefix}{e}") from None
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """Read a TOML file (or use the defaults when ``path`` is None) and validate it.
+
+    ``overrides`` is a nested dict merged over the file (used by CLI flags).
+    """
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            with p.open("rb") as fh:
+                data = tomllib.load(fh)
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {p}") from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    if overrides:
+        data = merge(data, overrides)
+    return from_dict(Config, data)
+
+
+def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Recursive dict merge (tables merged, other values replaced)."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def to_dict(obj: Any) -> Any:
+    """Dataclass -> plain TOML-compatible structure (tuples become lists)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple):
+        return [to_dict(v) for v in obj]
+    return obj
+
+
+def describe(obj: Any, prefix: str = "") -> list[str]:
+    """One line per leaf option: ``key = value  # help``, walking the fields (for start-up logs)."""
+    lines: list[str] = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            lines.extend(describe(value, key + "."))
+        elif isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
+            for i, item in enumerate(value):
+                lines.extend(describe(item, f"{key}[{i}]."))
+        else:
+            lines.append(f"{key} = {to_dict(value)!r}  # {f.metadata.get('help', '')}")
+    return lines

@@ -1,0 +1,167 @@
+"""Rotations: SO(3) exponential/logarithm, Hamilton quaternions (wxyz), roll-pitch-yaw.
+
+All rotations are (3, 3) float64 matrices R_a_b (maps vectors from frame b to frame a).
+Quaternions are Hamilton, scalar first: ``quat_wxyz`` (PX4 / MAVLink order).
+Roll-pitch-yaw are aerospace ZYX angles: R = Rz(yaw) @ Ry(pitch) @ Rx(roll) [rad].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from companion.errors import GeometryError
+
+F64 = NDArray[np.float64]
+
+_SMALL = 1e-10
+
+
+def hat(omega: ArrayLike) -> F64:
+    """Skew-symmetric matrix [w]_x (3, 3) with hat(w) @ v == cross(w, v)."""
+    w = np.asarray(omega, dtype=np.float64)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def exp(omega: ArrayLike) -> F64:
+    """Rodrigues' formula: rotation vector (3,) [rad] -> R (3, 3)."""
+    w = np.asarray(omega, dtype=np.float64)
+    theta = float(np.linalg.norm(w))
+    K = hat(w)
+    if theta < _SMALL:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K @ K
+
+
+def log(R: ArrayLike) -> F64:
+    """Inverse of :func:`exp`: R (3, 3) -> rotation vector (3,) [rad], angle in [0, pi]."""
+    return quat_to_rotvec(matrix_to_quat(R))
+
+
+def quat_to_rotvec(quat_wxyz: ArrayLike) -> F64:
+    """Unit quaternion (4,) -> rotation vector (3,) with angle in [0, pi]."""
+    q = normalize_quat(quat_wxyz)
+    if q[0] < 0:
+        q = -q
+    v = q[1:]
+    s = float(np.linalg.norm(v))
+    if s < _SMALL:
+        return 2.0 * v
+    angle = 2.0 * np.arctan2(s, q[0])
+    return np.asarray(v * (angle / s), dtype=np.float64)
+
+
+def normalize_quat(quat_wxyz: ArrayLike) -> F64:
+    """Return the unit quaternion (4,); raises GeometryError for zero or non-finite input."""
+    q = np.asarray(quat_wxyz, dtype=np.float64).reshape(4)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(n) or n < _SMALL:
+        raise GeometryError(f"quaternion must be finite and non-zero, got {q}")
+    return q / n
+
+
+def quat_to_matrix(quat_wxyz: ArrayLike) -> F64:
+    """Hamilton quaternion (w, x, y, z) -> R (3, 3)."""
+    w, x, y, z = normalize_quat(quat_wxyz)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(R: ArrayLike) -> F64:
+    """R (3, 3) -> unit Hamilton quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    M = np.asarray(R, dtype=np.float64)
+    if M.shape != (3, 3) or not np.all(np.isfinite(M)):
+        raise GeometryError("rotation matrix must be a finite (3, 3) array")
+    tr = M[0, 0] + M[1, 1] + M[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array(
+            [0.25 * s, (M[2, 1] - M[1, 2]) / s, (M[0, 2] - M[2, 0]) / s, (M[1, 0] - M[0, 1]) / s]
+        )
+    elif M[0, 0] > M[1, 1] and M[0, 0] > M[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + M[0, 0] - M[1, 1] - M[2, 2])
+        q = np.array(
+            [(M[2, 1] - M[1, 2]) / s, 0.25 * s, (M[0, 1] + M[1, 0]) / s, (M[0, 2] + M[2, 0]) / s]
+        )
+    elif M[1, 1] > M[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + M[1, 1] - M[0, 0] - M[2, 2])
+        q = np.array(
+            [(M[0, 2] - M[2, 0]) / s, (M[0, 1] + M[1, 0]) / s, 0.25 * s, (M[1, 2] + M[2, 1]) / s]
+        )
+    else:
+        s = 2.0 * np.sqrt(1.0 + M[2, 2] - M[0, 0] - M[1, 1])
+        q = np.array(
+            [(M[1, 0] - M[0, 1]) / s, (M[0, 2] + M[2, 0]) / s, (M[1, 2] + M[2, 1]) / s, 0.25 * s]
+        )
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> F64:
+    """Hamilton product q1 * q2 (rotation q2 applied first)."""
+    w1, x1, y1, z1 = np.asarray(q1_wxyz, dtype=np.float64)
+    w2, x2, y2, z2 = np.asarray(q2_wxyz, dtype=np.float64)
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
+
+
+def quat_wxyz_to_xyzw(quat_wxyz: ArrayLike) -> F64:
+    """Reorder (w, x, y, z) -> (x, y, z, w), as scipy's Rotation and the TUM format want."""
+    q = np.asarray(quat_wxyz, dtype=np.float64)
+    return np.asarray(q[..., [1, 2, 3, 0]], dtype=np.float64)
+
+
+def quat_xyzw_to_wxyz(quat_xyzw: ArrayLike) -> F64:
+    """Reorder (x, y, z, w) -> (w, x, y, z)."""
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    return np.asarray(q[..., [3, 0, 1, 2]], dtype=np.float64)
+
+
+def rot_x(angle_rad: float) -> F64:
+    """Rotation about +x by angle_rad."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> F64:
+    """Rotation about +y by angle_rad."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> F64:
+    """Rotation about +z by angle_rad."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rpy_to_matrix(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
+    """Aerospace ZYX Euler angles -> R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+
+
+def matrix_to_rpy(R: ArrayLike) -> tuple[float, float, float]:
+    """Inverse of :func:`rpy_to_matrix`: (roll_rad, pitch_rad, yaw_rad), pitch in [-pi/2, pi/2]."""
+    M = np.asarray(R, dtype=np.float64)
+    pitch = float(np.arcsin(np.clip(-M[2, 0], -1.0, 1.0)))
+    roll = float(np.arctan2(M[2, 1], M[2, 2]))
+    yaw = float(np.arctan2(M[1, 0], M[0, 0]))
+    return roll, pitch, yaw
+
+
+def angle_between(R_a: ArrayLike, R_b: ArrayLike) -> float:
+    """Geodesic angle [rad] between two rotations."""
+    R = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))

@@ -1,0 +1,162 @@
+"""Camera rendering by exact ray casting, with noise, optional motion blur and laser marks.
+
+Every pixel centre's ray (from the full camera model, distortion included) is cast against the
+world (:mod:`sitl._kernels`); the surface is textured and Lambert-shaded, then Gaussian sensor
+noise is added and the result quantised to 8-bit BGR. Laser marks are drawn as Gaussian red
+spots centred on the exact projection of the lasers' 3D hit points, hidden when the surface
+occludes them. ``live`` marks follow the beams; ``painted`` marks are the four hit points at
+``painted_time_s``, left on the surface (what d-Pose uses).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import CameraConfig, RangefinderConfig, RenderConfig
+from companion.geometry import se3
+from sitl import _kernels
+from sitl.sensors import laser_hits
+from sitl.trajectory import Trajectory
+from sitl.world import World
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+U8 = NDArray[np.uint8]
+
+LASER_BGR = np.array([40.0, 45.0, 255.0], dtype=np.float32)
+_NOISE_BANK = 1 << 21
+_AMBIENT = 0.45
+
+
+@dataclass(frozen=True, slots=True)
+class RenderedFrame:
+    """image_bgr (H, W, 3) uint8; depth_m (H, W) float32 z-depth in the camera frame (inf = sky);
+    T_world_cam (4, 4) at the frame time; marks_uv (K, 2) pixel centres of the visible laser
+    marks (NaN when not visible); marks_world (K, 3) their 3D points (NED)."""
+
+    image_bgr: U8
+    depth_m: F32
+    T_world_cam: F64
+    marks_uv: F64
+    marks_world: F64
+
+
+class Renderer:
+    """Renders the camera of one vehicle in one world. Deterministic in (seed, seq)."""
+
+    def __init__(self, world: World, camera: CameraConfig, render: RenderConfig,
+                 rangefinders: Sequence[RangefinderConfig] = (), seed: int = 1) -> None:
+        self.world = world
+        self.camera_cfg = camera
+        self.cfg = render
+        self.model = camera.model()
+        self.model.validate()
+        self.T_body_cam = camera.T_body_cam()
+        self.rangefinders = tuple(rangefinders)
+        self.seed = seed
+        h, w = camera.height, camera.width
+        self.rays_cam = np.ascontiguousarray(self.model.pixel_rays().reshape(-1, 3))
+        self.noise_bank = np.random.default_rng([seed, 404]).standard_normal(
+            _NOISE_BANK, dtype=np.float32)
+        el = np.radians(render.sun_elevation_deg)
+        az = np.radians(render.sun_azimuth_deg)
+        self.sun_ned = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
+        self._linear = np.empty((h * w, 3), dtype=np.float32)
+        self._accum = np.empty((h * w, 3), dtype=np.float32)
+        self._depth = np.empty(h * w, dtype=np.float32)
+        self._painted: F64 | None = None
+
+    # ------------------------------------------------------------------ core
+    def _linear_image(self, T_world_cam: F64, out: F32, depth: F32) -> None:
+        tex_data, tex_offs, tex_sizes = self.world.textures
+        w = self.world
+        _kernels.render(
+            np.ascontiguousarray(T_world_cam[:3, :3]), np.ascontiguousarray(T_world_cam[:3, 3]),
+            self.rays_cam, float(self.model.fx), *w.kernel_geometry(),
+            tex_data, tex_offs, tex_sizes, w.layers, w.fields, w.x0, w.y0, w.f_inv,
+            w.box_tint, self.sun_ned, _AMBIENT, out, depth)
+
+    def render_pose(self, T_world_cam: F64, seq: int, marks_world: F64 | None = None,
+                    blur_poses: Sequence[F64] = ()) -> RenderedFrame:
+        """Render at a camera pose. ``blur_poses``: sub-frame poses averaged for motion blur."""
+        h, w = self.camera_cfg.height, self.camera_cfg.width
+        if blur_poses:
+            self._accum.fill(0.0)
+            for T in blur_poses:
+                self._linear_image(T, self._linear, self._depth)
+                self._accum += self._linear
+            self._accum *= np.float32(1.0 / len(blur_poses))
+            linear = self._accum
+        else:
+            linear = self._linear
+        # depth (and the final sub-frame when blurring) at the frame's own pose
+        self._linear_image(T_world_cam, self._linear, self._depth)
+        depth = self._depth.reshape(h, w).copy()
+        img_lin = linear.reshape(h, w, 3)
+        uv = np.full((0, 2), np.nan)
+        pts = np.zeros((0, 3))
+        if marks_world is not None and len(marks_world):
+            pts = np.asarray(marks_world, dtype=np.float64)
+            uv = self._draw_marks(img_lin, T_world_cam, pts)
+        out = np.empty((h * w, 3), dtype=np.uint8)
+        start = int(np.random.default_rng([self.seed, 405, seq]).integers(0, _NOISE_BANK))
+        _kernels.finish(linear, self.noise_bank, start, float(self.cfg.noise_sigma_dn), out)
+        return RenderedFrame(out.reshape(h, w, 3), depth, T_world_cam, uv, pts)
+
+    def _draw_marks(self, img: F32, T_world_cam: F64, pts_world: F64) -> F64:
+        """Blend red Gaussian spots at the projections of visible 3D points; returns uv (K, 2)."""
+        T_cam_world = se3.inverse(T_world_cam)
+        p_cam = se3.transform(T_cam_world, pts_world)
+        uv, in_front = self.model.project(p_cam)
+        origin = T_world_cam[:3, 3]
+        rays = pts_world - origin
+        dist = np.linalg.norm(rays, axis=1)
+        hits = self.world.raycast(np.repeat(origin[None], len(pts_world), axis=0), rays)
+        visible = in_front & (hits.t_m > dist - 0.02) & self.model.in_image(uv, margin_px=1.0)
+        uv = np.where(visible[:, None], uv, np.nan)
+        h, w = img.shape[:2]
+        for k in np.flatnonzero(visible):
+            radius_px = 0.5 * self.cfg.spot_diameter_m * self.model.fx / p_cam[k, 2]
+            sigma = max(0.5 * radius_px, 0.7)
+            r = int(np.ceil(4 * sigma))
+            u, v = uv[k]
+            c0, c1 = max(int(np.floor(u)) - r, 0), min(int(np.floor(u)) + r + 2, w)
+            r0, r1 = max(int(np.floor(v)) - r, 0), min(int(np.floor(v)) + r + 2, h)
+            yy, xx = np.mgrid[r0:r1, c0:c1]
+            alpha = (0.95 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2))).astype(
+                np.float32)[..., None]
+            patch = img[r0:r1, c0:c1]
+            img[r0:r1, c0:c1] = patch * (1 - alpha) + alpha * LASER_BGR
+        return np.asarray(uv, dtype=np.float64)
+
+    # ------------------------------------------------------------------ flight
+    def marks_at(self, trajectory: Trajectory, time_s: float) -> F64 | None:
+        """World points of the laser marks visible at ``time_s`` under the configured mode."""
+        mode = self.cfg.laser_marks
+        if mode == "off" or not self.rangefinders:
+            return None
+        if mode == "painted":
+            if self._painted is None:
+                T = trajectory.T_world_body(self.cfg.painted_time_s)
+                t, pts = laser_hits(self.world, T, self.rangefinders)
+                self._painted = pts[np.isfinite(t)]
+            return self._painted
+        t, pts = laser_hits(self.world, trajectory.T_world_body(time_s), self.rangefinders)
+        ok = np.isfinite(t) & np.array([rf.min_m <= d <= rf.max_m
+                                        for rf, d in zip(self.rangefinders, t)])
+        return np.asarray(pts[ok], dtype=np.float64)
+
+    def render_at(self, trajectory: Trajectory, time_s: float, seq: int) -> RenderedFrame:
+        """Render frame ``seq`` stamped at ``time_s`` (the middle of the exposure)."""
+        T_world_cam = trajectory.T_world_body(time_s) @ self.T_body_cam
+        blur: list[F64] = []
+        if self.cfg.motion_blur:
+            n = self.cfg.blur_samples
+            ts = time_s + self.cfg.exposure_s * (np.arange(n) / (n - 1) - 0.5)
+            s = trajectory.sample(ts)
+            blur = [s.T_world_body(i) @ self.T_body_cam for i in range(n)]
+        return self.render_pose(T_world_cam, seq, self.marks_at(trajectory, time_s), blur)

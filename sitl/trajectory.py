@@ -1,0 +1,193 @@
+"""Smooth multirotor trajectories with a consistent attitude.
+
+A pattern is first laid out as a piecewise-linear path flown at constant speed (with hover
+dwells), its height following the terrain at ``altitude_m``; it is then convolved in time with a
+Gaussian (sigma 1 s), which makes it C-infinity with |v| <= cruise speed, and represented by
+quintic splines sampled at 100 Hz so that position, velocity and acceleration are continuous.
+
+Attitude follows the multirotor model (Mellinger & Kumar, ICRA 2011): the thrust axis (body -z,
+FRD) is parallel to the specific force a - g, and yaw follows the direction of travel. Roll and
+pitch therefore follow the horizontal acceleration. World: NED; body: FRD.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+from scipy.interpolate import make_interp_spline
+
+from companion.errors import SitlError
+from companion.geometry import se3
+from sitl.world import World
+
+F64 = NDArray[np.float64]
+
+TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb")
+GRAVITY_M_S2 = 9.80665
+LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
+_SAMPLE_HZ = 100.0
+_SMOOTH_SIGMA_S = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class TrajectorySample:
+    """Vehicle state at N times. position/velocity/accel: (N, 3) NED [m, m/s, m/s^2];
+    R_world_body: (N, 3, 3); omega_body_rad_s: (N, 3) body rates (FRD)."""
+
+    time_s: F64
+    position_m: F64
+    velocity_m_s: F64
+    accel_m_s2: F64
+    R_world_body: F64
+    omega_body_rad_s: F64
+
+    def T_world_body(self, i: int) -> F64:
+        """(4, 4) pose at sample i."""
+        return se3.make(self.R_world_body[i], self.position_m[i])
+
+
+def _polyline_xy(name: str, speed: float) -> F64:
+    """Horizontal waypoints (K, 2) [m] of one repetition of the pattern, starting at (0, 0)."""
+    if name == "hover":
+        return np.zeros((1, 2))
+    if name == "circle":
+        r = 10.0
+        a = np.linspace(0.0, 2 * np.pi, 181)
+        return np.stack([r * np.sin(a), r * (1 - np.cos(a))], axis=1)
+    if name == "lawnmower":
+        leg, step, n_legs = 30.0, 6.0, 4
+        pts = [(0.0, 0.0)]
+        for i in range(n_legs):
+            x_end = leg if i % 2 == 0 else 0.0
+            y = i * step
+            pts.append((x_end, y))
+            if i < n_legs - 1:
+                pts.append((x_end, y + step))
+        fwd = np.asarray(pts)
+        return np.concatenate([fwd, fwd[::-1][1:]], axis=0)  # and back again
+    if name == "figure8":
+        a = np.linspace(0.0, 2 * np.pi, 241)
+        return np.stack([14.0 * np.sin(a), 7.0 * np.sin(2 * a)], axis=1)
+    if name == "climb":
+        return np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 0.0]])
+    raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
+
+
+def _walk(poly: F64, speed: float, times: F64) -> F64:
+    """Position along a polyline flown at constant speed, repeated; (N, 2) at times (N,)."""
+    if len(poly) == 1:
+        return np.repeat(poly, len(times), axis=0)
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s_knots = np.concatenate([[0.0], np.cumsum(seg)])
+    total = s_knots[-1]
+    s = np.mod(speed * times, total)
+    return np.stack([np.interp(s, s_knots, poly[:, 0]), np.interp(s, s_knots, poly[:, 1])], axis=1)
+
+
+class Trajectory:
+    """A smooth flight; query any time with :meth:`sample` (times in seconds from start)."""
+
+    def __init__(self, name: str, world: World, seconds: float, altitude_m: float = 0.0,
+                 speed_m_s: float = 3.0, takeoff_landing: bool = False) -> None:
+        if name not in TRAJECTORIES:
+            raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
+        if seconds <= 0 or not math.isfinite(seconds):
+            raise SitlError("trajectory duration must be positive")
+        self.name = name
+        self.seconds = float(seconds)
+        alt = altitude_m if altitude_m > 0 else world.default_altitude_m
+        self.altitude_m = alt
+        dt = 1.0 / _SAMPLE_HZ
+        pad = 4.0 * _SMOOTH_SIGMA_S
+        t = np.arange(-pad, self.seconds + pad + dt / 2, dt)
+        tc = np.clip(t, 0.0, self.seconds)
+
+        # phases: [rest, take-off] dwell, pattern, dwell, [landing, rest]
+        dwell = min(2.0, 0.1 * self.seconds)
+        climb_rate = 1.5
+        t_up = (1.0 + alt / climb_rate) if takeoff_landing else 0.0
+        t_pattern0 = t_up + dwell
+        t_pattern1 = max(t_pattern0, self.seconds - dwell - t_up)
+        tp = np.clip(tc, t_pattern0, t_pattern1) - t_pattern0
+        poly = _polyline_xy(name, speed_m_s)
+        xy = _walk(poly, speed_m_s, tp)
+
+        # height above ground: cruise altitude, climb profile, take-off and landing ramps
+        agl = np.full(t.shape, alt)
+        if name == "climb":
+            lo, hi = 2.0, 15.0
+            dur = max(t_pattern1 - t_pattern0, 1e-6)
+            phase = np.clip(tp / dur, 0.0, 1.0)
+            agl = lo + (hi - lo) * (1.0 - np.abs(2.0 * phase - 1.0))
+            agl = np.where(tc < t_pattern0, lo, agl)
+            agl = np.where(tc > t_pattern1, lo, agl)
+            xy = _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / dur, tp)
+        if takeoff_landing:
+            base = agl.copy()
+            up = np.clip((tc - 1.0) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
+            down = np.clip((self.seconds - 1.0 - tc) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
+            agl = np.minimum(np.minimum(base, up), down)
+        z = -(world.surface_height(xy[:, 0], xy[:, 1]) + agl)
+
+        sig = _SMOOTH_SIGMA_S * _SAMPLE_HZ
+        pos = np.stack([xy[:, 0], xy[:, 1], z], axis=1)
+        pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
+        self._pos = make_interp_spline(t, pos, k=5)
+        vel = self._pos.derivative(1)(t)
+        # heading follows the horizontal velocity when moving, held otherwise
+        speed_xy = np.hypot(vel[:, 0], vel[:, 1])
+        yaw = np.arctan2(vel[:, 1], vel[:, 0])
+        moving = speed_xy > 0.3
+        if not moving.any():
+            yaw[:] = 0.0
+        else:
+            idx = np.where(moving, np.arange(len(t)), 0)
+            idx = np.maximum.accumulate(idx)
+            first = int(np.argmax(moving))
+            idx[:first] = first
+            yaw = yaw[idx]
+        yaw = np.unwrap(yaw)
+        if name == "climb":
+            yaw = np.zeros_like(yaw)
+        yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
+        self._yaw = make_interp_spline(t, yaw, k=5)
+        self._pos_d1 = self._pos.derivative(1)
+        self._pos_d2 = self._pos.derivative(2)
+
+    def _rotation(self, accel: F64, yaw: F64) -> F64:
+        f = accel - np.array([0.0, 0.0, GRAVITY_M_S2])
+        z_b = -f / np.linalg.norm(f, axis=1, keepdims=True)
+        x_c = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1)
+        y_b = np.cross(z_b, x_c)
+        y_b /= np.linalg.norm(y_b, axis=1, keepdims=True)
+        x_b = np.cross(y_b, z_b)
+        return np.stack([x_b, y_b, z_b], axis=2)
+
+    def sample(self, times_s: ArrayLike) -> TrajectorySample:
+        """State at times (N,) [s] (clamped to [0, seconds])."""
+        t = np.clip(np.atleast_1d(np.asarray(times_s, dtype=np.float64)), 0.0, self.seconds)
+        p = np.asarray(self._pos(t), dtype=np.float64)
+        v = np.asarray(self._pos_d1(t), dtype=np.float64)
+        a = np.asarray(self._pos_d2(t), dtype=np.float64)
+        R = self._rotation(a, np.asarray(self._yaw(t)))
+        # body rates from the rotation's time derivative: [w]x = R^T dR/dt (central difference)
+        h = 1e-4
+        Rp = self._rotation(np.asarray(self._pos_d2(t + h)), np.asarray(self._yaw(t + h)))
+        Rm = self._rotation(np.asarray(self._pos_d2(t - h)), np.asarray(self._yaw(t - h)))
+        W = np.einsum("nji,njk->nik", R, (Rp - Rm) / (2 * h))
+        omega = np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0],
+                          W[:, 1, 0] - W[:, 0, 1]], axis=1) / 2.0
+        return TrajectorySample(t, p, v, a, R, omega)
+
+    def T_world_body(self, time_s: float) -> F64:
+        """(4, 4) body pose at one time [s]."""
+        return self.sample([time_s]).T_world_body(0)
+
+    def path_length_m(self, step_s: float = 0.01) -> float:
+        """Length of the flown 3D path [m]."""
+        p = self.sample(np.arange(0.0, self.seconds + step_s / 2, step_s)).position_m
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
