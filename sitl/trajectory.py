@@ -31,6 +31,7 @@ GRAVITY_M_S2 = 9.80665
 LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
 _SMOOTH_SIGMA_S = 1.0
+_GROUND_REST_S = 3.5  # on the ground before take-off and after landing (> 3 sigma)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +110,7 @@ class Trajectory:
         # phases: [rest, take-off] dwell, pattern, dwell, [landing, rest]
         dwell = min(2.0, 0.1 * self.seconds)
         climb_rate = 1.5
-        t_up = (1.0 + alt / climb_rate) if takeoff_landing else 0.0
+        t_up = (_GROUND_REST_S + alt / climb_rate) if takeoff_landing else 0.0
         t_pattern0 = t_up + dwell
         t_pattern1 = max(t_pattern0, self.seconds - dwell - t_up)
         tp = np.clip(tc, t_pattern0, t_pattern1) - t_pattern0
@@ -128,8 +129,9 @@ class Trajectory:
             xy = _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / dur, tp)
         if takeoff_landing:
             base = agl.copy()
-            up = np.clip((tc - 1.0) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
-            down = np.clip((self.seconds - 1.0 - tc) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
+            up = np.clip((tc - _GROUND_REST_S) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
+            down = np.clip((self.seconds - _GROUND_REST_S - tc) * climb_rate, 0.0,
+                           None) + LANDED_HEIGHT_M
             agl = np.minimum(np.minimum(base, up), down)
         z = -(world.surface_height(xy[:, 0], xy[:, 1]) + agl)
 

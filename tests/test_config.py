@@ -1,0 +1,90 @@
+"""Configuration: defaults, validation messages naming the key, CLI exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.cli import main
+from companion.config import Config, describe, load_config
+from companion.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_defaults_are_valid_and_follow_design() -> None:
+    cfg = load_config()
+    assert isinstance(cfg, Config)
+    T = cfg.camera.T_body_cam()
+    # downward camera, image top towards the nose (DESIGN.md section 2)
+    assert np.allclose(T[:3, :3] @ [0, 0, 1], [0, 0, 1])
+    assert np.allclose(T[:3, :3] @ [0, -1, 0], [1, 0, 0], atol=1e-12)
+    rf = cfg.rangefinders
+    assert len(rf) == 4
+    xy = np.array([r.mount.xyz_m[:2] for r in rf])
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)[np.triu_indices(4, 1)]
+    assert d.min() >= 0.3 and d.max() <= 0.6  # "about 0.3-0.6 m apart"
+    assert len(np.unique(np.round(d, 3))) == 6  # asymmetric: all six distances differ
+    for r in rf:  # slightly tilted outwards
+        beam = r.mount.T_body_sensor()[:3, 2]
+        pos = np.array(r.mount.xyz_m[:2])
+        assert beam[2] > np.cos(np.radians(6))
+        assert float(np.dot(beam[:2], pos)) > 0
+
+
+@pytest.mark.parametrize("name", ["sitl.toml", "default.toml"])
+def test_shipped_config_files_load(name: str) -> None:
+    cfg = load_config(REPO / "config" / name)
+    assert cfg.camera.width > 0
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"camera": {"fx": -5}}, "camera.fx: must be > 0"),
+        ({"camera": {"fxx": 1}}, "camera.fxx: unknown key"),
+        ({"camera": {"width": 640.5}}, "camera.width: expected an integer"),
+        ({"camera": {"mount": {"xyz_m": [1, 2]}}}, "camera.mount.xyz_m: expected 3 values"),
+        ({"sitl": {"terrain": "moon"}}, "sitl.terrain: must be one of"),
+        ({"sitl": {"render": {"noise_sigma_dn": "x"}}}, "sitl.render.noise_sigma_dn"),
+        ({"sitl": {"takeoff_landing": 1}}, "sitl.takeoff_landing: expected true or false"),
+        ({"rangefinders": [{"sensor_id": 1, "min_m": 5.0, "max_m": 2.0}]},
+         "rangefinders[0].max_m: must be > min_m"),
+        ({"rangefinders": [{"sensor_id": 1}, {"sensor_id": 1}]}, "sensor_id values must be unique"),
+        ({"rangefinders": [{"dropout_prob": 1.5}]}, "rangefinders[0].dropout_prob: must be <= 1"),
+        ({"camera": {"rate_hz": float("nan")}}, "camera.rate_hz: must be finite"),
+    ],
+)
+def test_bad_values_name_their_key(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        load_config(overrides=overrides)
+    assert message in str(e.value)
+
+
+def test_describe_walks_every_field() -> None:
+    lines = describe(load_config())
+    assert any(line.startswith("camera.fx = 460.0  # focal length") for line in lines)
+    assert any(line.startswith("rangefinders[3].sigma_a_m") for line in lines)
+    assert any(line.startswith("sitl.render.laser_marks") for line in lines)
+
+
+def test_cli_exits_2_on_bad_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[camera]\nfx = -1.0\n")
+    code = main(["sitl", "record", "--config", str(bad), "--out", str(tmp_path / "x")])
+    assert code == 2
+    assert "camera.fx: must be > 0" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()  # nothing half-started
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[camera\n")
+    assert main(["config", "--config", str(broken)]) == 2
+    assert main(["config", "--config", str(tmp_path / "missing.toml")]) == 2
+    assert main(["sitl", "record", "--seconds", "-3", "--out", str(tmp_path / "y")]) == 2
+    assert main(["sitl", "record", "--terrain", "moon", "--out", str(tmp_path / "y")]) == 2
+
+
+def test_cli_config_prints_options(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["config"]) == 0
+    assert "sitl.terrain = 'hills'" in capsys.readouterr().out
