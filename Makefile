@@ -31,8 +31,8 @@ demo: venv
 	$(BIN)/companion sitl sheet $(OUT)/demo-hills-lawnmower
 
 lint: venv
-	$(BIN)/ruff check companion drivers sitl tests scripts
-	$(BIN)/ruff format --check companion drivers sitl tests scripts
+	$(BIN)/ruff check companion drivers sitl tests
+	$(BIN)/ruff format --check companion drivers sitl tests
 
 typecheck: venv
 	$(BIN)/mypy

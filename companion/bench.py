@@ -7,11 +7,11 @@ import platform
 import resource
 import time
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, TerrainName
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,8 +52,12 @@ def bench_render(cfg: Config, terrains: list[str], frames: int) -> dict[str, Any
     cv2.setNumThreads(1)
     results: list[RenderBench] = []
     for terrain in terrains:
-        sitl = replace(cfg.sitl, terrain=terrain, trajectory="lawnmower",  # type: ignore[arg-type]
-                       seconds=max(frames / cfg.camera.rate_hz + 1.0, 2.0))
+        sitl = replace(
+            cfg.sitl,
+            terrain=cast(TerrainName, terrain),
+            trajectory="lawnmower",
+            seconds=max(frames / cfg.camera.rate_hz + 1.0, 2.0),
+        )
         scenario = Scenario(replace(cfg, sitl=sitl))
         scenario.renderer.render_at(scenario.trajectory, 0.0, 0)  # warm-up
         times = []
@@ -64,21 +68,32 @@ def bench_render(cfg: Config, terrains: list[str], frames: int) -> dict[str, Any
             times.append(time.perf_counter() - t0)
         ms = np.asarray(times) * 1e3
         med = float(np.median(ms))
-        results.append(RenderBench(terrain, frames, med, float(np.percentile(ms, 99)),
-                                   1000.0 / med))
+        results.append(
+            RenderBench(terrain, frames, med, float(np.percentile(ms, 99)), 1000.0 / med)
+        )
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {"machine": machine_description(), "width": cfg.camera.width,
-            "height": cfg.camera.height, "results": results, "peak_rss_mb": rss_mb}
+    return {
+        "machine": machine_description(),
+        "width": cfg.camera.width,
+        "height": cfg.camera.height,
+        "results": results,
+        "peak_rss_mb": rss_mb,
+    }
 
 
 def format_render_report(report: dict[str, Any]) -> str:
     """Markdown table of :func:`bench_render`'s figures."""
-    lines = [f"machine: {report['machine']}",
-             f"image: {report['width']}x{report['height']}, one core, peak RSS "
-             f"{report['peak_rss_mb']:.0f} MB", "",
-             "| terrain | frames | median ms | p99 ms | fps (median) |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"machine: {report['machine']}",
+        f"image: {report['width']}x{report['height']}, one core, peak RSS "
+        f"{report['peak_rss_mb']:.0f} MB",
+        "",
+        "| terrain | frames | median ms | p99 ms | fps (median) |",
+        "|---|---|---|---|---|",
+    ]
     for r in report["results"]:
-        lines.append(f"| {r.terrain} | {r.frames} | {r.median_ms:.1f} | {r.p99_ms:.1f} | "
-                     f"{r.fps_median:.1f} |")
+        lines.append(
+            f"| {r.terrain} | {r.frames} | {r.median_ms:.1f} | {r.p99_ms:.1f} | "
+            f"{r.fps_median:.1f} |"
+        )
     return "\n".join(lines)

@@ -22,8 +22,14 @@ EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
 def _sitl_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """CLI flags -> nested config overrides (only the flags the user gave)."""
     sitl: dict[str, Any] = {}
-    for flag, key in (("terrain", "terrain"), ("trajectory", "trajectory"), ("seed", "seed"),
-                      ("seconds", "seconds"), ("altitude", "altitude_m"), ("speed", "speed_m_s")):
+    for flag, key in (
+        ("terrain", "terrain"),
+        ("trajectory", "trajectory"),
+        ("seed", "seed"),
+        ("seconds", "seconds"),
+        ("altitude", "altitude_m"),
+        ("speed", "speed_m_s"),
+    ):
         value = getattr(args, flag, None)
         if value is not None:
             sitl[key] = value
@@ -50,8 +56,13 @@ def cmd_sitl_record(args: argparse.Namespace) -> int:
     from sitl.dataset import record
 
     cfg = _load(args)
-    out = record(cfg, args.out, image_format=args.image_format, overwrite=args.overwrite,
-                 progress=not args.no_progress)
+    out = record(
+        cfg,
+        args.out,
+        image_format=args.image_format,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
+    )
     print(out)
     return EXIT_OK
 

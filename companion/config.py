@@ -74,8 +74,9 @@ class CameraConfig:
     def model(self) -> CameraModel:
         """The camera model of these intrinsics."""
         k1, k2, p1, p2, k3 = self.dist
-        return CameraModel(self.width, self.height, self.fx, self.fy, self.cx, self.cy,
-                           k1, k2, p1, p2, k3)
+        return CameraModel(
+            self.width, self.height, self.fx, self.fy, self.cx, self.cy, k1, k2, p1, p2, k3
+        )
 
     def T_body_cam(self) -> F64:
         """(4, 4) camera -> body."""
@@ -102,8 +103,14 @@ class RangefinderConfig:
 
     def spec(self) -> RangeSensorSpec:
         """The calibration record handed to the algorithms."""
-        return RangeSensorSpec(self.sensor_id, self.mount.T_body_sensor(), self.min_m,
-                               self.max_m, self.sigma_a_m, self.sigma_b)
+        return RangeSensorSpec(
+            self.sensor_id,
+            self.mount.T_body_sensor(),
+            self.min_m,
+            self.max_m,
+            self.sigma_a_m,
+            self.sigma_b,
+        )
 
 
 def _outward(sensor_id: int, x: float, y: float, tilt_deg: float = 4.0) -> RangefinderConfig:
@@ -153,8 +160,9 @@ class SitlConfig:
     trajectory: TrajectoryName = opt("lawnmower", "hover, circle, lawnmower, figure8 or climb")
     seed: int = opt(1, "seed of terrain, noise and faults", ge=0)
     seconds: float = opt(60.0, "flight duration [s]", gt=0, le=36000)
-    altitude_m: float = opt(0.0, "height above ground [m]; 0 = terrain default (6, urban 12)",
-                            ge=0, le=200)
+    altitude_m: float = opt(
+        0.0, "height above ground [m]; 0 = terrain default (6, urban 12)", ge=0, le=200
+    )
     speed_m_s: float = opt(3.0, "cruise speed [m/s]", gt=0, le=5)
     takeoff_landing: bool = opt(False, "start on the ground, take off, and land at the end")
     world_size_m: float = opt(160.0, "side of the square world [m]", ge=20, le=2000)
@@ -206,7 +214,8 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
             return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
-        return tuple(_convert(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        pairs = enumerate(zip(args, value, strict=True))
+        return tuple(_convert(a, v, f"{key}[{i}]") for i, (a, v) in pairs)
     if origin in (typing.Union, types.UnionType):
         raise ConfigError(f"{key}: union types are not supported in config")  # pragma: no cover
     if tp is bool:
@@ -235,8 +244,12 @@ def _check_bounds(f: dataclasses.Field[Any], value: Any, key: str) -> None:
     for v in values:
         if not isinstance(v, (int, float)) or isinstance(v, bool):
             continue
-        for name, op, text in (("ge", float.__ge__, ">="), ("gt", float.__gt__, ">"),
-                               ("le", float.__le__, "<="), ("lt", float.__lt__, "<")):
+        for name, op, text in (
+            ("ge", float.__ge__, ">="),
+            ("gt", float.__gt__, ">"),
+            ("le", float.__le__, "<="),
+            ("lt", float.__lt__, "<"),
+        ):
             if name in f.metadata and not op(float(v), float(f.metadata[name])):
                 raise ConfigError(f"{key}: must be {text} {f.metadata[name]}, got {v!r}")
 

@@ -21,14 +21,18 @@ import numpy as np
 
 # fastmath without nnan/ninf: infinities mark misses. Compiled code is deterministic, so the
 # same seed still gives bit-identical images on one machine.
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy",
-        "fastmath": {"nsz", "arcp", "contract", "afn", "reassoc"}}
+_JIT = {
+    "cache": True,
+    "nogil": True,
+    "error_model": "numpy",
+    "fastmath": {"nsz", "arcp", "contract", "afn", "reassoc"},
+}
 
 MISS, GROUND, ROOF, WALL = -1, 0, 1, 2
 
 
 @nb.njit(inline="always", **_JIT)
-def _height(hmap, inv_res, x0, y0, x, y):  # type: ignore[no-untyped-def]
+def _height(hmap, inv_res, x0, y0, x, y):
     """Bilinear height and its gradient (h, dh/dx, dh/dy) at (x, y)."""
     ny, nx = hmap.shape
     fx = (x - x0) * inv_res
@@ -62,7 +66,7 @@ def _height(hmap, inv_res, x0, y0, x, y):  # type: ignore[no-untyped-def]
 
 
 @nb.njit(**_JIT)
-def height_at(hmap, inv_res, x0, y0, xs, ys):  # type: ignore[no-untyped-def]
+def height_at(hmap, inv_res, x0, y0, xs, ys):
     """Terrain height (N,) [m, up] at points xs, ys (N,) [m]."""
     out = np.empty(xs.shape[0])
     for i in range(xs.shape[0]):
@@ -72,8 +76,28 @@ def height_at(hmap, inv_res, x0, y0, xs, ys):  # type: ignore[no-untyped-def]
 
 
 @nb.njit(inline="always", **_JIT)
-def _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax, lip_x, lip_y,
-                 blocks, b_inv, b_reach, tmax, t_guess):  # type: ignore[no-untyped-def]
+def _cast_ground(
+    ox,
+    oy,
+    oz,
+    dx,
+    dy,
+    dz,
+    hmap,
+    inv_res,
+    x0,
+    y0,
+    hmin,
+    hmax,
+    plane,
+    lip_x,
+    lip_y,
+    blocks,
+    b_inv,
+    b_reach,
+    tmax,
+    t_guess,
+):
     """First height-field hit along a unit ray: (t, dh/dx, dh/dy) there, t = inf on a miss.
 
     ``blocks[by, bx] = (max height, Lipschitz x, Lipschitz y)`` hold, for every block of the
@@ -84,6 +108,15 @@ def _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax, lip_
     When the global slope bounds (lip_x, lip_y) prove the hit unique, a bracketed Newton
     iteration from ``t_guess`` (the neighbouring pixel's distance) replaces the stepping.
     """
+    if plane[3] > 0.0:
+        # the terrain is the plane h = a + b x + c y: closed form
+        denom = dz + plane[1] * dx + plane[2] * dy
+        if denom <= 1e-12:
+            return math.inf, 0.0, 0.0
+        t = (-oz - plane[0] - plane[1] * ox - plane[2] * oy) / denom
+        if t < 0.0:
+            return math.inf, 0.0, 0.0
+        return t, plane[1], plane[2]
     nby = blocks.shape[0]
     nbx = blocks.shape[1]
     dxy = math.sqrt(dx * dx + dy * dy)
@@ -106,10 +139,15 @@ def _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax, lip_
                 t_lo = tt
             else:
                 t_hi = tt
-            if abs(g) < 1e-8:
+            if abs(g) < 5e-7:
                 return tt, hx, hy
             dg = -dz - (hx * dx + hy * dy)
-            nxt = tt - g / dg
+            step = -g / dg
+            nxt = tt + step
+            if abs(step) < 1e-4 and t_lo <= nxt <= t_hi:
+                # one Newton step this short is exact to ~1e-7 m: the bilinear surface's
+                # curvature along the ray is tiny and a cell edge can bend it by < 1e-3 * step
+                return nxt, hx, hy
             if not (t_lo < nxt < t_hi):
                 nxt = 0.5 * (t_lo + t_hi)
             if t_hi - t_lo < 1e-10:
@@ -151,8 +189,24 @@ def _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax, lip_
 
 
 @nb.njit(inline="always", **_JIT)
-def _cast_boxes(ox, oy, oz, dx, dy, dz, t_best, boxes, box_top, cell_start, cell_boxes,
-                g_x0, g_y0, g_inv, g_nx, g_ny):  # type: ignore[no-untyped-def]
+def _cast_boxes(
+    ox,
+    oy,
+    oz,
+    dx,
+    dy,
+    dz,
+    t_best,
+    boxes,
+    box_top,
+    cell_start,
+    cell_boxes,
+    g_x0,
+    g_y0,
+    g_inv,
+    g_nx,
+    g_ny,
+):
     """First box hit before t_best: (t, box index or -1, face axis 0/1/2, face sign)."""
     hit_box = -1
     axis = 0
@@ -217,9 +271,33 @@ def _cast_boxes(ox, oy, oz, dx, dy, dz, t_best, boxes, box_top, cell_start, cell
 
 
 @nb.njit(**_JIT)
-def cast_rays(origins, dirs, hmap, inv_res, x0, y0, hmin, hmax, lip_x, lip_y, blocks, b_inv, b_reach, tmax,
-              boxes, box_top, cell_start, cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny):  # type: ignore[no-untyped-def]
-    """Cast unit rays (N, 3) from origins (N, 3): returns t (N,), normals (N, 3), kind (N,), box (N,)."""
+def cast_rays(
+    origins,
+    dirs,
+    hmap,
+    inv_res,
+    x0,
+    y0,
+    hmin,
+    hmax,
+    plane,
+    lip_x,
+    lip_y,
+    blocks,
+    b_inv,
+    b_reach,
+    tmax,
+    boxes,
+    box_top,
+    cell_start,
+    cell_boxes,
+    g_x0,
+    g_y0,
+    g_inv,
+    g_nx,
+    g_ny,
+):
+    """Cast unit rays (N, 3) from origins (N, 3): t (N,), normals (N, 3), kind (N,), box (N,)."""
     n = origins.shape[0]
     t_out = np.empty(n)
     normals = np.zeros((n, 3))
@@ -229,12 +307,48 @@ def cast_rays(origins, dirs, hmap, inv_res, x0, y0, hmin, hmax, lip_x, lip_y, bl
     for i in range(n):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        t, hx, hy = _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax,
-                                 lip_x, lip_y, blocks, b_inv, b_reach, tmax, t_guess)
+        t, hx, hy = _cast_ground(
+            ox,
+            oy,
+            oz,
+            dx,
+            dy,
+            dz,
+            hmap,
+            inv_res,
+            x0,
+            y0,
+            hmin,
+            hmax,
+            plane,
+            lip_x,
+            lip_y,
+            blocks,
+            b_inv,
+            b_reach,
+            tmax,
+            t_guess,
+        )
         if t < math.inf:
             t_guess = t
-        t, k, axis, sign = _cast_boxes(ox, oy, oz, dx, dy, dz, t, boxes, box_top, cell_start,
-                                       cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny)
+        t, k, axis, sign = _cast_boxes(
+            ox,
+            oy,
+            oz,
+            dx,
+            dy,
+            dz,
+            t,
+            boxes,
+            box_top,
+            cell_start,
+            cell_boxes,
+            g_x0,
+            g_y0,
+            g_inv,
+            g_nx,
+            g_ny,
+        )
         t_out[i] = t
         if k >= 0:
             box_out[i] = k
@@ -250,33 +364,16 @@ def cast_rays(origins, dirs, hmap, inv_res, x0, y0, hmin, hmax, lip_x, lip_y, bl
 
 
 _WRAP_OFFSET = float(1 << 24)  # a multiple of every texture size: makes coordinates positive
+_LEVEL_SCALE = np.array([2.0**-level for level in range(32)])  # texel scale of mip level l
 
 
 @nb.njit(inline="always", **_JIT)
-def _tex_bilinear(data, off, n, u, v):  # type: ignore[no-untyped-def]
-    """Bilinear, wrapped lookup in a square power-of-two texture level; u, v in texels."""
-    u += _WRAP_OFFSET - 0.5
-    v += _WRAP_OFFSET - 0.5
-    iu0 = int(u)
-    iv0 = int(v)
-    au = u - iu0
-    av = v - iv0
-    m = n - 1
-    iu = iu0 & m
-    iv = iv0 & m
-    iu1 = (iu + 1) & m
-    row0 = off + iv * n
-    row1 = off + ((iv + 1) & m) * n
-    a = data[row0 + iu]
-    b = data[row0 + iu1]
-    c = data[row1 + iu]
-    d = data[row1 + iu1]
-    return (a + (b - a) * au) + ((c + (d - c) * au) - (a + (b - a) * au)) * av
+def _tex_trilinear(data, offs, sizes, tex, u0, v0, lod):
+    """Mip-mapped (trilinear) lookup of texture ``tex`` at level-0 texel coords and ``lod``.
 
-
-@nb.njit(inline="always", **_JIT)
-def _tex_trilinear(data, offs, sizes, tex, u0, v0, lod):  # type: ignore[no-untyped-def]
-    """Mip-mapped lookup of texture ``tex`` at level-0 texel coords (u0, v0) and level ``lod``."""
+    Each level l is stored as interleaved pairs (level l, level l+1 resampled to level l's
+    grid), so one wrapped bilinear fetch of two channels gives both levels.
+    """
     nlev = sizes.shape[1]
     if lod < 0.0:
         lod = 0.0
@@ -284,38 +381,128 @@ def _tex_trilinear(data, offs, sizes, tex, u0, v0, lod):  # type: ignore[no-unty
         lod = nlev - 1.0
     l0 = int(lod)
     a = lod - l0
-    s0 = 1.0 / sizes[tex, 0] * sizes[tex, l0]
-    v_0 = _tex_bilinear(data, offs[tex, l0], sizes[tex, l0], u0 * s0, v0 * s0)
-    if a < 1e-3 or l0 + 1 >= nlev:
-        return v_0
-    s1 = 0.5 * s0
-    v_1 = _tex_bilinear(data, offs[tex, l0 + 1], sizes[tex, l0 + 1], u0 * s1, v0 * s1)
-    return v_0 + (v_1 - v_0) * a
+    n = sizes[tex, l0]
+    s = _LEVEL_SCALE[l0]
+    u = u0 * s + (_WRAP_OFFSET - 0.5)
+    v = v0 * s + (_WRAP_OFFSET - 0.5)
+    iu0 = int(u)
+    iv0 = int(v)
+    au = u - iu0
+    av = v - iv0
+    m = n - 1
+    iu = (iu0 & m) * 2
+    iu1 = ((iu0 + 1) & m) * 2
+    off = offs[tex, l0]
+    row0 = off + (iv0 & m) * n * 2
+    row1 = off + ((iv0 + 1) & m) * n * 2
+    w00 = (1.0 - au) * (1.0 - av)
+    w01 = au * (1.0 - av)
+    w10 = (1.0 - au) * av
+    w11 = au * av
+    c0 = (
+        data[row0 + iu] * w00
+        + data[row0 + iu1] * w01
+        + data[row1 + iu] * w10
+        + data[row1 + iu1] * w11
+    )
+    c1 = (
+        data[row0 + iu + 1] * w00
+        + data[row0 + iu1 + 1] * w01
+        + data[row1 + iu + 1] * w10
+        + data[row1 + iu1 + 1] * w11
+    )
+    return c0 + (c1 - c0) * a
 
 
 @nb.njit(inline="always", **_JIT)
-def _field(fields, f_x0, f_y0, f_inv, x, y, out):  # type: ignore[no-untyped-def]
-    """Bilinear lookup of the packed low-frequency fields (Ny, Nx, C) into out (C,)."""
-    ny, nx, nc = fields.shape
+def _field(fields, f_x0, f_y0, f_inv, x, y):
+    """Bilinear lookup of the four packed low-frequency fields (Ny, Nx, 4) at (x, y)."""
+    ny, nx, _ = fields.shape
     fx = min(max((x - f_x0) * f_inv, 0.0), nx - 1.000001)
     fy = min(max((y - f_y0) * f_inv, 0.0), ny - 1.000001)
     ix = int(fx)
     iy = int(fy)
     ax = fx - ix
     ay = fy - iy
-    for c in range(nc):
-        out[c] = (fields[iy, ix, c] * (1.0 - ax) + fields[iy, ix + 1, c] * ax) * (1.0 - ay) + (
-            fields[iy + 1, ix, c] * (1.0 - ax) + fields[iy + 1, ix + 1, c] * ax
-        ) * ay
+    w00 = (1.0 - ax) * (1.0 - ay)
+    w01 = ax * (1.0 - ay)
+    w10 = (1.0 - ax) * ay
+    w11 = ax * ay
+    a = fields[iy, ix]
+    b = fields[iy, ix + 1]
+    c = fields[iy + 1, ix]
+    d = fields[iy + 1, ix + 1]
+    return (
+        a[0] * w00 + b[0] * w01 + c[0] * w10 + d[0] * w11,
+        a[1] * w00 + b[1] * w01 + c[1] * w10 + d[1] * w11,
+        a[2] * w00 + b[2] * w01 + c[2] * w10 + d[2] * w11,
+        a[3] * w00 + b[3] * w01 + c[3] * w10 + d[3] * w11,
+    )
+
+
+@nb.njit(inline="always", **_JIT)
+def _quantise(value, noise):
+    """8-bit level of a linear value plus noise, rounded and clipped."""
+    v = math.floor(value + noise + 0.5)
+    if v < 0.0:
+        v = 0.0
+    elif v > 255.0:
+        v = 255.0
+    return np.uint8(v)
 
 
 @nb.njit(**_JIT)
-def render(R_world_cam, p_world_cam, rays_cam, focal_px,
-           hmap, inv_res, x0, y0, hmin, hmax, lip_x, lip_y, blocks, b_inv, b_reach, tmax,
-           boxes, box_top, cell_start, cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny,
-           tex_data, tex_offs, tex_sizes, layers, fields, f_x0, f_y0, f_inv,
-           box_tint, sun_ned, ambient, out_bgr, out_depth):  # type: ignore[no-untyped-def]
-    """Ray cast and shade every pixel: linear BGR (H*W, 3) float32 and z-depth (H*W,) [m].
+def render(
+    R_world_cam,
+    p_world_cam,
+    rays_cam,
+    width,
+    focal_px,
+    hmap,
+    inv_res,
+    x0,
+    y0,
+    hmin,
+    hmax,
+    plane,
+    lip_x,
+    lip_y,
+    blocks,
+    b_inv,
+    b_reach,
+    tmax,
+    boxes,
+    box_top,
+    cell_start,
+    cell_boxes,
+    g_x0,
+    g_y0,
+    g_inv,
+    g_nx,
+    g_ny,
+    tex_data,
+    tex_offs,
+    tex_sizes,
+    layers,
+    fields,
+    f_x0,
+    f_y0,
+    f_inv,
+    box_tint,
+    sun_ned,
+    ambient,
+    out_bgr,
+    out_depth,
+    noise_bank,
+    noise_start,
+    sigma_dn,
+    out_u8,
+):
+    """Ray cast and shade every pixel; z-depth (H*W,) [m] into out_depth.
+
+    With an empty ``out_u8`` the linear BGR values go to out_bgr (H*W, 3) float32 (for motion
+    blur and laser marks); otherwise noise from the bank (from ``noise_start``) is added and the
+    8-bit image written to out_u8 (H*W, 3) directly.
 
     rays_cam: (H*W, 3) unit rays in the camera frame. layers: (4, 11) texture layers (ground A,
     ground B, roof, wall): tex, tile_m, cos, sin, off_u, off_v, tint b g r, texels per metre,
@@ -323,38 +510,97 @@ def render(R_world_cam, p_world_cam, rays_cam, focal_px,
     """
     n = rays_cam.shape[0]
     ox, oy, oz = p_world_cam[0], p_world_cam[1], p_world_cam[2]
-    fv = np.empty(fields.shape[2])
     sun_norm = -sun_ned[2]
+    final = out_u8.shape[0] > 0
+    nb_len = noise_bank.shape[0]
+    j = noise_start
+    # Warm starts come from the same column of the rows above (quadratic extrapolation), so
+    # pixels of one row do not wait for each other and the CPU overlaps their iterations.
+    rows = np.zeros((3, width))
     t_prev = 0.0
-    t_prev2 = 0.0
     for i in range(n):
+        col = i % width
+        row = i // width
+        r_a = rows[(row - 1) % 3, col] if row >= 1 else 0.0
+        r_b = rows[(row - 2) % 3, col] if row >= 2 else 0.0
+        r_c = rows[(row - 3) % 3, col] if row >= 3 else 0.0
         rx, ry, rz = rays_cam[i, 0], rays_cam[i, 1], rays_cam[i, 2]
         dx = R_world_cam[0, 0] * rx + R_world_cam[0, 1] * ry + R_world_cam[0, 2] * rz
         dy = R_world_cam[1, 0] * rx + R_world_cam[1, 1] * ry + R_world_cam[1, 2] * rz
         dz = R_world_cam[2, 0] * rx + R_world_cam[2, 1] * ry + R_world_cam[2, 2] * rz
-        # warm start: linear extrapolation from the two previous pixels of the row
-        t_guess = 2.0 * t_prev - t_prev2 if t_prev2 > 0.0 else t_prev
-        t, hx, hy = _cast_ground(ox, oy, oz, dx, dy, dz, hmap, inv_res, x0, y0, hmin, hmax,
-                                 lip_x, lip_y, blocks, b_inv, b_reach, tmax, t_guess)
-        if t < math.inf:
-            t_prev2 = t_prev
-            t_prev = t
+        if r_c > 0.0 and r_b > 0.0 and r_a > 0.0:
+            t_guess = 3.0 * (r_a - r_b) + r_c
+        elif r_b > 0.0 and r_a > 0.0:
+            t_guess = 2.0 * r_a - r_b
+        elif r_a > 0.0:
+            t_guess = r_a
         else:
-            t_prev2 = 0.0
-        t, k, axis, sign = _cast_boxes(ox, oy, oz, dx, dy, dz, t, boxes, box_top, cell_start,
-                                       cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny)
+            t_guess = t_prev
+        t, hx, hy = _cast_ground(
+            ox,
+            oy,
+            oz,
+            dx,
+            dy,
+            dz,
+            hmap,
+            inv_res,
+            x0,
+            y0,
+            hmin,
+            hmax,
+            plane,
+            lip_x,
+            lip_y,
+            blocks,
+            b_inv,
+            b_reach,
+            tmax,
+            t_guess,
+        )
+        rows[row % 3, col] = t if t < math.inf else 0.0
+        if t < math.inf:
+            t_prev = t
+        t, k, axis, sign = _cast_boxes(
+            ox,
+            oy,
+            oz,
+            dx,
+            dy,
+            dz,
+            t,
+            boxes,
+            box_top,
+            cell_start,
+            cell_boxes,
+            g_x0,
+            g_y0,
+            g_inv,
+            g_nx,
+            g_ny,
+        )
         if t == math.inf:
-            out_bgr[i, 0] = 200.0
-            out_bgr[i, 1] = 170.0
-            out_bgr[i, 2] = 150.0
+            b = 200.0
+            g = 170.0
+            r = 150.0
+            if final:
+                if j + 3 > nb_len:
+                    j = 0
+                out_u8[i, 0] = _quantise(b, sigma_dn * noise_bank[j])
+                out_u8[i, 1] = _quantise(g, sigma_dn * noise_bank[j + 1])
+                out_u8[i, 2] = _quantise(r, sigma_dn * noise_bank[j + 2])
+                j += 3
+            else:
+                out_bgr[i, 0] = b
+                out_bgr[i, 1] = g
+                out_bgr[i, 2] = r
             out_depth[i] = math.inf
             continue
         out_depth[i] = t * rz
         px = ox + t * dx
         py = oy + t * dy
         pz = oz + t * dz
-        _field(fields, f_x0, f_y0, f_inv, px, py, fv)
-        albedo = fv[1]
+        w_b, albedo, warp_u, warp_v = _field(fields, f_x0, f_y0, f_inv, px, py)
         if k < 0:
             s = 1.0 / math.sqrt(hx * hx + hy * hy + 1.0)
             nx_ = -hx * s
@@ -383,9 +629,8 @@ def render(R_world_cam, p_world_cam, rays_cam, focal_px,
         r = 0.0
         if k < 0:
             # ground: two photo layers mixed by a low-frequency weight, domain-warped coordinates
-            wu = px + fv[2]
-            wv = py + fv[3]
-            w_b = fv[0]
+            wu = px + warp_u
+            wv = py + warp_v
             for li in range(2):
                 w = w_b if li == 1 else 1.0 - w_b
                 if w < 0.02:
@@ -418,26 +663,31 @@ def render(R_world_cam, p_world_cam, rays_cam, focal_px,
             g = val * layers[li, 7] * box_tint[k, 1]
             r = val * layers[li, 8] * box_tint[k, 2]
         f = 2.0 * albedo * shade
-        out_bgr[i, 0] = b * f
-        out_bgr[i, 1] = g * f
-        out_bgr[i, 2] = r * f
+        if final:
+            if j + 3 > nb_len:
+                j = 0
+            out_u8[i, 0] = _quantise(b * f, sigma_dn * noise_bank[j])
+            out_u8[i, 1] = _quantise(g * f, sigma_dn * noise_bank[j + 1])
+            out_u8[i, 2] = _quantise(r * f, sigma_dn * noise_bank[j + 2])
+            j += 3
+        else:
+            out_bgr[i, 0] = b * f
+            out_bgr[i, 1] = g * f
+            out_bgr[i, 2] = r * f
 
 
 @nb.njit(**_JIT)
-def finish(linear_bgr, noise_bank, start, sigma_dn, out_u8):  # type: ignore[no-untyped-def]
-    """Add Gaussian noise from a bank of N(0,1) samples (slice at ``start``) and quantise."""
+def finish(linear_bgr, noise_bank, start, sigma_dn, out_u8):
+    """Add Gaussian noise from a bank of N(0,1) samples (from ``start``) and quantise.
+
+    Draws the bank exactly as :func:`render` does when it writes 8-bit output directly.
+    """
     n = linear_bgr.shape[0]
     nb_len = noise_bank.shape[0]
     j = start
     for i in range(n):
+        if j + 3 > nb_len:
+            j = 0
         for c in range(3):
-            v = linear_bgr[i, c] + sigma_dn * noise_bank[j]
-            j += 1
-            if j >= nb_len:
-                j = 0
-            v = math.floor(v + 0.5)
-            if v < 0.0:
-                v = 0.0
-            elif v > 255.0:
-                v = 255.0
-            out_u8[i, c] = np.uint8(v)
+            out_u8[i, c] = _quantise(linear_bgr[i, c], sigma_dn * noise_bank[j + c])
+        j += 3

@@ -78,7 +78,7 @@ class Dataset:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
         elif img.shape[2] == 4:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-        return CameraFrame(int(self.frame_times_us[index]), index, img)
+        return CameraFrame(int(self.frame_times_us[index]), index, np.asarray(img, dtype=np.uint8))
 
     def frames(self) -> Iterator[CameraFrame]:
         """Frames in time order, loaded lazily."""
@@ -101,10 +101,8 @@ class Dataset:
             raise DatasetError(f"{self.path}: no ground truth")
         t = self.gt_times_us
         i = int(np.searchsorted(t, time_us))
-        if i <= 0:
-            return self.gt_T_world_body[0].copy()
-        if i >= len(t):
-            return self.gt_T_world_body[-1].copy()
+        if i <= 0 or i >= len(t):
+            return np.array(self.gt_T_world_body[0 if i <= 0 else -1], dtype=np.float64)
         a = (time_us - t[i - 1]) / float(t[i] - t[i - 1])
         return se3.interpolate(self.gt_T_world_body[i - 1], self.gt_T_world_body[i], a)
 
@@ -128,8 +126,11 @@ def read_tum(path: Path) -> tuple[F64, F64]:
             raise DatasetError(f"{path}: a TUM line needs 8 values, got {len(vals)}")
         rows.append([float(v) for v in vals])
     arr = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
-    poses = np.stack([se3.from_quat(so3.quat_xyzw_to_wxyz(r[4:8]), r[1:4]) for r in arr]) \
-        if len(arr) else np.zeros((0, 4, 4))
+    poses = (
+        np.stack([se3.from_quat(so3.quat_xyzw_to_wxyz(r[4:8]), r[1:4]) for r in arr])
+        if len(arr)
+        else np.zeros((0, 4, 4))
+    )
     return arr[:, 0], poses
 
 
@@ -137,10 +138,12 @@ def write_tum(path: Path, times_s: F64, poses: F64) -> None:
     """Write poses (N, 4, 4) at times (N,) [s] as TUM lines 'time tx ty tz qx qy qz qw'."""
     with path.open("w") as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        for t, T in zip(times_s, poses):
+        for t, T in zip(times_s, poses, strict=True):
             q = so3.quat_wxyz_to_xyzw(so3.matrix_to_quat(T[:3, :3]))
-            fh.write(f"{t:.6f} {T[0, 3]:.9f} {T[1, 3]:.9f} {T[2, 3]:.9f} "
-                     f"{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n")
+            fh.write(
+                f"{t:.6f} {T[0, 3]:.9f} {T[1, 3]:.9f} {T[2, 3]:.9f} "
+                f"{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n"
+            )
 
 
 def _read_ours(path: Path) -> Dataset:
@@ -159,18 +162,43 @@ def _read_ours(path: Path) -> Dataset:
     frames = _read_csv(path / "frames.csv")
     times = np.array([int(r["time_us"]) for r in frames], dtype=np.int64)
     paths = [path / r["filename"] for r in frames]
-    ranges = [RangeSample(int(r["time_us"]), int(r["sensor_id"]), float(r["distance_m"]),
-                          float(r["min_m"]), float(r["max_m"]), int(r["signal_quality"]))
-              for r in (_read_csv(path / "ranges.csv"))]
+    ranges = [
+        RangeSample(
+            int(r["time_us"]),
+            int(r["sensor_id"]),
+            float(r["distance_m"]),
+            float(r["min_m"]),
+            float(r["max_m"]),
+            int(r["signal_quality"]),
+        )
+        for r in (_read_csv(path / "ranges.csv"))
+    ]
     true_m = np.array([float(r["true_distance_m"]) for r in _read_csv(path / "ranges.csv")])
-    atts = [AttitudeSample(int(r["time_us"]),
-                           np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]),
-                           np.array([float(r[k]) for k in ("wx_rad_s", "wy_rad_s", "wz_rad_s")]))
-            for r in _read_csv(path / "attitude.csv")]
+    atts = [
+        AttitudeSample(
+            int(r["time_us"]),
+            np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]),
+            np.array([float(r[k]) for k in ("wx_rad_s", "wy_rad_s", "wz_rad_s")]),
+        )
+        for r in _read_csv(path / "attitude.csv")
+    ]
     gt_t, gt_T = read_tum(path / "groundtruth.txt")
-    return Dataset(path, "companion", cfg.camera.model(), cfg.camera.T_body_cam(),
-                   [r.spec() for r in cfg.rangefinders], times, paths, ranges, true_m, atts,
-                   np.round(gt_t * 1e6).astype(np.int64), gt_T, cfg.sitl, cfg)
+    return Dataset(
+        path,
+        "companion",
+        cfg.camera.model(),
+        cfg.camera.T_body_cam(),
+        [r.spec() for r in cfg.rangefinders],
+        times,
+        paths,
+        ranges,
+        true_m,
+        atts,
+        np.round(gt_t * 1e6).astype(np.int64),
+        gt_T,
+        cfg.sitl,
+        cfg,
+    )
 
 
 def _yaml_list(text: str, key: str) -> list[float]:
@@ -189,8 +217,11 @@ def _read_euroc(path: Path) -> Dataset:
     """
     mav = path / "mav0" if (path / "mav0").exists() else path
     cam = mav / "cam0"
-    yaml_text = re.sub(r"#.*", "", (cam / "sensor.yaml").read_text()) \
-        if (cam / "sensor.yaml").exists() else None
+    yaml_text = (
+        re.sub(r"#.*", "", (cam / "sensor.yaml").read_text())
+        if (cam / "sensor.yaml").exists()
+        else None
+    )
     if yaml_text is None:
         raise DatasetError(f"{path}: missing mav0/cam0/sensor.yaml")
     fu, fv, cu, cv = _yaml_list(yaml_text, "intrinsics")
@@ -199,11 +230,13 @@ def _read_euroc(path: Path) -> Dataset:
     m = re.search(r"T_BS\s*:.*?data\s*:\s*\[([^\]]*)\]", yaml_text, re.DOTALL)
     if not m:
         raise DatasetError(f"{path}: sensor.yaml has no T_BS")
-    T_imu_cam = np.array([float(v) for v in m.group(1).replace("\n", " ").split(",")
-                          if v.strip()]).reshape(4, 4)
+    T_imu_cam = np.array(
+        [float(v) for v in m.group(1).replace("\n", " ").split(",") if v.strip()]
+    ).reshape(4, 4)
     F = np.diag([1.0, -1.0, -1.0, 1.0])
-    model = CameraModel(int(res[0]), int(res[1]), fu, fv, cu, cv,
-                        dist[0], dist[1], dist[2], dist[3], dist[4])
+    model = CameraModel(
+        int(res[0]), int(res[1]), fu, fv, cu, cv, dist[0], dist[1], dist[2], dist[3], dist[4]
+    )
     rows = []
     with (cam / "data.csv").open() as fh:
         for line in fh:
@@ -221,10 +254,22 @@ def _read_euroc(path: Path) -> Dataset:
         vals = np.loadtxt(gt_file, delimiter=",", comments="#", ndmin=2)
         gt_times = (vals[:, 0].astype(np.int64)) // 1000
         gt_T = np.stack([F @ se3.from_quat(v[4:8], v[1:4]) @ F for v in vals])
-        atts = [AttitudeSample(int(t), so3.matrix_to_quat(T[:3, :3]), np.zeros(3))
-                for t, T in zip(gt_times, gt_T)]
-    return Dataset(path, "euroc", model, F @ T_imu_cam, [], times, [r[1] for r in rows],
-                   attitudes=atts, gt_times_us=gt_times, gt_T_world_body=gt_T)
+        atts = [
+            AttitudeSample(int(t), so3.matrix_to_quat(T[:3, :3]), np.zeros(3))
+            for t, T in zip(gt_times, gt_T, strict=True)
+        ]
+    return Dataset(
+        path,
+        "euroc",
+        model,
+        F @ T_imu_cam,
+        [],
+        times,
+        [r[1] for r in rows],
+        attitudes=atts,
+        gt_times_us=gt_times,
+        gt_T_world_body=gt_T,
+    )
 
 
 def open_dataset(path: str | Path) -> Dataset:
@@ -242,8 +287,14 @@ def open_dataset(path: str | Path) -> Dataset:
 # ----------------------------------------------------------------------------- recording
 
 
-def record(cfg: Config, out: str | Path, *, image_format: str = "jpg", overwrite: bool = False,
-           progress: bool = True) -> Path:
+def record(
+    cfg: Config,
+    out: str | Path,
+    *,
+    image_format: str = "jpg",
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
     """Fly the SITL scenario of ``cfg.sitl`` and write a dataset folder; returns its path."""
     from tqdm import tqdm
 
@@ -258,34 +309,67 @@ def record(cfg: Config, out: str | Path, *, image_format: str = "jpg", overwrite
         raise DatasetError(f"image format must be jpg or png, got {image_format!r}")
     (out_dir / "images").mkdir(parents=True)
     scenario = Scenario(cfg)
-    enc = [cv2.IMWRITE_JPEG_QUALITY, 95] if image_format == "jpg" else \
-        [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    enc = (
+        [cv2.IMWRITE_JPEG_QUALITY, 95]
+        if image_format == "jpg"
+        else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    )
     n = scenario.n_frames
     gt_times: list[float] = []
     gt_poses: list[F64] = []
-    with (out_dir / "frames.csv").open("w", newline="") as f_frames, \
-            (out_dir / "ranges.csv").open("w", newline="") as f_ranges, \
-            (out_dir / "attitude.csv").open("w", newline="") as f_att:
+    with (
+        (out_dir / "frames.csv").open("w", newline="") as f_frames,
+        (out_dir / "ranges.csv").open("w", newline="") as f_ranges,
+        (out_dir / "attitude.csv").open("w", newline="") as f_att,
+    ):
         w_frames = csv.writer(f_frames)
         w_ranges = csv.writer(f_ranges)
         w_att = csv.writer(f_att)
         w_frames.writerow(["time_us", "seq", "filename"])
-        w_ranges.writerow(["time_us", "sensor_id", "distance_m", "min_m", "max_m",
-                           "signal_quality", "true_distance_m"])
+        w_ranges.writerow(
+            [
+                "time_us",
+                "sensor_id",
+                "distance_m",
+                "min_m",
+                "max_m",
+                "signal_quality",
+                "true_distance_m",
+            ]
+        )
         w_att.writerow(["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"])
-        bar = tqdm(total=n, unit="frame", desc=f"recording {out_dir.name}", file=sys.stderr,
-                   disable=not progress, dynamic_ncols=True)
+        bar = tqdm(
+            total=n,
+            unit="frame",
+            desc=f"recording {out_dir.name}",
+            file=sys.stderr,
+            disable=not progress,
+            dynamic_ncols=True,
+        )
         for step in scenario.steps():
             for a in step.attitudes:
-                w_att.writerow([a.time_us, *(f"{v:.12f}" for v in a.quat_wxyz),
-                                *(f"{v:.9f}" for v in a.rates_rad_s)])
+                w_att.writerow(
+                    [
+                        a.time_us,
+                        *(f"{v:.12f}" for v in a.quat_wxyz),
+                        *(f"{v:.9f}" for v in a.rates_rad_s),
+                    ]
+                )
             for r in step.ranges:
                 if r.sample is None:
                     continue
                 s = r.sample
-                w_ranges.writerow([s.time_us, s.sensor_id, f"{s.distance_m:.6f}",
-                                   f"{s.min_m:.3f}", f"{s.max_m:.3f}", s.signal_quality,
-                                   f"{r.true_distance_m:.6f}"])
+                w_ranges.writerow(
+                    [
+                        s.time_us,
+                        s.sensor_id,
+                        f"{s.distance_m:.6f}",
+                        f"{s.min_m:.3f}",
+                        f"{s.max_m:.3f}",
+                        s.signal_quality,
+                        f"{r.true_distance_m:.6f}",
+                    ]
+                )
             name = f"images/{step.frame.seq:06d}.{image_format}"
             if not cv2.imwrite(str(out_dir / name), step.frame.image_bgr, enc):
                 raise DatasetError(f"cannot write {out_dir / name}")
@@ -295,23 +379,37 @@ def record(cfg: Config, out: str | Path, *, image_format: str = "jpg", overwrite
             bar.update(1)
         bar.close()
     write_tum(out_dir / "groundtruth.txt", np.asarray(gt_times), np.asarray(gt_poses))
-    calib = {"camera": to_dict(cfg.camera), "rangefinders": to_dict(cfg.rangefinders),
-             "matrices": {"T_body_cam": cfg.camera.T_body_cam().tolist(),
-                          **{f"T_body_rf{r.sensor_id}": r.mount.T_body_sensor().tolist()
-                             for r in cfg.rangefinders}}}
+    calib = {
+        "camera": to_dict(cfg.camera),
+        "rangefinders": to_dict(cfg.rangefinders),
+        "matrices": {
+            "T_body_cam": cfg.camera.T_body_cam().tolist(),
+            **{
+                f"T_body_rf{r.sensor_id}": r.mount.T_body_sensor().tolist()
+                for r in cfg.rangefinders
+            },
+        },
+    }
     (out_dir / "calibration.toml").write_text(
         "# Camera intrinsics/distortion and every sensor mount, in companion's config schema.\n"
         "# [matrices] repeats the mounts as 4x4 T_body_sensor (row-major) for other tools.\n"
-        + tomli_w.dumps(calib))
-    meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "software": __version__,
-            "frames": n, "path_length_m": scenario.trajectory.path_length_m(),
-            "sitl": to_dict(cfg.sitl)}
+        + tomli_w.dumps(calib)
+    )
+    meta = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "software": __version__,
+        "frames": n,
+        "path_length_m": scenario.trajectory.path_length_m(),
+        "sitl": to_dict(cfg.sitl),
+    }
     (out_dir / "meta.toml").write_text(tomli_w.dumps(meta))
     return out_dir
 
 
-def contact_sheet(dataset: Dataset, out: str | Path | None = None, n: int = 12,
-                  cols: int = 4) -> Path:
+def contact_sheet(
+    dataset: Dataset, out: str | Path | None = None, n: int = 12, cols: int = 4
+) -> Path:
     """Tile ``n`` evenly spaced frames (half size, time-stamped) into one PNG; returns its path."""
     if len(dataset) == 0:
         raise DatasetError(f"{dataset.path}: no frames")
@@ -321,12 +419,20 @@ def contact_sheet(dataset: Dataset, out: str | Path | None = None, n: int = 12,
         f = dataset.load_frame(int(i))
         tile = cv2.resize(f.image_bgr, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
         t_s = (f.time_us - dataset.frame_times_us[0]) * 1e-6
-        cv2.putText(tile, f"#{i}  t={t_s:.1f}s", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            tile,
+            f"#{i}  t={t_s:.1f}s",
+            (6, 18),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
         tiles.append(tile)
     while len(tiles) % cols:
         tiles.append(np.zeros_like(tiles[0]))
-    rows = [np.hstack(tiles[r:r + cols]) for r in range(0, len(tiles), cols)]
+    rows = [np.hstack(tiles[r : r + cols]) for r in range(0, len(tiles), cols)]
     sheet = np.vstack(rows)
     path = Path(out) if out is not None else dataset.path / "contact_sheet.png"
     if not cv2.imwrite(str(path), sheet):

@@ -48,8 +48,14 @@ class RenderedFrame:
 class Renderer:
     """Renders the camera of one vehicle in one world. Deterministic in (seed, seq)."""
 
-    def __init__(self, world: World, camera: CameraConfig, render: RenderConfig,
-                 rangefinders: Sequence[RangefinderConfig] = (), seed: int = 1) -> None:
+    def __init__(
+        self,
+        world: World,
+        camera: CameraConfig,
+        render: RenderConfig,
+        rangefinders: Sequence[RangefinderConfig] = (),
+        seed: int = 1,
+    ) -> None:
         self.world = world
         self.camera_cfg = camera
         self.cfg = render
@@ -61,7 +67,8 @@ class Renderer:
         h, w = camera.height, camera.width
         self.rays_cam = np.ascontiguousarray(self.model.pixel_rays().reshape(-1, 3))
         self.noise_bank = np.random.default_rng([seed, 404]).standard_normal(
-            _NOISE_BANK, dtype=np.float32)
+            _NOISE_BANK, dtype=np.float32
+        )
         el = np.radians(render.sun_elevation_deg)
         az = np.radians(render.sun_azimuth_deg)
         self.sun_ned = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
@@ -71,43 +78,76 @@ class Renderer:
         self._painted: F64 | None = None
 
     # ------------------------------------------------------------------ core
-    def _linear_image(self, T_world_cam: F64, out: F32, depth: F32) -> None:
+    def _kernel(self, T_world_cam: F64, linear: F32, depth: F32, out_u8: U8, start: int) -> None:
         tex_data, tex_offs, tex_sizes = self.world.textures
         w = self.world
         _kernels.render(
-            np.ascontiguousarray(T_world_cam[:3, :3]), np.ascontiguousarray(T_world_cam[:3, 3]),
-            self.rays_cam, float(self.model.fx), *w.kernel_geometry(),
-            tex_data, tex_offs, tex_sizes, w.layers, w.fields, w.x0, w.y0, w.f_inv,
-            w.box_tint, self.sun_ned, _AMBIENT, out, depth)
+            np.ascontiguousarray(T_world_cam[:3, :3]),
+            np.ascontiguousarray(T_world_cam[:3, 3]),
+            self.rays_cam,
+            self.camera_cfg.width,
+            float(self.model.fx),
+            *w.kernel_geometry(),
+            tex_data,
+            tex_offs,
+            tex_sizes,
+            w.layers,
+            w.fields,
+            w.x0,
+            w.y0,
+            w.f_inv,
+            w.box_tint,
+            self.sun_ned,
+            _AMBIENT,
+            linear,
+            depth,
+            self.noise_bank,
+            start,
+            float(self.cfg.noise_sigma_dn),
+            out_u8,
+        )
 
-    def render_pose(self, T_world_cam: F64, seq: int, marks_world: F64 | None = None,
-                    blur_poses: Sequence[F64] = ()) -> RenderedFrame:
+    def render_pose(
+        self,
+        T_world_cam: F64,
+        seq: int,
+        marks_world: F64 | None = None,
+        blur_poses: Sequence[F64] = (),
+    ) -> RenderedFrame:
         """Render at a camera pose. ``blur_poses``: sub-frame poses averaged for motion blur."""
         h, w = self.camera_cfg.height, self.camera_cfg.width
+        start = int(np.random.default_rng([self.seed, 405, seq]).integers(0, _NOISE_BANK))
+        out = np.empty((h * w, 3), dtype=np.uint8)
+        no_u8 = np.empty((0, 3), dtype=np.uint8)
         if blur_poses:
             self._accum.fill(0.0)
             for T in blur_poses:
-                self._linear_image(T, self._linear, self._depth)
+                self._kernel(T, self._linear, self._depth, no_u8, 0)
                 self._accum += self._linear
             self._accum *= np.float32(1.0 / len(blur_poses))
-            linear = self._accum
+            # depth at the frame's own pose
+            self._kernel(T_world_cam, self._linear, self._depth, no_u8, 0)
+            _kernels.finish(
+                self._accum, self.noise_bank, start, float(self.cfg.noise_sigma_dn), out
+            )
         else:
-            linear = self._linear
-        # depth (and the final sub-frame when blurring) at the frame's own pose
-        self._linear_image(T_world_cam, self._linear, self._depth)
+            self._kernel(T_world_cam, self._linear, self._depth, out, start)
         depth = self._depth.reshape(h, w).copy()
-        img_lin = linear.reshape(h, w, 3)
+        image = out.reshape(h, w, 3)
         uv = np.full((0, 2), np.nan)
         pts = np.zeros((0, 3))
         if marks_world is not None and len(marks_world):
             pts = np.asarray(marks_world, dtype=np.float64)
-            uv = self._draw_marks(img_lin, T_world_cam, pts)
-        out = np.empty((h * w, 3), dtype=np.uint8)
-        start = int(np.random.default_rng([self.seed, 405, seq]).integers(0, _NOISE_BANK))
-        _kernels.finish(linear, self.noise_bank, start, float(self.cfg.noise_sigma_dn), out)
-        return RenderedFrame(out.reshape(h, w, 3), depth, T_world_cam, uv, pts)
+            uv = self._draw_marks(image, T_world_cam, pts)
+        return RenderedFrame(image, depth, T_world_cam, uv, pts)
 
-    def _draw_marks(self, img: F32, T_world_cam: F64, pts_world: F64) -> F64:
+    def render_linear(self, T_world_cam: F64) -> F32:
+        """Noise-free linear BGR image (H, W, 3) float32 at a pose (no marks)."""
+        h, w = self.camera_cfg.height, self.camera_cfg.width
+        self._kernel(T_world_cam, self._linear, self._depth, np.empty((0, 3), np.uint8), 0)
+        return self._linear.reshape(h, w, 3).copy()
+
+    def _draw_marks(self, img: U8, T_world_cam: F64, pts_world: F64) -> F64:
         """Blend red Gaussian spots at the projections of visible 3D points; returns uv (K, 2)."""
         T_cam_world = se3.inverse(T_world_cam)
         p_cam = se3.transform(T_cam_world, pts_world)
@@ -127,10 +167,10 @@ class Renderer:
             c0, c1 = max(int(np.floor(u)) - r, 0), min(int(np.floor(u)) + r + 2, w)
             r0, r1 = max(int(np.floor(v)) - r, 0), min(int(np.floor(v)) + r + 2, h)
             yy, xx = np.mgrid[r0:r1, c0:c1]
-            alpha = (0.95 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2))).astype(
-                np.float32)[..., None]
-            patch = img[r0:r1, c0:c1]
-            img[r0:r1, c0:c1] = patch * (1 - alpha) + alpha * LASER_BGR
+            alpha = 0.95 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2))
+            patch = img[r0:r1, c0:c1].astype(np.float64)
+            blended = patch * (1 - alpha[..., None]) + alpha[..., None] * LASER_BGR
+            img[r0:r1, c0:c1] = np.clip(np.floor(blended + 0.5), 0, 255).astype(np.uint8)
         return np.asarray(uv, dtype=np.float64)
 
     # ------------------------------------------------------------------ flight
@@ -146,8 +186,9 @@ class Renderer:
                 self._painted = pts[np.isfinite(t)]
             return self._painted
         t, pts = laser_hits(self.world, trajectory.T_world_body(time_s), self.rangefinders)
-        ok = np.isfinite(t) & np.array([rf.min_m <= d <= rf.max_m
-                                        for rf, d in zip(self.rangefinders, t)])
+        ok = np.isfinite(t) & np.array(
+            [rf.min_m <= d <= rf.max_m for rf, d in zip(self.rangefinders, t, strict=True)]
+        )
         return np.asarray(pts[ok], dtype=np.float64)
 
     def render_at(self, trajectory: Trajectory, time_s: float, seq: int) -> RenderedFrame:

@@ -41,8 +41,9 @@ class Scenario:
         s = cfg.sitl
         self.cfg = cfg
         self.world = world or make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
-        self.trajectory = Trajectory(s.trajectory, self.world, s.seconds, s.altitude_m,
-                                     s.speed_m_s, s.takeoff_landing)
+        self.trajectory = Trajectory(
+            s.trajectory, self.world, s.seconds, s.altitude_m, s.speed_m_s, s.takeoff_landing
+        )
         self.renderer = Renderer(self.world, cfg.camera, s.render, cfg.rangefinders, s.seed)
         self.ranges = RangeSimulator(self.world, self.trajectory, cfg.rangefinders, s.seed)
         self.attitude = AttitudeSimulator(self.trajectory, s.seed)

@@ -36,8 +36,9 @@ class TrueRange:
     hit_world: F64
 
 
-def laser_hits(world: World, T_world_body: F64, rangefinders: Sequence[RangefinderConfig]
-               ) -> tuple[F64, F64]:
+def laser_hits(
+    world: World, T_world_body: F64, rangefinders: Sequence[RangefinderConfig]
+) -> tuple[F64, F64]:
     """Exact beam distances (K,) [m] and hit points (K, 3) for the sensors at a body pose."""
     origins = np.empty((len(rangefinders), 3))
     dirs = np.empty((len(rangefinders), 3))
@@ -52,8 +53,13 @@ def laser_hits(world: World, T_world_body: F64, rangefinders: Sequence[Rangefind
 class RangeSimulator:
     """Produces the range samples of every sensor over a flight, in time order."""
 
-    def __init__(self, world: World, trajectory: Trajectory,
-                 rangefinders: Sequence[RangefinderConfig], seed: int) -> None:
+    def __init__(
+        self,
+        world: World,
+        trajectory: Trajectory,
+        rangefinders: Sequence[RangefinderConfig],
+        seed: int,
+    ) -> None:
         self.world = world
         self.trajectory = trajectory
         self.rangefinders = tuple(rangefinders)
@@ -68,7 +74,10 @@ class RangeSimulator:
         k0 = int(np.ceil(t0_s / period - self.phase_s[index]))
         k1 = int(np.ceil(t1_s / period - self.phase_s[index]))
         k = np.arange(max(k0, 0), max(k1, 0))
-        return np.round((k + self.phase_s[index]) * period * 1e6).astype(np.int64)
+        times: NDArray[np.int64] = np.round((k + self.phase_s[index]) * period * 1e6).astype(
+            np.int64
+        )
+        return times
 
     def measure(self, index: int, time_us: int) -> TrueRange:
         """The reading of sensor ``index`` at ``time_us`` (deterministic in seed, sensor, time)."""
@@ -107,8 +116,9 @@ class RangeSimulator:
 class AttitudeSimulator:
     """The autopilot's attitude estimate: truth plus a small seeded error (white + slow bias)."""
 
-    def __init__(self, trajectory: Trajectory, seed: int, rate_hz: float = 100.0,
-                 noise_deg: float = 0.1) -> None:
+    def __init__(
+        self, trajectory: Trajectory, seed: int, rate_hz: float = 100.0, noise_deg: float = 0.1
+    ) -> None:
         self.trajectory = trajectory
         self.seed = seed
         self.rate_hz = rate_hz
@@ -117,8 +127,9 @@ class AttitudeSimulator:
     def between(self, t0_s: float, t1_s: float) -> list[AttitudeSample]:
         """Samples with times in [t0_s, t1_s)."""
         period = 1.0 / self.rate_hz
-        k = np.arange(max(int(np.ceil(t0_s / period - 1e-9)), 0),
-                      max(int(np.ceil(t1_s / period - 1e-9)), 0))
+        k = np.arange(
+            max(int(np.ceil(t0_s / period - 1e-9)), 0), max(int(np.ceil(t1_s / period - 1e-9)), 0)
+        )
         if len(k) == 0:
             return []
         times_us = np.round(k * period * 1e6).astype(np.int64)

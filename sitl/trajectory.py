@@ -92,8 +92,15 @@ def _walk(poly: F64, speed: float, times: F64) -> F64:
 class Trajectory:
     """A smooth flight; query any time with :meth:`sample` (times in seconds from start)."""
 
-    def __init__(self, name: str, world: World, seconds: float, altitude_m: float = 0.0,
-                 speed_m_s: float = 3.0, takeoff_landing: bool = False) -> None:
+    def __init__(
+        self,
+        name: str,
+        world: World,
+        seconds: float,
+        altitude_m: float = 0.0,
+        speed_m_s: float = 3.0,
+        takeoff_landing: bool = False,
+    ) -> None:
         if name not in TRAJECTORIES:
             raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
         if seconds <= 0 or not math.isfinite(seconds):
@@ -130,8 +137,10 @@ class Trajectory:
         if takeoff_landing:
             base = agl.copy()
             up = np.clip((tc - _GROUND_REST_S) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
-            down = np.clip((self.seconds - _GROUND_REST_S - tc) * climb_rate, 0.0,
-                           None) + LANDED_HEIGHT_M
+            down = (
+                np.clip((self.seconds - _GROUND_REST_S - tc) * climb_rate, 0.0, None)
+                + LANDED_HEIGHT_M
+            )
             agl = np.minimum(np.minimum(base, up), down)
         z = -(world.surface_height(xy[:, 0], xy[:, 1]) + agl)
 
@@ -181,8 +190,12 @@ class Trajectory:
         Rp = self._rotation(np.asarray(self._pos_d2(t + h)), np.asarray(self._yaw(t + h)))
         Rm = self._rotation(np.asarray(self._pos_d2(t - h)), np.asarray(self._yaw(t - h)))
         W = np.einsum("nji,njk->nik", R, (Rp - Rm) / (2 * h))
-        omega = np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0],
-                          W[:, 1, 0] - W[:, 0, 1]], axis=1) / 2.0
+        omega = (
+            np.stack(
+                [W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=1
+            )
+            / 2.0
+        )
         return TrajectorySample(t, p, v, a, R, omega)
 
     def T_world_body(self, time_s: float) -> F64:

@@ -76,11 +76,36 @@ def _photo(name: str) -> F32:
     low = ndimage.gaussian_filter(img, 24.0, mode="wrap")
     img = img - low
     img = 0.5 + 0.19 * img / (img.std() + 1e-9)
-    return np.clip(img, 0.02, 0.98).astype(np.float32)
+    out: F32 = np.clip(img, 0.02, 0.98).astype(np.float32)
+    return out
+
+
+def _upsample2_wrap(img: F32) -> F32:
+    """Bilinear 2x upsampling with wrap-around, texel centres aligned (n, n) -> (2n, 2n)."""
+    out = img.astype(np.float64)
+    for axis in (0, 1):
+        prev = np.roll(out, 1, axis=axis)
+        nxt = np.roll(out, -1, axis=axis)
+        even = 0.75 * out + 0.25 * prev
+        odd = 0.75 * out + 0.25 * nxt
+        shape = list(out.shape)
+        shape[axis] *= 2
+        both = np.empty(shape)
+        idx = [slice(None)] * 2
+        idx[axis] = slice(0, None, 2)
+        both[tuple(idx)] = even
+        idx[axis] = slice(1, None, 2)
+        both[tuple(idx)] = odd
+        out = both
+    return out.astype(np.float32)
 
 
 def _pyramid_atlas(textures: list[F32]) -> tuple[F32, I64, I64]:
-    """Flatten mip pyramids of square power-of-two textures: (data, offsets (T, L), sizes (T, L))."""
+    """Mip pyramids of square power-of-two textures, flattened: data, offsets (T, L), sizes.
+
+    Level l of a texture is stored as interleaved pairs (level l, level l+1 upsampled to level
+    l's grid), so a trilinear lookup is a single two-channel bilinear fetch.
+    """
     n0 = textures[0].shape[0]
     levels = int(math.log2(n0)) + 1
     chunks: list[F32] = []
@@ -90,15 +115,19 @@ def _pyramid_atlas(textures: list[F32]) -> tuple[F32, I64, I64]:
     for ti, tex in enumerate(textures):
         if tex.shape != (n0, n0):
             raise SitlError("textures must be square, power-of-two and of one size")
-        level = tex.astype(np.float32)
-        for li in range(levels):
+        pyramid = [tex.astype(np.float32)]
+        while pyramid[-1].shape[0] > 1:
+            lv = pyramid[-1]
+            pyramid.append(
+                0.25 * (lv[0::2, 0::2] + lv[1::2, 0::2] + lv[0::2, 1::2] + lv[1::2, 1::2])
+            )
+        for li, level in enumerate(pyramid):
+            coarser = _upsample2_wrap(pyramid[li + 1]) if li + 1 < levels else level
+            pair = np.stack([level, coarser], axis=2).astype(np.float32)
             offs[ti, li] = pos
             sizes[ti, li] = level.shape[0]
-            chunks.append(level.ravel())
-            pos += level.size
-            if level.shape[0] > 1:
-                level = 0.25 * (level[0::2, 0::2] + level[1::2, 0::2] + level[0::2, 1::2]
-                                + level[1::2, 1::2])
+            chunks.append(pair.ravel())
+            pos += pair.size
     return np.concatenate(chunks).astype(np.float32), offs, sizes
 
 
@@ -108,8 +137,16 @@ class World:
     Build it with :func:`make_world`. All public arrays are float64 NED metres.
     """
 
-    def __init__(self, name: str, seed: int, size_m: float, heights: F32, res_m: float,
-                 boxes: F64, default_altitude_m: float) -> None:
+    def __init__(
+        self,
+        name: str,
+        seed: int,
+        size_m: float,
+        heights: F32,
+        res_m: float,
+        boxes: F64,
+        default_altitude_m: float,
+    ) -> None:
         self.name = name
         self.seed = seed
         self.size_m = float(size_m)
@@ -126,12 +163,23 @@ class World:
         # Lipschitz bounds of the bilinear interpolant along x and y (max finite differences)
         self.lip_x = float(np.abs(np.diff(h, axis=1)).max(initial=0.0) / self.res_m)
         self.lip_y = float(np.abs(np.diff(h, axis=0)).max(initial=0.0) / self.res_m)
+        # a 2x2 grid with planar corners is exactly the plane h = a + b x + c y
+        self.plane = np.zeros(4)
+        if h.shape == (2, 2) and abs(h[1, 1] - h[1, 0] - h[0, 1] + h[0, 0]) < 1e-9:
+            b = (h[0, 1] - h[0, 0]) / self.res_m
+            c = (h[1, 0] - h[0, 0]) / self.res_m
+            self.plane = np.array([h[0, 0] - b * self.x0 - c * self.y0, b, c, 1.0])
         self.box_top = float(self.boxes[:, 5].max(initial=-1e9))
         self._build_blocks()
         self._build_box_grid()
         rng = np.random.default_rng([seed, 7])
-        self.box_tint = np.clip(1.0 + 0.12 * rng.standard_normal((len(self.boxes), 1))
-                                + 0.05 * rng.standard_normal((len(self.boxes), 3)), 0.6, 1.4)
+        self.box_tint = np.clip(
+            1.0
+            + 0.12 * rng.standard_normal((len(self.boxes), 1))
+            + 0.05 * rng.standard_normal((len(self.boxes), 3)),
+            0.6,
+            1.4,
+        )
         self._build_fields(rng)
 
     # ------------------------------------------------------------------ construction
@@ -191,26 +239,35 @@ class World:
         nf = int(round(self.size_m / _FIELD_RES_M)) + 1
         shape = (nf, nf)
         gravel = _smooth_noise(rng, shape, 7.0 / _FIELD_RES_M)
-        w_gravel = np.clip(0.35 + 0.45 * gravel, 0.0, 1.0)
-        albedo = (1.0 + 0.10 * _smooth_noise(rng, shape, 1.5 / _FIELD_RES_M)
-                  + 0.08 * _smooth_noise(rng, shape, 6.0 / _FIELD_RES_M))
+        # grass and gravel patches with ~1 m wide transitions (only there are both sampled)
+        w_gravel = np.clip(0.25 + gravel, 0.0, 1.0)
+        albedo = (
+            1.0
+            + 0.10 * _smooth_noise(rng, shape, 1.5 / _FIELD_RES_M)
+            + 0.08 * _smooth_noise(rng, shape, 6.0 / _FIELD_RES_M)
+        )
         warp_u = 0.6 * _smooth_noise(rng, shape, 4.0 / _FIELD_RES_M)
         warp_v = 0.6 * _smooth_noise(rng, shape, 4.0 / _FIELD_RES_M)
         self.fields = np.ascontiguousarray(
-            np.stack([w_gravel, albedo, warp_u, warp_v], axis=2), dtype=np.float64)
+            np.stack([w_gravel, albedo, warp_u, warp_v], axis=2), dtype=np.float64
+        )
         self.f_inv = 1.0 / _FIELD_RES_M
         # texture layers: tex, tile_m, cos, sin, off_u, off_v, tint b, g, r (8-bit levels)
         a1, a2 = rng.uniform(0, 2 * np.pi, 2)
         o = rng.uniform(0, 512, 4)
-        self.layers = np.array([
-            [TEX_GRASS, 2.4, math.cos(a1), math.sin(a1), o[0], o[1], 62.0, 122.0, 88.0],
-            [TEX_GRAVEL, 1.9, math.cos(a2), math.sin(a2), o[2], o[3], 112.0, 118.0, 127.0],
-            [TEX_GRAVEL, 1.3, 1.0, 0.0, 0.0, 0.0, 100.0, 103.0, 108.0],
-            [TEX_BRICK, 1.6, 1.0, 0.0, 0.0, 0.0, 72.0, 84.0, 138.0],
-        ], dtype=np.float64)
+        self.layers = np.array(
+            [
+                [TEX_GRASS, 2.4, math.cos(a1), math.sin(a1), o[0], o[1], 62.0, 122.0, 88.0],
+                [TEX_GRAVEL, 1.9, math.cos(a2), math.sin(a2), o[2], o[3], 112.0, 118.0, 127.0],
+                [TEX_GRAVEL, 1.3, 1.0, 0.0, 0.0, 0.0, 100.0, 103.0, 108.0],
+                [TEX_BRICK, 1.6, 1.0, 0.0, 0.0, 0.0, 72.0, 84.0, 138.0],
+            ],
+            dtype=np.float64,
+        )
         texels_per_m = _TEXTURE_SIZE / self.layers[:, 1]
-        self.layers = np.ascontiguousarray(np.column_stack(
-            [self.layers, texels_per_m, np.log2(texels_per_m)]))
+        self.layers = np.ascontiguousarray(
+            np.column_stack([self.layers, texels_per_m, np.log2(texels_per_m)])
+        )
 
     @cached_property
     def textures(self) -> tuple[F32, I64, I64]:
@@ -227,8 +284,10 @@ class World:
         """Ground height (positive up) [m] at north/east positions (N,), buildings excluded."""
         xs = np.atleast_1d(np.asarray(x_m, dtype=np.float64)).ravel()
         ys = np.atleast_1d(np.asarray(y_m, dtype=np.float64)).ravel()
-        return np.asarray(_kernels.height_at(self.heights, 1.0 / self.res_m, self.x0, self.y0,
-                                             xs, ys), dtype=np.float64)
+        return np.asarray(
+            _kernels.height_at(self.heights, 1.0 / self.res_m, self.x0, self.y0, xs, ys),
+            dtype=np.float64,
+        )
 
     def surface_height(self, x_m: ArrayLike, y_m: ArrayLike) -> F64:
         """Height of the top surface (ground or roof) [m] at (N,) positions."""
@@ -253,10 +312,30 @@ class World:
 
     def kernel_geometry(self) -> tuple[object, ...]:
         """The geometry arguments shared by every ray-casting kernel, in kernel order."""
-        return (self.heights, 1.0 / self.res_m, self.x0, self.y0, self.h_min, self.h_max,
-                self.lip_x, self.lip_y, self.blocks,
-                self.b_inv, self.b_reach, self.tmax_m, self.boxes, self.box_top, self.cell_start,
-                self.cell_boxes, self.x0, self.y0, self.g_inv, self.g_nx, self.g_ny)
+        return (
+            self.heights,
+            1.0 / self.res_m,
+            self.x0,
+            self.y0,
+            self.h_min,
+            self.h_max,
+            self.plane,
+            self.lip_x,
+            self.lip_y,
+            self.blocks,
+            self.b_inv,
+            self.b_reach,
+            self.tmax_m,
+            self.boxes,
+            self.box_top,
+            self.cell_start,
+            self.cell_boxes,
+            self.x0,
+            self.y0,
+            self.g_inv,
+            self.g_nx,
+            self.g_ny,
+        )
 
 
 # ---------------------------------------------------------------------------- terrains
@@ -266,9 +345,11 @@ def _hills(rng: np.random.Generator, size_m: float, res_m: float) -> F32:
     """Smooth irregular ground: three octaves of filtered noise, ~3-4 m of relief."""
     coarse_res = 1.0
     nc = int(round(size_m / coarse_res)) + 1
-    h = (0.9 * _smooth_noise(rng, (nc, nc), 9.0)
-         + 0.18 * _smooth_noise(rng, (nc, nc), 3.0)
-         + 0.035 * _smooth_noise(rng, (nc, nc), 1.2))
+    h = (
+        0.9 * _smooth_noise(rng, (nc, nc), 9.0)
+        + 0.18 * _smooth_noise(rng, (nc, nc), 3.0)
+        + 0.035 * _smooth_noise(rng, (nc, nc), 1.2)
+    )
     n = int(round(size_m / res_m)) + 1
     fine = cv2.resize(h.astype(np.float32), (n, n), interpolation=cv2.INTER_CUBIC)
     # centre: h(0, 0) = 0
@@ -308,8 +389,16 @@ def _urban_boxes(rng: np.random.Generator, size_m: float) -> F64:
                 sx = x + rng.choice([-1, 1]) * (wx / 2 + rng.uniform(1.5, 3.0))
                 sy = y + rng.uniform(-2, 2)
                 lx_, ly_ = rng.uniform(1.0, 2.5), rng.uniform(1.0, 4.5)
-                boxes.append((sx - lx_ / 2, sx + lx_ / 2, sy - ly_ / 2, sy + ly_ / 2, -1.0,
-                              rng.uniform(1.0, 2.0)))
+                boxes.append(
+                    (
+                        sx - lx_ / 2,
+                        sx + lx_ / 2,
+                        sy - ly_ / 2,
+                        sy + ly_ / 2,
+                        -1.0,
+                        rng.uniform(1.0, 2.0),
+                    )
+                )
     arr = np.asarray(boxes, dtype=np.float64).reshape(-1, 6)
     # keep a clear take-off area around the origin
     cx_ = 0.5 * (arr[:, 0] + arr[:, 1])

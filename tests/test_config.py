@@ -50,8 +50,10 @@ def test_shipped_config_files_load(name: str) -> None:
         ({"sitl": {"terrain": "moon"}}, "sitl.terrain: must be one of"),
         ({"sitl": {"render": {"noise_sigma_dn": "x"}}}, "sitl.render.noise_sigma_dn"),
         ({"sitl": {"takeoff_landing": 1}}, "sitl.takeoff_landing: expected true or false"),
-        ({"rangefinders": [{"sensor_id": 1, "min_m": 5.0, "max_m": 2.0}]},
-         "rangefinders[0].max_m: must be > min_m"),
+        (
+            {"rangefinders": [{"sensor_id": 1, "min_m": 5.0, "max_m": 2.0}]},
+            "rangefinders[0].max_m: must be > min_m",
+        ),
         ({"rangefinders": [{"sensor_id": 1}, {"sensor_id": 1}]}, "sensor_id values must be unique"),
         ({"rangefinders": [{"dropout_prob": 1.5}]}, "rangefinders[0].dropout_prob: must be <= 1"),
         ({"camera": {"rate_hz": float("nan")}}, "camera.rate_hz: must be finite"),

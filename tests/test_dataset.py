@@ -41,7 +41,8 @@ def test_round_trip(recorded: Path) -> None:
     last_s = 59 / 30.0
     assert abs(len(ds.ranges) - 4 * 50 * last_s) <= 4 and len(ds.true_range_m) == len(ds.ranges)
     assert max(r.time_us for r in ds.ranges) <= ds.frame_times_us[-1]
-    assert np.abs([r.distance_m - t for r, t in zip(ds.ranges, ds.true_range_m)]).max() < 0.06
+    errors = [r.distance_m - t for r, t in zip(ds.ranges, ds.true_range_m, strict=True)]
+    assert np.abs(errors).max() < 0.06
     assert len(ds.attitudes) == int(last_s * 100) + 1
     # ground truth equals the trajectory (to the file's printed precision)
     assert ds.sitl is not None
@@ -98,26 +99,33 @@ def write_euroc(ds_path: Path, out: Path) -> None:
     (cam / "sensor.yaml").write_text(
         "%YAML:1.0\n# General sensor definitions.\nsensor_type: camera\n"
         "comment: VI-Sensor cam0 (MT9M034)\n\n# Sensor extrinsics wrt. the body-frame.\n"
-        "T_BS:\n  cols: 4\n  rows: 4\n  data: [" + ", ".join(f"{v:.15f}" for v in T_bs.ravel()[:8])
-        + ",\n         " + ", ".join(f"{v:.15f}" for v in T_bs.ravel()[8:]) + "]\n\n"
+        "T_BS:\n  cols: 4\n  rows: 4\n  data: ["
+        + ", ".join(f"{v:.15f}" for v in T_bs.ravel()[:8])
+        + ",\n         "
+        + ", ".join(f"{v:.15f}" for v in T_bs.ravel()[8:])
+        + "]\n\n"
         f"rate_hz: 30\nresolution: [{c.width}, {c.height}]\ncamera_model: pinhole\n"
         f"intrinsics: [{c.fx}, {c.fy}, {c.cx}, {c.cy}] #fu, fv, cu, cv\n"
         "distortion_model: radial-tangential\n"
-        f"distortion_coefficients: [{c.k1}, {c.k2}, {c.p1}, {c.p2}]\n")
+        f"distortion_coefficients: [{c.k1}, {c.k2}, {c.p1}, {c.p2}]\n"
+    )
     gt = out / "mav0" / "state_groundtruth_estimate0"
     gt.mkdir(parents=True)
-    rows = ["#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
-            "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
-            "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
-            "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"]
+    rows = [
+        "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+        "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
+        "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
+        "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+    ]
     from companion.geometry import so3
 
-    for t, T in zip(ds.gt_times_us, ds.gt_T_world_body):
+    for t, T in zip(ds.gt_times_us, ds.gt_T_world_body, strict=True):
         Tz = F @ T @ F
         q = so3.matrix_to_quat(Tz[:3, :3])
         vals = [*Tz[:3, 3], *q] + [0.0] * 9
-        rows.append(f"{int(t) * 1000 + 1_403_636_579_763_555_584}," +
-                    ",".join(f"{v:.12f}" for v in vals))
+        rows.append(
+            f"{int(t) * 1000 + 1_403_636_579_763_555_584}," + ",".join(f"{v:.12f}" for v in vals)
+        )
     (gt / "data.csv").write_text("\n".join(rows) + "\n")
 
 
@@ -129,8 +137,9 @@ def test_euroc_reader(recorded: Path, tmp_path: Path) -> None:
     c1, c2 = ours.camera, euroc.camera
     assert (c1.width, c1.height, c1.fx, c1.k1, c1.p2) == (c2.width, c2.height, c2.fx, c2.k1, c2.p2)
     assert np.allclose(euroc.T_body_cam, ours.T_body_cam, atol=1e-12)
-    assert np.array_equal(euroc.frame_times_us - euroc.frame_times_us[0],
-                          ours.frame_times_us - ours.frame_times_us[0])
+    assert np.array_equal(
+        euroc.frame_times_us - euroc.frame_times_us[0], ours.frame_times_us - ours.frame_times_us[0]
+    )
     assert np.abs(euroc.gt_T_world_body - ours.gt_T_world_body).max() < 1e-9
     f = euroc.load_frame(7)
     assert f.image_bgr.shape == (480, 640, 3)
@@ -151,12 +160,31 @@ def test_bad_folders_give_clear_errors(tmp_path: Path) -> None:
 
 
 def test_cli_record_refuses_to_overwrite_and_writes_sheet(
-        recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["sitl", "record", "--seconds", "1", "--out", str(recorded), "--no-progress"]) == 1
     assert "exists" in capsys.readouterr().err
     out = tmp_path / "rec"
-    assert main(["sitl", "record", "--terrain", "urban", "--trajectory", "figure8", "--seconds",
-                 "0.5", "--seed", "2", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "sitl",
+                "record",
+                "--terrain",
+                "urban",
+                "--trajectory",
+                "figure8",
+                "--seconds",
+                "0.5",
+                "--seed",
+                "2",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert capsys.readouterr().out.strip() == str(out)
     assert open_dataset(out).sitl.terrain == "urban"  # type: ignore[union-attr]
     assert main(["sitl", "sheet", str(out)]) == 0

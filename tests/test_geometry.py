@@ -35,7 +35,7 @@ def test_so3_small_angles_and_hat() -> None:
 
 
 def test_quaternion_round_trip_and_product() -> None:
-    for w1, w2 in zip(random_rotvecs(50), random_rotvecs(50)):
+    for w1, w2 in zip(random_rotvecs(50), random_rotvecs(50), strict=True):
         R1, R2 = so3.exp(w1), so3.exp(w2)
         q1, q2 = so3.matrix_to_quat(R1), so3.matrix_to_quat(R2)
         assert np.allclose(so3.quat_to_matrix(q1), R1, atol=1e-12)
@@ -81,14 +81,26 @@ def test_se3_inverse_exp_log_interpolate() -> None:
         assert np.allclose(se3.interpolate(np.eye(4), T, 0.0), np.eye(4), atol=1e-12)
         mid = se3.interpolate(np.eye(4), T, 0.5)
         assert np.allclose(mid[:3, 3], 0.5 * T[:3, 3])
-        assert np.isclose(so3.angle_between(np.eye(3), mid[:3, :3]),
-                          0.5 * so3.angle_between(np.eye(3), T[:3, :3]))
+        assert np.isclose(
+            so3.angle_between(np.eye(3), mid[:3, :3]), 0.5 * so3.angle_between(np.eye(3), T[:3, :3])
+        )
 
 
 CAMERAS = [
     CameraModel(640, 480, 460.0, 462.0, 319.5, 239.5, -0.12, 0.05, 0.0005, -0.0003, 0.0),
-    CameraModel(752, 480, 458.654, 457.296, 367.215, 248.375, -0.28340811, 0.07395907,
-                0.00019359, 1.76187114e-05, 0.0),  # EuRoC cam0
+    CameraModel(
+        752,
+        480,
+        458.654,
+        457.296,
+        367.215,
+        248.375,
+        -0.28340811,
+        0.07395907,
+        0.00019359,
+        1.76187114e-05,
+        0.0,
+    ),  # EuRoC cam0
     CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0, 0.1, -0.05, 0.001, 0.002, 0.01),
     CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0),
 ]
@@ -96,8 +108,9 @@ CAMERAS = [
 
 @pytest.mark.parametrize("cam", CAMERAS)
 def test_projection_matches_opencv(cam: CameraModel) -> None:
-    pts = np.column_stack([RNG.uniform(-2, 2, 500), RNG.uniform(-1.5, 1.5, 500),
-                           RNG.uniform(2, 10, 500)])
+    pts = np.column_stack(
+        [RNG.uniform(-2, 2, 500), RNG.uniform(-1.5, 1.5, 500), RNG.uniform(2, 10, 500)]
+    )
     ours, ok = cam.project(pts)
     ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs)
     assert ok.all()
@@ -110,11 +123,13 @@ def test_undistortion_matches_opencv_and_inverts_projection(cam: CameraModel) ->
     ours = cam.pixels_to_normalized(uv)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
     if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-        ref = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), cam.K, cam.dist_coeffs, None, None,
-                                      criteria)
+        ref = cv2.undistortPointsIter(
+            uv.reshape(-1, 1, 2), cam.K, cam.dist_coeffs, None, None, criteria
+        )
     else:  # OpenCV 5 folded the criteria into undistortPoints
-        ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist_coeffs, None, None,
-                                  None, criteria)
+        ref = cv2.undistortPoints(
+            uv.reshape(-1, 1, 2), cam.K, cam.dist_coeffs, None, None, None, criteria
+        )
     assert np.abs(ours - ref.reshape(-1, 2)).max() < 1e-7
     # our inverse is exact: re-projecting the rays gives the pixels back
     rays = cam.pixels_to_rays(uv)
@@ -133,4 +148,7 @@ def test_pixel_rays_grid_and_behind_camera() -> None:
     uv_b, ok = cam.project(np.array([[0.0, 0.0, -1.0]]))
     assert not ok[0] and np.isnan(uv_b).all()
     assert cam.in_image(np.array([[0.0, 0.0], [639.4, 479.4], [-1.0, 5.0]])).tolist() == [
-        True, True, False]
+        True,
+        True,
+        False,
+    ]

@@ -37,7 +37,8 @@ def red_blobs(img: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("terrain", ["flat", "hills", "slope"])
 def test_laser_hit_points_project_onto_their_red_dots(
-        terrain: str, world: Callable[[str, int], World], default_config: Config) -> None:
+    terrain: str, world: Callable[[str, int], World], default_config: Config
+) -> None:
     cfg = default_config
     w = world(terrain, 1)
     traj = Trajectory("figure8", w, 30.0, altitude_m=3.0)
@@ -58,8 +59,9 @@ def test_laser_hit_points_project_onto_their_red_dots(
     assert checked == 16
 
 
-def test_flat_image_motion_is_the_plane_homography(world: Callable[[str, int], World],
-                                                   default_config: Config) -> None:
+def test_flat_image_motion_is_the_plane_homography(
+    world: Callable[[str, int], World], default_config: Config
+) -> None:
     cfg = default_config
     w = world("flat", 2)
     quiet = RenderConfig(noise_sigma_dn=0.0, laser_marks="off")
@@ -72,10 +74,10 @@ def test_flat_image_motion_is_the_plane_homography(world: Callable[[str, int], W
     gray_a = cv2.cvtColor(img_a, cv2.COLOR_BGR2GRAY)
     gray_b = cv2.cvtColor(img_b, cv2.COLOR_BGR2GRAY)
     pa = cv2.goodFeaturesToTrack(gray_a, 400, 0.01, 12, blockSize=7)
-    pb, status, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, pa, None, winSize=(21, 21),
-                                             maxLevel=3)
-    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_b, gray_a, pb, None, winSize=(21, 21),
-                                                    maxLevel=3)
+    pb, status, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, pa, None, winSize=(21, 21), maxLevel=3)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(
+        gray_b, gray_a, pb, None, winSize=(21, 21), maxLevel=3
+    )
     # keep tracks that are consistent forwards and backwards (a tracker's, not a renderer's, check)
     fb = np.linalg.norm(back.reshape(-1, 2) - pa.reshape(-1, 2), axis=1)
     ok = (status.ravel() == 1) & (status_back.ravel() == 1) & (fb < 0.1)
@@ -96,16 +98,19 @@ def test_flat_image_motion_is_the_plane_homography(world: Callable[[str, int], W
     assert np.median(np.linalg.norm(pa - pb, axis=1)) > 20
 
 
-def test_depth_map_is_the_ray_cast_depth(world: Callable[[str, int], World],
-                                         default_config: Config) -> None:
+def test_depth_map_is_the_ray_cast_depth(
+    world: Callable[[str, int], World], default_config: Config
+) -> None:
     cfg = default_config
     w = world("urban", 1)
     renderer = Renderer(w, cfg.camera, RenderConfig(laser_marks="off"), seed=1)
     # beside a building, so walls and roofs are in view
     k = int(np.argmax(w.boxes[:, 5]))
-    x0, x1, y0, y1, _, top = w.boxes[k]
-    T_wc = se3.make(so3.rpy_to_matrix(0.1, -0.1, 0.5), [x1 + 1.0, 0.5 * (y0 + y1), -(top + 6.0)]
-                    ) @ cfg.camera.T_body_cam()
+    _, x1, y0, y1, _, top = w.boxes[k]
+    T_wc = (
+        se3.make(so3.rpy_to_matrix(0.1, -0.1, 0.5), [x1 + 1.0, 0.5 * (y0 + y1), -(top + 6.0)])
+        @ cfg.camera.T_body_cam()
+    )
     frame = renderer.render_pose(T_wc, 0)
     rng = np.random.default_rng(3)
     uv = np.column_stack([rng.integers(0, 640, 2000), rng.integers(0, 480, 2000)])
@@ -121,8 +126,9 @@ def test_depth_map_is_the_ray_cast_depth(world: Callable[[str, int], World],
     assert (hits.t_m[wall] < t_ground).all()
 
 
-def test_painted_marks_stay_on_the_ground(world: Callable[[str, int], World],
-                                          default_config: Config) -> None:
+def test_painted_marks_stay_on_the_ground(
+    world: Callable[[str, int], World], default_config: Config
+) -> None:
     cfg = default_config
     w = world("flat", 1)
     traj = Trajectory("circle", w, 20.0, altitude_m=3.0)
@@ -141,15 +147,17 @@ def test_painted_marks_stay_on_the_ground(world: Callable[[str, int], World],
     assert np.linalg.norm(moved - pts_ref, axis=1).min() > 1.0  # live marks followed the beams
 
 
-def test_noise_and_motion_blur(world: Callable[[str, int], World],
-                               default_config: Config) -> None:
+def test_noise_and_motion_blur(world: Callable[[str, int], World], default_config: Config) -> None:
     cfg = default_config
     w = world("hills", 1)
     traj = Trajectory("lawnmower", w, 20.0)
     clean = Renderer(w, cfg.camera, RenderConfig(noise_sigma_dn=0.0, laser_marks="off"))
     noisy = Renderer(w, cfg.camera, RenderConfig(noise_sigma_dn=4.0, laser_marks="off"))
-    blurred = Renderer(w, cfg.camera, RenderConfig(noise_sigma_dn=0.0, laser_marks="off",
-                                                   motion_blur=True, exposure_s=0.02))
+    blurred = Renderer(
+        w,
+        cfg.camera,
+        RenderConfig(noise_sigma_dn=0.0, laser_marks="off", motion_blur=True, exposure_s=0.02),
+    )
     a = clean.render_at(traj, 8.0, 1).image_bgr.astype(float)
     b = noisy.render_at(traj, 8.0, 1).image_bgr.astype(float)
     c = blurred.render_at(traj, 8.0, 1).image_bgr.astype(float)
@@ -157,3 +165,24 @@ def test_noise_and_motion_blur(world: Callable[[str, int], World],
     # blur at ~3 m/s over 20 ms (~5 px) removes high frequencies
     lap = lambda im: np.var(cv2.Laplacian(im.mean(axis=2), cv2.CV_64F))  # noqa: E731
     assert lap(c) < 0.7 * lap(a)
+
+
+def test_direct_8bit_output_equals_linear_plus_noise(
+    world: Callable[[str, int], World], default_config: Config
+) -> None:
+    """The fused kernel (used per frame) and linear + finish (used for blur) agree: the same
+    noise samples, differing only where float32 storage of the linear value flips a rounding."""
+    from sitl import _kernels
+
+    cfg = default_config
+    w = world("urban", 1)
+    renderer = Renderer(w, cfg.camera, RenderConfig(laser_marks="off"), seed=9)
+    T_wc = se3.make(so3.rpy_to_matrix(0.05, 0.02, 1.0), [5.0, 3.0, -12.0]) @ cfg.camera.T_body_cam()
+    direct = renderer.render_pose(T_wc, 17).image_bgr
+    linear = renderer.render_linear(T_wc).reshape(-1, 3)
+    start = int(np.random.default_rng([9, 405, 17]).integers(0, 1 << 21))
+    out = np.empty_like(linear, dtype=np.uint8)
+    _kernels.finish(linear, renderer.noise_bank, start, 2.0, out)
+    diff = np.abs(out.reshape(direct.shape).astype(int) - direct.astype(int))
+    assert diff.max() <= 1 and (diff > 0).mean() < 1e-3
+    assert 20 < direct.mean() < 230  # a real image, not blank

@@ -26,16 +26,26 @@ def test_true_distance_is_exact_on_flat_ground(world: Callable[[str, int], World
 def test_noise_model_dropouts_outliers(world: Callable[[str, int], World]) -> None:
     w = world("hills", 1)
     traj = Trajectory("lawnmower", w, 60.0)
-    rf = RangefinderConfig(sensor_id=4, sigma_a_m=0.02, sigma_b=0.01, rate_hz=100.0,
-                           dropout_prob=0.2, outlier_prob=0.05)
+    rf = RangefinderConfig(
+        sensor_id=4,
+        sigma_a_m=0.02,
+        sigma_b=0.01,
+        rate_hz=100.0,
+        dropout_prob=0.2,
+        outlier_prob=0.05,
+    )
     sim = RangeSimulator(w, traj, [rf], seed=3)
     readings = sim.between(0.0, 40.0)
     assert len(readings) == 4000
     missing = np.mean([r.sample is None for r in readings])
     assert 0.17 < missing < 0.23
     present = [r for r in readings if r.sample is not None]
-    z = np.array([(r.sample.distance_m - r.true_distance_m) / (0.02 + 0.01 * r.true_distance_m)
-                  for r in present])
+    z = np.array(
+        [
+            (r.sample.distance_m - r.true_distance_m) / (0.02 + 0.01 * r.true_distance_m)
+            for r in present
+        ]
+    )
     outliers = np.abs(z) > 6
     assert 0.035 < outliers.mean() < 0.065
     assert 0.93 < np.std(z[~outliers]) < 1.07
@@ -75,7 +85,12 @@ def test_attitude_is_truth_with_small_error(world: Callable[[str, int], World]) 
     traj = Trajectory("figure8", w, 20.0)
     samples = AttitudeSimulator(traj, seed=1, rate_hz=100.0, noise_deg=0.1).between(0.0, 10.0)
     assert len(samples) == 1000
-    errs = [np.degrees(so3.angle_between(so3.quat_to_matrix(a.quat_wxyz),
-                                         traj.T_world_body(a.time_us * 1e-6)[:3, :3]))
-            for a in samples[::10]]
+    errs = [
+        np.degrees(
+            so3.angle_between(
+                so3.quat_to_matrix(a.quat_wxyz), traj.T_world_body(a.time_us * 1e-6)[:3, :3]
+            )
+        )
+        for a in samples[::10]
+    ]
     assert 0.05 < np.mean(errs) < 0.3

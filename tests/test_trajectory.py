@@ -13,8 +13,9 @@ from sitl.world import World
 
 
 @pytest.mark.parametrize("name", TRAJECTORIES)
-def test_smooth_bounded_and_multirotor_consistent(name: str,
-                                                  world: Callable[[str, int], World]) -> None:
+def test_smooth_bounded_and_multirotor_consistent(
+    name: str, world: Callable[[str, int], World]
+) -> None:
     w = world("hills", 1)
     traj = Trajectory(name, w, 40.0, speed_m_s=4.0)
     dt = 0.001
@@ -41,7 +42,8 @@ def test_smooth_bounded_and_multirotor_consistent(name: str,
 
 
 def test_moving_patterns_reach_cruise_speed_and_head_along_track(
-        world: Callable[[str, int], World]) -> None:
+    world: Callable[[str, int], World],
+) -> None:
     w = world("flat", 1)
     for name in ("circle", "lawnmower", "figure8"):
         s = Trajectory(name, w, 60.0, speed_m_s=3.0).sample(np.arange(5.0, 55.0, 0.1))

@@ -1,4 +1,4 @@
-"""Exact ray casting: hit points lie on the surface, are the *first* hits, and match closed forms."""
+"""Exact ray casting: hits lie on the surface, are the *first* hits, and match closed forms."""
 
 from __future__ import annotations
 
@@ -20,8 +20,9 @@ def bilinear_height(world: World, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     fy = np.clip((y - world.y0) / world.res_m, 0.0, ny - 1.000001)
     ix, iy = fx.astype(int), fy.astype(int)
     ax, ay = fx - ix, fy - iy
-    return ((H[iy, ix] * (1 - ax) + H[iy, ix + 1] * ax) * (1 - ay)
-            + (H[iy + 1, ix] * (1 - ax) + H[iy + 1, ix + 1] * ax) * ay)
+    return (H[iy, ix] * (1 - ax) + H[iy, ix + 1] * ax) * (1 - ay) + (
+        H[iy + 1, ix] * (1 - ax) + H[iy + 1, ix + 1] * ax
+    ) * ay
 
 
 def box_hits(world: World, o: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -49,8 +50,9 @@ def random_camera_rays(n: int, height_m: float, world: World) -> tuple[np.ndarra
 
 
 @pytest.mark.parametrize("terrain", ["flat", "hills", "urban", "slope"])
-def test_hits_lie_on_the_surface_and_are_first(terrain: str,
-                                               world: Callable[[str, int], World]) -> None:
+def test_hits_lie_on_the_surface_and_are_first(
+    terrain: str, world: Callable[[str, int], World]
+) -> None:
     w = world(terrain, 1)
     o, d = random_camera_rays(400, 7.0, w)
     hits = w.raycast(o, d)
@@ -64,7 +66,8 @@ def test_hits_lie_on_the_surface_and_are_first(terrain: str,
     steps = np.linspace(0.0, 1.0, 3000)[None, :] * (hits.t_m[:, None] - 1e-4)
     pts = o[:, None, :] + steps[..., None] * d[:, None, :]
     above = -pts[..., 2] - bilinear_height(w, pts[..., 0].ravel(), pts[..., 1].ravel()).reshape(
-        pts.shape[:2])
+        pts.shape[:2]
+    )
     assert above.min() > 0.0
     # boxes: the nearest box entry agrees with a brute-force slab test over every box
     t_box = box_hits(w, o, d)

@@ -141,8 +141,9 @@ class CameraModel:
 
     def pixel_rays(self) -> F64:
         """Unit rays through every pixel centre, (H, W, 3) in the camera frame."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64),
-                           np.arange(self.height, dtype=np.float64))
+        u, v = np.meshgrid(
+            np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64)
+        )
         uv = np.stack([u.ravel(), v.ravel()], axis=1)
         return self.pixels_to_rays(uv).reshape(self.height, self.width, 3)
 

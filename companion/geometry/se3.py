@@ -66,12 +66,12 @@ def _left_jacobian(omega: F64) -> F64:
     theta = float(np.linalg.norm(omega))
     K = so3.hat(omega)
     if theta < 1e-8:
-        return np.eye(3) + 0.5 * K + K @ K / 6.0
-    return (
-        np.eye(3)
-        + ((1 - np.cos(theta)) / theta**2) * K
-        + ((theta - np.sin(theta)) / theta**3) * K @ K
-    )
+        J: F64 = np.eye(3) + 0.5 * K + K @ K / 6.0
+    else:
+        a = (1 - np.cos(theta)) / theta**2
+        b = (theta - np.sin(theta)) / theta**3
+        J = np.eye(3) + a * K + b * K @ K
+    return J
 
 
 def exp(xi: ArrayLike) -> F64:

@@ -29,8 +29,10 @@ def exp(omega: ArrayLike) -> F64:
     theta = float(np.linalg.norm(w))
     K = hat(w)
     if theta < _SMALL:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K @ K
+        R: F64 = np.eye(3) + K + 0.5 * K @ K
+    else:
+        R = np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K @ K
+    return R
 
 
 def log(R: ArrayLike) -> F64:
@@ -98,8 +100,8 @@ def matrix_to_quat(R: ArrayLike) -> F64:
         q = np.array(
             [(M[1, 0] - M[0, 1]) / s, (M[0, 2] + M[2, 0]) / s, (M[1, 2] + M[2, 1]) / s, 0.25 * s]
         )
-    q = q / np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
+    q_unit: F64 = q / np.linalg.norm(q)
+    return q_unit if q_unit[0] >= 0 else -q_unit
 
 
 def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> F64:

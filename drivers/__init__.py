@@ -1,0 +1,1 @@
+"""I/O with the outside world (MAVLink, cameras, rangefinders); no algorithms here."""
