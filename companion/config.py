@@ -17,7 +17,7 @@ import math
 import tomllib
 import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -26,16 +26,8 @@ import numpy as np
 from companion.errors import ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
+from companion.options import opt
 from companion.types import F64, RangeSensorSpec
-
-
-def opt(default: Any, help: str, **bounds: float) -> Any:
-    """A config field with a one-line help text and optional numeric bounds (ge, gt, le, lt)."""
-    meta = {"help": help, **bounds}
-    if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
-        value = default
-        return field(default_factory=lambda: value, metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,1 @@
+"""Metrics (ATE, RPE, scale errors, angle RMSE) and report tables. Pure: no I/O."""

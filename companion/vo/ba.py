@@ -1,0 +1,199 @@
+"""Local windowed bundle adjustment: Levenberg-Marquardt with the Schur complement.
+
+Cameras are world-to-camera transforms T_cam_vo (K, 4, 4), perturbed on the left:
+T <- exp(delta) T with delta = (rho, phi) (6,). Points X_vo (P, 3) are in the VO frame.
+Observations are undistorted normalised coordinates; residuals are scaled by the focal length
+so that the Huber threshold is in pixels (Triggs et al., "Bundle Adjustment - A Modern
+Synthesis", 2000, sections 6 and 8; Hartley & Zisserman, appendix A6.3).
+
+Each observation involves one camera, so the camera block of the normal equations is block
+diagonal; eliminating the points (3x3 blocks) leaves a dense 6K x 6K system for the free
+cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.geometry import se3
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+B = NDArray[np.bool_]
+
+
+@dataclass(frozen=True, slots=True)
+class BaResult:
+    """Optimised cameras (K, 4, 4), points (P, 3), per-observation residual norms [px] and
+    the robust cost before/after."""
+
+    T_cam_vo: F64
+    points_vo: F64
+    residual_px: F64
+    cost_before: float
+    cost_after: float
+    iterations: int
+
+
+def _skew_batch(v: F64) -> F64:
+    """(N, 3) -> (N, 3, 3) cross-product matrices."""
+    z = np.zeros(len(v))
+    return np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], axis=1),
+            np.stack([v[:, 2], z, -v[:, 0]], axis=1),
+            np.stack([-v[:, 1], v[:, 0], z], axis=1),
+        ],
+        axis=1,
+    )
+
+
+def _accumulate(index: I64, values: F64, n: int) -> F64:
+    """Sum values (M, ...) into n bins by index (M,): a fast np.add.at (bincount per entry)."""
+    flat = values.reshape(len(values), -1)
+    out = np.empty((n, flat.shape[1]))
+    for k in range(flat.shape[1]):
+        out[:, k] = np.bincount(index, weights=flat[:, k], minlength=n)
+    return out.reshape((n, *values.shape[1:]))
+
+
+def _pairs(obs_pt: I64, usable: NDArray[np.bool_], n_points: int) -> tuple[I64, I64]:
+    """All ordered pairs (a, b) of usable observations that see the same point."""
+    idx = np.flatnonzero(usable)
+    order = idx[np.argsort(obs_pt[idx], kind="stable")]
+    counts = np.bincount(obs_pt[order], minlength=n_points)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    c_of = counts[obs_pt[order]]  # group size of each sorted observation
+    s_of = starts[obs_pt[order]]  # group start of each sorted observation
+    a = np.repeat(np.arange(len(order)), c_of)
+    offs = np.arange(len(a)) - np.repeat(np.cumsum(c_of) - c_of, c_of)
+    b = np.repeat(s_of, c_of) + offs
+    return order[a], order[b]
+
+
+def residuals(T_cam_vo: F64, points_vo: F64, obs_cam: I64, obs_pt: I64, obs_xy: F64,
+              focal_px: float) -> tuple[F64, F64]:
+    """Reprojection residuals (M, 2) [px] and the points in the cameras (M, 3)."""
+    R = T_cam_vo[obs_cam, :3, :3]
+    t = T_cam_vo[obs_cam, :3, 3]
+    p_c = (R @ points_vo[obs_pt][:, :, None])[:, :, 0] + t
+    z = p_c[:, 2:3]
+    r = (p_c[:, :2] / z - obs_xy) * focal_px
+    return r, p_c
+
+
+def _robust_cost(r: F64, huber_px: float) -> float:
+    n = np.linalg.norm(r, axis=1)
+    quad = n <= huber_px
+    return float(np.sum(np.where(quad, 0.5 * n**2, huber_px * (n - 0.5 * huber_px))))
+
+
+def bundle_adjust(
+    T_cam_vo: F64,
+    points_vo: F64,
+    obs_cam: I64,
+    obs_pt: I64,
+    obs_xy: F64,
+    fixed_cams: B,
+    focal_px: float,
+    huber_px: float = 2.0,
+    iterations: int = 5,
+) -> BaResult:
+    """Refine cameras and points; cameras with ``fixed_cams`` True stay put (gauge and scale:
+    fix at least two cameras of a monocular window).
+
+    obs_cam, obs_pt: (M,) indices into the cameras and points; obs_xy: (M, 2) observations.
+    """
+    K = len(T_cam_vo)
+    P = len(points_vo)
+    T = T_cam_vo.copy()
+    X = points_vo.copy()
+    free = np.flatnonzero(~fixed_cams)
+    free_index = -np.ones(K, dtype=np.int64)
+    free_index[free] = np.arange(len(free))
+    nf = len(free)
+    # pairs of observations of the same point by free cameras (for the Schur complement)
+    pa, pb = _pairs(obs_pt, free_index[obs_cam] >= 0, P)
+    fo = free_index[obs_cam]
+    sel = fo >= 0
+
+    r, p_c = residuals(T, X, obs_cam, obs_pt, obs_xy, focal_px)
+    cost0 = cost = _robust_cost(r, huber_px)
+    lam = 1e-4
+    it = 0
+    for it in range(1, iterations + 1):
+        n = np.linalg.norm(r, axis=1)
+        w = np.where(n <= huber_px, 1.0, huber_px / np.maximum(n, 1e-12))  # IRLS Huber weights
+        z = p_c[:, 2]
+        inv_z = 1.0 / z
+        J_proj = np.zeros((len(z), 2, 3))
+        J_proj[:, 0, 0] = focal_px * inv_z
+        J_proj[:, 1, 1] = focal_px * inv_z
+        J_proj[:, 0, 2] = -focal_px * p_c[:, 0] * inv_z**2
+        J_proj[:, 1, 2] = -focal_px * p_c[:, 1] * inv_z**2
+        J_cam = np.concatenate([J_proj, -J_proj @ _skew_batch(p_c)], axis=2)  # (M, 2, 6)
+        J_pt = J_proj @ T[obs_cam, :3, :3]  # (M, 2, 3)
+        wJc = J_cam * w[:, None, None]
+        wJp = J_pt * w[:, None, None]
+        wJcT = wJc.transpose(0, 2, 1)
+        Hcc_o = wJcT @ J_cam
+        Hcp_o = wJcT @ J_pt
+        Hpp_o = wJp.transpose(0, 2, 1) @ J_pt
+        gc_o = -(wJcT @ r[:, :, None])[:, :, 0]
+        gp_o = -(wJp.transpose(0, 2, 1) @ r[:, :, None])[:, :, 0]
+        Hpp = _accumulate(obs_pt, Hpp_o, P)
+        gp = _accumulate(obs_pt, gp_o, P)
+        Hcc = _accumulate(fo[sel], Hcc_o[sel], nf)
+        bc0 = _accumulate(fo[sel], gc_o[sel], nf)
+
+        while True:
+            diag_p = np.einsum("pii->pi", Hpp)
+            Hpp_d = Hpp + (lam * diag_p + 1e-9)[:, :, None] * np.eye(3)[None]
+            Vinv = np.linalg.inv(Hpp_d)
+            if nf:
+                Y = Hcp_o @ Vinv[obs_pt]  # (M, 6, 3)
+                S = np.zeros((nf * nf, 6, 6))
+                if len(pa):
+                    blocks = Y[pa] @ Hcp_o[pb].transpose(0, 2, 1)
+                    S -= _accumulate(fo[pa] * nf + fo[pb], blocks, nf * nf)
+                S = S.reshape(nf, nf, 6, 6)
+                for i in range(nf):
+                    S[i, i] += Hcc[i] + lam * np.diag(np.diag(Hcc[i])) + 1e-9 * np.eye(6)
+                Yg = (Y[sel] @ gp[obs_pt[sel]][:, :, None])[:, :, 0]
+                bc = bc0 - _accumulate(fo[sel], Yg, nf)
+                Sm = S.transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
+                try:
+                    dc = np.linalg.solve(Sm, bc.reshape(-1)).reshape(nf, 6)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    if lam > 1e6:
+                        break
+                    continue
+            else:
+                dc = np.zeros((0, 6))
+            # back-substitution for the points
+            rhs = gp.copy()
+            if nf:
+                back = (Hcp_o[sel].transpose(0, 2, 1) @ dc[fo[sel]][:, :, None])[:, :, 0]
+                rhs -= _accumulate(obs_pt[sel], back, P)
+            dX = (Vinv @ rhs[:, :, None])[:, :, 0]
+            T_new = T.copy()
+            for i, k in enumerate(free):
+                T_new[k] = se3.exp(dc[i]) @ T[k]
+            X_new = X + dX
+            r_new, p_new = residuals(T_new, X_new, obs_cam, obs_pt, obs_xy, focal_px)
+            valid = np.all(p_new[:, 2] > 1e-6)
+            cost_new = _robust_cost(r_new, huber_px) if valid else np.inf
+            if cost_new < cost:
+                T, X, r, p_c, cost = T_new, X_new, r_new, p_new, cost_new
+                lam = max(lam / 10, 1e-7)
+                break
+            lam *= 10
+            if lam > 1e6:
+                break
+        if lam > 1e6:
+            break
+    return BaResult(T, X, np.linalg.norm(r, axis=1), cost0, cost, it)

@@ -1,0 +1,479 @@
+"""Keyframe-based sparse monocular visual odometry.
+
+Per frame: KLT tracking (pyramidal Lucas-Kanade) of grid-spread corners, then the camera pose
+against the map by iterative PnP from a constant-velocity prediction, refined on the inliers
+(RANSAC PnP only as a fallback). Keyframes are taken on translation relative to the scene
+depth or loss of tracked points; at a keyframe, candidate features are triangulated against
+the keyframe where they were first seen (parallax and reprojection checks, depth sigma), new
+corners fill the empty image areas, and a local bundle adjustment refines the last keyframes
+and their points. The map keeps at most ``max_keyframes`` keyframes and the points they see.
+
+Frames: the VO frame ``vo`` is gravity-aligned at initialisation from the attitude input,
+with yaw = the vehicle heading then, origin = first keyframe, unit = median scene depth at
+initialisation (DESIGN.md section 2). Poses are kept as T_cam_vo (world to camera).
+
+States (DESIGN.md section 3): INITIALIZING until the first two-view initialisation; TRACKING;
+LOST from the frame where tracking fails until a new initialisation succeeds (then ``resets``
+counts up and the VO frame starts anew). A failed frame never produces a pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.geometry import se3, so3
+from companion.geometry.camera import CameraModel
+from companion.types import CameraFrame, VoFeatures, VoOutput, VoState
+from companion.vo.ba import bundle_adjust
+from companion.vo.initializer import initialize
+from companion.vo.options import VoOptions
+from companion.vo.triangulation import triangulate
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+U8 = NDArray[np.uint8]
+
+
+@dataclass
+class Keyframe:
+    """A keyframe: its pose T_cam_vo (4, 4) and observations {point id: normalised xy (2,)}."""
+
+    kf_id: int
+    time_us: int
+    T_cam_vo: F64
+    obs: dict[int, F64] = field(default_factory=dict)
+
+
+@dataclass
+class Tracks:
+    """Features followed from frame to frame.
+
+    px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
+    anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
+    anchor_xy: (N, 2) its normalised coordinates there.
+    """
+
+    px: F32
+    pid: I64
+    anchor: I64
+    anchor_xy: F64
+
+    @staticmethod
+    def empty() -> Tracks:
+        return Tracks(np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                      np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.pid)
+
+    def select(self, keep: NDArray[np.bool_]) -> Tracks:
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep])
+
+    def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
+        n = len(px)
+        return Tracks(
+            np.concatenate([self.px, px.astype(np.float32)]),
+            np.concatenate([self.pid, -np.ones(n, np.int64)]),
+            np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
+            np.concatenate([self.anchor_xy, anchor_xy]),
+        )
+
+
+class VisualOdometry:
+    """Monocular VO for one camera. Feed frames in time order with :meth:`process`."""
+
+    def __init__(self, camera: CameraModel, T_body_cam: F64,
+                 options: VoOptions | None = None) -> None:
+        self.camera = camera
+        self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
+        self.opts = options or VoOptions()
+        self.focal_px = 0.5 * (camera.fx + camera.fy)
+        self.state = VoState.INITIALIZING
+        self.resets = 0
+        self.n_frames = 0
+        self.ever_initialized = False
+        self._prev_gray: U8 | None = None
+        self.tracks = Tracks.empty()
+        self.points: dict[int, F64] = {}
+        self.point_sigma: dict[int, float] = {}
+        self.keyframes: list[Keyframe] = []
+        self._next_pid = 0
+        self._next_kf = 0
+        self.T_cam_vo = np.eye(4)
+        self._T_prev = np.eye(4)
+        self._frames_since_kf = 0
+        self._ref_time_us = 0
+        self._ref_frames = 0
+        self._ref_R_vo_cam = np.eye(3)
+        self.last_keyframe_time_us = -1
+
+    # ------------------------------------------------------------------ helpers
+    def _normalized(self, px: NDArray[np.floating]) -> F64:
+        return self.camera.pixels_to_normalized(np.asarray(px, dtype=np.float64))
+
+    def _detect(self, gray: U8, n_max: int) -> F32:
+        """Up to n_max corners (K, 2) away from the current tracks (half-resolution detection,
+        sub-pixel refinement at full resolution)."""
+        if n_max <= 0:
+            return np.zeros((0, 2), np.float32)
+        small = cv2.pyrDown(gray)
+        mask = np.full(small.shape, 255, np.uint8)
+        r = max(1, int(round(self.opts.min_distance_px / 2)))
+        for x, y in (self.tracks.px * 0.5).astype(int):
+            cv2.circle(mask, (int(x), int(y)), r, 0, -1)
+        border = 4
+        mask[:border] = 0
+        mask[-border:] = 0
+        mask[:, :border] = 0
+        mask[:, -border:] = 0
+        corners = cv2.goodFeaturesToTrack(small, n_max, 0.01, self.opts.min_distance_px / 2,
+                                          mask=mask, blockSize=3)
+        if corners is None:
+            return np.zeros((0, 2), np.float32)
+        pts = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
+        cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (3, 3), (-1, -1),
+                         (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03))
+        return pts.reshape(-1, 2)
+
+    def _track(self, gray: U8) -> None:
+        """KLT from the previous image; drops lost and out-of-image features."""
+        if self._prev_gray is None or len(self.tracks) == 0:
+            self.tracks = Tracks.empty()
+            return
+        w = self.opts.klt_window_px
+        nxt, status, _ = cv2.calcOpticalFlowPyrLK(
+            self._prev_gray, gray, self.tracks.px.reshape(-1, 1, 2), None, winSize=(w, w),
+            maxLevel=self.opts.klt_levels,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+        nxt = nxt.reshape(-1, 2)
+        ok = (status.ravel() == 1) & self.camera.in_image(nxt, margin_px=2.0)
+        self.tracks = self.tracks.select(ok)
+        self.tracks.px = nxt[ok].astype(np.float32)
+
+    def _gravity_R_vo_body(self, R_world_body: F64 | None) -> F64:
+        """Roll and pitch of the attitude with its yaw removed (the VO frame's orientation)."""
+        if R_world_body is None:
+            return np.eye(3)
+        roll, pitch, _ = so3.matrix_to_rpy(R_world_body)
+        return so3.rpy_to_matrix(roll, pitch, 0.0)
+
+    def _output(self, time_us: int, is_kf: bool) -> VoOutput:
+        tr = self.tracks
+        n = len(tr)
+        pts = np.full((n, 3), np.nan)
+        sig = np.full(n, np.nan)
+        has = tr.pid >= 0
+        for i in np.flatnonzero(has):
+            pts[i] = self.points[int(tr.pid[i])]
+            sig[i] = self.point_sigma[int(tr.pid[i])]
+        feats = VoFeatures(tr.px.astype(np.float64), tr.pid.copy(), pts, sig)
+        tracking = self.state == VoState.TRACKING
+        T_vo_cam = se3.inverse(self.T_cam_vo) if tracking else np.full((4, 4), np.nan)
+        return VoOutput(time_us, self.state, is_kf, T_vo_cam, feats)
+
+    # ------------------------------------------------------------------ reference / init
+    def _restart_reference(self, gray: U8, time_us: int, R_world_body: F64 | None) -> None:
+        self.tracks = Tracks.empty()
+        px = self._detect(gray, self.opts.max_features)
+        self.tracks = self.tracks.extend(px, -1, self._normalized(px))
+        self._ref_time_us = time_us
+        self._ref_frames = 0
+        self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
+
+    def _try_initialize(self, gray: U8, time_us: int) -> bool:
+        tr = self.tracks
+        if len(tr) < self.opts.init_min_points:
+            return False
+        x1 = self._normalized(tr.px)
+        flow_px = np.linalg.norm(x1 - tr.anchor_xy, axis=1) * self.focal_px
+        if np.median(flow_px) < self.opts.init_min_parallax_px:
+            return False
+        gravity_c0 = self._ref_R_vo_cam.T @ np.array([0.0, 0.0, 1.0])
+        result = initialize(tr.anchor_xy, x1, self.focal_px, gravity_c0,
+                            self.opts.pixel_sigma_px, self.opts.min_parallax_deg)
+        if result is None:
+            return False
+        good = result.good
+        scale = 1.0 / float(np.median(result.points_c0[good, 2]))
+        T_c1_c0 = result.T_c1_c0.copy()
+        T_c1_c0[:3, 3] *= scale
+        T_vo_c0 = se3.make(self._ref_R_vo_cam, np.zeros(3))
+        T_c0_vo = se3.inverse(T_vo_c0)
+        T_c1_vo = T_c1_c0 @ T_c0_vo
+        pts_vo = se3.transform(T_vo_c0, result.points_c0 * scale)
+        # the map starts afresh
+        self.points.clear()
+        self.point_sigma.clear()
+        self.keyframes = []
+        kf0 = Keyframe(self._next_kf, self._ref_time_us, T_c0_vo)
+        kf1 = Keyframe(self._next_kf + 1, time_us, T_c1_vo)
+        self._next_kf += 2
+        pid = tr.pid.copy()
+        for i in np.flatnonzero(good):
+            p = self._next_pid
+            self._next_pid += 1
+            self.points[p] = pts_vo[i]
+            self.point_sigma[p] = float(result.depth_sigma[i] * scale)
+            kf0.obs[p] = tr.anchor_xy[i].copy()
+            kf1.obs[p] = x1[i].copy()
+            pid[i] = p
+        anchor = np.where(good, -1, kf0.kf_id)
+        self.tracks = Tracks(tr.px, pid, anchor.astype(np.int64), tr.anchor_xy)
+        self.keyframes = [kf0, kf1]
+        self.T_cam_vo = T_c1_vo
+        self._T_prev = T_c1_vo.copy()
+        self._frames_since_kf = 0
+        self.last_keyframe_time_us = time_us
+        new_px = self._detect(gray, self.opts.max_features - len(self.tracks))
+        self.tracks = self.tracks.extend(new_px, kf1.kf_id, self._normalized(new_px))
+        return True
+
+    # ------------------------------------------------------------------ tracking
+    def _estimate_pose(self) -> bool:
+        tr = self.tracks
+        has = tr.pid >= 0
+        if has.sum() < self.opts.min_tracked_points:
+            return False
+        X = np.array([self.points[int(p)] for p in tr.pid[has]])
+        xy = self._normalized(tr.px[has])
+        # constant-velocity prediction
+        T_pred = self.T_cam_vo @ se3.inverse(self._T_prev) @ self.T_cam_vo
+        rvec, _ = cv2.Rodrigues(T_pred[:3, :3])
+        tvec = T_pred[:3, 3].reshape(3, 1).copy()
+        inl = np.ones(len(X), dtype=bool)
+        ok = False
+        T_new = T_pred
+        for _ in range(3):
+            if inl.sum() < 6:
+                break
+            ok, rvec, tvec = cv2.solvePnP(X[inl], xy[inl], np.eye(3), None, rvec, tvec,
+                                          useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok:
+                break
+            T_new = se3.make(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            p_c = se3.transform(T_new, X)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1) * self.focal_px
+            inl = (err < self.opts.inlier_px) & (p_c[:, 2] > 0)
+        if not ok or inl.sum() < self.opts.min_tracked_points:
+            ok, rvec, tvec, idx = cv2.solvePnPRansac(
+                X, xy, np.eye(3), None, reprojectionError=self.opts.inlier_px / self.focal_px,
+                iterationsCount=100, confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok or idx is None or len(idx) < self.opts.min_tracked_points:
+                return False
+            T_new = se3.make(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            p_c = se3.transform(T_new, X)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1) * self.focal_px
+            inl = (err < self.opts.inlier_px) & (p_c[:, 2] > 0)
+            if inl.sum() < self.opts.min_tracked_points:
+                return False
+        # a physically impossible jump is a failure, never a pose
+        dR = so3.angle_between(T_new[:3, :3], self.T_cam_vo[:3, :3])
+        if np.degrees(dR) > self.opts.max_rotation_deg_per_frame or not np.all(np.isfinite(T_new)):
+            return False
+        # drop map-point outliers from the tracks
+        keep = np.ones(len(tr), dtype=bool)
+        keep[np.flatnonzero(has)[~inl]] = False
+        self.tracks = tr.select(keep)
+        self._T_prev = self.T_cam_vo
+        self.T_cam_vo = T_new
+        return True
+
+    def _anchor_pose(self, anchor: int) -> F64 | None:
+        for kf in self.keyframes:
+            if kf.kf_id == anchor:
+                return kf.T_cam_vo
+        return None
+
+    def _check_candidates(self) -> None:
+        """Epipolar (Sampson) check of candidates against their anchor keyframe."""
+        tr = self.tracks
+        cand = np.flatnonzero(tr.pid < 0)
+        if len(cand) == 0:
+            return
+        xy = self._normalized(tr.px[cand])
+        keep = np.ones(len(tr), dtype=bool)
+        for a in np.unique(tr.anchor[cand]):
+            T_a = self._anchor_pose(int(a))
+            if T_a is None:
+                continue
+            sel = tr.anchor[cand] == a
+            T_c_a = self.T_cam_vo @ se3.inverse(T_a)
+            t = T_c_a[:3, 3]
+            if np.linalg.norm(t) < 1e-9:
+                continue
+            E = so3.hat(t) @ T_c_a[:3, :3]
+            h0 = np.column_stack([tr.anchor_xy[cand[sel]], np.ones(sel.sum())])
+            h1 = np.column_stack([xy[sel], np.ones(sel.sum())])
+            Ex0 = h0 @ E.T
+            Etx1 = h1 @ E
+            num = np.einsum("ij,ij->i", h1, Ex0) ** 2
+            den = Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2
+            sampson_px = np.sqrt(num / np.maximum(den, 1e-300)) * self.focal_px
+            keep[cand[sel]] = sampson_px < 2.0 * self.opts.inlier_px
+        self.tracks = tr.select(keep)
+
+    def _median_depth(self) -> float:
+        has = self.tracks.pid >= 0
+        if not has.any():
+            return 1.0
+        X = np.array([self.points[int(p)] for p in self.tracks.pid[has]])
+        z = se3.transform(self.T_cam_vo, X)[:, 2]
+        return float(np.median(z))
+
+    def _need_keyframe(self) -> bool:
+        kf = self.keyframes[-1]
+        c_kf = -kf.T_cam_vo[:3, :3].T @ kf.T_cam_vo[:3, 3]
+        c = -self.T_cam_vo[:3, :3].T @ self.T_cam_vo[:3, 3]
+        moved = float(np.linalg.norm(c - c_kf)) / max(self._median_depth(), 1e-9)
+        n_pts = int((self.tracks.pid >= 0).sum())
+        if moved > self.opts.kf_translation_ratio:
+            return True
+        if moved < 0.01:
+            return False  # hovering: a keyframe would add no parallax
+        if n_pts < self.opts.kf_tracked_ratio * max(len(kf.obs), 1):
+            return True
+        if len(self.tracks) < 0.5 * self.opts.max_features:
+            return True
+        return self._frames_since_kf >= self.opts.kf_max_frames
+
+    # ------------------------------------------------------------------ keyframes
+    def _add_keyframe(self, gray: U8, time_us: int) -> None:
+        kf = Keyframe(self._next_kf, time_us, self.T_cam_vo.copy())
+        self._next_kf += 1
+        tr = self.tracks
+        xy = self._normalized(tr.px)
+        for i in np.flatnonzero(tr.pid >= 0):
+            kf.obs[int(tr.pid[i])] = xy[i]
+        # triangulate candidates against their anchor keyframes
+        pid = tr.pid.copy()
+        anchor = tr.anchor.copy()
+        anchor_xy = tr.anchor_xy.copy()
+        cand = np.flatnonzero(pid < 0)
+        for a in np.unique(anchor[cand]):
+            sel = cand[anchor[cand] == a]
+            T_a = self._anchor_pose(int(a))
+            if T_a is None:  # anchor gone: start over from this keyframe
+                anchor[sel] = kf.kf_id
+                anchor_xy[sel] = xy[sel]
+                continue
+            tri = triangulate(T_a, kf.T_cam_vo, anchor_xy[sel], xy[sel], self.focal_px,
+                              self.opts.pixel_sigma_px, self.opts.min_parallax_deg,
+                              2.0 * self.opts.inlier_px)
+            kf_a = next(k for k in self.keyframes if k.kf_id == a)
+            for j, i in enumerate(sel):
+                if not tri.ok[j]:
+                    continue
+                p = self._next_pid
+                self._next_pid += 1
+                self.points[p] = tri.points_vo[j]
+                self.point_sigma[p] = float(tri.depth_sigma[j])
+                kf_a.obs[p] = anchor_xy[i].copy()
+                kf.obs[p] = xy[i].copy()
+                pid[i] = p
+        self.tracks = Tracks(tr.px, pid, anchor, anchor_xy)
+        self.keyframes.append(kf)
+        new_px = self._detect(gray, self.opts.max_features - len(self.tracks))
+        self.tracks = self.tracks.extend(new_px, kf.kf_id, self._normalized(new_px))
+        self._local_ba()
+        self._bound_map()
+        self._frames_since_kf = 0
+        self.last_keyframe_time_us = time_us
+
+    def _local_ba(self) -> None:
+        window = self.keyframes[-self.opts.window_keyframes:]
+        if len(window) < 3 or self.opts.ba_iterations == 0:
+            return
+        count: dict[int, int] = {}
+        for kf in window:
+            for p in kf.obs:
+                count[p] = count.get(p, 0) + 1
+        pids = [p for p, c in count.items() if c >= 2]
+        if len(pids) < 10:
+            return
+        index = {p: i for i, p in enumerate(pids)}
+        obs_cam, obs_pt, obs_xy = [], [], []
+        for k, kf in enumerate(window):
+            for p, xy in kf.obs.items():
+                if p in index:
+                    obs_cam.append(k)
+                    obs_pt.append(index[p])
+                    obs_xy.append(xy)
+        T = np.stack([kf.T_cam_vo for kf in window])
+        X = np.stack([self.points[p] for p in pids])
+        fixed = np.zeros(len(window), dtype=bool)
+        fixed[:2] = True
+        res = bundle_adjust(T, X, np.asarray(obs_cam), np.asarray(obs_pt), np.asarray(obs_xy),
+                            fixed, self.focal_px, huber_px=self.opts.inlier_px,
+                            iterations=self.opts.ba_iterations)
+        for k, kf in enumerate(window):
+            kf.T_cam_vo = res.T_cam_vo[k]
+        for i, p in enumerate(pids):
+            self.points[p] = res.points_vo[i]
+        # observations that stay far off after BA are removed
+        bad = res.residual_px > 3.0 * self.opts.inlier_px
+        for o in np.flatnonzero(bad):
+            window[obs_cam[o]].obs.pop(pids[obs_pt[o]], None)
+        self.T_cam_vo = window[-1].T_cam_vo.copy()
+
+    def _bound_map(self) -> None:
+        while len(self.keyframes) > self.opts.max_keyframes:
+            self.keyframes.pop(0)
+        seen: set[int] = set()
+        for kf in self.keyframes:
+            seen.update(kf.obs)
+        tracked = set(int(p) for p in self.tracks.pid if p >= 0)
+        for p in list(self.points):
+            if p not in seen and p not in tracked:
+                del self.points[p]
+                del self.point_sigma[p]
+        # tracked points no keyframe sees any more become candidates again
+        lost = np.array([p >= 0 and int(p) not in seen for p in self.tracks.pid], dtype=bool)
+        if lost.any():
+            tr = self.tracks
+            xy = self._normalized(tr.px[lost])
+            tr.pid[lost] = -1
+            tr.anchor[lost] = self.keyframes[-1].kf_id
+            tr.anchor_xy[lost] = xy
+
+    # ------------------------------------------------------------------ entry point
+    def process(self, frame: CameraFrame, R_world_body: F64 | None = None) -> VoOutput:
+        """One frame in, one VoOutput out. ``R_world_body``: the attitude at the frame time
+        (used to gravity-align the VO frame at initialisation), or None."""
+        self.n_frames += 1
+        img = frame.image_bgr
+        gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+        is_kf = False
+        self._track(gray)
+        if self.state != VoState.TRACKING:
+            self._ref_frames += 1
+            if len(self.tracks) < self.opts.init_min_points or (
+                self._ref_frames > self.opts.init_max_frames
+            ):
+                self._restart_reference(gray, frame.time_us, R_world_body)
+            elif self._try_initialize(gray, frame.time_us):
+                if self.ever_initialized:
+                    self.resets += 1
+                self.ever_initialized = True
+                self.state = VoState.TRACKING
+                is_kf = True
+        elif not self._estimate_pose():
+            self.state = VoState.LOST
+            self.points.clear()
+            self.point_sigma.clear()
+            self.keyframes = []
+            self._restart_reference(gray, frame.time_us, R_world_body)
+        else:
+            self._check_candidates()
+            self._frames_since_kf += 1
+            if self._need_keyframe():
+                self._add_keyframe(gray, frame.time_us)
+                is_kf = True
+        self._prev_gray = gray
+        return self._output(frame.time_us, is_kf)

@@ -1,0 +1,35 @@
+"""Options of the visual odometry (one frozen dataclass, composed into the config as [vo])."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from companion.options import opt
+
+
+@dataclass(frozen=True, slots=True)
+class VoOptions:
+    """Tuning of the monocular VO; defaults are for 640x480 at 30 Hz looking down."""
+
+    max_features: int = opt(200, "features kept in tracking", ge=20, le=2000)
+    min_distance_px: float = opt(18.0, "minimum distance between features [px]", gt=0)
+    klt_window_px: int = opt(15, "KLT window side [px]", ge=5, le=61)
+    klt_levels: int = opt(3, "KLT pyramid levels above the image", ge=0, le=6)
+    pixel_sigma_px: float = opt(1.0, "feature position noise [px]", gt=0)
+    inlier_px: float = opt(2.5, "pose inlier threshold on reprojection error [px]", gt=0)
+    min_tracked_points: int = opt(25, "fewer 3D points tracked than this = LOST", ge=6)
+    init_min_parallax_px: float = opt(22.0, "median flow before two-view init [px]", gt=0)
+    init_min_points: int = opt(60, "tracked features needed to initialise", ge=8)
+    init_max_frames: int = opt(90, "frames before the init reference is renewed", ge=5)
+    kf_translation_ratio: float = opt(
+        0.10, "new keyframe after this translation / median depth", gt=0, le=1
+    )
+    kf_tracked_ratio: float = opt(0.65, "new keyframe when fewer of the KF's points track", gt=0)
+    kf_max_frames: int = opt(20, "at most this many frames between keyframes (when moving)", ge=1)
+    min_parallax_deg: float = opt(1.0, "minimum triangulation angle [deg]", gt=0)
+    window_keyframes: int = opt(6, "keyframes optimised by the local bundle adjustment", ge=2)
+    max_keyframes: int = opt(10, "keyframes kept in the map (older ones dropped)", ge=2)
+    ba_iterations: int = opt(4, "Levenberg-Marquardt iterations of the local BA", ge=0, le=50)
+    max_rotation_deg_per_frame: float = opt(
+        25.0, "a larger rotation between frames is a failure (LOST)", gt=0
+    )
