@@ -28,6 +28,7 @@ from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
 from companion.types import F64, RangeSensorSpec
+from companion.vo.options import VoOptions
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +171,7 @@ class Config:
     rangefinders: tuple[RangefinderConfig, ...] = opt(
         DEFAULT_RANGEFINDERS, "the downward distance sensors ([[rangefinders]] tables)"
     )
+    vo: VoOptions = opt(VoOptions(), "visual odometry")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
 
     def __post_init__(self) -> None:

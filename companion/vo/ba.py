@@ -74,8 +74,9 @@ def _pairs(obs_pt: I64, usable: NDArray[np.bool_], n_points: int) -> tuple[I64, 
     return order[a], order[b]
 
 
-def residuals(T_cam_vo: F64, points_vo: F64, obs_cam: I64, obs_pt: I64, obs_xy: F64,
-              focal_px: float) -> tuple[F64, F64]:
+def residuals(
+    T_cam_vo: F64, points_vo: F64, obs_cam: I64, obs_pt: I64, obs_xy: F64, focal_px: float
+) -> tuple[F64, F64]:
     """Reprojection residuals (M, 2) [px] and the points in the cameras (M, 3)."""
     R = T_cam_vo[obs_cam, :3, :3]
     t = T_cam_vo[obs_cam, :3, 3]
@@ -123,8 +124,9 @@ def bundle_adjust(
     r, p_c = residuals(T, X, obs_cam, obs_pt, obs_xy, focal_px)
     cost0 = cost = _robust_cost(r, huber_px)
     lam = 1e-4
-    it = 0
+    done = 0
     for it in range(1, iterations + 1):
+        done = it
         n = np.linalg.norm(r, axis=1)
         w = np.where(n <= huber_px, 1.0, huber_px / np.maximum(n, 1e-12))  # IRLS Huber weights
         z = p_c[:, 2]
@@ -155,11 +157,11 @@ def bundle_adjust(
             Vinv = np.linalg.inv(Hpp_d)
             if nf:
                 Y = Hcp_o @ Vinv[obs_pt]  # (M, 6, 3)
-                S = np.zeros((nf * nf, 6, 6))
+                S_flat = np.zeros((nf * nf, 6, 6))
                 if len(pa):
                     blocks = Y[pa] @ Hcp_o[pb].transpose(0, 2, 1)
-                    S -= _accumulate(fo[pa] * nf + fo[pb], blocks, nf * nf)
-                S = S.reshape(nf, nf, 6, 6)
+                    S_flat -= _accumulate(fo[pa] * nf + fo[pb], blocks, nf * nf)
+                S = S_flat.reshape(nf, nf, 6, 6)
                 for i in range(nf):
                     S[i, i] += Hcc[i] + lam * np.diag(np.diag(Hcc[i])) + 1e-9 * np.eye(6)
                 Yg = (Y[sel] @ gp[obs_pt[sel]][:, :, None])[:, :, 0]
@@ -196,4 +198,4 @@ def bundle_adjust(
                 break
         if lam > 1e6:
             break
-    return BaResult(T, X, np.linalg.norm(r, axis=1), cost0, cost, it)
+    return BaResult(T, X, np.linalg.norm(r, axis=1), cost0, cost, done)

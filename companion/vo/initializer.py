@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3
+from companion.vo.ba import bundle_adjust
 from companion.vo.triangulation import triangulate
 
 F64 = NDArray[np.float64]
@@ -45,11 +46,13 @@ def _score_homography(H: F64, x0: F64, x1: F64, inv_sigma2: float) -> F64:
         p = np.column_stack([a, np.ones(len(a))]) @ M.T
         with np.errstate(divide="ignore", invalid="ignore"):
             d2 = np.sum((p[:, :2] / p[:, 2:3] - b) ** 2, axis=1) * inv_sigma2
-        return np.nan_to_num(d2, nan=np.inf)
+        out: F64 = np.nan_to_num(d2, nan=np.inf)
+        return out
 
     d01 = transfer(H, x0, x1)
-    d10 = transfer(np.linalg.inv(H), x1, x0)
-    return np.where(d01 < _T_H, _T_H - d01, 0.0) + np.where(d10 < _T_H, _T_H - d10, 0.0)
+    d10 = transfer(np.asarray(np.linalg.inv(H), dtype=np.float64), x1, x0)
+    score: F64 = np.where(d01 < _T_H, _T_H - d01, 0.0) + np.where(d10 < _T_H, _T_H - d10, 0.0)
+    return score
 
 
 def _score_essential(E: F64, x0: F64, x1: F64, inv_sigma2: float) -> F64:
@@ -63,8 +66,14 @@ def _score_essential(E: F64, x0: F64, x1: F64, inv_sigma2: float) -> F64:
     return np.where(d1 < _T_F, _T_H - d1, 0.0) + np.where(d0 < _T_F, _T_H - d0, 0.0)
 
 
-def initialize(x0: F64, x1: F64, focal_px: float, gravity_c0: F64 | None = None,
-               pixel_sigma_px: float = 1.0, min_parallax_deg: float = 1.0) -> TwoView | None:
+def initialize(
+    x0: F64,
+    x1: F64,
+    focal_px: float,
+    gravity_c0: F64 | None = None,
+    pixel_sigma_px: float = 1.0,
+    min_parallax_deg: float = 1.0,
+) -> TwoView | None:
     """Relative pose and structure from N >= 8 normalised correspondences (N, 2) each.
 
     Returns None when neither model explains the motion well enough (too little parallax,
@@ -88,8 +97,9 @@ def initialize(x0: F64, x1: F64, focal_px: float, gravity_c0: F64 | None = None,
     if ratio > 0.45 and H is not None:
         model = "homography"
         _, Rs, ts, normals = cv2.decomposeHomographyMat(H, np.eye(3))
-        candidates = [(R, t.ravel(), nrm.ravel()) for R, t, nrm in zip(Rs, ts, normals,
-                                                                       strict=True)]
+        candidates = [
+            (R, t.ravel(), nrm.ravel()) for R, t, nrm in zip(Rs, ts, normals, strict=True)
+        ]
         inliers = mask_h.ravel().astype(bool)
     elif E is not None:
         model = "essential"
@@ -110,7 +120,7 @@ def initialize(x0: F64, x1: F64, focal_px: float, gravity_c0: F64 | None = None,
         count = int(good.sum())
         align = 0.0
         if normal is not None and gravity_c0 is not None:
-            align = abs(float(normal @ gravity_c0)) / (np.linalg.norm(normal) + 1e-12)
+            align = abs(float(normal @ gravity_c0)) / (float(np.linalg.norm(normal)) + 1e-12)
         # cheirality first; among near-equal counts prefer the normal along gravity
         key = (count // max(1, n // 20), align)
         if key > best_key:
@@ -118,4 +128,28 @@ def initialize(x0: F64, x1: F64, focal_px: float, gravity_c0: F64 | None = None,
             best = TwoView(T, tri.points_vo, good, tri.depth_sigma, model, ratio)
     if best is None or int(best.good.sum()) < max(8, n // 3):
         return None
-    return best
+    return _refine(best, x0, x1, focal_px)
+
+
+def _refine(view: TwoView, x0: F64, x1: F64, focal_px: float) -> TwoView:
+    """Two-view bundle adjustment of the chosen solution (camera 0 fixed), |t| renormalised.
+
+    The model fits (RANSAC homography or essential matrix) ignore the noise structure; a
+    decomposed homography in particular leaves degrees of error in the translation direction.
+    """
+    good = np.flatnonzero(view.good)
+    m = len(good)
+    obs_cam = np.concatenate([np.zeros(m, np.int64), np.ones(m, np.int64)])
+    obs_pt = np.concatenate([np.arange(m), np.arange(m)])
+    obs_xy = np.concatenate([x0[good], x1[good]])
+    T = np.stack([np.eye(4), view.T_c1_c0])
+    res = bundle_adjust(T, view.points_c0[good], obs_cam, obs_pt, obs_xy,
+                        np.array([True, False]), focal_px, huber_px=2.0, iterations=8)
+    T1 = res.T_cam_vo[1].copy()
+    s = float(np.linalg.norm(T1[:3, 3]))
+    if not np.isfinite(s) or s < 1e-9:
+        return view
+    T1[:3, 3] /= s
+    points = view.points_c0.copy()
+    points[good] = res.points_vo / s
+    return TwoView(T1, points, view.good, view.depth_sigma, view.model, view.ratio_h)

@@ -31,6 +31,7 @@ from companion.types import CameraFrame, VoFeatures, VoOutput, VoState
 from companion.vo.ba import bundle_adjust
 from companion.vo.initializer import initialize
 from companion.vo.options import VoOptions
+from companion.vo.pose import estimate_pose
 from companion.vo.triangulation import triangulate
 
 F64 = NDArray[np.float64]
@@ -65,8 +66,12 @@ class Tracks:
 
     @staticmethod
     def empty() -> Tracks:
-        return Tracks(np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                      np.zeros((0, 2)))
+        return Tracks(
+            np.zeros((0, 2), np.float32),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, 2)),
+        )
 
     def __len__(self) -> int:
         return len(self.pid)
@@ -87,8 +92,9 @@ class Tracks:
 class VisualOdometry:
     """Monocular VO for one camera. Feed frames in time order with :meth:`process`."""
 
-    def __init__(self, camera: CameraModel, T_body_cam: F64,
-                 options: VoOptions | None = None) -> None:
+    def __init__(
+        self, camera: CameraModel, T_body_cam: F64, options: VoOptions | None = None
+    ) -> None:
         self.camera = camera
         self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
         self.opts = options or VoOptions()
@@ -131,14 +137,21 @@ class VisualOdometry:
         mask[-border:] = 0
         mask[:, :border] = 0
         mask[:, -border:] = 0
-        corners = cv2.goodFeaturesToTrack(small, n_max, 0.01, self.opts.min_distance_px / 2,
-                                          mask=mask, blockSize=3)
+        corners = cv2.goodFeaturesToTrack(
+            small, n_max, 0.01, self.opts.min_distance_px / 2, mask=mask, blockSize=3
+        )
         if corners is None:
             return np.zeros((0, 2), np.float32)
         pts = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
-        cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (3, 3), (-1, -1),
-                         (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03))
-        return pts.reshape(-1, 2)
+        cv2.cornerSubPix(
+            gray,
+            pts.reshape(-1, 1, 2),
+            (3, 3),
+            (-1, -1),
+            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
+        )
+        out: F32 = pts.reshape(-1, 2)
+        return out
 
     def _track(self, gray: U8) -> None:
         """KLT from the previous image; drops lost and out-of-image features."""
@@ -147,9 +160,14 @@ class VisualOdometry:
             return
         w = self.opts.klt_window_px
         nxt, status, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_gray, gray, self.tracks.px.reshape(-1, 1, 2), None, winSize=(w, w),
+            self._prev_gray,
+            gray,
+            self.tracks.px.reshape(-1, 1, 2),
+            None,
+            winSize=(w, w),
             maxLevel=self.opts.klt_levels,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+        )
         nxt = nxt.reshape(-1, 2)
         ok = (status.ravel() == 1) & self.camera.in_image(nxt, margin_px=2.0)
         self.tracks = self.tracks.select(ok)
@@ -194,8 +212,14 @@ class VisualOdometry:
         if np.median(flow_px) < self.opts.init_min_parallax_px:
             return False
         gravity_c0 = self._ref_R_vo_cam.T @ np.array([0.0, 0.0, 1.0])
-        result = initialize(tr.anchor_xy, x1, self.focal_px, gravity_c0,
-                            self.opts.pixel_sigma_px, self.opts.min_parallax_deg)
+        result = initialize(
+            tr.anchor_xy,
+            x1,
+            self.focal_px,
+            gravity_c0,
+            self.opts.pixel_sigma_px,
+            self.opts.min_parallax_deg,
+        )
         if result is None:
             return False
         good = result.good
@@ -243,36 +267,13 @@ class VisualOdometry:
         xy = self._normalized(tr.px[has])
         # constant-velocity prediction
         T_pred = self.T_cam_vo @ se3.inverse(self._T_prev) @ self.T_cam_vo
-        rvec, _ = cv2.Rodrigues(T_pred[:3, :3])
-        tvec = T_pred[:3, 3].reshape(3, 1).copy()
-        inl = np.ones(len(X), dtype=bool)
-        ok = False
-        T_new = T_pred
-        for _ in range(3):
-            if inl.sum() < 6:
-                break
-            ok, rvec, tvec = cv2.solvePnP(X[inl], xy[inl], np.eye(3), None, rvec, tvec,
-                                          useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-            if not ok:
-                break
-            T_new = se3.make(cv2.Rodrigues(rvec)[0], tvec.ravel())
-            p_c = se3.transform(T_new, X)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1) * self.focal_px
-            inl = (err < self.opts.inlier_px) & (p_c[:, 2] > 0)
-        if not ok or inl.sum() < self.opts.min_tracked_points:
-            ok, rvec, tvec, idx = cv2.solvePnPRansac(
-                X, xy, np.eye(3), None, reprojectionError=self.opts.inlier_px / self.focal_px,
-                iterationsCount=100, confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
-            if not ok or idx is None or len(idx) < self.opts.min_tracked_points:
-                return False
-            T_new = se3.make(cv2.Rodrigues(rvec)[0], tvec.ravel())
-            p_c = se3.transform(T_new, X)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - xy, axis=1) * self.focal_px
-            inl = (err < self.opts.inlier_px) & (p_c[:, 2] > 0)
-            if inl.sum() < self.opts.min_tracked_points:
-                return False
+        result = estimate_pose(
+            X, xy, T_pred, self.focal_px, self.opts.inlier_px, self.opts.min_tracked_points
+        )
+        if result is None:
+            return False
+        T_new = result.T_cam_vo
+        inl = result.inliers
         # a physically impossible jump is a failure, never a pose
         dR = so3.angle_between(T_new[:3, :3], self.T_cam_vo[:3, :3])
         if np.degrees(dR) > self.opts.max_rotation_deg_per_frame or not np.all(np.isfinite(T_new)):
@@ -363,9 +364,16 @@ class VisualOdometry:
                 anchor[sel] = kf.kf_id
                 anchor_xy[sel] = xy[sel]
                 continue
-            tri = triangulate(T_a, kf.T_cam_vo, anchor_xy[sel], xy[sel], self.focal_px,
-                              self.opts.pixel_sigma_px, self.opts.min_parallax_deg,
-                              2.0 * self.opts.inlier_px)
+            tri = triangulate(
+                T_a,
+                kf.T_cam_vo,
+                anchor_xy[sel],
+                xy[sel],
+                self.focal_px,
+                self.opts.pixel_sigma_px,
+                self.opts.min_parallax_deg,
+                2.0 * self.opts.inlier_px,
+            )
             kf_a = next(k for k in self.keyframes if k.kf_id == a)
             for j, i in enumerate(sel):
                 if not tri.ok[j]:
@@ -387,7 +395,7 @@ class VisualOdometry:
         self.last_keyframe_time_us = time_us
 
     def _local_ba(self) -> None:
-        window = self.keyframes[-self.opts.window_keyframes:]
+        window = self.keyframes[-self.opts.window_keyframes :]
         if len(window) < 3 or self.opts.ba_iterations == 0:
             return
         count: dict[int, int] = {}
@@ -409,9 +417,17 @@ class VisualOdometry:
         X = np.stack([self.points[p] for p in pids])
         fixed = np.zeros(len(window), dtype=bool)
         fixed[:2] = True
-        res = bundle_adjust(T, X, np.asarray(obs_cam), np.asarray(obs_pt), np.asarray(obs_xy),
-                            fixed, self.focal_px, huber_px=self.opts.inlier_px,
-                            iterations=self.opts.ba_iterations)
+        res = bundle_adjust(
+            T,
+            X,
+            np.asarray(obs_cam),
+            np.asarray(obs_pt),
+            np.asarray(obs_xy),
+            fixed,
+            self.focal_px,
+            huber_px=self.opts.inlier_px,
+            iterations=self.opts.ba_iterations,
+        )
         for k, kf in enumerate(window):
             kf.T_cam_vo = res.T_cam_vo[k]
         for i, p in enumerate(pids):

@@ -30,16 +30,24 @@ class Triangulated:
     reproj_px: F64
 
 
-def triangulate(T_c1_vo: F64, T_c2_vo: F64, xy1: F64, xy2: F64, focal_px: float,
-                pixel_sigma_px: float = 1.0, min_parallax_deg: float = 1.0,
-                max_reproj_px: float = 3.0) -> Triangulated:
+def triangulate(
+    T_c1_vo: F64,
+    T_c2_vo: F64,
+    xy1: F64,
+    xy2: F64,
+    focal_px: float,
+    pixel_sigma_px: float = 1.0,
+    min_parallax_deg: float = 1.0,
+    max_reproj_px: float = 3.0,
+) -> Triangulated:
     """Triangulate N points seen at normalised xy1 in camera 1 and xy2 in camera 2 (N, 2)."""
     n = len(xy1)
     if n == 0:
         z = np.zeros(0)
         return Triangulated(np.zeros((0, 3)), np.zeros(0, dtype=bool), z, z, z)
-    Xh = cv2.triangulatePoints(T_c1_vo[:3], T_c2_vo[:3], xy1.T.astype(np.float64),
-                               xy2.T.astype(np.float64))
+    Xh = cv2.triangulatePoints(
+        T_c1_vo[:3], T_c2_vo[:3], xy1.T.astype(np.float64), xy2.T.astype(np.float64)
+    )
     w = Xh[3]
     w = np.where(np.abs(w) < 1e-12, 1e-12, w)
     X = (Xh[:3] / w).T
