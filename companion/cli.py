@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +86,117 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _progress(total: int, desc: str, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit="frame",
+        desc=desc,
+        file=sys.stderr,
+        disable=not enabled,
+        dynamic_ncols=True,
+    )
+
+
+def _ticks(bar: Any) -> Iterator[None]:
+    while True:
+        bar.update(1)
+        yield None
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
+    import json
+
+    import numpy as np
+
+    from companion.offline import run_vo, vo_metrics
+    from sitl.dataset import open_dataset, write_tum
+
+    ds = open_dataset(args.dataset)
+    cfg = ds.config or load_config(args.config)
+    out = Path(args.out) if args.out else Path("out") / "eval" / ds.path.name
+    out.mkdir(parents=True, exist_ok=True)
+    bar = _progress(len(ds), f"eval {ds.path.name}", not args.no_progress)
+    run = run_vo(cfg, ds.events(), _ticks(bar), camera=ds.camera, T_body_cam=ds.T_body_cam)
+    bar.close()
+    times = np.array(run.time_us)
+    track = run.tracking_mask()
+    T_est = np.array(run.T_vo_body)
+    write_tum(out / "vo.tum", times[track] * 1e-6, T_est[track])
+    if len(ds.gt_times_us):
+        gt = np.array([ds.gt_pose_at(int(t)) for t in times])
+        write_tum(out / "groundtruth.tum", times * 1e-6, gt)
+        m = vo_metrics(run, gt[:, :3, 3])
+        metrics = {k: getattr(m, k) for k in m.__slots__}
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+        rows = [
+            f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |"
+            for k, v in metrics.items()
+        ]
+        table = "\n".join(["| metric | value |", "|---|---|", *rows])
+        (out / "report.md").write_text(f"# VO on {ds.path.name}\n\n{table}\n")
+        print(table)
+    print(f"trajectories and metrics in {out}")
+    return EXIT_OK
+
+
+def cmd_bench_vo(args: argparse.Namespace) -> int:
+    """Benchmark the VO: per-frame time on one core (median, p99) and peak RSS."""
+    import cv2
+    import numpy as np
+
+    from companion.bench import machine_description
+    from companion.offline import run_vo
+
+    cv2.setNumThreads(1)
+    if args.dataset is not None:
+        from sitl.dataset import open_dataset
+
+        ds = open_dataset(args.dataset)
+        cfg = ds.config or load_config(args.config)
+        events: Any = ds.events()
+        total = len(ds)
+        name = str(args.dataset)
+        camera, T_body_cam = ds.camera, ds.T_body_cam
+    else:
+        from sitl.scenario import Scenario
+
+        cfg = _load(args)
+        scenario = Scenario(cfg)
+        events = _scenario_events(scenario)
+        total = scenario.n_frames
+        name = f"sitl {cfg.sitl.terrain}/{cfg.sitl.trajectory} {cfg.sitl.seconds:g} s"
+        camera, T_body_cam = None, None
+    bar = _progress(total, "bench vo", not args.no_progress)
+    run = run_vo(cfg, events, _ticks(bar), camera=camera, T_body_cam=T_body_cam)
+    bar.close()
+    ms = np.array(run.frame_ms)
+    kf = np.array(run.keyframe)
+    print(f"machine: {machine_description()}")
+    print(f"input: {name}, {len(ms)} frames, one core (cv2.setNumThreads(1))")
+    print(
+        f"frame time: median {np.median(ms):.2f} ms ({1000 / np.median(ms):.0f} fps), "
+        f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.1f} ms"
+    )
+    if kf.any():
+        print(f"keyframes: {int(kf.sum())}, median {np.median(ms[kf]):.2f} ms")
+    print(f"tracking: {run.tracking_mask().mean():.3f} of frames, resets {run.resets}")
+    print(f"peak RSS: {run.peak_rss_mb:.0f} MB")
+    return EXIT_OK
+
+
+def _scenario_events(scenario: Any) -> Iterator[Any]:
+    """The simulator's inputs in time order (attitude and ranges before their frame)."""
+    for step in scenario.steps():
+        yield from step.attitudes
+        for r in step.ranges:
+            if r.sample is not None:
+                yield r.sample
+        yield step.frame
+
+
 def _add_sitl_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
     p.add_argument("--terrain", choices=["flat", "hills", "urban", "slope"])
@@ -129,6 +240,18 @@ def build_parser() -> argparse.ArgumentParser:
     p_br.add_argument("--terrains", nargs="+", default=["flat", "hills", "urban", "slope"])
     p_br.add_argument("--frames", type=int, default=300, help="frames per terrain")
     p_br.set_defaults(func=cmd_bench_render)
+    p_bv = bench_sub.add_parser("vo", help="VO speed and memory on one core")
+    p_bv.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
+    _add_sitl_flags(p_bv)
+    p_bv.add_argument("--no-progress", action="store_true")
+    p_bv.set_defaults(func=cmd_bench_vo)
+
+    p_eval = sub.add_parser("eval", help="evaluate the pipeline on a dataset")
+    p_eval.add_argument("dataset", type=Path)
+    p_eval.add_argument("--config", type=Path)
+    p_eval.add_argument("--out", type=Path, help="output folder (default out/eval/NAME)")
+    p_eval.add_argument("--no-progress", action="store_true")
+    p_eval.set_defaults(func=cmd_eval)
     return parser
 
 

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from companion.config import Config
 from companion.geometry import se3, so3
+from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoOutput
 from companion.vo.odometry import VisualOdometry
 
@@ -25,10 +26,13 @@ ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a f
 class Pipeline:
     """VO (and, as they land, metric scale, attitude and d-Pose) over time-ordered inputs."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(
+        self, config: Config, camera: CameraModel | None = None, T_body_cam: F64 | None = None
+    ) -> None:
+        """``camera`` and ``T_body_cam`` override the config's (a dataset's own calibration)."""
         self.config = config
-        self.camera = config.camera.model()
-        self.T_body_cam = config.camera.T_body_cam()
+        self.camera = camera or config.camera.model()
+        self.T_body_cam = config.camera.T_body_cam() if T_body_cam is None else T_body_cam
         self.T_cam_body = se3.inverse(self.T_body_cam)
         self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)

@@ -24,8 +24,9 @@ from sitl.world import World
 F = 460.0
 
 
-def project(T_c_w: np.ndarray, X: np.ndarray, rng: np.random.Generator, sigma_px: float
-            ) -> np.ndarray:
+def project(
+    T_c_w: np.ndarray, X: np.ndarray, rng: np.random.Generator, sigma_px: float
+) -> np.ndarray:
     p = se3.transform(T_c_w, X)
     return p[:, :2] / p[:, 2:3] + rng.normal(0, sigma_px / F, (len(X), 2))
 
@@ -82,8 +83,14 @@ def test_pnp_recovers_known_pose_with_outliers() -> None:
 def test_bundle_adjustment_reduces_reprojection_error() -> None:
     rng = np.random.default_rng(8)
     X = scene(rng, 200, planar=False)
-    T_true = np.stack([se3.make(so3.rpy_to_matrix(0.02 * k, -0.01 * k, 0.05 * k),
-                                [-0.3 * k, 0.1 * k, 0.02 * k]) for k in range(5)])
+    T_true = np.stack(
+        [
+            se3.make(
+                so3.rpy_to_matrix(0.02 * k, -0.01 * k, 0.05 * k), [-0.3 * k, 0.1 * k, 0.02 * k]
+            )
+            for k in range(5)
+        ]
+    )
     obs_cam, obs_pt, obs_xy = [], [], []
     for k in range(5):
         xy = project(T_true[k], X, rng, 0.5)
@@ -116,20 +123,21 @@ def test_triangulation_checks() -> None:
     rng = np.random.default_rng(3)
     X = scene(rng, 50, planar=False)
     T1 = se3.make(np.eye(3), [-0.5, 0.0, 0.0])
-    tri = triangulate(np.eye(4), T1, project(np.eye(4), X, rng, 0.0), project(T1, X, rng, 0.0),
-                      F)
+    tri = triangulate(np.eye(4), T1, project(np.eye(4), X, rng, 0.0), project(T1, X, rng, 0.0), F)
     assert tri.ok.all() and np.abs(tri.points_vo - X).max() < 1e-9
     # depth sigma grows with depth (smaller parallax)
     order = np.argsort(X[:, 2])
     assert tri.depth_sigma[order[-1]] > tri.depth_sigma[order[0]]
     tiny = se3.make(np.eye(3), [-0.001, 0.0, 0.0])  # no parallax
-    tri2 = triangulate(np.eye(4), tiny, project(np.eye(4), X, rng, 0.0),
-                       project(tiny, X, rng, 0.0), F)
+    tri2 = triangulate(
+        np.eye(4), tiny, project(np.eye(4), X, rng, 0.0), project(tiny, X, rng, 0.0), F
+    )
     assert not tri2.ok.any()
 
 
-def run_vo(cfg: Config, frames: list[CameraFrame], attitudes: list[np.ndarray | None]
-           ) -> tuple[VisualOdometry, list]:
+def run_vo(
+    cfg: Config, frames: list[CameraFrame], attitudes: list[np.ndarray | None]
+) -> tuple[VisualOdometry, list]:
     vo = VisualOdometry(cfg.camera.model(), cfg.camera.T_body_cam(), cfg.vo)
     outs = [vo.process(f, R) for f, R in zip(frames, attitudes, strict=True)]
     return vo, outs
@@ -138,8 +146,11 @@ def run_vo(cfg: Config, frames: list[CameraFrame], attitudes: list[np.ndarray | 
 def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
     from companion.config import load_config
 
-    cfg = load_config(overrides={"sitl": {"terrain": "hills", "trajectory": "figure8",
-                                          "seconds": 14.0, "seed": 2}})
+    cfg = load_config(
+        overrides={
+            "sitl": {"terrain": "hills", "trajectory": "figure8", "seconds": 14.0, "seed": 2}
+        }
+    )
     sc = Scenario(cfg)
     steps = list(sc.steps())
     vo, outs = run_vo(cfg, [s.frame for s in steps], [s.T_world_body[:3, :3] for s in steps])
@@ -149,11 +160,16 @@ def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
     tracked = [o.state == VoState.TRACKING for o in outs[first:]]
     assert np.mean(tracked) >= 0.98 and vo.resets == 0
     T_cam_body = se3.inverse(cfg.camera.T_body_cam())
-    est = np.array([(o.T_vo_cam @ T_cam_body)[:3, 3] for o in outs[first:]
-                    if o.state == VoState.TRACKING])
-    gt = np.array([s.T_world_body[:3, 3] for s, o in zip(steps[first:], outs[first:],
-                                                         strict=True)
-                   if o.state == VoState.TRACKING])
+    est = np.array(
+        [(o.T_vo_cam @ T_cam_body)[:3, 3] for o in outs[first:] if o.state == VoState.TRACKING]
+    )
+    gt = np.array(
+        [
+            s.T_world_body[:3, 3]
+            for s, o in zip(steps[first:], outs[first:], strict=True)
+            if o.state == VoState.TRACKING
+        ]
+    )
     ate, _ = ate_rmse(est, gt, "sim3")
     assert ate / path_length(gt) < 0.01
     # the VO frame is gravity-aligned (yaw = heading at init): roll and pitch match the truth
@@ -172,8 +188,9 @@ def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
 def test_black_frames_make_it_lost_at_once_and_it_recovers(default_config: Config) -> None:
     from companion.config import load_config
 
-    cfg = load_config(overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower",
-                                          "seconds": 12.0}})
+    cfg = load_config(
+        overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 12.0}}
+    )
     sc = Scenario(cfg)
     frames, atts = [], []
     for s in sc.steps():
@@ -193,8 +210,9 @@ def test_black_frames_make_it_lost_at_once_and_it_recovers(default_config: Confi
     assert all(outs[i].state == VoState.TRACKING for i in range(back[0], len(outs)))
 
 
-def test_hovering_does_not_create_motion(world: Callable[[str, int], World],
-                                         default_config: Config) -> None:
+def test_hovering_does_not_create_motion(
+    world: Callable[[str, int], World], default_config: Config
+) -> None:
     cfg = default_config
     w = world("hills", 3)
     renderer = Renderer(w, cfg.camera, RenderConfig(laser_marks="off"), seed=3)
@@ -205,13 +223,15 @@ def test_hovering_does_not_create_motion(world: Callable[[str, int], World],
         t = k / 30.0
         x = 1.0 * min(t, 1.5) - 0.5 * max(0.0, min(t, 1.5) - 1.2) ** 2 / 0.3 * 0.3
         T_wb = se3.make(np.eye(3), [x, 0.0, -(h0 + 6.0)])
-        frames.append(CameraFrame(int(t * 1e6), k,
-                                  renderer.render_pose(T_wb @ T_body_cam, k).image_bgr))
+        frames.append(
+            CameraFrame(int(t * 1e6), k, renderer.render_pose(T_wb @ T_body_cam, k).image_bgr)
+        )
         atts.append(np.eye(3))
     vo, outs = run_vo(cfg, frames, atts)
     assert outs[60].state == VoState.TRACKING and vo.resets == 0
-    baseline = np.linalg.norm(se3.inverse(vo.keyframes[0].T_cam_vo)[:3, 3]
-                              - se3.inverse(vo.keyframes[1].T_cam_vo)[:3, 3])
+    baseline = np.linalg.norm(
+        se3.inverse(vo.keyframes[0].T_cam_vo)[:3, 3] - se3.inverse(vo.keyframes[1].T_cam_vo)[:3, 3]
+    )
     pos = np.array([o.T_vo_cam[:3, 3] for o in outs[60:]])
     seconds = (len(pos) - 1) / 30.0
     drift_per_s = np.linalg.norm(pos[-1] - pos[0]) / seconds

@@ -143,8 +143,17 @@ def _refine(view: TwoView, x0: F64, x1: F64, focal_px: float) -> TwoView:
     obs_pt = np.concatenate([np.arange(m), np.arange(m)])
     obs_xy = np.concatenate([x0[good], x1[good]])
     T = np.stack([np.eye(4), view.T_c1_c0])
-    res = bundle_adjust(T, view.points_c0[good], obs_cam, obs_pt, obs_xy,
-                        np.array([True, False]), focal_px, huber_px=2.0, iterations=8)
+    res = bundle_adjust(
+        T,
+        view.points_c0[good],
+        obs_cam,
+        obs_pt,
+        obs_xy,
+        np.array([True, False]),
+        focal_px,
+        huber_px=2.0,
+        iterations=8,
+    )
     T1 = res.T_cam_vo[1].copy()
     s = float(np.linalg.norm(T1[:3, 3]))
     if not np.isfinite(s) or s < 1e-9:

@@ -1,0 +1,73 @@
+"""Evaluation: Umeyama alignment identities, and `companion eval` checked against evo_ape."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.cli import main
+from companion.config import load_config
+from companion.evaluation.trajectory import ate_rmse, path_length, umeyama
+from companion.geometry import so3
+from sitl.dataset import read_tum, record
+
+
+def test_umeyama_recovers_a_similarity_exactly() -> None:
+    rng = np.random.default_rng(4)
+    est = rng.normal(size=(100, 3))
+    R = so3.exp([0.3, -0.2, 0.9])
+    gt = 2.5 * est @ R.T + [1.0, -2.0, 0.5]
+    a = umeyama(est, gt, with_scale=True)
+    assert np.allclose(a.R, R) and np.isclose(a.scale, 2.5) and np.allclose(a.t, [1, -2, 0.5])
+    assert ate_rmse(est, gt, "sim3")[0] < 1e-12
+    # rigid alignment cannot absorb the scale
+    assert ate_rmse(est, gt, "se3")[0] > 0.5
+    noisy = gt + rng.normal(0, 0.01, gt.shape)
+    assert 0.005 < ate_rmse(est, noisy, "sim3")[0] < 0.02
+    assert np.isclose(path_length(np.array([[0, 0, 0], [3, 4, 0], [3, 4, 12.0]])), 17.0)
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    base = tmp_path_factory.mktemp("eval")
+    cfg = load_config(
+        overrides={
+            "sitl": {"terrain": "urban", "trajectory": "figure8", "seconds": 12.0, "seed": 3}
+        }
+    )
+    record(cfg, base / "urban", progress=False)
+    assert main(["eval", str(base / "urban"), "--out", str(base / "out"), "--no-progress"]) == 0
+    return base / "out"
+
+
+def test_eval_writes_trajectories_and_meets_accuracy(evaluated: Path) -> None:
+    m = json.loads((evaluated / "metrics.json").read_text())
+    assert m["resets"] == 0 and m["tracking_ratio"] >= 0.98
+    assert m["ate_sim3_pct"] < 1.0
+    t_vo, _ = read_tum(evaluated / "vo.tum")
+    t_gt, _ = read_tum(evaluated / "groundtruth.tum")
+    assert len(t_vo) == m["segment_frames"] and len(t_gt) == m["frames"]
+    assert np.isin(np.round(t_vo, 6), np.round(t_gt, 6)).all()
+    assert "ate_sim3_m" in (evaluated / "report.md").read_text()
+
+
+def test_ate_agrees_with_evo_ape(evaluated: Path) -> None:
+    evo_ape = Path(sys.executable).parent / "evo_ape"
+    assert evo_ape.exists(), "evo (the eval extra) must be installed: make installs it"
+    proc = subprocess.run(
+        [str(evo_ape), "tum", str(evaluated / "groundtruth.tum"), str(evaluated / "vo.tum"), "-as"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    match = re.search(r"rmse\s+([0-9.]+)", proc.stdout)
+    assert match, proc.stdout
+    ours = json.loads((evaluated / "metrics.json").read_text())["ate_sim3_m"]
+    assert abs(float(match.group(1)) - ours) < 1e-3
