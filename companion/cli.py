@@ -114,19 +114,40 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from companion.offline import run_vo, vo_metrics
     from sitl.dataset import open_dataset, write_tum
 
-    ds = open_dataset(args.dataset)
-    cfg = ds.config or load_config(args.config)
-    out = Path(args.out) if args.out else Path("out") / "eval" / ds.path.name
+    gt_poses: dict[int, Any] = {}
+    gt_at: Callable[[int], Any]
+    if args.dataset is not None:
+        ds = open_dataset(args.dataset)
+        cfg = ds.config or load_config(args.config)
+        name = ds.path.name
+        total = len(ds)
+        events: Any = ds.events()
+        camera, T_body_cam = ds.camera, ds.T_body_cam
+        has_gt = len(ds.gt_times_us) > 0
+        gt_at = ds.gt_pose_at
+    else:  # straight from the simulator, no dataset on disk
+        from sitl.scenario import Scenario
+
+        cfg = _load(args)
+        s = cfg.sitl
+        name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+        scenario = Scenario(cfg)
+        total = scenario.n_frames
+        events = _scenario_events(scenario, gt_poses)
+        camera, T_body_cam = None, None
+        has_gt = True
+        gt_at = gt_poses.__getitem__
+    out = Path(args.out) if args.out else Path("out") / "eval" / name
     out.mkdir(parents=True, exist_ok=True)
-    bar = _progress(len(ds), f"eval {ds.path.name}", not args.no_progress)
-    run = run_vo(cfg, ds.events(), _ticks(bar), camera=ds.camera, T_body_cam=ds.T_body_cam)
+    bar = _progress(total, f"eval {name}", not args.no_progress)
+    run = run_vo(cfg, events, _ticks(bar), camera=camera, T_body_cam=T_body_cam)
     bar.close()
     times = np.array(run.time_us)
     track = run.tracking_mask()
     T_est = np.array(run.T_vo_body)
     write_tum(out / "vo.tum", times[track] * 1e-6, T_est[track])
-    if len(ds.gt_times_us):
-        gt = np.array([ds.gt_pose_at(int(t)) for t in times])
+    if has_gt:
+        gt = np.array([gt_at(int(t)) for t in times])
         write_tum(out / "groundtruth.tum", times * 1e-6, gt)
         m = vo_metrics(run, gt[:, :3, 3])
         metrics = {k: getattr(m, k) for k in m.__slots__}
@@ -187,9 +208,12 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _scenario_events(scenario: Any) -> Iterator[Any]:
-    """The simulator's inputs in time order (attitude and ranges before their frame)."""
+def _scenario_events(scenario: Any, gt_poses: dict[int, Any] | None = None) -> Iterator[Any]:
+    """The simulator's inputs in time order (attitude and ranges before their frame); the
+    true body pose of each frame goes to ``gt_poses`` by time."""
     for step in scenario.steps():
+        if gt_poses is not None:
+            gt_poses[step.frame.time_us] = step.T_world_body
         yield from step.attitudes
         for r in step.ranges:
             if r.sample is not None:
@@ -246,9 +270,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_bv.add_argument("--no-progress", action="store_true")
     p_bv.set_defaults(func=cmd_bench_vo)
 
-    p_eval = sub.add_parser("eval", help="evaluate the pipeline on a dataset")
-    p_eval.add_argument("dataset", type=Path)
-    p_eval.add_argument("--config", type=Path)
+    p_eval = sub.add_parser("eval", help="evaluate the pipeline on a dataset or a SITL flight")
+    p_eval.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
+    _add_sitl_flags(p_eval)
     p_eval.add_argument("--out", type=Path, help="output folder (default out/eval/NAME)")
     p_eval.add_argument("--no-progress", action="store_true")
     p_eval.set_defaults(func=cmd_eval)

@@ -27,6 +27,7 @@ from companion.errors import ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
+from companion.scale.options import ScaleOptions
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -172,6 +173,7 @@ class Config:
         DEFAULT_RANGEFINDERS, "the downward distance sensors ([[rangefinders]] tables)"
     )
     vo: VoOptions = opt(VoOptions(), "visual odometry")
+    scale: ScaleOptions = opt(ScaleOptions(), "metric scale")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
 
     def __post_init__(self) -> None:

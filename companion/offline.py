@@ -11,6 +11,7 @@ import resource
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -130,3 +131,89 @@ def vo_metrics(run: VoRun, gt_positions: F64) -> VoMetrics:
         100.0 * ate / length if length > 0 else float("nan"),
         align.scale,
     )
+
+
+@dataclass
+class ScaleRun:
+    """Per-frame record of a run with every scale method (SITL ground truth included).
+
+    time_us (F,); tracking (F,); segment (F,); scale[name] (F,) NaN without an estimate;
+    position[name] (F, 3) metric positions (VO orientation); gt_scale (F,); gt_position (F, 3);
+    vo_position (F, 3) unscaled body positions; yaw_vo_rad at initialisation.
+    """
+
+    methods: list[str]
+    time_us: list[int] = field(default_factory=list)
+    tracking: list[bool] = field(default_factory=list)
+    segment: list[int] = field(default_factory=list)
+    scale: dict[str, list[float]] = field(default_factory=dict)
+    position: dict[str, list[F64]] = field(default_factory=dict)
+    gt_scale: list[float] = field(default_factory=list)
+    gt_position: list[F64] = field(default_factory=list)
+    vo_position: list[F64] = field(default_factory=list)
+    yaw_vo_rad: float = 0.0
+    points_vo: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    resets: int = 0
+
+
+def run_scale(
+    config: Config,
+    steps: Iterable[Any],
+    world: Any,
+    progress: Iterator[None] | None = None,
+    keep_points_at_s: float = 30.0,
+) -> ScaleRun:
+    """Run the Pipeline with every scale method over SITL steps (``Scenario.steps()``),
+    recording the truth: true positions and the ground-truth scale of every frame."""
+    from companion.evaluation.scale import gt_scale
+    from companion.geometry import se3
+
+    pipe = Pipeline(config, all_methods=True)
+    names = list(pipe.methods)
+    run = ScaleRun(names, scale={n: [] for n in names}, position={n: [] for n in names})
+    nan3 = np.full(3, np.nan)
+    T_body_cam = pipe.T_body_cam
+    for step in steps:
+        for a in step.attitudes:
+            pipe.feed_attitude(a)
+        for r in step.ranges:
+            if r.sample is not None:
+                pipe.feed_range(r.sample)
+        pipe.feed_frame(step.frame)
+        out = pipe.vo_output
+        assert out is not None
+        tracking = out.state == VoState.TRACKING
+        run.time_us.append(step.frame.time_us)
+        run.tracking.append(tracking)
+        run.segment.append(pipe.vo.resets)
+        run.gt_position.append(step.T_world_body[:3, 3].copy())
+        T_vo_body = pipe.T_vo_body()
+        run.vo_position.append(T_vo_body[:3, 3].copy() if T_vo_body is not None else nan3)
+        for n in names:
+            est = pipe.estimates[n] if tracking else None
+            pos = pipe.metric_positions[n] if tracking else None
+            run.scale[n].append(est.scale if est is not None else float("nan"))
+            run.position[n].append(pos if pos is not None and est is not None else nan3)
+        s_true = float("nan")
+        if tracking:
+            f = out.features
+            has = f.point_ids >= 0
+            if has.any():
+                T_world_cam = step.T_world_body @ T_body_cam
+                rays = pipe.camera.pixels_to_rays(f.pixels[has])
+                hits = world.raycast(
+                    np.repeat(T_world_cam[None, :3, 3], len(rays), axis=0),
+                    rays @ T_world_cam[:3, :3].T,
+                )
+                true_depth = hits.t_m * rays[:, 2]
+                vo_depth = se3.transform(se3.inverse(out.T_vo_cam), f.points_vo[has])[:, 2]
+                s_true = gt_scale(true_depth, vo_depth)
+                t_s = (step.frame.time_us - run.time_us[0]) * 1e-6
+                if len(run.points_vo) == 0 and t_s >= keep_points_at_s:
+                    run.points_vo = f.points_vo[has].copy()
+        run.gt_scale.append(s_true)
+        if progress is not None:
+            next(progress, None)
+    run.yaw_vo_rad = pipe.vo.yaw_vo_rad
+    run.resets = pipe.vo.resets
+    return run

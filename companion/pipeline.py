@@ -15,7 +15,17 @@ from numpy.typing import NDArray
 from companion.config import Config
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoOutput
+from companion.scale.laser import RangeHistory, laser_point_cam
+from companion.scale.methods import MetricTrajectory, ScaleInput, make_methods
+from companion.types import (
+    AttitudeSample,
+    CameraFrame,
+    PoseEstimate,
+    RangeSample,
+    ScaleEstimate,
+    VoOutput,
+    VoState,
+)
 from companion.vo.odometry import VisualOdometry
 
 F64 = NDArray[np.float64]
@@ -27,17 +37,32 @@ class Pipeline:
     """VO (and, as they land, metric scale, attitude and d-Pose) over time-ordered inputs."""
 
     def __init__(
-        self, config: Config, camera: CameraModel | None = None, T_body_cam: F64 | None = None
+        self,
+        config: Config,
+        camera: CameraModel | None = None,
+        T_body_cam: F64 | None = None,
+        all_methods: bool = False,
     ) -> None:
-        """``camera`` and ``T_body_cam`` override the config's (a dataset's own calibration)."""
+        """``camera`` and ``T_body_cam`` override the config's (a dataset's own calibration);
+        ``all_methods`` runs every scale method side by side (evaluation), not only the
+        configured one."""
         self.config = config
         self.camera = camera or config.camera.model()
         self.T_body_cam = config.camera.T_body_cam() if T_body_cam is None else T_body_cam
         self.T_cam_body = se3.inverse(self.T_body_cam)
         self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
-        self._ranges: deque[RangeSample] = deque(maxlen=2048)
+        self.ranges = RangeHistory()
+        self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
+        methods = make_methods(self.camera, config.scale)
+        self.method_name = config.scale.method
+        self.methods = methods if all_methods else {self.method_name: methods[self.method_name]}
+        self.trajectories = {name: MetricTrajectory() for name in self.methods}
+        self.estimates: dict[str, ScaleEstimate | None] = dict.fromkeys(self.methods)
+        self.metric_positions: dict[str, F64 | None] = dict.fromkeys(self.methods)
+        self.scale_input: ScaleInput | None = None
         self.vo_output: VoOutput | None = None
+        self._last_pose: tuple[int, F64] | None = None
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -48,8 +73,12 @@ class Pipeline:
         self._attitude.append(sample)
 
     def feed_range(self, sample: RangeSample) -> None:
-        """Buffer a distance-sensor sample (used by the metric scale)."""
-        self._ranges.append(sample)
+        """Buffer a distance-sensor sample (invalid, unknown or out-of-order ones are counted
+        and dropped)."""
+        if sample.sensor_id not in self.specs:
+            self.ranges.rejected += 1
+            return
+        self.ranges.add(sample)
 
     def attitude_at(self, time_us: int) -> F64 | None:
         """R_world_body at ``time_us`` by slerp between the bracketing samples (or the nearest
@@ -71,10 +100,59 @@ class Pipeline:
         return so3.quat_to_matrix(near.quat_wxyz)
 
     def feed_frame(self, frame: CameraFrame) -> PoseEstimate | None:
-        """Run the VO on a frame. Returns a metric pose once the scale exists (not yet: None);
-        the VO result is in ``vo_output``."""
-        self.vo_output = self.vo.process(frame, self.attitude_at(frame.time_us))
-        return None
+        """Run the VO and the scale on a frame; the metric pose once tracking with a scale.
+
+        The VO result stays in ``vo_output``, every method's scale in ``estimates``."""
+        self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
+        self.scale_input = None
+        if out.state != VoState.TRACKING:
+            return None
+        T_cam_vo = se3.inverse(out.T_vo_cam)
+        opts = self.config.scale
+        lasers: dict[int, tuple[float, F64, float]] = {}
+        for sid in sorted(self.specs):
+            d = self.ranges.at(sid, frame.time_us, opts.max_range_gap_us, opts.max_range_age_us)
+            if d is None:
+                continue
+            spec = self.specs[sid]
+            lasers[sid] = (d, laser_point_cam(spec, self.T_cam_body, d), spec.sigma_m(d))
+        inp = ScaleInput(frame.time_us, out, T_cam_vo, lasers, self.vo.resets)
+        self.scale_input = inp
+        p_vo = (out.T_vo_cam @ self.T_cam_body)[:3, 3]
+        for name, method in self.methods.items():
+            est = method.step(inp)
+            self.estimates[name] = est
+            if est is not None:
+                self.metric_positions[name] = self.trajectories[name].step(
+                    p_vo, est.scale, inp.segment
+                )
+        return self._pose(frame.time_us)
+
+    def _pose(self, time_us: int) -> PoseEstimate | None:
+        est = self.estimates.get(self.method_name)
+        p = self.metric_positions.get(self.method_name)
+        T_vo_body = self.T_vo_body()
+        if est is None or p is None or T_vo_body is None:
+            return None
+        R_world_vo = so3.rot_z(self.vo.yaw_vo_rad)
+        position = R_world_vo @ p
+        velocity = np.full(3, np.nan)
+        if self._last_pose is not None and time_us > self._last_pose[0]:
+            velocity = (position - self._last_pose[1]) / ((time_us - self._last_pose[0]) * 1e-6)
+        self._last_pose = (time_us, position)
+        cov = np.full((6, 6), np.nan)
+        rel = est.sigma / est.scale if est.scale > 0 else np.nan
+        cov[:3, :3] = np.eye(3) * (rel * max(float(np.linalg.norm(p)), 1.0)) ** 2
+        quality = int(np.clip(100.0 * (1.0 - 10.0 * rel), 0, 100)) if np.isfinite(rel) else 0
+        return PoseEstimate(
+            time_us,
+            position,
+            so3.matrix_to_quat(R_world_vo @ T_vo_body[:3, :3]),
+            velocity,
+            cov,
+            self.trajectories[self.method_name].reset_counter,
+            quality,
+        )
 
     def T_vo_body(self) -> F64 | None:
         """The current body pose in the VO frame (unscaled), or None unless tracking."""

@@ -157,15 +157,12 @@ class World:
         self.y0 = -self.half_m
         self.boxes = np.ascontiguousarray(boxes, dtype=np.float64).reshape(-1, 6)
         self.default_altitude_m = default_altitude_m
-        h = self.heights.astype(np.float64)
-        self.h_min = float(h.min())
-        self.h_max = float(h.max())
-        # Lipschitz bounds of the bilinear interpolant along x and y (max finite differences)
-        self.lip_x = float(np.abs(np.diff(h, axis=1)).max(initial=0.0) / self.res_m)
-        self.lip_y = float(np.abs(np.diff(h, axis=0)).max(initial=0.0) / self.res_m)
+        self.h_min = float(self.heights.min())
+        self.h_max = float(self.heights.max())
+        h = self.heights[:2, :2].astype(np.float64)
         # a 2x2 grid with planar corners is exactly the plane h = a + b x + c y
         self.plane = np.zeros(4)
-        if h.shape == (2, 2) and abs(h[1, 1] - h[1, 0] - h[0, 1] + h[0, 0]) < 1e-9:
+        if self.heights.shape == (2, 2) and abs(h[1, 1] - h[1, 0] - h[0, 1] + h[0, 0]) < 1e-9:
             b = (h[0, 1] - h[0, 0]) / self.res_m
             c = (h[1, 0] - h[0, 0]) / self.res_m
             self.plane = np.array([h[0, 0] - b * self.x0 - c * self.y0, b, c, 1.0])
@@ -196,13 +193,17 @@ class World:
         per = int(round(b / s))
         nb = int(math.ceil(self.size_m / b))
         n = nb * per + 1
-        lattice = self.x0 + s * np.arange(n)
-        X, Y = np.meshgrid(lattice, lattice)
-        H = self.height(X.ravel(), Y.ravel()).reshape(n, n)  # rows: y, cols: x
+        H: NDArray[np.floating]
+        if s == self.res_m and self.heights.shape == (n, n):
+            H = self.heights  # the lattice is the grid itself (float32)
+        else:
+            lattice = self.x0 + s * np.arange(n)
+            X, Y = np.meshgrid(lattice, lattice)
+            H = self.height(X.ravel(), Y.ravel()).reshape(n, n)  # rows: y, cols: x
         gx = np.abs(np.diff(H, axis=1)) / s  # (n, n-1)
         gy = np.abs(np.diff(H, axis=0)) / s  # (n-1, n)
 
-        def per_block(a: F64) -> F64:
+        def per_block(a: NDArray[np.floating]) -> F64:
             a = a[: nb * per, : nb * per]
             return np.asarray(a.reshape(nb, per, nb, per).max(axis=(1, 3)), dtype=np.float64)
 
@@ -213,6 +214,11 @@ class World:
         size = 2 * _BLOCK_REACH + 1
         stats = [ndimage.maximum_filter(a, size=size, mode="nearest") for a in (hmax, lx, ly)]
         self.blocks = np.ascontiguousarray(np.stack(stats, axis=2), dtype=np.float64)
+        # a margin over float32 rounding keeps the bounds conservative
+        self.blocks[..., 1:] = self.blocks[..., 1:] * 1.001 + 1e-6
+        # global Lipschitz bounds of the bilinear interpolant along x and y
+        self.lip_x = float(lx.max()) * 1.001 + 1e-6
+        self.lip_y = float(ly.max()) * 1.001 + 1e-6
         self.b_inv = 1.0 / b
         self.b_reach = _BLOCK_REACH * b
 

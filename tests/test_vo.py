@@ -183,6 +183,7 @@ def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
     assert has.sum() > 60 and np.isfinite(f.points_vo[has]).all()
     assert (f.depth_sigma[has] > 0).all() and np.isnan(f.points_vo[~has]).all()
     assert len(vo.keyframes) <= cfg.vo.max_keyframes
+    assert len(vo.points) <= cfg.vo.max_keyframes * cfg.vo.max_features  # bounded map
 
 
 def test_black_frames_make_it_lost_at_once_and_it_recovers(default_config: Config) -> None:

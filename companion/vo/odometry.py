@@ -117,6 +117,8 @@ class VisualOdometry:
         self._ref_frames = 0
         self._ref_R_vo_cam = np.eye(3)
         self.last_keyframe_time_us = -1
+        self._ref_yaw_rad = 0.0
+        self.yaw_vo_rad = 0.0
 
     # ------------------------------------------------------------------ helpers
     def _normalized(self, px: NDArray[np.floating]) -> F64:
@@ -202,6 +204,7 @@ class VisualOdometry:
         self._ref_time_us = time_us
         self._ref_frames = 0
         self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
+        self._ref_yaw_rad = 0.0 if R_world_body is None else so3.matrix_to_rpy(R_world_body)[2]
 
     def _try_initialize(self, gray: U8, time_us: int) -> bool:
         tr = self.tracks
@@ -250,6 +253,7 @@ class VisualOdometry:
         self.tracks = Tracks(tr.px, pid, anchor.astype(np.int64), tr.anchor_xy)
         self.keyframes = [kf0, kf1]
         self.T_cam_vo = T_c1_vo
+        self.yaw_vo_rad = self._ref_yaw_rad  # heading of the VO frame's x axis in the world
         self._T_prev = T_c1_vo.copy()
         self._frames_since_kf = 0
         self.last_keyframe_time_us = time_us

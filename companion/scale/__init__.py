@@ -1,0 +1,1 @@
+"""Metric scale of the monocular VO from distance sensors: MSC, MSCwK, M-MSC and baselines."""

@@ -1,0 +1,336 @@
+"""The scale methods, all fed the same per-frame input, and the metric trajectory.
+
+Thesis methods: ``MSC`` (one sensor, the raw match at each keyframe), ``MSCwK`` (one sensor,
+every frame, Kalman filter), ``M-MSC`` (every sensor, robust ML fusion, Kalman filter).
+Baselines, named as in the thesis' comparisons:
+- ``B7 window-ML``: Engel, Sturm & Cremers (IROS 2012) closed-form ML scale from pairs of VO
+  and metric displacements over a sliding window; the metric displacement is the change of
+  the height above ground measured by the range sensor (so it assumes level ground).
+- ``B8 per-frame``: the range's depth at the laser pixel over the VO depth there, interpolated
+  from the features around it, at every frame (Wu et al. 2014; Zhang et al. 2018).
+- ``B9 plane``: the plane through the three map points closest to the laser pixel, intersected
+  with the camera ray through it (Giubilato et al., IROS 2018).
+Every method starts from the same initial scale: the first range's depth over the VO's median
+depth; all restart when the VO re-initialises.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.geometry import se3
+from companion.geometry.camera import CameraModel
+from companion.scale import msc
+from companion.scale.fusion import fuse
+from companion.scale.kalman import ScaleKalman
+from companion.scale.options import ScaleOptions
+from companion.types import ScaleEstimate, VoOutput
+
+F64 = NDArray[np.float64]
+
+METHODS = ("MSC", "MSCwK", "M-MSC", "B7 window-ML", "B8 per-frame", "B9 plane")
+
+
+@dataclass(frozen=True, slots=True)
+class ScaleInput:
+    """What every method sees at a tracked frame.
+
+    T_cam_vo (4, 4); lasers: sensor id -> (range [m], laser point in the camera frame (3,),
+    range sigma [m]), ordered by sensor id; segment: VO map index (changes on re-init).
+    """
+
+    time_us: int
+    vo: VoOutput
+    T_cam_vo: F64
+    lasers: dict[int, tuple[float, F64, float]]
+    segment: int
+
+
+def initial_scale(inp: ScaleInput) -> float | None:
+    """First-range depth over the VO's median feature depth (before any match)."""
+    f = inp.vo.features
+    has = f.point_ids >= 0
+    if not has.any() or not inp.lasers:
+        return None
+    z_vo = se3.transform(inp.T_cam_vo, f.points_vo[has])[:, 2]
+    z_vo = z_vo[z_vo > 0]
+    if len(z_vo) == 0:
+        return None
+    z_metric = float(np.mean([p[2] for _, p, _ in inp.lasers.values()]))
+    return z_metric / float(np.median(z_vo))
+
+
+@dataclass
+class Method:
+    """Base: state handling common to every method."""
+
+    name: str
+    camera: CameraModel
+    opts: ScaleOptions
+    scale: float | None = None
+    sigma: float = float("nan")
+    n_used: int = 0
+    segment: int = -1
+
+    def reset(self) -> None:
+        self.scale = None
+        self.sigma = float("nan")
+
+    def step(self, inp: ScaleInput) -> ScaleEstimate | None:
+        if inp.segment != self.segment:
+            self.segment = inp.segment
+            self.reset()
+        self.update(inp)
+        if self.scale is None:
+            s0 = initial_scale(inp)
+            if s0 is not None:
+                self.scale = s0
+                self.sigma = self.opts.init_sigma_rel * s0
+                self.n_used = 0
+                self.on_initial(inp, s0)
+        if self.scale is None:
+            return None
+        return ScaleEstimate(inp.time_us, self.scale, self.sigma, self.name, self.n_used)
+
+    def update(self, inp: ScaleInput) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def on_initial(self, inp: ScaleInput, s0: float) -> None:
+        """Hook: the initial scale was just set."""
+
+    def _msc(self, inp: ScaleInput, sensor_id: int) -> msc.MscMeasurement | None:
+        rng, p_cam, sig = inp.lasers[sensor_id]
+        del rng
+        return msc.measure(
+            sensor_id,
+            inp.vo.features,
+            inp.T_cam_vo,
+            self.camera,
+            p_cam,
+            sig,
+            self.opts.patch_half_px,
+            self.opts.slope_factor,
+        )
+
+
+@dataclass
+class MSC(Method):
+    """Raw MSC match of the first sensor at each keyframe, held in between."""
+
+    def update(self, inp: ScaleInput) -> None:
+        if not inp.vo.is_keyframe or not inp.lasers:
+            return
+        m = self._msc(inp, next(iter(inp.lasers)))
+        if m is not None:
+            self.scale, self.sigma, self.n_used = m.scale, m.sigma, 1
+
+
+@dataclass
+class MSCwK(Method):
+    """MSC of the first sensor at every frame through the scale Kalman filter."""
+
+    kf: ScaleKalman | None = None
+    sensors: str = "first"
+
+    def reset(self) -> None:
+        super().reset()
+        self.kf = ScaleKalman(self.opts.random_walk_per_s, self.opts.gate_chi2)
+
+    def on_initial(self, inp: ScaleInput, s0: float) -> None:
+        assert self.kf is not None
+        if not self.kf.initialized:
+            self.kf.initialize(inp.time_us, s0, self.opts.init_sigma_rel * s0)
+
+    def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
+        if not inp.lasers:
+            return None
+        m = self._msc(inp, next(iter(inp.lasers)))
+        return None if m is None else (m.scale, m.sigma, 1)
+
+    def update(self, inp: ScaleInput) -> None:
+        if self.kf is None:
+            self.reset()
+        assert self.kf is not None
+        z = self.measurement(inp)
+        if z is None:
+            return
+        if not self.kf.initialized and self.scale is not None:
+            self.kf.initialize(inp.time_us, self.scale, self.sigma)
+        if self.kf.update(inp.time_us, z[0], z[1]):
+            self.n_used = z[2]
+        if self.kf.initialized:
+            self.scale, self.sigma = self.kf.scale, self.kf.sigma
+
+
+@dataclass
+class MMSC(MSCwK):
+    """MSC on every sensor, fused by robust maximum likelihood, through the Kalman filter."""
+
+    def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
+        ms = [m for sid in inp.lasers if (m := self._msc(inp, sid)) is not None]
+        if not ms:
+            return None
+        res = fuse(
+            np.array([m.scale for m in ms]),
+            np.array([m.sigma for m in ms]),
+            self.opts.fusion_outlier_sigmas,
+        )
+        if res is None:
+            return None
+        return res[0], res[1], int(res[2].sum())
+
+
+@dataclass
+class B7WindowML(Method):
+    """Engel, Sturm & Cremers (IROS 2012): closed-form ML scale from x_i ~ N(lambda mu_i,
+    sigma_x^2) (VO displacements) and y_i ~ N(mu_i, sigma_y^2) (metric ones):
+    s_xx = sigma_y^2 sum x_i^2, s_yy = sigma_x^2 sum y_i^2, s_xy = sigma_y sigma_x sum x_i y_i,
+    lambda = (s_xx - s_yy + sign(s_xy) sqrt((s_xx - s_yy)^2 + 4 s_xy^2))
+             / (2 sigma_x^-1 sigma_y s_xy);
+    here with 1D displacements along gravity (see the module docstring)."""
+
+    history: deque[tuple[int, float, float]] = field(default_factory=lambda: deque(maxlen=4096))
+    sigma_x: float = 0.01
+    sigma_y: float = 0.02
+
+    def reset(self) -> None:
+        super().reset()
+        self.history.clear()
+
+    def update(self, inp: ScaleInput) -> None:
+        if not inp.lasers:
+            return
+        R_vo_cam = inp.T_cam_vo[:3, :3].T
+        c_vo = -R_vo_cam @ inp.T_cam_vo[:3, 3]
+        # metric height above ground of the camera: the laser points' depth along gravity
+        heights = [float((R_vo_cam @ p)[2]) for _, p, _ in inp.lasers.values()]
+        self.history.append((inp.time_us, float(c_vo[2]), float(np.mean(heights))))
+        t0 = inp.time_us - int(self.opts.b7_window_s * 1e6)
+        while self.history and self.history[0][0] < t0:
+            self.history.popleft()
+        h = np.array(self.history)
+        if len(h) < 10:
+            return
+        # pairs: consecutive samples at least b7_min_step_m of metric motion apart
+        xs, ys = [], []
+        last = 0
+        for i in range(1, len(h)):
+            dy = -(h[i, 2] - h[last, 2])  # height up = -(z down) in both
+            dx = h[i, 1] - h[last, 1]
+            if abs(dy) >= self.opts.b7_min_step_m:
+                xs.append(dx)
+                ys.append(dy)
+                last = i
+        if len(xs) < 3:
+            return
+        x = np.array(xs)  # VO displacements along gravity [VO units]
+        y = np.array(ys)  # metric ones from the range-measured height [m]
+        sx, sy = self.sigma_x, self.sigma_y
+        s_xx = sy**2 * float(x @ x)
+        s_yy = sx**2 * float(y @ y)
+        s_xy = sy * sx * float(x @ y)
+        if abs(s_xy) < 1e-12:
+            return
+        lam = (s_xx - s_yy + np.sign(s_xy) * np.sqrt((s_xx - s_yy) ** 2 + 4 * s_xy**2)) / (
+            2 * sx**-1 * sy * s_xy
+        )
+        # Engel's lambda maps metric to visual units (x = lambda y): our scale is 1 / lambda
+        if np.isfinite(lam) and lam > 0:
+            self.scale, self.sigma, self.n_used = float(1.0 / lam), float(0.05 / lam), len(x)
+
+
+@dataclass
+class B8PerFrame(Method):
+    """Laser depth over the VO depth at the laser pixel (inverse-distance interpolation of the
+    features within the patch), first sensor, every frame."""
+
+    def update(self, inp: ScaleInput) -> None:
+        if not inp.lasers:
+            return
+        _, p_cam, _ = inp.lasers[next(iter(inp.lasers))]
+        uv = msc.laser_pixel(self.camera, p_cam)
+        f = inp.vo.features
+        has = f.point_ids >= 0
+        if uv is None or not has.any():
+            return
+        d = np.linalg.norm(f.pixels[has] - uv, axis=1)
+        near = d <= self.opts.patch_half_px
+        if not near.any():
+            return
+        z = se3.transform(inp.T_cam_vo, f.points_vo[has][near])[:, 2]
+        w = 1.0 / np.maximum(d[near], 0.5)
+        z_vo = float(np.sum(w * z) / np.sum(w))
+        if z_vo > 0:
+            self.scale, self.n_used = float(p_cam[2]) / z_vo, int(near.sum())
+
+
+@dataclass
+class B9Plane(Method):
+    """Plane through the three map points nearest the laser pixel, intersected with the camera
+    ray through that pixel; first sensor, every frame."""
+
+    def update(self, inp: ScaleInput) -> None:
+        if not inp.lasers:
+            return
+        _, p_cam, _ = inp.lasers[next(iter(inp.lasers))]
+        uv = msc.laser_pixel(self.camera, p_cam)
+        f = inp.vo.features
+        has = np.flatnonzero(f.point_ids >= 0)
+        if uv is None or len(has) < 3:
+            return
+        d = np.linalg.norm(f.pixels[has] - uv, axis=1)
+        near = has[np.argsort(d)[:3]]
+        if np.sort(d)[2] > 4 * self.opts.patch_half_px:
+            return
+        P = se3.transform(inp.T_cam_vo, f.points_vo[near])
+        n = np.cross(P[1] - P[0], P[2] - P[0])
+        if np.linalg.norm(n) < 1e-12:
+            return
+        ray = p_cam / np.linalg.norm(p_cam)
+        denom = float(n @ ray)
+        if abs(denom) < 1e-9:
+            return
+        t_vo = float(n @ P[0]) / denom
+        if t_vo > 0:
+            self.scale, self.n_used = float(np.linalg.norm(p_cam)) / t_vo, 3
+
+
+def make_methods(camera: CameraModel, opts: ScaleOptions) -> dict[str, Method]:
+    """One instance of every method, by name."""
+    return {
+        "MSC": MSC("MSC", camera, opts),
+        "MSCwK": MSCwK("MSCwK", camera, opts),
+        "M-MSC": MMSC("M-MSC", camera, opts),
+        "B7 window-ML": B7WindowML("B7 window-ML", camera, opts),
+        "B8 per-frame": B8PerFrame("B8 per-frame", camera, opts),
+        "B9 plane": B9Plane("B9 plane", camera, opts),
+    }
+
+
+class MetricTrajectory:
+    """Applies a changing scale without position jumps: p += s_k * (p_vo_k - p_vo_{k-1}).
+
+    Positions stay in the VO frame's orientation (metres); a VO re-initialisation continues
+    from the last position and raises ``reset_counter``.
+    """
+
+    def __init__(self) -> None:
+        self.position_m: F64 | None = None
+        self._last_vo: F64 | None = None
+        self._segment = -1
+        self.reset_counter = 0
+
+    def step(self, p_vo: F64, scale: float, segment: int) -> F64:
+        if self.position_m is None or self._last_vo is None:
+            self.position_m = scale * p_vo
+        elif segment != self._segment:
+            self.reset_counter += 1
+        else:
+            self.position_m = self.position_m + scale * (p_vo - self._last_vo)
+        self._segment = segment
+        self._last_vo = p_vo.copy()
+        return self.position_m.copy()

@@ -1,0 +1,35 @@
+"""Options of the metric-scale estimation (composed into the config as [scale])."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from companion.options import opt
+
+ScaleMethodName = Literal["MSC", "MSCwK", "M-MSC", "B7 window-ML", "B8 per-frame", "B9 plane"]
+
+
+@dataclass(frozen=True, slots=True)
+class ScaleOptions:
+    """MSC matching, the scale Kalman filter and the range/frame time alignment."""
+
+    method: ScaleMethodName = opt("M-MSC", "the scale method whose poses are published")
+    patch_half_px: float = opt(
+        12.0, "half side of the search patch around the laser pixel [px]", gt=0
+    )
+    slope_factor: float = opt(0.5, "relative depth change per normalised pixel offset", ge=0)
+    max_range_gap_us: int = opt(60_000, "widest gap between two range samples to interpolate", gt=0)
+    max_range_age_us: int = opt(40_000, "a range sample older than this is stale", gt=0)
+    random_walk_per_s: float = opt(
+        0.01, "scale drift: relative sigma of the random walk per sqrt(second)", ge=0
+    )
+    gate_chi2: float = opt(
+        6.63, "chi-square gate (1 dof) on a scale measurement's innovation", gt=0
+    )
+    init_sigma_rel: float = opt(0.2, "relative sigma of the initial scale", gt=0)
+    fusion_outlier_sigmas: float = opt(
+        3.0, "M-MSC: drop measurements this many sigmas from the weighted median", gt=0
+    )
+    b7_window_s: float = opt(5.0, "B7 window-ML: window length [s]", gt=0)
+    b7_min_step_m: float = opt(0.05, "B7: minimum metric displacement of a pair [m]", gt=0)
