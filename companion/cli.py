@@ -105,9 +105,63 @@ def _ticks(bar: Any) -> Iterator[None]:
         yield None
 
 
+def cmd_eval_scale(args: argparse.Namespace) -> int:
+    """Every scale method on one SITL flight: tables, TUM trajectories and plots."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from companion.config import STUDY_RANGEFINDERS
+    from companion.offline import run_scale
+    from companion.reporting import run_metrics, write_plots, write_tables
+    from sitl.dataset import write_tum
+    from sitl.scenario import Scenario
+
+    if args.dataset is not None:
+        raise CompanionError(
+            "--methods all evaluates a simulated flight (ground-truth scale "
+            "needs the world): give --terrain/--trajectory/--seconds/--seed"
+        )
+    cfg = _load(args)
+    study = 6 if args.sensor_study else 0
+    if study and len(cfg.rangefinders) < study:
+        cfg = replace(cfg, rangefinders=STUDY_RANGEFINDERS)
+    s = cfg.sitl
+    name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+    out = Path(args.out) if args.out else Path("out") / "eval" / name
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = Scenario(cfg)
+    bar = _progress(scenario.n_frames, f"eval {name}", not args.no_progress)
+    run = run_scale(cfg, scenario.steps(), scenario.world, _ticks(bar), sensor_study=study)
+    bar.close()
+    metrics = run_metrics(run)
+    table = write_tables(metrics, out, f"Metric scale on {name}")
+    t = np.array(run.time_us) * 1e-6
+    eye = np.eye(4)
+    write_tum(
+        out / "groundtruth.tum",
+        t,
+        np.array([np.block([[eye[:3, :3], p[:, None]], [eye[3:]]]) for p in run.gt_position]),
+    )
+    for n in run.methods:
+        p = np.array(run.position[n])
+        ok = np.all(np.isfinite(p), axis=1)
+        poses = np.repeat(eye[None], int(ok.sum()), axis=0)
+        poses[:, :3, 3] = p[ok]
+        write_tum(out / f"{n.replace(' ', '_').replace('=', '')}.tum", t[ok], poses)
+    plots = write_plots(run, scenario.world, out)
+    print(table)
+    print(f"VO resets: {run.resets}")
+    print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))
+    return EXIT_OK
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
     import json
+
+    if args.methods == "all":
+        return cmd_eval_scale(args)
 
     import numpy as np
 
@@ -274,6 +328,15 @@ def build_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
     _add_sitl_flags(p_eval)
     p_eval.add_argument("--out", type=Path, help="output folder (default out/eval/NAME)")
+    p_eval.add_argument(
+        "--methods",
+        choices=["vo", "all"],
+        default="vo",
+        help="vo: the odometry alone; all: every scale method (SITL)",
+    )
+    p_eval.add_argument(
+        "--sensor-study", action="store_true", help="with --methods all: M-MSC with 1..6 sensors"
+    )
     p_eval.add_argument("--no-progress", action="store_true")
     p_eval.set_defaults(func=cmd_eval)
     return parser

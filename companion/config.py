@@ -126,6 +126,13 @@ DEFAULT_RANGEFINDERS: tuple[RangefinderConfig, ...] = (
     _outward(3, 0.12, -0.20),
 )
 
+# Six sensors for the number-of-sensors study (the default four plus two).
+STUDY_RANGEFINDERS: tuple[RangefinderConfig, ...] = (
+    *DEFAULT_RANGEFINDERS,
+    _outward(4, 0.02, 0.32),
+    _outward(5, -0.04, -0.30),
+)
+
 TerrainName = Literal["flat", "hills", "urban", "slope"]
 TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb"]
 LaserMarkMode = Literal["off", "live", "painted"]

@@ -162,13 +162,14 @@ def run_scale(
     world: Any,
     progress: Iterator[None] | None = None,
     keep_points_at_s: float = 30.0,
+    sensor_study: int = 0,
 ) -> ScaleRun:
     """Run the Pipeline with every scale method over SITL steps (``Scenario.steps()``),
     recording the truth: true positions and the ground-truth scale of every frame."""
     from companion.evaluation.scale import gt_scale
     from companion.geometry import se3
 
-    pipe = Pipeline(config, all_methods=True)
+    pipe = Pipeline(config, all_methods=True, sensor_study=sensor_study)
     names = list(pipe.methods)
     run = ScaleRun(names, scale={n: [] for n in names}, position={n: [] for n in names})
     nan3 = np.full(3, np.nan)

@@ -42,6 +42,7 @@ class Pipeline:
         camera: CameraModel | None = None,
         T_body_cam: F64 | None = None,
         all_methods: bool = False,
+        sensor_study: int = 0,
     ) -> None:
         """``camera`` and ``T_body_cam`` override the config's (a dataset's own calibration);
         ``all_methods`` runs every scale method side by side (evaluation), not only the
@@ -54,7 +55,7 @@ class Pipeline:
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
         self.ranges = RangeHistory()
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
-        methods = make_methods(self.camera, config.scale)
+        methods = make_methods(self.camera, config.scale, sensor_study)
         self.method_name = config.scale.method
         self.methods = methods if all_methods else {self.method_name: methods[self.method_name]}
         self.trajectories = {name: MetricTrajectory() for name in self.methods}

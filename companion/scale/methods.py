@@ -168,10 +168,14 @@ class MSCwK(Method):
 
 @dataclass
 class MMSC(MSCwK):
-    """MSC on every sensor, fused by robust maximum likelihood, through the Kalman filter."""
+    """MSC on every sensor, fused by robust maximum likelihood, through the Kalman filter.
+    ``max_sensors`` limits it to the first k sensors (the number-of-sensors study)."""
+
+    max_sensors: int = 0
 
     def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
-        ms = [m for sid in inp.lasers if (m := self._msc(inp, sid)) is not None]
+        ids = list(inp.lasers)[: self.max_sensors] if self.max_sensors > 0 else list(inp.lasers)
+        ms = [m for sid in ids if (m := self._msc(inp, sid)) is not None]
         if not ms:
             return None
         res = fuse(
@@ -299,9 +303,16 @@ class B9Plane(Method):
             self.scale, self.n_used = float(np.linalg.norm(p_cam)) / t_vo, 3
 
 
-def make_methods(camera: CameraModel, opts: ScaleOptions) -> dict[str, Method]:
-    """One instance of every method, by name."""
-    return {
+def make_methods(
+    camera: CameraModel, opts: ScaleOptions, sensor_study: int = 0
+) -> dict[str, Method]:
+    """One instance of every method, by name; with ``sensor_study`` = n, also M-MSC limited
+    to the first 1..n sensors (named "M-MSC k=1" ...)."""
+    study: dict[str, Method] = {
+        f"M-MSC k={k}": MMSC(f"M-MSC k={k}", camera, opts, max_sensors=k)
+        for k in range(1, sensor_study + 1)
+    }
+    return study | {
         "MSC": MSC("MSC", camera, opts),
         "MSCwK": MSCwK("MSCwK", camera, opts),
         "M-MSC": MMSC("M-MSC", camera, opts),

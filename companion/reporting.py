@@ -1,0 +1,221 @@
+"""Tables (Markdown, CSV) and PNG plots of evaluation runs. Writes files; no algorithms."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.evaluation.scale import ScaleMetrics, scale_metrics
+from companion.evaluation.trajectory import umeyama
+from companion.geometry import so3
+from companion.offline import ScaleRun
+
+F64 = NDArray[np.float64]
+
+COLOURS = {
+    "MSC": "tab:blue",
+    "MSCwK": "tab:green",
+    "M-MSC": "tab:red",
+    "B7 window-ML": "tab:gray",
+    "B8 per-frame": "tab:orange",
+    "B9 plane": "tab:purple",
+}
+METRIC_COLUMNS = [
+    "method",
+    "frames",
+    "scale_mse",
+    "scale_mean_abs_rel_pct",
+    "ate_m",
+    "ate_pct",
+    "final_error_m",
+    "path_m",
+]
+
+
+def run_metrics(run: ScaleRun, settle_s: float = 5.0) -> list[ScaleMetrics]:
+    """Metrics of every method of a run."""
+    t = np.array(run.time_us) * 1e-6
+    tracking = np.array(run.tracking)
+    if not tracking.any():
+        return []
+    init = float(t[np.argmax(tracking)])
+    R = so3.rot_z(run.yaw_vo_rad)
+    gt_s = np.array(run.gt_scale)
+    gt_p = np.array(run.gt_position)
+    return [
+        scale_metrics(
+            n, t, np.array(run.scale[n]), gt_s, np.array(run.position[n]), gt_p, R, init, settle_s
+        )
+        for n in run.methods
+    ]
+
+
+def write_tables(metrics: list[ScaleMetrics], out: Path, title: str) -> str:
+    """metrics.csv, metrics.json and report.md in ``out``; returns the Markdown table."""
+    rows = [asdict(m) for m in metrics]
+    with (out / "scale_metrics.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=METRIC_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    (out / "scale_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
+    lines = [
+        "| method | scale MSE | mean abs rel. scale error | metric ATE (SE3) | ATE % path "
+        "| final error |",
+        "|---|---|---|---|---|---|",
+    ]
+    for m in metrics:
+        lines.append(
+            f"| {m.method} | {m.scale_mse:.2e} | {m.scale_mean_abs_rel_pct:.2f} % | "
+            f"{m.ate_m:.3f} m | {m.ate_pct:.2f} % | {m.final_error_m:.2f} m |"
+        )
+    table = "\n".join(lines)
+    (out / "report.md").write_text(f"# {title}\n\n{table}\n")
+    return table
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSC") -> list[Path]:
+    """scale.png, scale_error.png, trajectory.png, point_cloud.png (and sensors.png when the
+    run has the number-of-sensors study); returns the paths."""
+    plt = _plt()
+    t = np.array(run.time_us) * 1e-6
+    gt_s = np.array(run.gt_scale)
+    paths = []
+    base = [n for n in run.methods if not n.startswith("M-MSC k=")]
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    ax.plot(t, gt_s, "k", lw=2, label="ground truth")
+    for n in base:
+        ax.plot(t, run.scale[n], lw=1, label=n, color=COLOURS.get(n))
+    finite = gt_s[np.isfinite(gt_s)]
+    if len(finite):
+        mid = float(np.median(finite))
+        ax.set_ylim(0.8 * mid, 1.2 * mid)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("scale [m per VO unit]")
+    ax.legend(fontsize=8, ncol=3)
+    ax.grid(alpha=0.3)
+    paths.append(out / "scale.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for n in base:
+        err = 100 * (np.array(run.scale[n]) - gt_s) / gt_s
+        ax.plot(t, err, lw=1, label=n, color=COLOURS.get(n))
+    ax.set_ylim(-5, 5)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("relative scale error [%]")
+    ax.legend(fontsize=8, ncol=3)
+    ax.grid(alpha=0.3)
+    paths.append(out / "scale_error.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    gt_p = np.array(run.gt_position)
+    fig, (top, side) = plt.subplots(1, 2, figsize=(12, 5))
+    top.plot(gt_p[:, 1], gt_p[:, 0], "k", lw=2, label="ground truth")
+    side.plot(t, -gt_p[:, 2], "k", lw=2, label="ground truth")
+    vo = np.array(run.vo_position)
+    ok = np.all(np.isfinite(vo), axis=1)
+    if ok.sum() > 3:
+        a = umeyama(vo[ok], gt_p[ok], with_scale=True)
+        v = a.apply(vo[ok])
+        top.plot(v[:, 1], v[:, 0], color="tab:cyan", lw=1, label="raw VO (Sim3-aligned)")
+        side.plot(t[ok], -v[:, 2], color="tab:cyan", lw=1, label="raw VO (Sim3-aligned)")
+    for n in ("MSCwK", main):
+        p = np.array(run.position[n])
+        ok = np.all(np.isfinite(p), axis=1)
+        if ok.sum() > 3:
+            a = umeyama(p[ok], gt_p[ok], with_scale=False)
+            q = a.apply(p[ok])
+            top.plot(q[:, 1], q[:, 0], lw=1, color=COLOURS.get(n), label=f"{n} (SE3-aligned)")
+            side.plot(t[ok], -q[:, 2], lw=1, color=COLOURS.get(n), label=f"{n} (SE3-aligned)")
+    top.set_xlabel("east [m]")
+    top.set_ylabel("north [m]")
+    top.set_aspect("equal")
+    side.set_xlabel("time [s]")
+    side.set_ylabel("height [m]")
+    for a_ in (top, side):
+        a_.grid(alpha=0.3)
+        a_.legend(fontsize=8)
+    paths.append(out / "trajectory.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    if len(run.points_vo) and main in run.position:
+        p = np.array(run.position[main])
+        vo = np.array(run.vo_position)
+        ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vo), axis=1)
+        if ok.sum() > 3:
+            # the map points and the VO trajectory scaled alike by the method's scale, put in
+            # the world by the rigid alignment of that trajectory
+            scale = float(np.nanmedian(np.array(run.scale[main])[ok]))
+            a = umeyama(scale * vo[ok], gt_p[ok], with_scale=False)
+            pts = a.apply(run.points_vo * scale)
+            h_true = world.surface_height(pts[:, 0], pts[:, 1])
+            err = -pts[:, 2] - h_true
+            fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+            pad = 4.0
+            xs = np.linspace(pts[:, 0].min() - pad, pts[:, 0].max() + pad, 120)
+            ys = np.linspace(pts[:, 1].min() - pad, pts[:, 1].max() + pad, 120)
+            X, Y = np.meshgrid(xs, ys)
+            H = world.surface_height(X.ravel(), Y.ravel()).reshape(X.shape)
+            cf = ax1.contourf(Y, X, H, 20, cmap="terrain")
+            fig.colorbar(cf, ax=ax1, label="true terrain height [m]")
+            ax1.scatter(
+                pts[:, 1],
+                pts[:, 0],
+                c=-pts[:, 2],
+                cmap="terrain",
+                edgecolors="k",
+                linewidths=0.3,
+                s=14,
+                vmin=H.min(),
+                vmax=H.max(),
+            )
+            ax1.set_xlabel("east [m]")
+            ax1.set_ylabel("north [m]")
+            ax1.set_title(f"scaled VO points ({main}) over the true terrain")
+            ax2.hist(100 * err, bins=40, color="tab:red")
+            ax2.set_xlabel("point height - true terrain height [cm]")
+            ax2.set_ylabel("points")
+            ax2.set_title(f"median |error| {100 * np.median(np.abs(err)):.1f} cm")
+            paths.append(out / "point_cloud.png")
+            fig.tight_layout()
+            fig.savefig(paths[-1], dpi=110)
+            plt.close(fig)
+
+    study = sorted(
+        (n for n in run.methods if n.startswith("M-MSC k=")), key=lambda n: int(n.split("=")[1])
+    )
+    if study:
+        metrics = {m.method: m for m in run_metrics(run)}
+        ks = [int(n.split("=")[1]) for n in study]
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.plot(ks, [metrics[n].scale_mean_abs_rel_pct for n in study], "o-", color="tab:red")
+        ax.set_xlabel("number of distance sensors")
+        ax.set_ylabel("mean abs. relative scale error [%]")
+        ax.set_title("M-MSC: scale error vs number of sensors")
+        ax.grid(alpha=0.3)
+        paths.append(out / "sensors.png")
+        fig.tight_layout()
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
