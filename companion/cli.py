@@ -156,6 +156,17 @@ def cmd_eval_scale(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """Summarise `eval --methods all` folders (TERRAIN-TRAJECTORY-SEED) in Markdown."""
+    from companion.reporting import summary
+
+    text = summary([Path(d) for d in args.dirs])
+    if not text:
+        raise CompanionError("no TERRAIN-TRAJECTORY-SEED folders with scale_metrics.json")
+    print(text)
+    return EXIT_OK
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
     import json
@@ -323,6 +334,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sitl_flags(p_bv)
     p_bv.add_argument("--no-progress", action="store_true")
     p_bv.set_defaults(func=cmd_bench_vo)
+
+    p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
+    p_rep.add_argument("dirs", nargs="+", type=Path)
+    p_rep.set_defaults(func=cmd_report)
 
     p_eval = sub.add_parser("eval", help="evaluate the pipeline on a dataset or a SITL flight")
     p_eval.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")

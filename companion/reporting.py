@@ -219,3 +219,58 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSC") -> li
         fig.savefig(paths[-1], dpi=110)
         plt.close(fig)
     return paths
+
+
+def summary(dirs: list[Path]) -> str:
+    """Markdown tables over several `eval --methods all` folders named TERRAIN-TRAJECTORY-SEED:
+    per terrain and trajectory, every method averaged over the seeds, and whether each thesis
+    method beats each baseline (lower scale MSE and lower metric ATE)."""
+    groups: dict[tuple[str, str], list[list[dict[str, Any]]]] = {}
+    for d in sorted(dirs):
+        f = d / "scale_metrics.json"
+        parts = d.name.split("-")
+        if not f.exists() or len(parts) != 3:
+            continue
+        groups.setdefault((parts[0], parts[1]), []).append(json.loads(f.read_text()))
+    out: list[str] = []
+    thesis = ["MSC", "MSCwK", "M-MSC"]
+    baselines = ["B7 window-ML", "B8 per-frame", "B9 plane"]
+    for (terrain, traj), runs in sorted(groups.items()):
+        methods = [r["method"] for r in runs[0]]
+        out.append(f"### {terrain} / {traj} ({len(runs)} seeds)\n")
+        out.append(
+            "| method | scale MSE | mean abs rel. scale error | metric ATE | ATE % path "
+            "| final error |"
+        )
+        out.append("|---|---|---|---|---|---|")
+        avg: dict[str, dict[str, float]] = {}
+        for m in methods:
+            rows = [next(r for r in run if r["method"] == m) for run in runs]
+            avg[m] = {
+                k: float(np.mean([r[k] for r in rows]))
+                for k in (
+                    "scale_mse",
+                    "scale_mean_abs_rel_pct",
+                    "ate_m",
+                    "ate_pct",
+                    "final_error_m",
+                )
+            }
+            a = avg[m]
+            out.append(
+                f"| {m} | {a['scale_mse']:.2e} | {a['scale_mean_abs_rel_pct']:.2f} % | "
+                f"{a['ate_m']:.3f} m | {a['ate_pct']:.2f} % | {a['final_error_m']:.2f} m |"
+            )
+        beats = []
+        for t in thesis:
+            for b in baselines:
+                if t in avg and b in avg:
+                    ok = (
+                        avg[t]["scale_mse"] < avg[b]["scale_mse"]
+                        and avg[t]["ate_m"] < avg[b]["ate_m"]
+                    )
+                    beats.append(f"{t} vs {b}: {'yes' if ok else 'NO'}")
+        out.append(
+            "\nBeats (lower scale MSE and lower ATE, seed average): " + "; ".join(beats) + "\n"
+        )
+    return "\n".join(out)

@@ -1,0 +1,194 @@
+"""Metric scale: MSC on a known scale, the Kalman filter, ML fusion, baselines on hand-made
+inputs, time alignment of ranges, and no position jump when the scale changes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.config import load_config
+from companion.geometry import se3
+from companion.geometry.camera import CameraModel
+from companion.scale import msc
+from companion.scale.fusion import fuse
+from companion.scale.kalman import ScaleKalman
+from companion.scale.laser import RangeHistory, laser_point_cam
+from companion.scale.methods import (
+    B7WindowML,
+    B8PerFrame,
+    B9Plane,
+    MetricTrajectory,
+    ScaleInput,
+)
+from companion.scale.options import ScaleOptions
+from companion.types import RangeSample, VoFeatures, VoOutput, VoState
+
+CAM = CameraModel(640, 480, 460.0, 460.0, 319.5, 239.5, -0.12, 0.05, 0.0005, -0.0003, 0.0)
+
+
+def ground_features(T_cam_vo: np.ndarray, scale: float, rng: np.random.Generator) -> VoFeatures:
+    """Map points of a flat ground 5 m below a level camera, in VO units (metres / scale), at
+    jittered pixels about 16 px apart."""
+    u, v = np.meshgrid(np.arange(8, 632, 16.0), np.arange(8, 472, 16.0))
+    pix = np.column_stack([u.ravel(), v.ravel()]) + rng.uniform(-4, 4, (u.size, 2))
+    n = len(pix)
+    rays = CAM.pixels_to_rays(pix)
+    P_cam = rays * (5.0 / rays[:, 2:3])  # metric points on the plane z_cam = 5
+    X_vo = se3.transform(se3.inverse(T_cam_vo), P_cam / scale)
+    return VoFeatures(pix, np.arange(n, dtype=np.int64), X_vo, np.full(n, 0.001))
+
+
+def test_msc_recovers_a_known_scale_with_noiseless_ranges() -> None:
+    rng = np.random.default_rng(1)
+    s_true = 7.3
+    T_cam_vo = se3.make(np.eye(3), [0.1, -0.2, 0.05])
+    feats = ground_features(T_cam_vo, s_true, rng)
+    cfg = load_config()
+    T_cam_body = se3.inverse(cfg.camera.T_body_cam())
+    for rf in cfg.rangefinders:
+        spec = rf.spec()
+        # the true range of a level vehicle: the beam hits z_cam = 5
+        beam_cam = T_cam_body[:3, :3] @ spec.T_body_rf[:3, 2]
+        o_cam = se3.transform(T_cam_body, spec.T_body_rf[:3, 3])
+        d = (5.0 - o_cam[2]) / beam_cam[2]
+        p_cam = laser_point_cam(spec, T_cam_body, d)
+        assert np.isclose(p_cam[2], 5.0)
+        m = msc.measure(rf.sensor_id, feats, T_cam_vo, CAM, p_cam, 0.0, 12.0, 0.5)
+        assert m is not None and m.pixel_offset_px <= 12.0 * np.sqrt(2)
+        assert abs(m.scale / s_true - 1) < 0.005
+        assert m.sigma > 0
+    # nothing in the patch: no measurement
+    empty = VoFeatures(np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+    assert msc.measure(0, empty, T_cam_vo, CAM, np.array([0, 0, 5.0]), 0.01, 12, 0.5) is None
+    assert msc.measure(0, feats, T_cam_vo, CAM, np.array([50.0, 0, 5.0]), 0.01, 12, 0.5) is None
+
+
+def test_kalman_converges_and_rejects_a_10x_outlier() -> None:
+    rng = np.random.default_rng(2)
+    kf = ScaleKalman(random_walk_per_s=0.01, gate_chi2=6.63)
+    kf.initialize(0, 4.0, 1.0)
+    for k in range(1, 200):
+        assert kf.update(k * 33_333, 5.0 + rng.normal(0, 0.05), 0.05)
+    # steady state of a 1 %/sqrt(s) random walk with 0.05 measurements at 30 Hz: sigma ~0.021
+    assert kf.sigma < 0.025 and abs(kf.scale - 5.0) < 3 * kf.sigma
+    before = kf.scale
+    assert not kf.update(200 * 33_333, 50.0, 0.05)  # 10x: gated out
+    assert kf.scale == before and kf.rejected == 1
+    assert not kf.update(201 * 33_333, float("nan"), 0.05)
+
+
+def test_ml_fusion_is_the_inverse_variance_mean_and_drops_outliers() -> None:
+    s = np.array([5.0, 5.1, 4.95, 5.05])
+    sg = np.array([0.05, 0.1, 0.02, 0.04])
+    res = fuse(s, sg)
+    assert res is not None
+    w = 1 / sg**2
+    assert np.isclose(res[0], np.sum(w * s) / np.sum(w))
+    assert np.isclose(res[1], 1 / np.sqrt(np.sum(w)))
+    assert res[2].all()
+    res2 = fuse(np.append(s, 9.0), np.append(sg, 0.05))  # a wall edge
+    assert res2 is not None and not res2[2][-1] and np.isclose(res2[0], res[0])
+    assert fuse(np.array([np.nan]), np.array([0.1])) is None
+
+
+def test_applying_a_new_scale_does_not_move_the_position() -> None:
+    traj = MetricTrajectory()
+    p = np.array([1.0, 2.0, -1.0])
+    a = traj.step(p, 5.0, 0)
+    b = traj.step(p, 6.0, 0)  # scale update while hovering: no jump
+    assert np.array_equal(a, b)
+    c = traj.step(p + np.array([0.1, 0.0, 0.0]), 6.0, 0)
+    assert np.allclose(c - b, [0.6, 0, 0])
+    d = traj.step(np.zeros(3), 6.0, 1)  # VO re-initialised: hold, count the reset
+    assert np.array_equal(d, c) and traj.reset_counter == 1
+
+
+def test_range_history_alignment() -> None:
+    h = RangeHistory()
+    assert h.add(RangeSample(1_000, 0, 5.0, 0.1, 40.0, 100))
+    assert h.add(RangeSample(21_000, 0, 5.2, 0.1, 40.0, 100))
+    assert np.isclose(h.at(0, 11_000, 60_000, 40_000), 5.1)  # interpolated
+    assert h.at(0, 11_000, 10_000, 5_000) is None  # gap too wide, both too far
+    assert np.isclose(h.at(0, 30_000, 60_000, 40_000), 5.2)  # nearest, fresh enough
+    assert h.at(0, 90_000, 60_000, 40_000) is None  # stale
+    assert h.at(3, 11_000, 60_000, 40_000) is None  # unknown sensor
+    assert not h.add(RangeSample(30_000, 0, 0.05, 0.1, 40.0, 100))  # below min
+    assert not h.add(RangeSample(31_000, 0, 5.0, 0.1, 40.0, 1))  # flagged invalid
+    assert not h.add(RangeSample(32_000, 0, float("nan"), 0.1, 40.0, 100))
+    assert not h.add(RangeSample(20_000, 0, 5.0, 0.1, 40.0, 100))  # out of order
+    assert h.rejected == 4
+
+
+def _inp(
+    time_us: int, T_cam_vo: np.ndarray, feats: VoFeatures, p_cam: np.ndarray, kf: bool = False
+) -> ScaleInput:
+    vo = VoOutput(time_us, VoState.TRACKING, kf, se3.inverse(T_cam_vo), feats)
+    return ScaleInput(time_us, vo, T_cam_vo, {0: (float(np.linalg.norm(p_cam)), p_cam, 0.01)}, 0)
+
+
+def test_b8_and_b9_reproduce_their_formulas() -> None:
+    opts = ScaleOptions()
+    T = np.eye(4)
+    # three VO points around the laser pixel on the plane z = 2 (VO units); laser at 10 m
+    uv = np.array([[319.5, 239.5], [329.5, 239.5], [319.5, 249.5], [600.0, 400.0]])
+    rays = CAM.pixels_to_rays(uv)
+    pts = rays * (2.0 / rays[:, 2:3])
+    feats = VoFeatures(uv, np.arange(4, dtype=np.int64), pts, np.full(4, 0.01))
+    p_cam = np.array([0.0, 0.0, 10.0])  # on the optical axis: pixel (319.5, 239.5)
+    b8 = B8PerFrame("B8 per-frame", CAM, opts)
+    b8.update(_inp(0, T, feats, p_cam))
+    # inverse-distance weights 1/0.5, 1/10, 1/10 over depths 2, 2, 2
+    assert np.isclose(b8.scale, 10.0 / 2.0)
+    b9 = B9Plane("B9 plane", CAM, opts)
+    b9.update(_inp(0, T, feats, p_cam))
+    assert np.isclose(b9.scale, 10.0 / 2.0)  # the ray meets the plane z = 2 at distance 2
+
+
+def test_b7_window_ml_closed_form() -> None:
+    """Noise-free pairs x = lambda * y give exactly scale = 1 / lambda (Engel et al. 2012)."""
+    opts = ScaleOptions(b7_window_s=100.0, b7_min_step_m=0.05)
+    b7 = B7WindowML("B7 window-ML", CAM, opts)
+    lam = 0.25  # VO units per metre: scale 4 m per unit
+    feats = VoFeatures(np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+    for k in range(40):
+        h = 6.0 + 2.0 * np.sin(0.2 * k)  # height above level ground [m]
+        c_vo_z = -(h - 6.0) * lam  # the camera rises: VO z (down) decreases
+        T_cam_vo = se3.make(np.eye(3), [0.0, 0.0, -c_vo_z])
+        b7.update(_inp(k * 100_000, T_cam_vo, feats, np.array([0.0, 0.0, h])))
+    assert b7.scale is not None and abs(b7.scale - 4.0) < 1e-9
+
+
+def test_pipeline_publishes_metric_poses_on_a_hills_flight() -> None:
+    from companion.offline import run_scale
+    from companion.reporting import run_metrics
+    from sitl.scenario import Scenario
+
+    cfg = load_config(
+        overrides={
+            "sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 16.0, "seed": 2}
+        }
+    )
+    sc = Scenario(cfg)
+    run = run_scale(cfg, sc.steps(), sc.world)
+    metrics = {m.method: m for m in run_metrics(run)}
+    assert metrics["M-MSC"].scale_mean_abs_rel_pct < 1.0
+    assert metrics["M-MSC"].ate_pct < 1.0
+    assert metrics["M-MSC"].scale_mse < metrics["B8 per-frame"].scale_mse
+    assert metrics["M-MSC"].scale_mse < metrics["MSC"].scale_mse
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        RangeSample(0, 0, 0.0, 0.1, 40.0, 100),
+        RangeSample(0, 0, 655.35, 0.1, 40.0, 100),
+        RangeSample(0, 9, 5.0, 0.1, 40.0, 100),
+        RangeSample(0, 0, 5.0, 0.1, 40.0, 1),
+    ],
+)
+def test_pipeline_ignores_and_counts_bad_ranges(bad: RangeSample) -> None:
+    from companion.pipeline import Pipeline
+
+    pipe = Pipeline(load_config())
+    pipe.feed_range(bad)
+    assert pipe.ranges.rejected == 1 and pipe.ranges.sensors() == []
