@@ -268,6 +268,12 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
     )
     if kf.any():
         print(f"keyframes: {int(kf.sum())}, median {np.median(ms[kf]):.2f} ms")
+    sc = np.array(run.scale_ms)[run.tracking_mask()]
+    if len(sc):
+        print(
+            f"scale ({cfg.scale.method}, {len(cfg.rangefinders)} sensors, within the frame "
+            f"time): median {np.median(sc):.3f} ms, p99 {np.percentile(sc, 99):.3f} ms"
+        )
     print(f"tracking: {run.tracking_mask().mean():.3f} of frames, resets {run.resets}")
     print(f"peak RSS: {run.peak_rss_mb:.0f} MB")
     return EXIT_OK

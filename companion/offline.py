@@ -40,6 +40,7 @@ class VoRun:
     T_vo_body: list[F64] = field(default_factory=list)
     segment: list[int] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
+    scale_ms: list[float] = field(default_factory=list)
     keyframe: list[bool] = field(default_factory=list)
     peak_rss_mb: float = 0.0
     resets: int = 0
@@ -72,6 +73,7 @@ def run_vo(
             t0 = time.perf_counter()
             pipe.feed_frame(ev)
             run.frame_ms.append((time.perf_counter() - t0) * 1e3)
+            run.scale_ms.append(pipe.last_scale_ms)
             out = pipe.vo_output
             assert out is not None
             T = pipe.T_vo_body()

@@ -7,6 +7,7 @@ per stream; attitude and ranges are buffered and looked up at each frame's captu
 
 from __future__ import annotations
 
+import time
 from collections import deque
 
 import numpy as np
@@ -64,6 +65,7 @@ class Pipeline:
         self.scale_input: ScaleInput | None = None
         self.vo_output: VoOutput | None = None
         self._last_pose: tuple[int, F64] | None = None
+        self.last_scale_ms = 0.0  # time spent on the scale in the last frame [ms]
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -106,8 +108,10 @@ class Pipeline:
         The VO result stays in ``vo_output``, every method's scale in ``estimates``."""
         self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
         self.scale_input = None
+        self.last_scale_ms = 0.0
         if out.state != VoState.TRACKING:
             return None
+        t0 = time.perf_counter()
         T_cam_vo = se3.inverse(out.T_vo_cam)
         opts = self.config.scale
         lasers: dict[int, tuple[float, F64, float]] = {}
@@ -127,7 +131,9 @@ class Pipeline:
                 self.metric_positions[name] = self.trajectories[name].step(
                     p_vo, est.scale, inp.segment
                 )
-        return self._pose(frame.time_us)
+        pose = self._pose(frame.time_us)
+        self.last_scale_ms = (time.perf_counter() - t0) * 1e3
+        return pose
 
     def _pose(self, time_us: int) -> PoseEstimate | None:
         est = self.estimates.get(self.method_name)
