@@ -22,6 +22,7 @@ COLOURS = {
     "MSC": "tab:blue",
     "MSCwK": "tab:green",
     "M-MSC": "tab:red",
+    "M-MSCwK": "tab:brown",
     "B7 window-ML": "tab:gray",
     "B8 per-frame": "tab:orange",
     "B9 plane": "tab:purple",
@@ -88,7 +89,7 @@ def _plt() -> Any:
     return plt
 
 
-def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSC") -> list[Path]:
+def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> list[Path]:
     """scale.png, scale_error.png, trajectory.png, point_cloud.png (and sensors.png when the
     run has the number-of-sensors study); returns the paths."""
     plt = _plt()
@@ -233,7 +234,7 @@ def summary(dirs: list[Path]) -> str:
             continue
         groups.setdefault((parts[0], parts[1]), []).append(json.loads(f.read_text()))
     out: list[str] = []
-    thesis = ["MSC", "MSCwK", "M-MSC"]
+    thesis = ["MSC", "MSCwK", "M-MSC", "M-MSCwK"]
     baselines = ["B7 window-ML", "B8 per-frame", "B9 plane"]
     for (terrain, traj), runs in sorted(groups.items()):
         methods = [r["method"] for r in runs[0]]

@@ -1,7 +1,9 @@
 """The scale methods, all fed the same per-frame input, and the metric trajectory.
 
 Thesis methods: ``MSC`` (one sensor, the raw match at each keyframe), ``MSCwK`` (one sensor,
-every frame, Kalman filter), ``M-MSC`` (every sensor, robust ML fusion, Kalman filter).
+every frame, Kalman filter), ``M-MSC`` (every sensor at each keyframe, robust ML fusion).
+Ours: ``M-MSCwK`` (the M-MSC fusion at every frame through the MSCwK filter), published by
+default.
 Baselines, named as in the thesis' comparisons:
 - ``B7 window-ML``: Engel, Sturm & Cremers (IROS 2012) closed-form ML scale from pairs of VO
   and metric displacements over a sliding window; the metric displacement is the change of
@@ -32,7 +34,7 @@ from companion.types import ScaleEstimate, VoOutput
 
 F64 = NDArray[np.float64]
 
-METHODS = ("MSC", "MSCwK", "M-MSC", "B7 window-ML", "B8 per-frame", "B9 plane")
+METHODS = ("MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane")
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,26 +168,44 @@ class MSCwK(Method):
             self.scale, self.sigma = self.kf.scale, self.kf.sigma
 
 
+def _fused(method: Method, inp: ScaleInput, max_sensors: int) -> tuple[float, float, int] | None:
+    """Robust ML fusion of the MSC matches of the first ``max_sensors`` sensors (0 = all)."""
+    ids = list(inp.lasers)[:max_sensors] if max_sensors > 0 else list(inp.lasers)
+    ms = [m for sid in ids if (m := method._msc(inp, sid)) is not None]
+    if not ms:
+        return None
+    res = fuse(
+        np.array([m.scale for m in ms]),
+        np.array([m.sigma for m in ms]),
+        method.opts.fusion_outlier_sigmas,
+    )
+    if res is None:
+        return None
+    return res[0], res[1], int(res[2].sum())
+
+
 @dataclass
-class MMSC(MSCwK):
-    """MSC on every sensor, fused by robust maximum likelihood, through the Kalman filter.
-    ``max_sensors`` limits it to the first k sensors (the number-of-sensors study)."""
+class MMSC(Method):
+    """The thesis' M-MSC: at each keyframe, MSC on every sensor fused by robust maximum
+    likelihood (no Kalman filter), held until the next keyframe. ``max_sensors`` limits it to
+    the first k sensors (the number-of-sensors study)."""
 
     max_sensors: int = 0
 
+    def update(self, inp: ScaleInput) -> None:
+        if not inp.vo.is_keyframe:
+            return
+        z = _fused(self, inp, self.max_sensors)
+        if z is not None:
+            self.scale, self.sigma, self.n_used = z
+
+
+@dataclass
+class MMSCwK(MSCwK):
+    """Our extension: the M-MSC fusion at every frame, through the MSCwK Kalman filter."""
+
     def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
-        ids = list(inp.lasers)[: self.max_sensors] if self.max_sensors > 0 else list(inp.lasers)
-        ms = [m for sid in ids if (m := self._msc(inp, sid)) is not None]
-        if not ms:
-            return None
-        res = fuse(
-            np.array([m.scale for m in ms]),
-            np.array([m.sigma for m in ms]),
-            self.opts.fusion_outlier_sigmas,
-        )
-        if res is None:
-            return None
-        return res[0], res[1], int(res[2].sum())
+        return _fused(self, inp, 0)
 
 
 @dataclass
@@ -316,6 +336,7 @@ def make_methods(
         "MSC": MSC("MSC", camera, opts),
         "MSCwK": MSCwK("MSCwK", camera, opts),
         "M-MSC": MMSC("M-MSC", camera, opts),
+        "M-MSCwK": MMSCwK("M-MSCwK", camera, opts),
         "B7 window-ML": B7WindowML("B7 window-ML", camera, opts),
         "B8 per-frame": B8PerFrame("B8 per-frame", camera, opts),
         "B9 plane": B9Plane("B9 plane", camera, opts),

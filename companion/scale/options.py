@@ -7,14 +7,16 @@ from typing import Literal
 
 from companion.options import opt
 
-ScaleMethodName = Literal["MSC", "MSCwK", "M-MSC", "B7 window-ML", "B8 per-frame", "B9 plane"]
+ScaleMethodName = Literal[
+    "MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane"
+]
 
 
 @dataclass(frozen=True, slots=True)
 class ScaleOptions:
     """MSC matching, the scale Kalman filter and the range/frame time alignment."""
 
-    method: ScaleMethodName = opt("M-MSC", "the scale method whose poses are published")
+    method: ScaleMethodName = opt("M-MSCwK", "the scale method whose poses are published")
     patch_half_px: float = opt(
         12.0, "half side of the search patch around the laser pixel [px]", gt=0
     )
