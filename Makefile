@@ -6,7 +6,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 OUT     ?= out
 
-.PHONY: all venv sysdeps demo test lint typecheck unit bench clean
+.PHONY: all venv sysdeps demo test lint typecheck unit bench results clean
 
 all: test
 
@@ -44,6 +44,18 @@ test: lint typecheck unit
 
 bench: venv
 	$(BIN)/companion bench render
+	$(BIN)/companion bench vo --terrain hills --trajectory lawnmower --seconds 60
+
+# docs/RESULTS.md, metric scale: every method on 4 terrains x 2 trajectories x 3 seeds (long)
+RESULTS := $(OUT)/results
+results: venv
+	@mkdir -p $(RESULTS)
+	for t in hills urban flat slope; do for tr in lawnmower figure8; do for s in 1 2 3; do \
+	  $(BIN)/companion eval --methods all --terrain $$t --trajectory $$tr --seconds 60 \
+	    --seed $$s --out $(RESULTS)/$$t-$$tr-$$s --no-progress || exit 1; done; done; done
+	$(BIN)/companion eval --methods all --sensor-study --terrain hills --trajectory lawnmower \
+	  --seconds 60 --seed 1 --out $(RESULTS)/study-hills --no-progress
+	$(BIN)/companion report $(RESULTS)/*-*-*
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache
