@@ -117,22 +117,38 @@ def cmd_eval_scale(args: argparse.Namespace) -> int:
     from sitl.dataset import write_tum
     from sitl.scenario import Scenario
 
-    if args.dataset is not None:
-        raise CompanionError(
-            "--methods all evaluates a simulated flight (ground-truth scale "
-            "needs the world): give --terrain/--trajectory/--seconds/--seed"
-        )
-    cfg = _load(args)
     study = 6 if args.sensor_study else 0
-    if study and len(cfg.rangefinders) < study:
-        cfg = replace(cfg, rangefinders=STUDY_RANGEFINDERS)
-    s = cfg.sitl
-    name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+    steps: Any
+    if args.dataset is not None:  # a recorded SITL flight: its world is rebuilt from meta.toml
+        from sitl.dataset import dataset_steps, open_dataset
+        from sitl.world import make_world
+
+        ds = open_dataset(args.dataset)
+        if ds.sitl is None or ds.config is None or len(ds.gt_times_us) == 0:
+            raise CompanionError(
+                f"{ds.path}: --methods all needs a simulated recording (the ground-truth "
+                "scale ray casts its world)"
+            )
+        if study and len(ds.config.rangefinders) < study:
+            raise CompanionError("--sensor-study needs a recording with six distance sensors")
+        cfg = ds.config
+        name = ds.path.name
+        world = make_world(
+            ds.sitl.terrain, ds.sitl.seed, ds.sitl.world_size_m, ds.sitl.height_resolution_m
+        )
+        steps, total = dataset_steps(ds), len(ds)
+    else:
+        cfg = _load(args)
+        if study and len(cfg.rangefinders) < study:
+            cfg = replace(cfg, rangefinders=STUDY_RANGEFINDERS)
+        s = cfg.sitl
+        name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+        scenario = Scenario(cfg)
+        world, steps, total = scenario.world, scenario.steps(), scenario.n_frames
     out = Path(args.out) if args.out else Path("out") / "eval" / name
     out.mkdir(parents=True, exist_ok=True)
-    scenario = Scenario(cfg)
-    bar = _progress(scenario.n_frames, f"eval {name}", not args.no_progress)
-    run = run_scale(cfg, scenario.steps(), scenario.world, _ticks(bar), sensor_study=study)
+    bar = _progress(total, f"eval {name}", not args.no_progress)
+    run = run_scale(cfg, steps, world, _ticks(bar), sensor_study=study)
     bar.close()
     metrics = run_metrics(run)
     table = write_tables(metrics, out, f"Metric scale on {name}")
@@ -149,7 +165,7 @@ def cmd_eval_scale(args: argparse.Namespace) -> int:
         poses = np.repeat(eye[None], int(ok.sum()), axis=0)
         poses[:, :3, 3] = p[ok]
         write_tum(out / f"{n.replace(' ', '_').replace('=', '')}.tum", t[ok], poses)
-    plots = write_plots(run, scenario.world, out)
+    plots = write_plots(run, world, out)
     print(table)
     print(f"VO resets: {run.resets}")
     print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))

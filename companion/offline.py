@@ -212,7 +212,7 @@ def run_scale(
                 vo_depth = se3.transform(se3.inverse(out.T_vo_cam), f.points_vo[has])[:, 2]
                 s_true = gt_scale(true_depth, vo_depth)
                 t_s = (step.frame.time_us - run.time_us[0]) * 1e-6
-                if len(run.points_vo) == 0 and t_s >= keep_points_at_s:
+                if t_s <= keep_points_at_s:  # the map at that time (or the last, if shorter)
                     run.points_vo = f.points_vo[has].copy()
         run.gt_scale.append(s_true)
         if progress is not None:

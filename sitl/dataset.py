@@ -107,6 +107,42 @@ class Dataset:
         return se3.interpolate(self.gt_T_world_body[i - 1], self.gt_T_world_body[i], a)
 
 
+@dataclass(frozen=True, slots=True)
+class _Reading:
+    """A recorded range reading in the shape of the simulator's TrueRange."""
+
+    sample: RangeSample | None
+    true_distance_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class DatasetStep:
+    """One frame of a dataset with the samples since the previous frame and its ground truth,
+    in the shape of ``sitl.scenario.Step`` (so offline evaluation takes either)."""
+
+    frame: CameraFrame
+    T_world_body: F64
+    ranges: list[_Reading]
+    attitudes: list[AttitudeSample]
+
+
+def dataset_steps(ds: Dataset) -> Iterator[DatasetStep]:
+    """Frames of a dataset with their samples (times <= the frame's) and true poses."""
+    ranges: list[_Reading] = []
+    atts: list[AttitudeSample] = []
+    truth = ds.true_range_m if len(ds.true_range_m) == len(ds.ranges) else None
+    index = {id(r): i for i, r in enumerate(ds.ranges)}
+    for ev in ds.events():
+        if isinstance(ev, AttitudeSample):
+            atts.append(ev)
+        elif isinstance(ev, RangeSample):
+            t = float(truth[index[id(ev)]]) if truth is not None else float("nan")
+            ranges.append(_Reading(ev, t))
+        else:
+            yield DatasetStep(ev, ds.gt_pose_at(ev.time_us), ranges, atts)
+            ranges, atts = [], []
+
+
 def _read_csv(path: Path) -> list[dict[str, str]]:
     if not path.exists():
         raise DatasetError(f"missing file {path}")

@@ -71,3 +71,43 @@ def test_ate_agrees_with_evo_ape(evaluated: Path) -> None:
     assert match, proc.stdout
     ours = json.loads((evaluated / "metrics.json").read_text())["ate_sim3_m"]
     assert abs(float(match.group(1)) - ours) < 1e-3
+
+
+def test_eval_all_methods_on_a_recording(evaluated: Path) -> None:
+    """`companion eval DATASET --methods all`: every scale method on the VO of one recording,
+    with tables, one TUM trajectory per method and the plots."""
+    out = evaluated.parent / "all"
+    code = main(
+        [
+            "eval",
+            str(evaluated.parent / "urban"),
+            "--methods",
+            "all",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
+    assert code == 0
+    rows = {r["method"]: r for r in json.loads((out / "scale_metrics.json").read_text())}
+    assert set(rows) == {
+        "MSC",
+        "MSCwK",
+        "M-MSC",
+        "M-MSCwK",
+        "B7 window-ML",
+        "B8 per-frame",
+        "B9 plane",
+    }
+    assert rows["M-MSCwK"]["scale_mean_abs_rel_pct"] < 1.0 and rows["M-MSCwK"]["ate_pct"] < 1.0
+    for name in (
+        "scale.png",
+        "scale_error.png",
+        "trajectory.png",
+        "point_cloud.png",
+        "M-MSCwK.tum",
+        "groundtruth.tum",
+        "scale_metrics.csv",
+        "report.md",
+    ):
+        assert (out / name).stat().st_size > 0, name
