@@ -225,10 +225,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     bar.close()
     times = np.array(run.time_us)
     track = run.tracking_mask()
-    T_est = np.array(run.T_vo_body)
+    T_est = np.array(run.T_vo_cam)
     write_tum(out / "vo.tum", times[track] * 1e-6, T_est[track])
-    if has_gt:
-        gt = np.array([gt_at(int(t)) for t in times])
+    if has_gt:  # the camera's true trajectory, to compare with the VO's camera poses
+        T_body_cam_gt = cfg.camera.T_body_cam() if T_body_cam is None else T_body_cam
+        gt = np.array([gt_at(int(t)) @ T_body_cam_gt for t in times])
         write_tum(out / "groundtruth.tum", times * 1e-6, gt)
         m = vo_metrics(run, gt[:, :3, 3])
         metrics = {k: getattr(m, k) for k in m.__slots__}

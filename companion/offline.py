@@ -30,14 +30,14 @@ Event = CameraFrame | RangeSample | AttitudeSample
 class VoRun:
     """Per-frame VO results of one run.
 
-    time_us (F,), state (F,) VoState values, T_vo_body (F, 4, 4) (NaN unless tracking),
+    time_us (F,), state (F,) VoState values, T_vo_cam (F, 4, 4) (NaN unless tracking),
     segment (F,) index of the VO map (it changes at every re-initialisation; -1 before the
     first), frame_ms (F,) processing time of each frame [ms], keyframe (F,) flags.
     """
 
     time_us: list[int] = field(default_factory=list)
     state: list[VoState] = field(default_factory=list)
-    T_vo_body: list[F64] = field(default_factory=list)
+    T_vo_cam: list[F64] = field(default_factory=list)
     segment: list[int] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
     scale_ms: list[float] = field(default_factory=list)
@@ -76,11 +76,11 @@ def run_vo(
             run.scale_ms.append(pipe.last_scale_ms)
             out = pipe.vo_output
             assert out is not None
-            T = pipe.T_vo_body()
+            T = out.T_vo_cam if out.state == VoState.TRACKING else None
             run.time_us.append(ev.time_us)
             run.state.append(out.state)
             run.keyframe.append(out.is_keyframe)
-            run.T_vo_body.append(T if T is not None else np.full((4, 4), np.nan))
+            run.T_vo_cam.append(T if T is not None else np.full((4, 4), np.nan))
             seg = pipe.vo.resets if pipe.vo.ever_initialized else -1
             run.segment.append(seg)
             if progress is not None:
@@ -106,7 +106,8 @@ class VoMetrics:
 
 
 def vo_metrics(run: VoRun, gt_positions: F64) -> VoMetrics:
-    """Sim(3)-aligned ATE of the longest segment; gt_positions (F, 3) at the frame times."""
+    """Sim(3)-aligned ATE of the longest segment: the VO camera positions against the true
+    camera positions gt_positions (F, 3) at the frame times."""
     tracking = run.tracking_mask()
     n = len(tracking)
     if not tracking.any():
@@ -118,7 +119,7 @@ def vo_metrics(run: VoRun, gt_positions: F64) -> VoMetrics:
     seg = np.array(run.segment)
     best = max(set(seg[tracking].tolist()), key=lambda s: int(np.sum(tracking & (seg == s))))
     sel = tracking & (seg == best)
-    est = np.array([T[:3, 3] for T, k in zip(run.T_vo_body, sel, strict=True) if k])
+    est = np.array([T[:3, 3] for T, k in zip(run.T_vo_cam, sel, strict=True) if k])
     gt = gt_positions[sel]
     ate, align = ate_rmse(est, gt, "sim3")
     length = path_length(gt)
@@ -140,8 +141,9 @@ class ScaleRun:
     """Per-frame record of a run with every scale method (SITL ground truth included).
 
     time_us (F,); tracking (F,); segment (F,); scale[name] (F,) NaN without an estimate;
-    position[name] (F, 3) metric positions (VO orientation); gt_scale (F,); gt_position (F, 3);
-    vo_position (F, 3) unscaled body positions; yaw_vo_rad at initialisation.
+    position[name] (F, 3) metric body positions (VO orientation); gt_scale (F,);
+    gt_position (F, 3) true body positions, gt_cam_position (F, 3) true camera positions;
+    vo_position (F, 3) unscaled camera positions in the VO frame; yaw_vo_rad at initialisation.
     """
 
     methods: list[str]
@@ -152,9 +154,11 @@ class ScaleRun:
     position: dict[str, list[F64]] = field(default_factory=dict)
     gt_scale: list[float] = field(default_factory=list)
     gt_position: list[F64] = field(default_factory=list)
+    gt_cam_position: list[F64] = field(default_factory=list)
     vo_position: list[F64] = field(default_factory=list)
     yaw_vo_rad: float = 0.0
     points_vo: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
 
 
@@ -190,8 +194,8 @@ def run_scale(
         run.tracking.append(tracking)
         run.segment.append(pipe.vo.resets)
         run.gt_position.append(step.T_world_body[:3, 3].copy())
-        T_vo_body = pipe.T_vo_body()
-        run.vo_position.append(T_vo_body[:3, 3].copy() if T_vo_body is not None else nan3)
+        run.vo_position.append(out.T_vo_cam[:3, 3].copy() if tracking else nan3)
+        run.gt_cam_position.append((step.T_world_body @ T_body_cam)[:3, 3])
         for n in names:
             est = pipe.estimates[n] if tracking else None
             pos = pipe.metric_positions[n] if tracking else None
@@ -214,6 +218,7 @@ def run_scale(
                 t_s = (step.frame.time_us - run.time_us[0]) * 1e-6
                 if t_s <= keep_points_at_s:  # the map at that time (or the last, if shorter)
                     run.points_vo = f.points_vo[has].copy()
+                    run.points_frame = len(run.time_us) - 1
         run.gt_scale.append(s_true)
         if progress is not None:
             next(progress, None)

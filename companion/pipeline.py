@@ -105,7 +105,8 @@ class Pipeline:
     def feed_frame(self, frame: CameraFrame) -> PoseEstimate | None:
         """Run the VO and the scale on a frame; the metric pose once tracking with a scale.
 
-        The VO result stays in ``vo_output``, every method's scale in ``estimates``."""
+        The VO result stays in ``vo_output``, every method's scale in ``estimates`` and the
+        metric body positions (VO orientation) in ``metric_positions``."""
         self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
         self.scale_input = None
         self.last_scale_ms = 0.0
@@ -123,14 +124,16 @@ class Pipeline:
             lasers[sid] = (d, laser_point_cam(spec, self.T_cam_body, d), spec.sigma_m(d))
         inp = ScaleInput(frame.time_us, out, T_cam_vo, lasers, self.vo.resets)
         self.scale_input = inp
-        p_vo = (out.T_vo_cam @ self.T_cam_body)[:3, 3]
+        # The camera's VO position is what the scale multiplies; the body sits a metric lever
+        # arm away from it (T_cam_body's translation is in metres, not VO units).
+        c_vo = out.T_vo_cam[:3, 3]
+        lever_vo = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
         for name, method in self.methods.items():
             est = method.step(inp)
             self.estimates[name] = est
             if est is not None:
-                self.metric_positions[name] = self.trajectories[name].step(
-                    p_vo, est.scale, inp.segment
-                )
+                cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
+                self.metric_positions[name] = cam_m + lever_vo
         pose = self._pose(frame.time_us)
         self.last_scale_ms = (time.perf_counter() - t0) * 1e3
         return pose
@@ -162,9 +165,11 @@ class Pipeline:
         )
 
     def T_vo_body(self) -> F64 | None:
-        """The current body pose in the VO frame (unscaled), or None unless tracking."""
+        """The body's orientation in the VO frame at the camera's VO position (the lever arm
+        camera -> body is metric and cannot be placed in unscaled VO units), or None."""
         out = self.vo_output
         if out is None or not np.all(np.isfinite(out.T_vo_cam)):
             return None
         T: F64 = out.T_vo_cam @ self.T_cam_body
+        T[:3, 3] = out.T_vo_cam[:3, 3]
         return T

@@ -133,9 +133,10 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     top.plot(gt_p[:, 1], gt_p[:, 0], "k", lw=2, label="ground truth")
     side.plot(t, -gt_p[:, 2], "k", lw=2, label="ground truth")
     vo = np.array(run.vo_position)
+    gt_c = np.array(run.gt_cam_position)
     ok = np.all(np.isfinite(vo), axis=1)
     if ok.sum() > 3:
-        a = umeyama(vo[ok], gt_p[ok], with_scale=True)
+        a = umeyama(vo[ok], gt_c[ok], with_scale=True)
         v = a.apply(vo[ok])
         top.plot(v[:, 1], v[:, 0], color="tab:cyan", lw=1, label="raw VO (Sim3-aligned)")
         side.plot(t[ok], -v[:, 2], color="tab:cyan", lw=1, label="raw VO (Sim3-aligned)")
@@ -164,12 +165,15 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
         p = np.array(run.position[main])
         vo = np.array(run.vo_position)
         ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vo), axis=1)
-        if ok.sum() > 3:
-            # the map points and the VO trajectory scaled alike by the method's scale, put in
-            # the world by the rigid alignment of that trajectory
-            scale = float(np.nanmedian(np.array(run.scale[main])[ok]))
-            a = umeyama(scale * vo[ok], gt_p[ok], with_scale=False)
-            pts = a.apply(run.points_vo * scale)
+        if run.points_frame >= 0 and ok[run.points_frame]:
+            # the map of one frame, scaled by the method's scale at that frame and placed
+            # around the true camera position of that frame with the VO frame's orientation
+            # (gravity-aligned, yaw = heading at init): the shape and scale of the local
+            # reconstruction, without the trajectory's drift
+            k = run.points_frame
+            scale = float(np.array(run.scale[main])[k])
+            R = so3.rot_z(run.yaw_vo_rad)
+            pts = np.array(run.gt_cam_position)[k] + scale * (run.points_vo - vo[k]) @ R.T
             h_true = world.surface_height(pts[:, 0], pts[:, 1])
             err = -pts[:, 2] - h_true
             fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
