@@ -270,32 +270,82 @@ def _cast_boxes(
     return t_best, hit_box, axis, sign
 
 
+@nb.njit(inline="always", **_JIT)
+def _cast(ox, oy, oz, dx, dy, dz, geo, t_guess):
+    """First hit of a unit ray on the ground or a building, from the packed geometry ``geo``
+    (World.kernel_geometry): (t, t of the ground alone, dh/dx, dh/dy, box, face axis, sign)."""
+    (
+        hmap,
+        inv_res,
+        x0,
+        y0,
+        hmin,
+        hmax,
+        plane,
+        lip_x,
+        lip_y,
+        blocks,
+        b_inv,
+        b_reach,
+        tmax,
+        boxes,
+        box_top,
+        cell_start,
+        cell_boxes,
+        g_x0,
+        g_y0,
+        g_inv,
+        g_nx,
+        g_ny,
+    ) = geo
+    t_ground, hx, hy = _cast_ground(
+        ox,
+        oy,
+        oz,
+        dx,
+        dy,
+        dz,
+        hmap,
+        inv_res,
+        x0,
+        y0,
+        hmin,
+        hmax,
+        plane,
+        lip_x,
+        lip_y,
+        blocks,
+        b_inv,
+        b_reach,
+        tmax,
+        t_guess,
+    )
+    t, k, axis, sign = _cast_boxes(
+        ox,
+        oy,
+        oz,
+        dx,
+        dy,
+        dz,
+        t_ground,
+        boxes,
+        box_top,
+        cell_start,
+        cell_boxes,
+        g_x0,
+        g_y0,
+        g_inv,
+        g_nx,
+        g_ny,
+    )
+    return t, t_ground, hx, hy, k, axis, sign
+
+
 @nb.njit(**_JIT)
 def cast_rays(
     origins,
     dirs,
-    hmap,
-    inv_res,
-    x0,
-    y0,
-    hmin,
-    hmax,
-    plane,
-    lip_x,
-    lip_y,
-    blocks,
-    b_inv,
-    b_reach,
-    tmax,
-    boxes,
-    box_top,
-    cell_start,
-    cell_boxes,
-    g_x0,
-    g_y0,
-    g_inv,
-    g_nx,
-    g_ny,
+    geo,
 ):
     """Cast unit rays (N, 3) from origins (N, 3): t (N,), normals (N, 3), kind (N,), box (N,)."""
     n = origins.shape[0]
@@ -307,48 +357,9 @@ def cast_rays(
     for i in range(n):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        t, hx, hy = _cast_ground(
-            ox,
-            oy,
-            oz,
-            dx,
-            dy,
-            dz,
-            hmap,
-            inv_res,
-            x0,
-            y0,
-            hmin,
-            hmax,
-            plane,
-            lip_x,
-            lip_y,
-            blocks,
-            b_inv,
-            b_reach,
-            tmax,
-            t_guess,
-        )
-        if t < math.inf:
-            t_guess = t
-        t, k, axis, sign = _cast_boxes(
-            ox,
-            oy,
-            oz,
-            dx,
-            dy,
-            dz,
-            t,
-            boxes,
-            box_top,
-            cell_start,
-            cell_boxes,
-            g_x0,
-            g_y0,
-            g_inv,
-            g_nx,
-            g_ny,
-        )
+        t, t_ground, hx, hy, k, axis, sign = _cast(ox, oy, oz, dx, dy, dz, geo, t_guess)
+        if t_ground < math.inf:
+            t_guess = t_ground
         t_out[i] = t
         if k >= 0:
             box_out[i] = k
@@ -458,28 +469,7 @@ def render(
     rays_cam,
     width,
     focal_px,
-    hmap,
-    inv_res,
-    x0,
-    y0,
-    hmin,
-    hmax,
-    plane,
-    lip_x,
-    lip_y,
-    blocks,
-    b_inv,
-    b_reach,
-    tmax,
-    boxes,
-    box_top,
-    cell_start,
-    cell_boxes,
-    g_x0,
-    g_y0,
-    g_inv,
-    g_nx,
-    g_ny,
+    geo,
     tex_data,
     tex_offs,
     tex_sizes,
@@ -536,49 +526,10 @@ def render(
             t_guess = r_a
         else:
             t_guess = t_prev
-        t, hx, hy = _cast_ground(
-            ox,
-            oy,
-            oz,
-            dx,
-            dy,
-            dz,
-            hmap,
-            inv_res,
-            x0,
-            y0,
-            hmin,
-            hmax,
-            plane,
-            lip_x,
-            lip_y,
-            blocks,
-            b_inv,
-            b_reach,
-            tmax,
-            t_guess,
-        )
-        rows[row % 3, col] = t if t < math.inf else 0.0
-        if t < math.inf:
-            t_prev = t
-        t, k, axis, sign = _cast_boxes(
-            ox,
-            oy,
-            oz,
-            dx,
-            dy,
-            dz,
-            t,
-            boxes,
-            box_top,
-            cell_start,
-            cell_boxes,
-            g_x0,
-            g_y0,
-            g_inv,
-            g_nx,
-            g_ny,
-        )
+        t, t_ground, hx, hy, k, axis, sign = _cast(ox, oy, oz, dx, dy, dz, geo, t_guess)
+        rows[row % 3, col] = t_ground if t_ground < math.inf else 0.0
+        if t_ground < math.inf:
+            t_prev = t_ground
         if t == math.inf:
             b = 200.0
             g = 170.0

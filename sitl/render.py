@@ -87,7 +87,7 @@ class Renderer:
             self.rays_cam,
             self.camera_cfg.width,
             float(self.model.fx),
-            *w.kernel_geometry(),
+            w.kernel_geometry(),
             tex_data,
             tex_offs,
             tex_sizes,

@@ -312,12 +312,12 @@ class World:
         if o.shape[0] == 1 and d.shape[0] > 1:
             o = np.ascontiguousarray(np.repeat(o, d.shape[0], axis=0))
         d = np.ascontiguousarray(d / np.linalg.norm(d, axis=1, keepdims=True))
-        t, normals, kind, box = _kernels.cast_rays(o, d, *self.kernel_geometry())
+        t, normals, kind, box = _kernels.cast_rays(o, d, self.kernel_geometry())
         pts = o + t[:, None] * d
         return RayHits(t, pts, normals, kind, box)
 
     def kernel_geometry(self) -> tuple[object, ...]:
-        """The geometry arguments shared by every ray-casting kernel, in kernel order."""
+        """The packed geometry every ray-casting kernel takes (unpacked by _kernels._cast)."""
         return (
             self.heights,
             1.0 / self.res_m,
