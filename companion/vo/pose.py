@@ -43,6 +43,28 @@ def _to_T(rvec: F64, tvec: F64) -> F64:
     return se3.make(np.asarray(R, dtype=np.float64), np.asarray(tvec, dtype=np.float64).ravel())
 
 
+def _refine(
+    X: F64, x: F64, inl: B, rvec: F64, tvec: F64, focal_px: float, inlier_px: float
+) -> tuple[F64, B, F64, F64, F64] | None:
+    """One iterative PnP on the inliers from (rvec, tvec): the pose, the new inliers, the
+    errors of every point [px] and the solver's vectors; None when the solver fails."""
+    ok, rvec, tvec = cv2.solvePnP(
+        X[inl],
+        x[inl],
+        np.eye(3),
+        None,
+        rvec,
+        tvec,
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
+    if not ok:
+        return None
+    T = _to_T(rvec, tvec)
+    err = reprojection_px(T, X, x, focal_px)
+    return T, err < inlier_px, err, rvec, tvec
+
+
 def estimate_pose(
     points_vo: F64, xy: F64, T_guess: F64, focal_px: float, inlier_px: float, min_inliers: int
 ) -> PoseResult | None:
@@ -56,27 +78,15 @@ def estimate_pose(
     tvec = T_guess[:3, 3].reshape(3, 1).copy()
     inl = np.ones(n, dtype=bool)
     T = T_guess
-    err = reprojection_px(T, X, x, focal_px)
     solved = False
     for _ in range(3):
         if inl.sum() < 6:
             break
-        ok, rvec, tvec = cv2.solvePnP(
-            X[inl],
-            x[inl],
-            np.eye(3),
-            None,
-            rvec,
-            tvec,
-            useExtrinsicGuess=True,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-        if not ok:
+        step = _refine(X, x, inl, rvec, tvec, focal_px, inlier_px)
+        if step is None:
             break
         solved = True
-        T = _to_T(rvec, tvec)
-        err = reprojection_px(T, X, x, focal_px)
-        inl = err < inlier_px
+        T, inl, err, rvec, tvec = step
     if not solved or inl.sum() < min_inliers:
         ok, rvec, tvec, idx = cv2.solvePnPRansac(
             X,
@@ -92,19 +102,10 @@ def estimate_pose(
             return None
         inl = np.zeros(n, dtype=bool)
         inl[np.asarray(idx).ravel()] = True
-        ok, rvec, tvec = cv2.solvePnP(
-            X[inl],
-            x[inl],
-            np.eye(3),
-            None,
-            rvec,
-            tvec,
-            useExtrinsicGuess=True,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-        T = _to_T(rvec, tvec)
-        err = reprojection_px(T, X, x, focal_px)
-        inl = err < inlier_px
+        step = _refine(X, x, inl, rvec, tvec, focal_px, inlier_px)
+        if step is None:
+            return None
+        T, inl, err, rvec, tvec = step
         if inl.sum() < min_inliers:
             return None
     if not np.all(np.isfinite(T)):
