@@ -89,6 +89,14 @@ def _plt() -> Any:
     return plt
 
 
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    """Write a figure as PNG and free it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> list[Path]:
     """scale.png, scale_error.png, trajectory.png, point_cloud.png (and sensors.png when the
     run has the number-of-sensors study); returns the paths."""
@@ -109,10 +117,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     ax.set_ylabel("scale [m per VO unit]")
     ax.legend(fontsize=8, ncol=3)
     ax.grid(alpha=0.3)
-    paths.append(out / "scale.png")
-    fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "scale.png"))
 
     fig, ax = plt.subplots(figsize=(9, 4.5))
     for n in base:
@@ -123,10 +128,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     ax.set_ylabel("relative scale error [%]")
     ax.legend(fontsize=8, ncol=3)
     ax.grid(alpha=0.3)
-    paths.append(out / "scale_error.png")
-    fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "scale_error.png"))
 
     gt_p = np.array(run.gt_position)
     fig, (top, side) = plt.subplots(1, 2, figsize=(12, 5))
@@ -156,10 +158,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     for a_ in (top, side):
         a_.grid(alpha=0.3)
         a_.legend(fontsize=8)
-    paths.append(out / "trajectory.png")
-    fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "trajectory.png"))
 
     if len(run.points_vo) and main in run.position:
         p = np.array(run.position[main])
@@ -202,10 +201,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
             ax2.set_xlabel("point height - true terrain height [cm]")
             ax2.set_ylabel("points")
             ax2.set_title(f"median |error| {100 * np.median(np.abs(err)):.1f} cm")
-            paths.append(out / "point_cloud.png")
-            fig.tight_layout()
-            fig.savefig(paths[-1], dpi=110)
-            plt.close(fig)
+            paths.append(_save(plt, fig, out / "point_cloud.png"))
 
     study = sorted(
         (n for n in run.methods if n.startswith("M-MSC k=")), key=lambda n: int(n.split("=")[1])
@@ -219,10 +215,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
         ax.set_ylabel("mean abs. relative scale error [%]")
         ax.set_title("M-MSC: scale error vs number of sensors")
         ax.grid(alpha=0.3)
-        paths.append(out / "sensors.png")
-        fig.tight_layout()
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(_save(plt, fig, out / "sensors.png"))
     return paths
 
 
