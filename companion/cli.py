@@ -183,10 +183,83 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_eval_attitude(args: argparse.Namespace) -> int:
+    """Roll/pitch on one SITL flight: RMSE table, plots and (--study) the spacing and noise
+    studies replayed over the same VO run."""
+    import dataclasses
+
+    import numpy as np
+
+    from companion.config import triangle_rangefinders
+    from companion.evaluation.attitude import angle_errors, single_sample_bound_deg
+    from companion.offline import replay_attitude, run_attitude
+    from companion.reporting import write_attitude, write_attitude_study
+    from sitl.scenario import Scenario
+    from sitl.sensors import RangeSimulator
+
+    if args.dataset is not None:
+        raise CompanionError("--attitude runs on the simulator (the truth is ray cast)")
+    cfg = _load(args)
+    if args.spacing is not None:
+        rfs = triangle_rangefinders(args.spacing, args.range_sigma)
+        cfg = dataclasses.replace(cfg, rangefinders=rfs)
+    s = cfg.sitl
+    name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+    out = Path(args.out) if args.out else Path("out") / "eval" / f"{name}-attitude"
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = Scenario(cfg)
+    bar = _progress(scenario.n_frames, f"attitude {name}", not args.no_progress)
+    run = run_attitude(cfg, scenario.steps(), _ticks(bar), keep_frames=args.study)
+    bar.close()
+    table = write_attitude(run, out, f"Roll/pitch on {name}")
+    ms = np.array([m for m in run.attitude_ms if m > 0])
+    print(table)
+    if len(ms):
+        print(f"roll/pitch cost: median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms")
+    if args.study:
+        truth = run.array("truth")
+        t = (np.array([f[0] for f in run.frames]) - run.time_us[0]) * 1e-6
+        settle = t >= 5.0
+        truth_f = truth[np.isin(run.time_us, [f[0] for f in run.frames])]
+
+        def point(spacing_m: float, sigma_m: float) -> dict[str, float]:
+            rfs = triangle_rangefinders(spacing_m, sigma_m)
+            sim = RangeSimulator(scenario.world, scenario.trajectory, rfs, s.seed)
+
+            def ranges_at(time_us: int) -> dict[int, float]:
+                got = {}
+                for i, rf in enumerate(rfs):
+                    smp = sim.measure(i, time_us).sample
+                    if smp is not None and smp.is_valid:
+                        got[rf.sensor_id] = smp.distance_m
+                return got
+
+            specs = {rf.sensor_id: rf.spec() for rf in rfs}
+            series = replay_attitude(run, specs, cfg.attitude, ranges_at)
+            vals = {n: angle_errors(v, truth_f, settle).rmse_deg for n, v in series.items()}
+            vals["bound"] = single_sample_bound_deg(sigma_m, spacing_m)
+            return vals
+
+        sigma0 = args.range_sigma
+        spacing0 = args.spacing or 0.5
+        study = {
+            "spacing": [(L, point(L, sigma0)) for L in np.round(np.arange(0.1, 1.01, 0.1), 2)],
+            "sigma": [(sg, point(spacing0, sg)) for sg in (0.0, 0.005, 0.01, 0.02, 0.05, 0.1)],
+        }
+        text, png_path = write_attitude_study(study, out, f"Roll/pitch studies on {name}")
+        (out / "attitude_study.md").write_text(text + "\n")
+        print(text)
+        print(f"study plot: {png_path}")
+    print(f"tables and plots in {out}")
+    return EXIT_OK
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
     import json
 
+    if args.attitude:
+        return cmd_eval_attitude(args)
     if args.methods == "all":
         return cmd_eval_scale(args)
 
@@ -374,6 +447,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_eval.add_argument(
         "--sensor-study", action="store_true", help="with --methods all: M-MSC with 1..6 sensors"
+    )
+    p_eval.add_argument(
+        "--attitude", action="store_true", help="roll/pitch from the distance sensors (SITL)"
+    )
+    p_eval.add_argument(
+        "--spacing", type=float, help="--attitude: 3 sensors on a triangle of this side [m]"
+    )
+    p_eval.add_argument(
+        "--range-sigma", type=float, default=0.01, help="--attitude: range noise sigma [m]"
+    )
+    p_eval.add_argument(
+        "--study", action="store_true", help="--attitude: RMSE vs sensor spacing and range noise"
     )
     p_eval.add_argument("--no-progress", action="store_true")
     p_eval.set_defaults(func=cmd_eval)

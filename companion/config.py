@@ -23,6 +23,7 @@ from typing import Any, Literal, TypeVar
 
 import numpy as np
 
+from companion.attitude.options import AttitudeOptions
 from companion.errors import ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
@@ -133,6 +134,27 @@ STUDY_RANGEFINDERS: tuple[RangefinderConfig, ...] = (
     _outward(5, -0.04, -0.30),
 )
 
+
+def triangle_rangefinders(spacing_m: float, sigma_m: float = 0.01) -> tuple[RangefinderConfig, ...]:
+    """Three vertical sensors (ids 0-2) on an equilateral triangle of side spacing_m [m] centred
+    under the body origin (the roll/pitch studies), noise sigma_m [m]."""
+    rho = spacing_m / math.sqrt(3.0)
+    return tuple(
+        RangefinderConfig(
+            sensor_id=k,
+            mount=MountConfig(
+                xyz_m=(
+                    round(rho * math.cos(math.radians(90 + 120 * k)), 6),
+                    round(rho * math.sin(math.radians(90 + 120 * k)), 6),
+                    0.06,
+                )
+            ),
+            sigma_a_m=sigma_m,
+        )
+        for k in range(3)
+    )
+
+
 TerrainName = Literal["flat", "hills", "urban", "slope"]
 TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb"]
 LaserMarkMode = Literal["off", "live", "painted"]
@@ -181,12 +203,21 @@ class Config:
     )
     vo: VoOptions = opt(VoOptions(), "visual odometry")
     scale: ScaleOptions = opt(ScaleOptions(), "metric scale")
+    attitude: AttitudeOptions = opt(AttitudeOptions(), "roll/pitch from the distance sensors")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
 
     def __post_init__(self) -> None:
         ids = [r.sensor_id for r in self.rangefinders]
         if len(ids) != len(set(ids)):
             raise ConfigError(f"rangefinders: sensor_id values must be unique, got {ids}")
+        chosen = self.attitude.sensor_ids
+        unknown = sorted(set(chosen) - set(ids))
+        if unknown:
+            raise ConfigError(f"attitude.sensor_ids: no rangefinder with id {unknown}")
+        if chosen and len(set(chosen)) < 3:
+            raise ConfigError(
+                f"attitude.sensor_ids: 3 different sensors needed, got {list(chosen)}"
+            )
 
 
 # --------------------------------------------------------------------------- loading

@@ -225,3 +225,111 @@ def run_scale(
     run.yaw_vo_rad = pipe.vo.yaw_vo_rad
     run.resets = pipe.vo.resets
     return run
+
+
+def _tilt_of(R_world_body: F64) -> tuple[float, float]:
+    """(roll, pitch) [rad] of a rotation (yaw does not enter)."""
+    from companion.attitude.ground import tilt_from_normal
+
+    return tilt_from_normal(R_world_body.T @ np.array([0.0, 0.0, 1.0]))
+
+
+@dataclass
+class AttitudeRun:
+    """Per-frame roll/pitch [rad] of one SITL run, NaN where an estimate is missing.
+
+    Series (F, 2) over (roll, pitch): truth; vo (VO rotation alone); ground (ranges relative to
+    the ground under the hits); gravity (ranges, terrain-compensated); fused (the published
+    attitude); fused_ground (the fusion fed with uncompensated tilts, for comparison).
+    attitude_ms (F,) cost of the roll/pitch step; reasons: how often each refusal was seen.
+    frames: what a replay needs (time_us, ranges used, cloud, segment, T_world_body).
+    """
+
+    time_us: list[int] = field(default_factory=list)
+    series: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    attitude_ms: list[float] = field(default_factory=list)
+    reasons: dict[str, int] = field(default_factory=dict)
+    frames: list[tuple[int, Any, int, F64]] = field(default_factory=list)
+
+    def array(self, name: str) -> F64:
+        return np.array(self.series[name], dtype=np.float64).reshape(-1, 2)
+
+
+SERIES = ("truth", "vo", "ground", "gravity", "fused", "fused_ground")
+
+
+def run_attitude(
+    config: Config,
+    steps: Iterable[Any],
+    progress: Iterator[None] | None = None,
+    keep_frames: bool = False,
+) -> AttitudeRun:
+    """Run the Pipeline over SITL steps and record every roll/pitch estimate with the truth."""
+    import dataclasses
+    import re
+
+    from companion.attitude.estimator import RollPitch
+
+    pipe = Pipeline(config)
+    if pipe.attitude is None:
+        raise ValueError("roll/pitch needs 3 distance sensors and attitude.enabled")
+    ablation = RollPitch(pipe.specs, dataclasses.replace(config.attitude, compensate=False))
+    run = AttitudeRun(series={n: [] for n in SERIES})
+    nan2 = (float("nan"), float("nan"))
+    for step in steps:
+        for a in step.attitudes:
+            pipe.feed_attitude(a)
+        for r in step.ranges:
+            if r.sample is not None:
+                pipe.feed_range(r.sample)
+        pipe.feed_frame(step.frame)
+        run.time_us.append(step.frame.time_us)
+        row: dict[str, tuple[float, float]] = dict.fromkeys(SERIES, nan2)
+        row["truth"] = _tilt_of(step.T_world_body[:3, :3])
+        tilt, inp = pipe.tilt, pipe.tilt_input
+        if tilt is not None and inp is not None:
+            row["vo"] = _tilt_of(inp[1].R_vo_body)
+            for name, est in (("ground", tilt.ground), ("gravity", tilt.gravity)):
+                if est is not None:
+                    row[name] = (est.roll_rad, est.pitch_rad)
+            if tilt.fused is not None:
+                row["fused"] = (tilt.fused.roll_rad, tilt.fused.pitch_rad)
+            other = ablation.step(step.frame.time_us, inp[0], inp[1], pipe.vo.resets)
+            if other.fused is not None:
+                row["fused_ground"] = (other.fused.roll_rad, other.fused.pitch_rad)
+            for reason in tilt.reasons:
+                key = re.sub(r"[0-9.]+ m", "x m", reason)
+                run.reasons[key] = run.reasons.get(key, 0) + 1
+            if keep_frames:
+                run.frames.append((step.frame.time_us, inp[1], pipe.vo.resets, step.T_world_body))
+        for name in SERIES:
+            run.series[name].append(row[name])
+        run.attitude_ms.append(pipe.last_attitude_ms)
+        if progress is not None:
+            next(progress, None)
+    return run
+
+
+def replay_attitude(
+    run: AttitudeRun,
+    specs: dict[int, Any],
+    opts: Any,
+    ranges_at: Any,
+) -> dict[str, F64]:
+    """Re-run the roll/pitch estimator over the VO views recorded in ``run`` (keep_frames)
+    with other sensors: ``ranges_at(time_us)`` gives their valid readings {id: metres}.
+    Returns the (F, 2) series "ground", "gravity" and "fused" [rad] (NaN where refused)."""
+    from companion.attitude.estimator import RollPitch
+
+    est = RollPitch(specs, opts)
+    out = {n: np.full((len(run.frames), 2), np.nan) for n in ("ground", "gravity", "fused")}
+    for k, (time_us, cloud, segment, _) in enumerate(run.frames):
+        step = est.step(time_us, ranges_at(time_us), cloud, segment)
+        for name, tilt in (
+            ("ground", step.ground),
+            ("gravity", step.gravity),
+            ("fused", step.fused),
+        ):
+            if tilt is not None:
+                out[name][k] = (tilt.roll_rad, tilt.pitch_rad)
+    return out

@@ -13,6 +13,8 @@ from collections import deque
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.attitude.estimator import CloudView, RollPitch, TiltStep
+from companion.attitude.fusion import corrected_rotation
 from companion.config import Config
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
@@ -66,6 +68,13 @@ class Pipeline:
         self.vo_output: VoOutput | None = None
         self._last_pose: tuple[int, F64] | None = None
         self.last_scale_ms = 0.0  # time spent on the scale in the last frame [ms]
+        self.attitude: RollPitch | None = None
+        n_sensors = len(config.attitude.sensor_ids or self.specs)
+        if config.attitude.enabled and n_sensors >= 3:
+            self.attitude = RollPitch(self.specs, config.attitude)
+        self.tilt: TiltStep | None = None  # the roll/pitch result of the last frame
+        self.tilt_input: tuple[dict[int, float], CloudView] | None = None  # its input
+        self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -109,7 +118,10 @@ class Pipeline:
         metric body positions (VO orientation) in ``metric_positions``."""
         self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
         self.scale_input = None
+        self.tilt = None
+        self.tilt_input = None
         self.last_scale_ms = 0.0
+        self.last_attitude_ms = 0.0
         if out.state != VoState.TRACKING:
             return None
         t0 = time.perf_counter()
@@ -134,9 +146,29 @@ class Pipeline:
             if est is not None:
                 cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
                 self.metric_positions[name] = cam_m + lever_vo
-        pose = self._pose(frame.time_us)
         self.last_scale_ms = (time.perf_counter() - t0) * 1e3
-        return pose
+        t0 = time.perf_counter()
+        self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
+        self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
+        return self._pose(frame.time_us)
+
+    def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:
+        """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
+        out = self.vo_output
+        T_vo_body = self.T_vo_body()
+        if self.attitude is None or out is None or T_vo_body is None:
+            return None
+        est = self.estimates.get(self.method_name)
+        points = np.zeros((0, 3))
+        position = np.zeros(3)
+        if est is not None and est.scale > 0:
+            f = out.features
+            points = f.points_vo[f.point_ids >= 0] * est.scale
+            lever_m = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
+            position = out.T_vo_cam[:3, 3] * est.scale + lever_m
+        cloud = CloudView(T_vo_body[:3, :3], position, points)
+        self.tilt_input = (range_m, cloud)
+        return self.attitude.step(time_us, range_m, cloud, self.vo.resets)
 
     def _pose(self, time_us: int) -> PoseEstimate | None:
         est = self.estimates.get(self.method_name)
@@ -153,11 +185,16 @@ class Pipeline:
         cov = np.full((6, 6), np.nan)
         rel = est.sigma / est.scale if est.scale > 0 else np.nan
         cov[:3, :3] = np.eye(3) * (rel * max(float(np.linalg.norm(p)), 1.0)) ** 2
+        R_vo_body = T_vo_body[:3, :3]
+        fused = self.tilt.fused if self.tilt is not None else None
+        if fused is not None and self.attitude is not None:
+            R_vo_body = corrected_rotation(self.attitude.filter.tilt_error, R_vo_body)
+            cov[3:5, 3:5] = fused.cov_rad2
         quality = int(np.clip(100.0 * (1.0 - 10.0 * rel), 0, 100)) if np.isfinite(rel) else 0
         return PoseEstimate(
             time_us,
             position,
-            so3.matrix_to_quat(R_world_vo @ T_vo_body[:3, :3]),
+            so3.matrix_to_quat(R_world_vo @ R_vo_body),
             velocity,
             cov,
             self.trajectories[self.method_name].reset_counter,

@@ -11,10 +11,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.evaluation.attitude import angle_errors, wrap_rad
 from companion.evaluation.scale import ScaleMetrics, scale_metrics
 from companion.evaluation.trajectory import umeyama
 from companion.geometry import so3
-from companion.offline import ScaleRun
+from companion.offline import AttitudeRun, ScaleRun
 
 F64 = NDArray[np.float64]
 
@@ -272,3 +273,123 @@ def summary(dirs: list[Path]) -> str:
             "\nBeats (lower scale MSE and lower ATE, seed average): " + "; ".join(beats) + "\n"
         )
     return "\n".join(out)
+
+
+ATTITUDE_LABELS = {
+    "vo": "VO rotation alone",
+    "ground": "ranges, uncompensated",
+    "gravity": "ranges, compensated",
+    "fused": "fused (published)",
+    "fused_ground": "fused, uncompensated",
+}
+
+
+def attitude_metrics(run: AttitudeRun, settle_s: float = 5.0) -> list[dict[str, Any]]:
+    """One row per estimate: roll/pitch RMSE [deg] after settle_s, availability, and the
+    first / last minute RMSE of runs of two minutes or more."""
+    t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
+    truth = run.array("truth")
+    rows: list[dict[str, Any]] = []
+    for name, label in ATTITUDE_LABELS.items():
+        est = run.array(name)
+        e = angle_errors(est, truth, t >= settle_s)
+        row: dict[str, Any] = {
+            "estimate": name,
+            "label": label,
+            "roll_rmse_deg": e.roll_rmse_deg,
+            "pitch_rmse_deg": e.pitch_rmse_deg,
+            "rmse_deg": e.rmse_deg,
+            "available": e.available,
+        }
+        if t[-1] >= 120.0:
+            row["first_min_rmse_deg"] = angle_errors(
+                est, truth, (t >= settle_s) & (t < 60.0)
+            ).rmse_deg
+            row["last_min_rmse_deg"] = angle_errors(est, truth, t >= t[-1] - 60.0).rmse_deg
+        rows.append(row)
+    return rows
+
+
+def write_attitude(run: AttitudeRun, out: Path, title: str) -> str:
+    """attitude_metrics.json / .csv, attitude.md and attitude.png in ``out``; returns the table."""
+    rows = attitude_metrics(run)
+    (out / "attitude_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
+    with (out / "attitude_metrics.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    long = "first_min_rmse_deg" in rows[0]
+    head = "| estimate | roll RMSE | pitch RMSE | available |"
+    lines = [head + (" first minute | last minute |" if long else ""), "|---|---|---|---|"]
+    lines[1] += "---|---|" if long else ""
+    for r in rows:
+        line = (
+            f"| {r['label']} | {r['roll_rmse_deg']:.3f} deg | {r['pitch_rmse_deg']:.3f} deg | "
+            f"{100 * r['available']:.1f} % |"
+        )
+        if long:
+            line += f" {r['first_min_rmse_deg']:.3f} deg | {r['last_min_rmse_deg']:.3f} deg |"
+        lines.append(line)
+    refusals = sorted(run.reasons.items(), key=lambda kv: -kv[1])[:8]
+    table = "\n".join(lines)
+    why = "\n".join(f"- {n} frames: {reason}" for reason, n in refusals)
+    (out / "attitude.md").write_text(f"# {title}\n\n{table}\n\nMost frequent reasons:\n{why}\n")
+    _attitude_plot(run, out / "attitude.png", title)
+    return table
+
+
+def _attitude_plot(run: AttitudeRun, path: Path, title: str) -> Path:
+    plt = _plt()
+    t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
+    truth = np.degrees(run.array("truth"))
+    fig, axes = plt.subplots(4, 1, figsize=(10, 11), sharex=True)
+    colours = {"vo": "tab:blue", "ground": "tab:gray", "gravity": "tab:orange", "fused": "tab:red"}
+    for j, angle in enumerate(("roll", "pitch")):
+        ax = axes[j]
+        ax.plot(t, truth[:, j], "k-", lw=1.2, label="truth")
+        ax.plot(t, np.degrees(run.array("fused"))[:, j], color="tab:red", lw=0.8, label="fused")
+        ax.set_ylabel(f"{angle} [deg]")
+        ax.legend(loc="upper right", fontsize=8)
+        ax = axes[2 + j]
+        for name, colour in colours.items():
+            e = np.degrees(wrap_rad(run.array(name)[:, j] - run.array("truth")[:, j]))
+            ax.plot(t, e, color=colour, lw=0.6, label=ATTITUDE_LABELS[name])
+        ax.set_ylim(-3, 3)
+        ax.set_ylabel(f"{angle} error [deg]")
+        ax.legend(loc="upper right", fontsize=8, ncol=2)
+    axes[-1].set_xlabel("time [s]")
+    axes[0].set_title(title)
+    return _save(plt, fig, path)
+
+
+def write_attitude_study(
+    study: dict[str, list[tuple[float, dict[str, float]]]], out: Path, title: str
+) -> tuple[str, Path]:
+    """Plot and table of the studies: {"spacing": [(L_m, {series: rmse_deg, "bound":
+    bound_deg}), ...], "sigma": [(sigma_m, {...}), ...]}."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(study), figsize=(6 * len(study), 4.2))
+    axes = np.atleast_1d(axes)
+    lines = []
+    for ax, (kind, points) in zip(axes, study.items(), strict=True):
+        x = np.array([p[0] for p in points])
+        x_show = x * 100 if kind == "sigma" else x
+        names = list(points[0][1])
+        lines.append(f"| {kind} | " + " | ".join(names) + " |")
+        lines.append("|---" * (len(names) + 1) + "|")
+        for xv, vals in points:
+            shown = f"{xv * 100:.0f} cm" if kind == "sigma" else f"{xv:.1f} m"
+            lines.append(f"| {shown} | " + " | ".join(f"{vals[n]:.3f}" for n in names) + " |")
+        lines.append("")
+        for n in names:
+            y = np.array([p[1][n] for p in points])
+            style = "k--" if n == "bound" else "o-"
+            label = "bound sigma*sqrt(2)/L" if n == "bound" else ATTITUDE_LABELS.get(n, n)
+            ax.plot(x_show, y, style, label=label, ms=3)
+        ax.set_yscale("log")
+        ax.set_xlabel("range noise sigma [cm]" if kind == "sigma" else "sensor spacing L [m]")
+        ax.set_ylabel("RMSE over roll and pitch [deg]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0].set_title(title)
+    return "\n".join(lines), _save(plt, fig, out / "attitude_study.png")

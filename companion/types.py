@@ -124,6 +124,22 @@ class ScaleEstimate:
 
 
 @dataclass(frozen=True, slots=True)
+class TiltEstimate:
+    """Roll and pitch of the body (ZYX, FRD in NED) [rad] with their covariance (2, 2) [rad^2].
+
+    reference: "ground" (relative to the plane through the range hit points), "gravity"
+    (terrain-compensated) or "fused" (the VO rotation corrected by the ranges).
+    """
+
+    time_us: int
+    roll_rad: float
+    pitch_rad: float
+    cov_rad2: F64
+    reference: str
+    n_sensors: int
+
+
+@dataclass(frozen=True, slots=True)
 class PoseEstimate:
     """Metric pose for the autopilot.
 

@@ -1,0 +1,1 @@
+"""Roll and pitch from three or more distance sensors, bias-compensated with the VO cloud."""
