@@ -318,6 +318,49 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_attitude(args: argparse.Namespace) -> int:
+    """Benchmark the roll/pitch step (range tilt, compensation, fusion) per frame, one core:
+    the frames of a SITL flight are recorded first, then the step alone is timed on them."""
+    import time
+
+    import cv2
+    import numpy as np
+
+    from companion.attitude.estimator import RollPitch
+    from companion.bench import machine_description
+    from companion.offline import run_attitude
+    from sitl.scenario import Scenario
+
+    cv2.setNumThreads(1)
+    cfg = _load(args)
+    scenario = Scenario(cfg)
+    bar = _progress(scenario.n_frames, "bench attitude", not args.no_progress)
+    run = run_attitude(cfg, scenario.steps(), _ticks(bar), keep_frames=True)
+    bar.close()
+    specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
+    inputs = []
+    pipe_ranges = run.ranges_used
+    for (time_us, cloud, segment, _), ranges in zip(run.frames, pipe_ranges, strict=True):
+        inputs.append((time_us, ranges, cloud, segment))
+    est = RollPitch(specs, cfg.attitude)
+    ms = []
+    for time_us, ranges, cloud, segment in inputs:
+        t0 = time.perf_counter()
+        est.step(time_us, ranges, cloud, segment)
+        ms.append((time.perf_counter() - t0) * 1e3)
+    a = np.array(ms)
+    points = np.median([len(c.points_m) for _, _, c, _ in inputs])
+    print(f"machine: {machine_description()}")
+    s = cfg.sitl
+    print(
+        f"roll/pitch step on {s.terrain}/{s.trajectory} {s.seconds:g} s "
+        f"({len(a)} frames, {len(specs)} sensors, median {points:.0f} cloud points): "
+        f"median {np.median(a):.3f} ms, p99 {np.percentile(a, 99):.3f} ms, "
+        f"max {a.max():.3f} ms"
+    )
+    return EXIT_OK
+
+
 def cmd_bench_vo(args: argparse.Namespace) -> int:
     """Benchmark the VO: per-frame time on one core (median, p99) and peak RSS."""
     import cv2
@@ -430,6 +473,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sitl_flags(p_bv)
     p_bv.add_argument("--no-progress", action="store_true")
     p_bv.set_defaults(func=cmd_bench_vo)
+    p_ba = bench_sub.add_parser("attitude", help="roll/pitch cost per range update, one core")
+    _add_sitl_flags(p_ba)
+    p_ba.add_argument("--no-progress", action="store_true")
+    p_ba.set_defaults(func=cmd_bench_attitude)
 
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
     p_rep.add_argument("dirs", nargs="+", type=Path)

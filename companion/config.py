@@ -29,6 +29,7 @@ from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
 from companion.scale.options import ScaleOptions
+from companion.service.options import ServiceOptions
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -204,6 +205,7 @@ class Config:
     vo: VoOptions = opt(VoOptions(), "visual odometry")
     scale: ScaleOptions = opt(ScaleOptions(), "metric scale")
     attitude: AttitudeOptions = opt(AttitudeOptions(), "roll/pitch from the distance sensors")
+    service: ServiceOptions = opt(ServiceOptions(), "the service: links and output")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
 
     def __post_init__(self) -> None:

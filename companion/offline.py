@@ -250,6 +250,7 @@ class AttitudeRun:
     attitude_ms: list[float] = field(default_factory=list)
     reasons: dict[str, int] = field(default_factory=dict)
     frames: list[tuple[int, Any, int, F64]] = field(default_factory=list)
+    ranges_used: list[dict[int, float]] = field(default_factory=list)  # with frames
 
     def array(self, name: str) -> F64:
         return np.array(self.series[name], dtype=np.float64).reshape(-1, 2)
@@ -302,6 +303,7 @@ def run_attitude(
                 run.reasons[key] = run.reasons.get(key, 0) + 1
             if keep_frames:
                 run.frames.append((step.frame.time_us, inp[1], pipe.vo.resets, step.T_world_body))
+                run.ranges_used.append(dict(inp[0]))
         for name in SERIES:
             run.series[name].append(row[name])
         run.attitude_ms.append(pipe.last_attitude_ms)

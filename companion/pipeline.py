@@ -34,6 +34,9 @@ from companion.vo.odometry import VisualOdometry
 F64 = NDArray[np.float64]
 
 ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a frame
+POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
+VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
+VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
 
 
 class Pipeline:
@@ -182,9 +185,15 @@ class Pipeline:
         if self._last_pose is not None and time_us > self._last_pose[0]:
             velocity = (position - self._last_pose[1]) / ((time_us - self._last_pose[0]) * 1e-6)
         self._last_pose = (time_us, position)
-        cov = np.full((6, 6), np.nan)
-        rel = est.sigma / est.scale if est.scale > 0 else np.nan
-        cov[:3, :3] = np.eye(3) * (rel * max(float(np.linalg.norm(p)), 1.0)) ** 2
+        # covariance over (x, y, z, roll, pitch, yaw): position from the scale's relative
+        # sigma times the distance travelled in this VO map (at least 1 m) plus a 2 cm floor;
+        # roll/pitch from the fused tilt (else a VO default); yaw from the VO default
+        rel = est.sigma / est.scale if est.scale > 0 else 1.0
+        cov = np.zeros((6, 6))
+        sigma_p = rel * max(float(np.linalg.norm(p)), 1.0) + POSITION_SIGMA_FLOOR_M
+        cov[:3, :3] = np.eye(3) * sigma_p**2
+        cov[3:5, 3:5] = np.eye(2) * VO_TILT_SIGMA_RAD**2
+        cov[5, 5] = VO_YAW_SIGMA_RAD**2
         R_vo_body = T_vo_body[:3, :3]
         fused = self.tilt.fused if self.tilt is not None else None
         if fused is not None and self.attitude is not None:

@@ -172,9 +172,9 @@ def test_missing_sensor_and_too_few_points_are_explained() -> None:
 
 
 def test_config_refuses_unknown_or_too_few_attitude_sensors() -> None:
-    with pytest.raises(ConfigError, match="attitude.sensor_ids"):
+    with pytest.raises(ConfigError, match=r"attitude\.sensor_ids"):
         load_config(overrides={"attitude": {"sensor_ids": [0, 1, 9]}})
-    with pytest.raises(ConfigError, match="attitude.sensor_ids"):
+    with pytest.raises(ConfigError, match=r"attitude\.sensor_ids"):
         load_config(overrides={"attitude": {"sensor_ids": [0, 1]}})
     assert load_config(overrides={"attitude": {"sensor_ids": [0, 1, 3]}}).attitude.sensor_ids
 

@@ -32,13 +32,13 @@ class AttitudeOptions:
         40.0, "terrain under the hits steeper than this is refused [deg]", gt=0, le=85
     )
     drift_deg_per_sqrt_s: float = opt(
-        0.02, "random walk of the VO frame's tilt error [deg / sqrt(s)]", ge=0
+        0.005, "random walk of the VO frame's tilt error [deg / sqrt(s)]", ge=0
     )
     init_sigma_deg: float = opt(
-        1.0, "sigma of the VO frame's tilt error at initialisation [deg]", gt=0
+        0.5, "sigma of the VO frame's tilt error at initialisation [deg]", gt=0
     )
     error_correlation_s: float = opt(
-        0.5,
+        2.0,
         "time over which tilt measurement errors stay correlated (the same cloud patch) [s]",
         ge=0,
     )

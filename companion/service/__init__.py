@@ -1,0 +1,1 @@
+"""The asyncio service: links, time sync, the pipeline worker and the publisher."""

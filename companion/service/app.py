@@ -1,0 +1,311 @@
+"""The companion service: camera + DISTANCE_SENSOR + ATTITUDE in, VISION_POSITION_ESTIMATE /
+ODOMETRY out (DESIGN.md section 6).
+
+Structure: ``Service`` is an async context manager owning one TaskGroup of named loops
+(heartbeat, timesync, message rates, camera, pipeline, stats). The Pipeline runs in a worker
+thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) so that MAVLink stays
+responsive: TIMESYNC requests are answered inside the receive callback. The camera is read in
+its own thread into a one-frame slot: the pipeline always takes the newest frame, and a frame
+overwritten before it was taken is counted as dropped. Ranges and attitudes are queued on the
+event loop and handed to the worker with the next frame, so the Pipeline is only ever touched
+from one thread. The service does no maths: conversions to and from the wire are in
+``drivers.messages``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.pipeline import Pipeline
+from companion.service.timesync import ClockSync, reply_for
+from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
+from drivers import messages
+
+log = logging.getLogger("companion.service")
+
+
+def now_ns() -> int:
+    """Our clock: monotonic [ns] (the camera's and the time sync's)."""
+    return time.monotonic_ns()
+
+
+@dataclass
+class ServiceStats:
+    """Counters and recent timings (the status and the exit report read them)."""
+
+    started_ns: int = field(default_factory=now_ns)
+    frames_in: int = 0
+    frames_dropped: int = 0
+    frames_processed: int = 0
+    published: int = 0
+    not_published: int = 0  # processed frames without a pose (not tracking / no scale)
+    ranges_in: int = 0
+    ranges_rejected: int = 0
+    attitudes_in: int = 0
+    timesync_replies: int = 0
+    last_reset_counter: int = 0
+    autopilot_heartbeat_ns: int = 0
+    autopilot_system_id: int = 0
+    rates_acknowledged: set[int] = field(default_factory=set)
+    latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    process_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    publish_times_ns: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
+    warnings: deque[str] = field(default_factory=lambda: deque(maxlen=20))
+
+
+class Service:
+    """``async with Service(cfg) as s: await s.run(duration_s)``."""
+
+    def __init__(self, config: Config) -> None:
+        from drivers.camera import open_camera
+        from drivers.mavlink import MavlinkLink
+
+        self.config = config
+        o = config.service
+        self.pipeline = Pipeline(config)
+        self.sync = ClockSync()
+        self.stats = ServiceStats()
+        self.camera = open_camera(o.camera_url)
+        self.link = MavlinkLink(o.mavlink_url, o.system_id, o.component_id, self._on_message)
+        self.sensors = {r.sensor_id: r for r in config.rangefinders}
+        self._slot: CameraFrame | None = None
+        self._slot_lock = threading.Lock()
+        self._frame_ready = asyncio.Event()
+        self._ranges: list[RangeSample] = []
+        self._attitudes: list[AttitudeSample] = []
+        self._stop = asyncio.Event()
+        self._tg: asyncio.TaskGroup | None = None
+        self._last_vo_state = VoState.INITIALIZING
+        self._attitude_rates = np.zeros(3)
+
+    # ------------------------------------------------------------------ lifecycle
+    async def __aenter__(self) -> Service:
+        sys.setswitchinterval(0.0005)  # let the event loop in often while the worker computes
+        await self.link.__aenter__()
+        self._tg = asyncio.TaskGroup()
+        await self._tg.__aenter__()
+        loops = {
+            "heartbeat": self._heartbeat_loop(),
+            "timesync": self._timesync_loop(),
+            "rates": self._rates_loop(),
+            "camera": self._camera_loop(),
+            "pipeline": self._pipeline_loop(),
+        }
+        for name, coro in loops.items():
+            self._tg.create_task(coro, name=name)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._frame_ready.set()
+        self.camera.close()
+        if self._tg is not None:
+            with contextlib.suppress(Exception):
+                await self._tg.__aexit__(None, None, None)
+        await self.link.__aexit__(*exc)
+
+    async def run(self, duration_s: float | None = None) -> None:
+        """Serve until ``stop()`` or for duration_s seconds."""
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._stop.wait(), duration_s)
+        self._stop.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._frame_ready.set()
+
+    # ------------------------------------------------------------------ MAVLink in
+    def _on_message(self, msg: Any, rx_ns: int) -> None:
+        """Every received message, on the event loop, stamped at reception."""
+        kind = msg.get_type()
+        if kind == "TIMESYNC":
+            reply = reply_for(msg.tc1, msg.ts1, now_ns())
+            if reply is not None:  # a request: answer at once
+                self.link.send(self.link.mav.timesync_encode(reply.tc1, reply.ts1))
+                self.stats.timesync_replies += 1
+            elif msg.get_srcSystem() == self.config.service.system_id:
+                self.sync.on_reply(msg.tc1, msg.ts1, rx_ns)
+            return
+        if kind == "HEARTBEAT":
+            if msg.get_srcComponent() == 1 and msg.autopilot != 8:  # 8 = MAV_AUTOPILOT_INVALID
+                self.stats.autopilot_heartbeat_ns = rx_ns
+                self.stats.autopilot_system_id = msg.get_srcSystem()
+            return
+        if kind == "COMMAND_ACK":
+            if msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result == 0:
+                self.stats.rates_acknowledged.add(int(getattr(msg, "result_param2", 0)))
+            return
+        if kind == "DISTANCE_SENSOR":
+            sample = messages.range_from_distance_sensor(msg, self.sensors, self._fc_to_us(msg))
+            if sample is None:
+                self.stats.ranges_rejected += 1
+            else:
+                self.stats.ranges_in += 1
+                self._ranges.append(sample)
+            return
+        if kind == "ATTITUDE":
+            att = messages.attitude_from_message(msg, self._fc_to_us(msg))
+            if att is not None:
+                self._attitude_rates = att.rates_rad_s
+                self.stats.attitudes_in += 1
+                self._attitudes.append(att)
+
+    def _fc_to_us(self, msg: Any) -> int:
+        """A message's time_boot_ms in our clock [us] (its reception time until synced)."""
+        now = now_ns()
+        if not self.sync.converged:
+            return now // 1000
+        return self.sync.remote_to_local_us(int(msg.time_boot_ms) * 1000, now)
+
+    # ------------------------------------------------------------------ loops
+    async def _heartbeat_loop(self) -> None:
+        mav = self.link.mav
+        while not self._stop.is_set():
+            state = 4 if self._last_vo_state == VoState.TRACKING else 3  # ACTIVE / STANDBY
+            self.link.send(mav.heartbeat_encode(18, 8, 0, 0, state))  # ONBOARD_CONTROLLER
+            await self._sleep(1.0)
+
+    async def _timesync_loop(self) -> None:
+        period = 1.0 / self.config.service.timesync_rate_hz
+        while not self._stop.is_set():
+            self.link.send(self.link.mav.timesync_encode(0, now_ns()))
+            await self._sleep(period)
+
+    async def _rates_loop(self) -> None:
+        """Ask for DISTANCE_SENSOR and ATTITUDE rates until acknowledged; again after the
+        autopilot was silent for 3 s (it may have rebooted)."""
+        o = self.config.service
+        wanted = {
+            messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
+            messages.MSG_ID_ATTITUDE: o.attitude_rate_hz,
+        }
+        while not self._stop.is_set():
+            hb = self.stats.autopilot_heartbeat_ns
+            if hb and now_ns() - hb > 3_000_000_000:
+                self.stats.rates_acknowledged.clear()
+            if hb:
+                for msg_id, rate in wanted.items():
+                    if msg_id not in self.stats.rates_acknowledged:
+                        self.link.send(
+                            messages.set_message_interval(
+                                self.link.mav, self.stats.autopilot_system_id, msg_id, rate
+                            )
+                        )
+            await self._sleep(1.0)
+
+    async def _camera_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+
+        def reader() -> None:
+            for frame in self.camera.frames():
+                if self._stop.is_set():
+                    return
+                with self._slot_lock:
+                    if self._slot is not None:
+                        self.stats.frames_dropped += 1
+                    self._slot = frame
+                    self.stats.frames_in += 1
+                loop.call_soon_threadsafe(self._frame_ready.set)
+
+        await asyncio.to_thread(reader)
+
+    async def _pipeline_loop(self) -> None:
+        while not self._stop.is_set():
+            await self._frame_ready.wait()
+            self._frame_ready.clear()
+            with self._slot_lock:
+                frame, self._slot = self._slot, None
+            if frame is None:
+                continue
+            ranges, self._ranges = self._ranges, []
+            atts, self._attitudes = self._attitudes, []
+            t0 = time.perf_counter()
+            pose = await asyncio.to_thread(self._process, frame, ranges, atts)
+            self.stats.process_ms.append((time.perf_counter() - t0) * 1e3)
+            self.stats.frames_processed += 1
+            self._publish(frame, pose)
+
+    def _process(
+        self, frame: CameraFrame, ranges: list[RangeSample], atts: list[AttitudeSample]
+    ) -> PoseEstimate | None:
+        """Worker thread: feed the queued samples, then the frame."""
+        p = self.pipeline
+        for a in atts:
+            p.feed_attitude(a)
+        for r in ranges:
+            p.feed_range(r)
+        return p.feed_frame(frame)
+
+    def _publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
+        out = self.pipeline.vo_output
+        self._last_vo_state = out.state if out is not None else VoState.INITIALIZING
+        if pose is None or not messages.is_finite_pose(pose):
+            self.stats.not_published += 1
+            return
+        o = self.config.service.output
+        mav = self.link.mav
+        sent = False
+        if o in ("vision_position_estimate", "both"):
+            sent |= self.link.send(messages.vision_position_estimate(mav, pose))
+        if o in ("odometry", "both"):
+            rates = self._attitude_rates
+            odo = messages.odometry(mav, pose, rates)
+            if odo is not None:
+                sent |= self.link.send(odo)
+        if sent:
+            t = now_ns()
+            self.stats.published += 1
+            self.stats.publish_times_ns.append(t)
+            self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
+            self.stats.last_reset_counter = pose.reset_counter
+
+    async def _sleep(self, seconds: float) -> None:
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._stop.wait(), seconds)
+
+    # ------------------------------------------------------------------ reporting
+    def summary(self) -> dict[str, Any]:
+        """Figures of the run so far (the exit report)."""
+        s = self.stats
+        lat = np.array(s.latency_ms)
+        times = np.array(s.publish_times_ns) * 1e-9
+        rate = float((len(times) - 1) / (times[-1] - times[0])) if len(times) > 1 else 0.0
+        scale = self.pipeline.estimates.get(self.pipeline.method_name)
+        return {
+            "uptime_s": (now_ns() - s.started_ns) * 1e-9,
+            "frames_in": s.frames_in,
+            "frames_dropped": s.frames_dropped,
+            "frames_processed": s.frames_processed,
+            "published": s.published,
+            "publish_rate_hz": rate,
+            "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
+            "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+            "ranges_in": s.ranges_in,
+            "ranges_rejected": s.ranges_rejected,
+            "attitudes_in": s.attitudes_in,
+            "timesync_replies": s.timesync_replies,
+            "timesync_converged": self.sync.converged,
+            "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
+            "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
+            "vo_resets": self.pipeline.vo.resets,
+            "reset_counter": s.last_reset_counter,
+            "scale": scale.scale if scale is not None else None,
+            "link": vars(self.link.stats),
+        }
+
+    def write_report(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.summary(), indent=2) + "\n")

@@ -1,0 +1,112 @@
+"""MAVLink TIMESYNC on the companion side: answer the autopilot and estimate its clock.
+
+Protocol (MAVLink common TIMESYNC, as PX4's Timesync.cpp uses it): a request carries tc1 = 0
+and ts1 = the sender's clock [ns]; the answer carries tc1 = the answerer's clock [ns] and ts1
+echoed. PX4 sends requests at 10 Hz on an onboard link and converts our time_usec only after
+its own filter has converged on our answers, so :func:`reply_for` must be answered at once.
+
+We also keep our own estimate of the autopilot clock (its time_boot_ms / time_usec) so that
+DISTANCE_SENSOR and ATTITUDE samples can be moved into the companion's monotonic clock. From our
+own requests: round trip rtt = now - ts1 and offset = (ts1 + now) / 2 - tc1 (companion minus
+autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored; the
+others feed an exponential filter whose gain starts at 1 and decays to alpha_final (fast
+convergence, then smoothing), plus a skew estimate so that a drifting autopilot clock (a few
+ppm to a few hundred ppm on a cheap crystal) stays aligned between samples. Several successive
+samples far from the estimate (an autopilot reboot: its clock jumps back) reset the filter, as
+PX4 does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class TimesyncReply:
+    """The fields of a TIMESYNC answer: tc1 = our clock [ns], ts1 = the request's ts1."""
+
+    tc1: int
+    ts1: int
+
+
+def reply_for(tc1: int, ts1: int, now_ns: int) -> TimesyncReply | None:
+    """The answer to a received TIMESYNC, or None when it is itself an answer (tc1 != 0)."""
+    if tc1 != 0:
+        return None
+    return TimesyncReply(now_ns, ts1)
+
+
+class ClockSync:
+    """Offset (and skew) of a peer's clock against ours from TIMESYNC round trips (the
+    companion uses it for the autopilot's clock, the SITL autopilot for the companion's)."""
+
+    def __init__(
+        self,
+        max_rtt_ns: int = 10_000_000,
+        alpha_final: float = 0.05,
+        max_deviation_ns: int = 100_000_000,
+        max_consecutive_deviations: int = 5,
+    ) -> None:
+        self.max_rtt_ns = max_rtt_ns
+        self.alpha_final = alpha_final
+        self.max_deviation_ns = max_deviation_ns
+        self.max_consecutive_deviations = max_consecutive_deviations
+        self.resets = 0  # times the estimate was dropped (autopilot clock jumps)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the estimate (start again from the next sample)."""
+        self.offset_ns = 0.0  # local - remote [ns] at time ref_ns (local clock)
+        self.skew = 0.0  # d(offset)/d(time) [ns/ns]
+        self.ref_ns = 0
+        self.samples = 0
+        self.last_rtt_ns = 0
+        self.deviations = 0
+
+    @property
+    def converged(self) -> bool:
+        """True once enough good samples were seen to trust the estimate."""
+        return self.samples >= 5
+
+    def offset_at(self, now_ns: int) -> float:
+        """The estimated offset local - remote [ns] at our time now_ns."""
+        return self.offset_ns + self.skew * (now_ns - self.ref_ns)
+
+    def on_reply(self, tc1: int, ts1: int, now_ns: int) -> bool:
+        """Fuse the answer (tc1 = peer's ns, ts1 = our request time ns) received at
+        now_ns; False when it was rejected (too slow, from the future, or an outlier)."""
+        rtt = now_ns - ts1
+        if rtt < 0 or rtt > self.max_rtt_ns:
+            return False
+        self.last_rtt_ns = rtt
+        mid = (ts1 + now_ns) // 2
+        measured = float(mid - tc1)
+        if self.samples == 0:
+            self.offset_ns, self.skew, self.ref_ns = measured, 0.0, mid
+            self.samples = 1
+            return True
+        predicted = self.offset_at(mid)
+        if abs(measured - predicted) > self.max_deviation_ns:
+            self.deviations += 1
+            if self.deviations >= self.max_consecutive_deviations:
+                self.resets += 1
+                self.reset()
+            return False
+        self.deviations = 0
+        dt = mid - self.ref_ns
+        gain = max(self.alpha_final, 1.0 / (self.samples + 1))
+        error = measured - predicted
+        if dt > 0 and self.samples >= 2:
+            self.skew += gain * 0.5 * error / dt
+        self.offset_ns = predicted + gain * error
+        self.ref_ns = mid
+        self.samples += 1
+        return True
+
+    def remote_to_local_us(self, remote_us: int, now_ns: int) -> int:
+        """A timestamp of the peer's clock [us] in ours [us] (the offset as of now_ns)."""
+        return int(round(remote_us + self.offset_at(now_ns) * 1e-3))
+
+    def local_to_remote_us(self, local_us: int, now_ns: int) -> int:
+        """A timestamp of our clock [us] in the peer's [us]."""
+        return int(round(local_us - self.offset_at(now_ns) * 1e-3))

@@ -1,0 +1,196 @@
+"""Camera sources: cv2.VideoCapture (V4L2 device, GStreamer/FFmpeg URL, video file), image
+folders (our dataset format and EuRoC) and the SITL loopback stream.
+
+Every source is iterated in a worker thread (``read()`` blocks) and yields CameraFrame with
+``time_us`` in the companion's monotonic clock at exposure:
+- VideoCapture: the driver's timestamp when it is monotonic (V4L2 buffers are stamped with
+  CLOCK_MONOTONIC at the start of exposure), else the time ``grab()`` returned;
+- folders: the recorded times, shifted so that the first frame is "now" (replayed at the
+  recorded rate, or as fast as possible with ``realtime=False``);
+- the SITL stream: the time written by the simulator (same machine, same monotonic clock).
+
+``url`` forms (config ``service.camera_url``): ``sitl://HOST:PORT``, ``folder:PATH[?fast]``,
+``/dev/videoN`` or an integer, anything else goes to VideoCapture (a file, ``rtsp://...``,
+a GStreamer pipeline ending in ``appsink``).
+
+SITL stream format (TCP, the simulator is the server): each frame is a 32-byte little-endian
+header ``struct '<4sIqHHIII'`` = magic ``b"CFRM"``, seq (uint32), time_us (int64, monotonic clock
+of the machine at mid-exposure), width, height (uint16), pixel format (uint32, 0 = BGR8),
+payload length (uint32), reserved (uint32), followed by the payload (height*width*3 bytes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from companion.errors import ConfigError, DatasetError
+from companion.types import CameraFrame
+
+FRAME_HEADER = struct.Struct("<4sIqHHIII")
+FRAME_MAGIC = b"CFRM"
+FORMAT_BGR8 = 0
+
+
+def encode_frame(frame: CameraFrame) -> bytes:
+    """Header + payload of one frame on the SITL stream."""
+    img = np.ascontiguousarray(frame.image_bgr)
+    h, w = img.shape[:2]
+    payload = img.tobytes()
+    header = FRAME_HEADER.pack(
+        FRAME_MAGIC, frame.seq & 0xFFFFFFFF, frame.time_us, w, h, FORMAT_BGR8, len(payload), 0
+    )
+    return header + payload
+
+
+class CameraSource:
+    """Base: ``frames()`` yields CameraFrame until the source ends or ``close()``."""
+
+    def __init__(self) -> None:
+        self.closed = False
+
+    def frames(self) -> Iterator[CameraFrame]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class SitlStream(CameraSource):
+    """Frames from the SITL autopilot's loopback stream; reconnects while the stream is down."""
+
+    def __init__(self, host: str, port: int, retry_s: float = 0.5) -> None:
+        super().__init__()
+        self.host, self.port, self.retry_s = host, port, retry_s
+        self._sock: socket.socket | None = None
+        self.bad_frames = 0
+
+    def _recv_exact(self, sock: socket.socket, n: int) -> bytes | None:
+        buf = bytearray(n)
+        view = memoryview(buf)
+        got = 0
+        while got < n:
+            k = sock.recv_into(view[got:], n - got)
+            if k == 0:
+                return None
+            got += k
+        return bytes(buf)
+
+    def frames(self) -> Iterator[CameraFrame]:
+        while not self.closed:
+            try:
+                sock = socket.create_connection((self.host, self.port), timeout=2.0)
+            except OSError:
+                time.sleep(self.retry_s)
+                continue
+            self._sock = sock
+            try:
+                while not self.closed:
+                    head = self._recv_exact(sock, FRAME_HEADER.size)
+                    if head is None:
+                        break
+                    magic, seq, time_us, w, h, fmt, n, _ = FRAME_HEADER.unpack(head)
+                    if magic != FRAME_MAGIC or fmt != FORMAT_BGR8 or n != w * h * 3:
+                        self.bad_frames += 1
+                        break  # lost framing: reconnect
+                    payload = self._recv_exact(sock, n)
+                    if payload is None:
+                        break
+                    img = np.frombuffer(payload, np.uint8).reshape(h, w, 3)
+                    yield CameraFrame(int(time_us), int(seq), img)
+            except OSError:
+                pass
+            finally:
+                sock.close()
+                self._sock = None
+
+    def close(self) -> None:
+        super().close()
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_RDWR)
+
+
+class FolderSource(CameraSource):
+    """A recorded dataset (ours or EuRoC) replayed at its rate (or as fast as possible)."""
+
+    def __init__(self, path: Path, realtime: bool = True) -> None:
+        super().__init__()
+        from sitl.dataset import open_dataset
+
+        self.dataset = open_dataset(path)
+        self.realtime = realtime
+
+    def frames(self) -> Iterator[CameraFrame]:
+        t_start: int | None = None
+        shift = 0
+        for ev in self.dataset.events():
+            if self.closed:
+                return
+            if not isinstance(ev, CameraFrame):
+                continue
+            now_us = time.monotonic_ns() // 1000
+            if t_start is None:
+                t_start, shift = ev.time_us, now_us - ev.time_us
+            if self.realtime:
+                wait = (ev.time_us + shift - now_us) * 1e-6
+                if wait > 0:
+                    time.sleep(wait)
+            else:
+                shift = now_us - ev.time_us  # as fast as possible: stamp with "now"
+            yield CameraFrame(ev.time_us + shift, ev.seq, ev.image_bgr)
+
+
+class VideoCaptureSource(CameraSource):
+    """cv2.VideoCapture: a V4L2 device, a GStreamer/FFmpeg URL or a video file."""
+
+    def __init__(self, spec: str | int) -> None:
+        super().__init__()
+        self.spec = spec
+
+    def frames(self) -> Iterator[CameraFrame]:
+        import cv2
+
+        cap = cv2.VideoCapture(self.spec)
+        if not cap.isOpened():
+            raise DatasetError(f"camera {self.spec!r}: cannot open")
+        seq = 0
+        try:
+            while not self.closed:
+                if not cap.grab():
+                    return
+                t_us = time.monotonic_ns() // 1000
+                ok, img = cap.retrieve()
+                if not ok or img is None:
+                    return
+                if img.ndim == 2:
+                    img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+                yield CameraFrame(t_us, seq, img)
+                seq += 1
+        finally:
+            cap.release()
+
+
+def open_camera(url: str, key: str = "service.camera_url") -> CameraSource:
+    """The source for a config URL (see the module docstring); ConfigError naming ``key``."""
+    if url.startswith("sitl://"):
+        host, _, port = url[len("sitl://") :].rpartition(":")
+        if not host or not port.isdigit():
+            raise ConfigError(f"{key}: expected sitl://HOST:PORT, got {url!r}")
+        return SitlStream(host, int(port))
+    if url.startswith("folder:"):
+        path, _, flag = url[len("folder:") :].partition("?")
+        if not Path(path).is_dir():
+            raise ConfigError(f"{key}: no such folder {path!r}")
+        return FolderSource(Path(path), realtime=flag != "fast")
+    if url.isdigit():
+        return VideoCaptureSource(int(url))
+    if not url:
+        raise ConfigError(f"{key}: empty")
+    return VideoCaptureSource(url)

@@ -1,0 +1,242 @@
+"""MAVLink 2 links over UDP, TCP and serial for asyncio (pymavlink's v2.0 common dialect).
+
+URLs (pymavlink's spelling):
+- ``udpin:HOST:PORT``   listen on HOST:PORT; send to whoever spoke last (PX4 SITL's onboard
+  instance sends to 14540: ``udpin:127.0.0.1:14540``);
+- ``udpout:HOST:PORT``  send to HOST:PORT from an ephemeral port, receive the answers there;
+- ``tcp:HOST:PORT``     connect to a TCP server (reconnects with capped, jittered backoff);
+- ``serial:DEVICE:BAUD`` or a bare ``/dev/...`` path (baud 921600) through pyserial.
+
+Every received message reaches ``on_message(msg, rx_time_ns)`` on the event loop, stamped with
+our monotonic clock at reception. Bad bytes are counted, never raised: pymavlink's robust
+parser turns a bad CRC or length into BAD_DATA, and an exception inside the parser is caught
+and counted. ``send`` never blocks: UDP sends at once, TCP/serial queue the bytes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import ConfigError
+
+OnMessage = Callable[[Any, int], None]
+
+
+@dataclass(frozen=True, slots=True)
+class LinkUrl:
+    """A parsed link URL."""
+
+    kind: str  # udpin, udpout, tcp, serial
+    host: str
+    port: int  # UDP/TCP port, or the serial baud rate
+
+    @staticmethod
+    def parse(url: str, key: str = "service.mavlink_url") -> LinkUrl:
+        """Parse ``url``; ConfigError naming ``key`` when it is not one of the forms above."""
+        if url.startswith("/dev/"):
+            return LinkUrl("serial", url, 921600)
+        kind, _, rest = url.partition(":")
+        host, _, port = rest.rpartition(":")
+        if kind not in ("udpin", "udpout", "tcp", "serial") or not host or not port.isdigit():
+            raise ConfigError(
+                f"{key}: expected udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or "
+                f"serial:DEVICE:BAUD, got {url!r}"
+            )
+        return LinkUrl(kind, host, int(port))
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link (read by the status)."""
+
+    rx_messages: int = 0
+    rx_bad: int = 0  # BAD_DATA frames and parser exceptions
+    rx_bytes: int = 0
+    tx_messages: int = 0
+    tx_dropped: int = 0  # nothing to send to yet, or the transport failed
+    reconnects: int = 0
+
+
+class Parser:
+    """Bytes -> MAVLink messages (robust: bad frames are counted and skipped)."""
+
+    def __init__(self) -> None:
+        self.mav = mavlink.MAVLink(None)
+        self.mav.robust_parsing = True
+
+    def feed(self, data: bytes, stats: LinkStats) -> list[Any]:
+        out: list[Any] = []
+        try:
+            msg = self.mav.parse_char(data)
+            for _ in range(len(data) + 8):
+                if msg is not None:
+                    if msg.get_type() == "BAD_DATA":
+                        stats.rx_bad += 1
+                    else:
+                        out.append(msg)
+                nxt = self.mav.parse_char(b"")
+                if nxt is None and msg is None:
+                    break
+                msg = nxt
+        except Exception:  # pymavlink raises on some malformed payloads: count, go on
+            stats.rx_bad += 1
+            self.mav = mavlink.MAVLink(None)
+            self.mav.robust_parsing = True
+        stats.rx_messages += len(out)
+        return out
+
+
+class MavlinkLink:
+    """One MAVLink link as an async context manager (the transport lives inside it)."""
+
+    def __init__(self, url: str, system_id: int, component_id: int, on_message: OnMessage) -> None:
+        self.url = LinkUrl.parse(url)
+        self.on_message = on_message
+        self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+        self.stats = LinkStats()
+        self._parser = Parser()
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peer: tuple[str, int] | None = None
+        self._writer: asyncio.StreamWriter | None = None
+        self._serial: Any = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._closing = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    async def __aenter__(self) -> MavlinkLink:
+        self._loop = asyncio.get_running_loop()
+        u = self.url
+        if u.kind in ("udpin", "udpout"):
+            local = (u.host, u.port) if u.kind == "udpin" else None
+            self._peer = (u.host, u.port) if u.kind == "udpout" else None
+            transport, _ = await self._loop.create_datagram_endpoint(
+                lambda: _Udp(self), local_addr=local, remote_addr=None
+            )
+            self._transport = transport
+        elif u.kind == "tcp":
+            self._tasks.append(asyncio.create_task(self._tcp_loop(), name="mavlink-tcp"))
+        else:
+            self._open_serial()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._closing = True
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        if self._transport is not None:
+            self._transport.close()
+        if self._writer is not None:
+            self._writer.close()
+        if self._serial is not None:
+            with contextlib.suppress(Exception):
+                self._serial.close()
+
+    @property
+    def connected(self) -> bool:
+        """Whether there is somebody to send to."""
+        return (
+            (self._transport is not None and self._peer is not None)
+            or self._writer is not None
+            or (self._serial is not None and self._serial.is_open)
+        )
+
+    # ------------------------------------------------------------------ I/O
+    def _received(self, data: bytes) -> None:
+        self.stats.rx_bytes += len(data)
+        now = time.monotonic_ns()
+        for msg in self._parser.feed(data, self.stats):
+            self.on_message(msg, now)
+
+    def send(self, msg: Any) -> bool:
+        """Encode and send a pymavlink message; False when it could not be sent."""
+        try:
+            buf = msg.pack(self.mav)
+        except Exception:
+            self.stats.tx_dropped += 1
+            return False
+        return self.send_bytes(buf)
+
+    def send_bytes(self, buf: bytes) -> bool:
+        """Send raw bytes (already a MAVLink frame)."""
+        try:
+            if self._transport is not None and self._peer is not None:
+                self._transport.sendto(buf, self._peer)
+            elif self._writer is not None:
+                self._writer.write(buf)
+            elif self._serial is not None and self._serial.is_open:
+                self._serial.write(buf)
+            else:
+                self.stats.tx_dropped += 1
+                return False
+        except Exception:
+            self.stats.tx_dropped += 1
+            return False
+        self.stats.tx_messages += 1
+        return True
+
+    async def _tcp_loop(self) -> None:
+        delay = 0.5
+        while not self._closing:
+            try:
+                reader, writer = await asyncio.open_connection(self.url.host, self.url.port)
+            except OSError:
+                await asyncio.sleep(delay * random.uniform(0.5, 1.5))
+                delay = min(delay * 2, 10.0)
+                continue
+            delay = 0.5
+            self._writer = writer
+            try:
+                while data := await reader.read(4096):
+                    self._received(data)
+            except OSError:
+                pass
+            finally:
+                self._writer = None
+                writer.close()
+            self.stats.reconnects += 1
+
+    def _open_serial(self) -> None:
+        import serial  # pyserial
+
+        self._serial = serial.Serial(self.url.host, self.url.port, timeout=0.1)
+        thread = threading.Thread(target=self._serial_reader, name="mavlink-serial", daemon=True)
+        thread.start()
+
+    def _serial_reader(self) -> None:
+        loop = self._loop
+        assert loop is not None
+        while not self._closing:
+            try:
+                data = self._serial.read(4096)
+            except Exception:
+                self.stats.reconnects += 1
+                time.sleep(0.5)
+                continue
+            if data:
+                loop.call_soon_threadsafe(self._received, bytes(data))
+
+
+class _Udp(asyncio.DatagramProtocol):
+    def __init__(self, link: MavlinkLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        if self.link.url.kind == "udpin":
+            self.link._peer = addr  # answer whoever spoke last (a peer that changed port)
+        self.link._received(data)
+
+    def error_received(self, exc: Exception) -> None:  # ICMP port unreachable etc.
+        self.link.stats.tx_dropped += 1

@@ -1,0 +1,132 @@
+"""MAVLink wire data <-> the frozen types of companion.types (DESIGN.md section 6).
+
+In: DISTANCE_SENSOR (cm, orientation 25 = downward, id = instance, signal_quality 0 unknown /
+1 invalid / 2..100) mapped to a configured sensor by its id; ATTITUDE (rad, time_boot_ms).
+Out: VISION_POSITION_ESTIMATE (NED, roll/pitch/yaw, 21-element upper-triangular covariance,
+reset_counter) and ODOMETRY (frame LOCAL_FRD, child BODY_FRD, estimator VISION, velocity in the
+body frame, quality). Nothing non-finite leaves: callers check :func:`is_finite_pose`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from companion.config import RangefinderConfig
+from companion.geometry import so3
+from companion.types import AttitudeSample, PoseEstimate, RangeSample
+
+MSG_ID_ATTITUDE = 30
+MSG_ID_DISTANCE_SENSOR = 132
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward
+MAV_FRAME_LOCAL_FRD = 20
+MAV_FRAME_BODY_FRD = 12
+MAV_ESTIMATOR_TYPE_VISION = 1
+
+
+def range_from_distance_sensor(
+    msg: Any, sensors: Mapping[int, RangefinderConfig], time_us: int
+) -> RangeSample | None:
+    """A RangeSample from DISTANCE_SENSOR, or None when it is not one of our downward sensors
+    or its value is not a distance (the caller counts it). Limits: the tighter of the
+    message's and the configured ones; the sample keeps signal_quality for is_valid."""
+    rf = sensors.get(int(msg.id))
+    if rf is None or int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
+        return None
+    d_cm, lo_cm, hi_cm = int(msg.current_distance), int(msg.min_distance), int(msg.max_distance)
+    if d_cm <= 0 or d_cm >= 65535:
+        return None
+    lo = max(rf.min_m, lo_cm * 0.01) if lo_cm > 0 else rf.min_m
+    hi = min(rf.max_m, hi_cm * 0.01) if hi_cm > 0 else rf.max_m
+    quality = int(getattr(msg, "signal_quality", 0))
+    sample = RangeSample(time_us, rf.sensor_id, d_cm * 0.01, lo, hi, quality)
+    return sample if sample.is_valid else None
+
+
+def attitude_from_message(msg: Any, time_us: int) -> AttitudeSample | None:
+    """An AttitudeSample from ATTITUDE (ZYX roll/pitch/yaw [rad]); None if not finite."""
+    rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=np.float64)
+    rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
+    if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
+        return None
+    q = so3.matrix_to_quat(so3.rpy_to_matrix(*rpy))
+    return AttitudeSample(time_us, q, rates)
+
+
+def set_message_interval(mav: Any, target_system: int, msg_id: int, rate_hz: float) -> Any:
+    """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL asking for msg_id at rate_hz."""
+    return mav.command_long_encode(
+        target_system, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate_hz, 0, 0, 0, 0, 0
+    )
+
+
+def is_finite_pose(pose: PoseEstimate) -> bool:
+    """Whether every field that is sent is finite (position, attitude, covariance)."""
+    return bool(
+        np.all(np.isfinite(pose.position_ned_m))
+        and np.all(np.isfinite(pose.quat_wxyz_ned_frd))
+        and np.all(np.isfinite(pose.covariance_6x6))
+    )
+
+
+def upper_triangle(cov: Any) -> list[float]:
+    """The 21 row-major upper-triangular elements of a (6, 6) covariance (MAVLink order)."""
+    c = np.asarray(cov, dtype=np.float64)
+    return [float(c[i, j]) for i in range(6) for j in range(i, 6)]
+
+
+def vision_position_estimate(mav: Any, pose: PoseEstimate) -> Any:
+    """VISION_POSITION_ESTIMATE of a pose (usec = capture time in our clock)."""
+    roll, pitch, yaw = so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))
+    x, y, z = (float(v) for v in pose.position_ned_m)
+    return mav.vision_position_estimate_encode(
+        pose.time_us,
+        x,
+        y,
+        z,
+        roll,
+        pitch,
+        yaw,
+        upper_triangle(pose.covariance_6x6),
+        pose.reset_counter & 0xFF,
+    )
+
+
+def odometry(
+    mav: Any,
+    pose: PoseEstimate,
+    rates_rad_s: Any = (0.0, 0.0, 0.0),
+    velocity_sigma_m_s: float = 0.1,
+) -> Any | None:
+    """ODOMETRY (LOCAL_FRD / BODY_FRD, VISION) of a pose with the body rates (the autopilot's
+    latest, FRD [rad/s]); None until the velocity is known or if the rates are not finite."""
+    w = np.asarray(rates_rad_s, dtype=np.float64)
+    if not (np.all(np.isfinite(pose.velocity_ned_m_s)) and np.all(np.isfinite(w))):
+        return None
+    R = so3.quat_to_matrix(pose.quat_wxyz_ned_frd)
+    v_body = R.T @ pose.velocity_ned_m_s
+    vel_cov = np.eye(6) * velocity_sigma_m_s**2
+    x, y, z = (float(v) for v in pose.position_ned_m)
+    return mav.odometry_encode(
+        pose.time_us,
+        MAV_FRAME_LOCAL_FRD,
+        MAV_FRAME_BODY_FRD,
+        x,
+        y,
+        z,
+        [float(v) for v in pose.quat_wxyz_ned_frd],
+        float(v_body[0]),
+        float(v_body[1]),
+        float(v_body[2]),
+        float(w[0]),
+        float(w[1]),
+        float(w[2]),
+        upper_triangle(pose.covariance_6x6),
+        upper_triangle(vel_cov),
+        pose.reset_counter & 0xFF,
+        MAV_ESTIMATOR_TYPE_VISION,
+        int(pose.quality_pct),
+    )

@@ -1,0 +1,240 @@
+"""Service building blocks: time sync, MAVLink encoding/decoding, camera stream framing."""
+
+from __future__ import annotations
+
+import socket
+import threading
+
+import numpy as np
+import pytest
+
+from companion.config import DEFAULT_RANGEFINDERS
+from companion.errors import ConfigError
+from companion.geometry import so3
+from companion.service.timesync import ClockSync, reply_for
+from companion.types import CameraFrame, PoseEstimate
+from drivers import messages
+from drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
+from drivers.mavlink import LinkStats, LinkUrl, Parser
+
+
+class PeerClock:
+    """A peer clock with an offset and a drift against ours (ns)."""
+
+    def __init__(self, offset_ns: int, drift_ppm: float) -> None:
+        self.offset_ns, self.drift = offset_ns, drift_ppm * 1e-6
+
+    def __call__(self, local_ns: int) -> int:
+        return int(local_ns * (1 + self.drift)) - self.offset_ns
+
+
+def test_reply_answers_requests_only() -> None:
+    r = reply_for(0, 123_456, 999)
+    assert r is not None and r.tc1 == 999 and r.ts1 == 123_456
+    assert reply_for(5, 123_456, 999) is None
+
+
+def test_clock_sync_converges_with_drift_and_jitter() -> None:
+    rng = np.random.default_rng(1)
+    peer = PeerClock(offset_ns=-37_200_000_000, drift_ppm=80.0)
+    sync = ClockSync()
+    t = 1_000_000_000
+    for _ in range(600):  # 60 s at 10 Hz
+        t += 100_000_000
+        up, down = rng.uniform(50_000, 400_000, 2)  # one-way delays 0.05-0.4 ms
+        tc1 = peer(t + int(up))
+        assert sync.on_reply(tc1, t, t + int(up + down))
+    now = t + 50_000_000
+    true_offset = now - peer(now)
+    assert sync.converged
+    assert abs(sync.offset_at(now) - true_offset) < 200_000  # 0.2 ms
+    remote_us = peer(now) // 1000
+    assert abs(sync.remote_to_local_us(remote_us, now) - now // 1000) < 200
+
+
+def test_clock_sync_ignores_slow_samples_and_resets_on_a_clock_jump() -> None:
+    peer = PeerClock(offset_ns=5_000_000_000, drift_ppm=0.0)
+    sync = ClockSync()
+    t = 0
+    for _ in range(20):
+        t += 100_000_000
+        sync.on_reply(peer(t), t, t + 100_000)
+    assert not sync.on_reply(peer(t), t, t + 50_000_000)  # 50 ms round trip: ignored
+    jumped = PeerClock(offset_ns=-20_000_000_000, drift_ppm=0.0)  # the autopilot rebooted
+    for _ in range(sync.max_consecutive_deviations):
+        t += 100_000_000
+        assert not sync.on_reply(jumped(t), t, t + 100_000)
+    assert sync.resets == 1 and not sync.converged
+    for _ in range(10):
+        t += 100_000_000
+        assert sync.on_reply(jumped(t), t, t + 100_000)
+    assert abs(sync.offset_at(t) - (t - jumped(t))) < 100_000
+
+
+def test_link_urls() -> None:
+    assert LinkUrl.parse("udpin:127.0.0.1:14540") == LinkUrl("udpin", "127.0.0.1", 14540)
+    assert LinkUrl.parse("/dev/ttyAMA0").kind == "serial"
+    assert LinkUrl.parse("serial:/dev/ttyUSB0:57600") == LinkUrl("serial", "/dev/ttyUSB0", 57600)
+    for bad in ("udp:1.2.3.4", "udpin:host:port", "tcp::14550x", ""):
+        with pytest.raises(ConfigError, match=r"service\.mavlink_url"):
+            LinkUrl.parse(bad)
+
+
+def sample_pose() -> PoseEstimate:
+    R = so3.rpy_to_matrix(0.05, -0.03, 1.2)
+    cov = np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-3])
+    cov[0, 1] = cov[1, 0] = 0.005
+    return PoseEstimate(
+        1_234_567_890,
+        np.array([1.5, -2.25, -6.0]),
+        so3.matrix_to_quat(R),
+        np.array([0.5, 1.0, -0.1]),
+        cov,
+        3,
+        87,
+    )
+
+
+def decode(buf: bytes):
+    parser = Parser()
+    stats = LinkStats()
+    msgs = parser.feed(buf, stats)
+    assert stats.rx_bad == 0 and len(msgs) == 1
+    return msgs[0]
+
+
+def test_vision_position_estimate_fields_round_trip() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
+    pose = sample_pose()
+    buf = messages.vision_position_estimate(mav, pose).pack(mav)
+    assert buf[0] == 0xFD  # MAVLink 2
+    msg = decode(buf)
+    assert msg.get_type() == "VISION_POSITION_ESTIMATE"
+    assert msg.get_srcComponent() == 197
+    assert msg.usec == pose.time_us
+    np.testing.assert_allclose([msg.x, msg.y, msg.z], pose.position_ned_m, rtol=1e-7)
+    rpy = so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))
+    np.testing.assert_allclose([msg.roll, msg.pitch, msg.yaw], rpy, atol=1e-6)
+    cov = np.array(msg.covariance)
+    assert cov[0] == pytest.approx(0.01) and cov[1] == pytest.approx(0.005)
+    assert cov[6] == pytest.approx(0.02) and cov[20] == pytest.approx(3e-3)
+    assert msg.reset_counter == 3
+
+
+def test_odometry_fields_round_trip() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
+    pose = sample_pose()
+    msg = decode(messages.odometry(mav, pose, (0.1, -0.2, 0.3)).pack(mav))
+    assert msg.frame_id == messages.MAV_FRAME_LOCAL_FRD
+    assert msg.child_frame_id == messages.MAV_FRAME_BODY_FRD
+    assert msg.estimator_type == messages.MAV_ESTIMATOR_TYPE_VISION
+    np.testing.assert_allclose(msg.q, pose.quat_wxyz_ned_frd, atol=1e-7)
+    R = so3.quat_to_matrix(pose.quat_wxyz_ned_frd)
+    np.testing.assert_allclose([msg.vx, msg.vy, msg.vz], R.T @ pose.velocity_ned_m_s, atol=1e-6)
+    np.testing.assert_allclose([msg.rollspeed, msg.pitchspeed, msg.yawspeed], [0.1, -0.2, 0.3])
+    assert msg.quality == 87 and msg.reset_counter == 3
+    unknown_velocity = PoseEstimate(**{**_fields(pose), "velocity_ned_m_s": np.full(3, np.nan)})
+    assert messages.odometry(mav, unknown_velocity) is None
+
+
+def _fields(pose: PoseEstimate) -> dict:
+    return {k: getattr(pose, k) for k in pose.__slots__}
+
+
+def test_non_finite_poses_are_not_sendable() -> None:
+    pose = sample_pose()
+    assert messages.is_finite_pose(pose)
+    cov = pose.covariance_6x6.copy()
+    cov[3, 3] = np.nan
+    assert not messages.is_finite_pose(PoseEstimate(**{**_fields(pose), "covariance_6x6": cov}))
+    pos = np.array([np.inf, 0.0, 0.0])
+    assert not messages.is_finite_pose(PoseEstimate(**{**_fields(pose), "position_ned_m": pos}))
+
+
+def test_distance_sensor_mapping() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    sensors = {r.sensor_id: r for r in DEFAULT_RANGEFINDERS}
+
+    def ds(d_cm: int, sid: int = 1, orientation: int = 25, quality: int = 100):
+        return decode(
+            mav.distance_sensor_encode(
+                10, 10, 4000, d_cm, 0, sid, orientation, 255, signal_quality=quality
+            ).pack(mav)
+        )
+
+    s = messages.range_from_distance_sensor(ds(612), sensors, 42)
+    assert s is not None and s.distance_m == pytest.approx(6.12) and s.sensor_id == 1
+    assert s.time_us == 42
+    for bad in (
+        ds(0),
+        ds(65535),
+        ds(5),
+        ds(4500),
+        ds(612, quality=1),
+        ds(612, sid=9),
+        ds(612, orientation=0),
+    ):
+        assert messages.range_from_distance_sensor(bad, sensors, 42) is None
+
+
+def test_garbage_is_counted_not_raised() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    good = mav.heartbeat_encode(2, 12, 0, 0, 4).pack(mav)
+    parser, stats = Parser(), LinkStats()
+    rng = np.random.default_rng(0)
+    got = 0
+    for _ in range(300):
+        junk = bytes(rng.integers(0, 256, int(rng.integers(1, 60)), dtype=np.uint8))
+        got += len(parser.feed(junk, stats))
+        got += len(parser.feed(good, stats))
+    assert got >= 150  # most good frames survive the garbage between them
+    assert stats.rx_bad > 0
+
+
+def test_sitl_stream_round_trip() -> None:
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+    rng = np.random.default_rng(2)
+    sent = [
+        CameraFrame(1000 * k, k, rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+        for k in range(5)
+    ]
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        with conn:
+            for f in sent:
+                conn.sendall(encode_frame(f))
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    src = open_camera(f"sitl://127.0.0.1:{port}")
+    assert isinstance(src, SitlStream)
+    got = []
+    for f in src.frames():
+        got.append(f)
+        if len(got) == len(sent):
+            src.close()
+    thread.join()
+    server.close()
+    for a, b in zip(sent, got, strict=True):
+        assert (a.time_us, a.seq) == (b.time_us, b.seq)
+        np.testing.assert_array_equal(a.image_bgr, b.image_bgr)
+
+
+def test_camera_urls_are_checked(tmp_path) -> None:
+    with pytest.raises(ConfigError, match=r"service\.camera_url"):
+        open_camera("sitl://nohost")
+    with pytest.raises(ConfigError, match=r"service\.camera_url"):
+        open_camera(f"folder:{tmp_path / 'missing'}")
+    assert isinstance(open_camera("0"), VideoCaptureSource)
