@@ -412,6 +412,138 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    """The service: camera + rangefinders + autopilot link -> pose messages, until SIGTERM /
+    SIGINT or --duration."""
+    import asyncio
+    import logging
+    import signal
+
+    from companion.config import describe
+    from companion.service.app import Service
+
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    log = logging.getLogger("companion")
+    cfg = _load(args)
+    for line in describe(cfg):
+        log.debug("config %s", line)
+    s = cfg.service
+    log.info("link %s, camera %s, output %s", s.mavlink_url, s.camera_url, s.output)
+
+    async def serve() -> dict[str, Any]:
+        service = Service(cfg)  # a bad URL raises ConfigError here, before anything starts
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, service.stop)
+        async with service:
+            await service.run(args.duration)
+        summary = service.summary()
+        if args.report:
+            service.write_report(Path(args.report))
+        return summary
+
+    summary = asyncio.run(serve())
+    log.info(
+        "published %d poses (%.1f Hz), %d frames in, %d dropped, latency p50 %s ms",
+        summary["published"],
+        summary["publish_rate_hz"],
+        summary["frames_in"],
+        summary["frames_dropped"],
+        f"{summary['latency_ms_p50']:.1f}" if summary["latency_ms_p50"] is not None else "-",
+    )
+    return EXIT_OK
+
+
+def cmd_sitl_run(args: argparse.Namespace) -> int:
+    """The PX4-like SITL autopilot with its camera stream (sitl/autopilot.py)."""
+    import asyncio
+    import json
+
+    from sitl.autopilot import SimAutopilot
+
+    cfg = _load(args)
+    out = Path(args.out) if args.out else Path("out") / "sitl-run"
+    stub = SimAutopilot(cfg)
+    print(
+        f"SITL autopilot: {cfg.sitl.terrain}/{cfg.sitl.trajectory} {cfg.sitl.seconds:g} s, "
+        f"listening on 127.0.0.1:{stub.opts.listen_port}, sending to "
+        f"127.0.0.1:{stub.opts.companion_port}, camera on tcp 127.0.0.1:{stub.opts.camera_port}",
+        flush=True,
+    )
+    report = asyncio.run(stub.run(out))
+    print(json.dumps(report, indent=2))
+    print(f"report, received.csv and plot in {out}")
+    return EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """SITL autopilot + service together on the SITL default; prints what the autopilot saw."""
+    import json
+    import subprocess
+
+    from sitl.autopilot import AutopilotOptions
+
+    cfg = _load(args)
+    out = Path(args.out) if args.out else Path("out") / "demo"
+    out.mkdir(parents=True, exist_ok=True)
+    common = []
+    if args.config:
+        common += ["--config", str(args.config)]
+    for flag in ("terrain", "trajectory", "seconds", "seed"):
+        v = getattr(args, flag, None)
+        if v is not None:
+            common += [f"--{flag}", str(v)]
+    py = [sys.executable, "-m", "companion.cli"]
+    opts = AutopilotOptions()
+    duration = opts.warmup_s + cfg.sitl.seconds + 0.5
+    stub = subprocess.Popen([*py, "sitl", "run", *common, "--out", str(out / "autopilot")])
+    service = subprocess.Popen(
+        [
+            *py,
+            "run",
+            *common,
+            "--duration",
+            f"{duration:.1f}",
+            "--report",
+            str(out / "service.json"),
+        ]
+    )
+    rc_service = service.wait()
+    rc_stub = stub.wait()
+    if rc_service or rc_stub:
+        raise CompanionError(f"demo failed: service exit {rc_service}, autopilot exit {rc_stub}")
+    rep = json.loads((out / "autopilot" / "report.json").read_text())
+    svc = json.loads((out / "service.json").read_text())
+    if "error" in rep:
+        raise CompanionError(f"demo: the autopilot says: {rep['error']}")
+    print()
+    print(
+        f"received by the autopilot: {rep['received']} {rep['message']} at "
+        f"{rep['received_rate_hz']:.1f} Hz"
+    )
+    print(
+        f"end-to-end latency (exposure -> autopilot): p50 {rep['latency_ms_p50']:.1f} ms, "
+        f"p99 {rep['latency_ms_p99']:.1f} ms"
+    )
+    print(
+        f"metric ATE seen by the autopilot (SE3, its clock): {rep['ate_m']:.3f} m = "
+        f"{rep['ate_pct']:.2f} % of {rep['path_m']:.0f} m; "
+        f"scale error {rep['scale_error_pct']:+.2f} %"
+    )
+    print(
+        f"time sync: conversion error max {rep['timesync_error_ms_max']:.3f} ms; TIMESYNC "
+        f"round trip p99 {rep.get('timesync_rtt_ms_p99', float('nan')):.2f} ms"
+    )
+    print(
+        f"service: {svc['frames_in']} frames, {svc['frames_dropped']} dropped, "
+        f"capture-to-send p50 {svc['latency_ms_p50']:.1f} ms, p99 {svc['latency_ms_p99']:.1f} ms"
+    )
+    print(f"plots and logs: {out / 'autopilot' / 'autopilot.png'}, {out}")
+    return EXIT_OK
+
+
 def _scenario_events(scenario: Any, gt_poses: dict[int, Any] | None = None) -> Iterator[Any]:
     """The simulator's inputs in time order (attitude and ranges before their frame); the
     true body pose of each frame goes to ``gt_poses`` by time."""
@@ -456,6 +588,10 @@ def build_parser() -> argparse.ArgumentParser:
     p_rec.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     p_rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_rec.set_defaults(func=cmd_sitl_record)
+    p_srun = sitl_sub.add_parser("run", help="the PX4-like SITL autopilot with its camera")
+    _add_sitl_flags(p_srun)
+    p_srun.add_argument("--out", type=Path, help="report folder (default out/sitl-run)")
+    p_srun.set_defaults(func=cmd_sitl_run)
     p_sheet = sitl_sub.add_parser("sheet", help="write a PNG contact sheet of a dataset")
     p_sheet.add_argument("dataset", type=Path)
     p_sheet.add_argument("--out", type=Path)
@@ -481,6 +617,21 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
     p_rep.add_argument("dirs", nargs="+", type=Path)
     p_rep.set_defaults(func=cmd_report)
+
+    p_run = sub.add_parser("run", help="the service (camera + rangefinders -> autopilot)")
+    p_run.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
+    p_run.add_argument("--duration", type=float, help="stop after this many seconds")
+    p_run.add_argument("--report", type=Path, help="write a JSON summary here on exit")
+    p_run.add_argument("--terrain", help=argparse.SUPPRESS)
+    p_run.add_argument("--trajectory", help=argparse.SUPPRESS)
+    p_run.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
+    p_run.add_argument("--seed", type=int, help=argparse.SUPPRESS)
+    p_run.set_defaults(func=cmd_run)
+
+    p_demo = sub.add_parser("demo", help="SITL autopilot + service together, with a summary")
+    _add_sitl_flags(p_demo)
+    p_demo.add_argument("--out", type=Path, help="output folder (default out/demo)")
+    p_demo.set_defaults(func=cmd_demo)
 
     p_eval = sub.add_parser("eval", help="evaluate the pipeline on a dataset or a SITL flight")
     p_eval.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")

@@ -8,8 +8,10 @@ its own filter has converged on our answers, so :func:`reply_for` must be answer
 We also keep our own estimate of the autopilot clock (its time_boot_ms / time_usec) so that
 DISTANCE_SENSOR and ATTITUDE samples can be moved into the companion's monotonic clock. From our
 own requests: round trip rtt = now - ts1 and offset = (ts1 + now) / 2 - tc1 (companion minus
-autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored; the
-others feed an exponential filter whose gain starts at 1 and decays to alpha_final (fast
+autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored, and
+so are samples much slower than the fastest recent ones (a reply that waited in a busy peer's
+socket buffer is asymmetric, and its offset is off by up to half its round trip: the NTP
+practice of trusting the fastest exchanges); the others feed an exponential filter whose gain starts at 1 and decays to alpha_final (fast
 convergence, then smoothing), plus a skew estimate so that a drifting autopilot clock (a few
 ppm to a few hundred ppm on a cheap crystal) stays aligned between samples. Several successive
 samples far from the estimate (an autopilot reboot: its clock jumps back) reset the filter, as
@@ -18,6 +20,7 @@ PX4 does.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 
@@ -52,6 +55,8 @@ class ClockSync:
         self.max_deviation_ns = max_deviation_ns
         self.max_consecutive_deviations = max_consecutive_deviations
         self.resets = 0  # times the estimate was dropped (autopilot clock jumps)
+        self.recent_rtt_ns: deque[int] = deque(maxlen=32)
+        self.slow_skipped = 0
         self.reset()
 
     def reset(self) -> None:
@@ -79,6 +84,11 @@ class ClockSync:
         if rtt < 0 or rtt > self.max_rtt_ns:
             return False
         self.last_rtt_ns = rtt
+        self.recent_rtt_ns.append(rtt)
+        fastest = min(self.recent_rtt_ns)
+        if self.samples >= 5 and rtt > max(2 * fastest, fastest + 500_000):
+            self.slow_skipped += 1
+            return False
         mid = (ts1 + now_ns) // 2
         measured = float(mid - tc1)
         if self.samples == 0:

@@ -1,0 +1,507 @@
+"""A PX4-like autopilot for software-in-the-loop runs (``companion sitl run``).
+
+It plays PX4 SITL's onboard MAVLink instance on 127.0.0.1: it sends to UDP 14540 and listens
+on 14580, as system 1 component 1 (MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR), and serves the
+simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
+
+- Clock: its own boot clock, ``time_boot = (t_mono - t_boot) * (1 + drift_ppm 1e-6)``, started
+  ``boot_offset_s`` before the process and drifting against the companion's monotonic clock, so
+  that time sync is really needed.
+- TIMESYNC: requests at 10 Hz (tc1 = 0, ts1 = its clock in ns); the companion's answers feed a
+  :class:`ClockSync` (PX4's filter does the same: rtt gate, converging gain, reset after
+  successive outliers); requests from the companion are answered at once.
+- Streams: HEARTBEAT 1 Hz, ATTITUDE (truth + 0.1 deg noise) and DISTANCE_SENSOR for every
+  sensor (cm, orientation 25, its id, the world's noise model), each at 10 Hz until the
+  companion asks for another rate with MAV_CMD_SET_MESSAGE_INTERVAL (answered by COMMAND_ACK).
+- Camera: a child process renders the flight ahead of time and releases frame k at its
+  exposure time plus ``readout_ms`` (a real camera delivers a frame after its readout); a
+  frame that is not ready in time is dropped and counted, as a camera would drop it.
+- Receives VISION_POSITION_ESTIMATE and ODOMETRY, moves their time_usec into its clock through
+  its time sync (as PX4's mavlink_receiver does), looks up the true pose at that time and
+  keeps live errors; at the end writes ``report.json``, ``received.csv`` and ``autopilot.png``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import json
+import multiprocessing as mp
+import socket
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.config import Config, from_dict, to_dict
+from companion.evaluation.trajectory import path_length, umeyama
+from companion.geometry import so3
+from companion.service.timesync import ClockSync, reply_for
+from drivers.camera import encode_frame
+from drivers.mavlink import LinkStats, Parser
+
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MSG_ATTITUDE = 30
+MSG_DISTANCE_SENSOR = 132
+
+
+@dataclass(frozen=True, slots=True)
+class AutopilotOptions:
+    """Where and how the stub talks (PX4 SITL's onboard ports by default)."""
+
+    host: str = "127.0.0.1"
+    listen_port: int = 14580
+    companion_port: int = 14540
+    camera_port: int = 5600
+    boot_offset_s: float = 37.25  # the autopilot booted this long before the stub started
+    drift_ppm: float = 60.0  # its crystal against the companion's clock
+    readout_ms: float = 4.0  # a frame leaves the camera this long after its exposure
+    warmup_s: float = 3.0  # the flight starts this long after the stub
+    linger_s: float = 2.0  # keep listening this long after the flight
+
+
+@dataclass
+class Received:
+    """One pose message from the companion, with its truth."""
+
+    rx_ns: int  # reception, our monotonic clock
+    kind: str
+    time_usec: int  # as sent (companion clock)
+    t_sim_s: float  # the same instant in flight time, through our time sync
+    position: tuple[float, float, float]
+    rpy: tuple[float, float, float]
+    reset_counter: int
+    true_position: tuple[float, float, float]
+    true_rpy: tuple[float, float, float]
+    sync_error_us: float  # time sync's conversion minus the exact one
+
+
+@dataclass
+class AutopilotStats:
+    received: list[Received] = field(default_factory=list)
+    timesync_rtt_ns: list[int] = field(default_factory=list)
+    timesync_answers: int = 0
+    heartbeats_from_companion: int = 0
+    rates_set: dict[int, float] = field(default_factory=dict)
+    link: LinkStats = field(default_factory=LinkStats)
+
+
+def camera_process(
+    cfg_dict: dict[str, Any], port: int, flight_start_ns: int, readout_ms: float, counters: Any
+) -> None:
+    """Child process: render the flight ahead and stream each frame at exposure + readout."""
+    from sitl.scenario import Scenario
+
+    cfg = from_dict(Config, cfg_dict)
+    scenario = Scenario(cfg)
+    scenario.step(0)  # compile the kernels before the flight
+    server = socket.create_server(("127.0.0.1", port), reuse_port=False)
+    server.settimeout(0.2)
+    client: socket.socket | None = None
+    period_ns = int(1e9 / cfg.camera.rate_hz)
+    for seq in range(scenario.n_frames):
+        expose_ns = flight_start_ns + seq * period_ns
+        release_ns = expose_ns + int(readout_ms * 1e6)
+        if time.monotonic_ns() > release_ns + period_ns:
+            counters[1] += 1  # behind: this frame is lost, as a camera would lose it
+            continue
+        step = scenario.step(seq)
+        frame = step.frame.__class__(expose_ns // 1000, seq, step.frame.image_bgr)
+        payload = encode_frame(frame)
+        while client is None:
+            try:
+                client, _ = server.accept()
+                client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except TimeoutError:
+                if time.monotonic_ns() > release_ns + period_ns:
+                    break
+        wait = (release_ns - time.monotonic_ns()) * 1e-9
+        if wait > 0:
+            time.sleep(wait)
+        if client is None:
+            counters[1] += 1
+            continue
+        try:
+            client.sendall(payload)
+            counters[0] += 1
+        except OSError:
+            client.close()
+            client = None
+    if client is not None:
+        client.close()
+    server.close()
+
+
+class SimAutopilot:
+    """The stub: ``await SimAutopilot(cfg, opts).run(out_dir)``."""
+
+    def __init__(self, cfg: Config, opts: AutopilotOptions | None = None) -> None:
+        from sitl.sensors import RangeSimulator
+        from sitl.trajectory import Trajectory
+        from sitl.world import make_world
+
+        self.cfg = cfg
+        self.opts = opts or AutopilotOptions()
+        s = cfg.sitl
+        self.world = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
+        self.trajectory = Trajectory(
+            s.trajectory, self.world, s.seconds, s.altitude_m, s.speed_m_s, s.takeoff_landing
+        )
+        self.ranges = RangeSimulator(self.world, self.trajectory, cfg.rangefinders, s.seed)
+        self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.parser = Parser()
+        self.sync = ClockSync()
+        self.stats = AutopilotStats()
+        now = time.monotonic_ns()
+        self.boot_ns = now - int(self.opts.boot_offset_s * 1e9)
+        self.flight_start_ns = now + int(self.opts.warmup_s * 1e9)
+        self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
+        self._transport: asyncio.DatagramTransport | None = None
+        self._rng = np.random.default_rng([s.seed, 404])
+
+    # ------------------------------------------------------------------ clocks
+    def clock_ns(self, mono_ns: int) -> int:
+        """Our boot clock [ns] at a monotonic instant."""
+        return int((mono_ns - self.boot_ns) * (1.0 + self.opts.drift_ppm * 1e-6))
+
+    def mono_of_clock_ns(self, clock_ns: float) -> float:
+        """The monotonic instant [ns] of a boot-clock time (the exact inverse)."""
+        return clock_ns / (1.0 + self.opts.drift_ppm * 1e-6) + self.boot_ns
+
+    def t_sim_of_mono(self, mono_ns: float) -> float:
+        return (mono_ns - self.flight_start_ns) * 1e-9
+
+    # ------------------------------------------------------------------ I/O
+    def send(self, msg: Any) -> None:
+        if self._transport is None:
+            return
+        try:
+            buf = msg.pack(self.mav)
+            self._transport.sendto(buf, (self.opts.host, self.opts.companion_port))
+            self.stats.link.tx_messages += 1
+        except OSError:
+            self.stats.link.tx_dropped += 1
+
+    def _on_datagram(self, data: bytes) -> None:
+        rx_ns = time.monotonic_ns()
+        for msg in self.parser.feed(data, self.stats.link):
+            self._on_message(msg, rx_ns)
+
+    def _on_message(self, msg: Any, rx_ns: int) -> None:
+        kind = msg.get_type()
+        if kind == "TIMESYNC":
+            reply = reply_for(msg.tc1, msg.ts1, self.clock_ns(time.monotonic_ns()))
+            if reply is not None:
+                self.send(self.mav.timesync_encode(reply.tc1, reply.ts1))
+                self.stats.timesync_answers += 1
+            else:
+                now = self.clock_ns(rx_ns)
+                if self.sync.on_reply(msg.tc1, msg.ts1, now):
+                    self.stats.timesync_rtt_ns.append(now - msg.ts1)
+        elif kind == "HEARTBEAT":
+            self.stats.heartbeats_from_companion += 1
+        elif kind == "COMMAND_LONG" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL:
+            msg_id, interval_us = int(msg.param1), float(msg.param2)
+            ok = msg_id in self.rates_hz and interval_us > 0
+            if ok:
+                self.rates_hz[msg_id] = 1e6 / interval_us
+                self.stats.rates_set[msg_id] = self.rates_hz[msg_id]
+            ack = self.mav.command_ack_encode(
+                MAV_CMD_SET_MESSAGE_INTERVAL,
+                0 if ok else 3,
+                0,
+                msg_id,
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+            )
+            self.send(ack)
+        elif kind in ("VISION_POSITION_ESTIMATE", "ODOMETRY"):
+            self._on_pose(msg, kind, rx_ns)
+
+    def _on_pose(self, msg: Any, kind: str, rx_ns: int) -> None:
+        if not self.sync.converged:
+            return  # PX4 does not use the timestamps before its filter converged
+        t_usec = int(msg.usec if kind == "VISION_POSITION_ESTIMATE" else msg.time_usec)
+        here_ns = self.clock_ns(rx_ns)
+        local_us = self.sync.remote_to_local_us(t_usec, here_ns)
+        exact_us = self.clock_ns(t_usec * 1000) / 1000.0
+        t_sim = self.t_sim_of_mono(self.mono_of_clock_ns(local_us * 1000.0))
+        if not 0.0 <= t_sim <= self.cfg.sitl.seconds:
+            return
+        if kind == "VISION_POSITION_ESTIMATE":
+            rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
+        else:
+            rpy = so3.matrix_to_rpy(so3.quat_to_matrix(np.array(msg.q, dtype=np.float64)))
+        T = self.trajectory.T_world_body(t_sim)
+        self.stats.received.append(
+            Received(
+                rx_ns,
+                kind,
+                t_usec,
+                t_sim,
+                (float(msg.x), float(msg.y), float(msg.z)),
+                rpy,
+                int(msg.reset_counter),
+                tuple(float(v) for v in T[:3, 3]),  # type: ignore[arg-type]
+                so3.matrix_to_rpy(T[:3, :3]),
+                float(local_us - exact_us),
+            )
+        )
+
+    # ------------------------------------------------------------------ loops
+    async def _every(self, period_s: float, fn: Any) -> None:
+        next_t = time.monotonic()
+        while True:
+            fn()
+            next_t += period_s
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+
+    def _heartbeat(self) -> None:
+        self.send(self.mav.heartbeat_encode(2, 12, 0, 0, 4))  # QUADROTOR, PX4, ACTIVE
+
+    def _timesync(self) -> None:
+        self.send(self.mav.timesync_encode(0, self.clock_ns(time.monotonic_ns())))
+
+    async def _attitude_loop(self) -> None:
+        noise = np.radians(0.1)
+        while True:
+            now = time.monotonic_ns()
+            t = self.t_sim_of_mono(now)
+            if 0.0 <= t <= self.cfg.sitl.seconds:
+                s = self.trajectory.sample(np.array([t]))
+                R = s.R_world_body[0] @ so3.exp(noise * self._rng.standard_normal(3))
+                r, p, y = so3.matrix_to_rpy(R)
+                w = s.omega_body_rad_s[0]
+                self.send(
+                    self.mav.attitude_encode(
+                        self.clock_ns(now) // 1_000_000,
+                        r,
+                        p,
+                        y,
+                        float(w[0]),
+                        float(w[1]),
+                        float(w[2]),
+                    )
+                )
+            await asyncio.sleep(1.0 / self.rates_hz[MSG_ATTITUDE])
+
+    async def _distance_loop(self) -> None:
+        """Every sensor's readings at their own times; decimated to the stream rate."""
+        last_t = 0.0
+        last_sent: dict[int, float] = {}
+        while True:
+            t = self.t_sim_of_mono(time.monotonic_ns())
+            if 0.0 <= t <= self.cfg.sitl.seconds and t > last_t:
+                period = 1.0 / self.rates_hz[MSG_DISTANCE_SENSOR]
+                for r in self.ranges.between(last_t, t):
+                    smp = r.sample
+                    if smp is None:
+                        continue
+                    sid = smp.sensor_id
+                    t_s = smp.time_us * 1e-6
+                    if t_s - last_sent.get(sid, -1e9) < period * 0.95:
+                        continue
+                    last_sent[sid] = t_s
+                    mono = self.flight_start_ns + smp.time_us * 1000
+                    rf = next(x for x in self.cfg.rangefinders if x.sensor_id == sid)
+                    sigma_cm = (rf.sigma_a_m + rf.sigma_b * smp.distance_m) * 100
+                    self.send(
+                        self.mav.distance_sensor_encode(
+                            self.clock_ns(mono) // 1_000_000,
+                            int(round(smp.min_m * 100)),
+                            int(round(smp.max_m * 100)),
+                            int(np.clip(round(smp.distance_m * 100), 0, 65534)),
+                            0,  # MAV_DISTANCE_SENSOR_LASER
+                            sid,
+                            25,  # PITCH_270: downward
+                            int(min(254, round(sigma_cm**2))),
+                            signal_quality=int(smp.signal_quality),
+                        )
+                    )
+                last_t = t
+            await asyncio.sleep(0.004)
+
+    async def run(self, out: Path | None = None) -> dict[str, Any]:
+        """Fly the scenario (warm-up, flight, linger) and return the report."""
+        loop = asyncio.get_running_loop()
+        ctx = mp.get_context("spawn")
+        counters = ctx.Array("q", 2)  # frames sent, frames dropped
+        camera = ctx.Process(
+            target=camera_process,
+            args=(
+                to_dict(self.cfg),
+                self.opts.camera_port,
+                self.flight_start_ns,
+                self.opts.readout_ms,
+                counters,
+            ),
+            daemon=True,
+            name="sitl-camera",
+        )
+        camera.start()
+        stub = self
+
+        class Proto(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+                stub._on_datagram(data)
+
+        transport, _ = await loop.create_datagram_endpoint(
+            Proto, local_addr=(self.opts.host, self.opts.listen_port)
+        )
+        self._transport = transport
+        end_ns = self.flight_start_ns + int((self.cfg.sitl.seconds + self.opts.linger_s) * 1e9)
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tasks = [
+                    tg.create_task(self._every(1.0, self._heartbeat)),
+                    tg.create_task(self._every(0.1, self._timesync)),
+                    tg.create_task(self._attitude_loop()),
+                    tg.create_task(self._distance_loop()),
+                ]
+                await asyncio.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
+                for t in tasks:
+                    t.cancel()
+        finally:
+            transport.close()
+            camera.join(timeout=5)
+            if camera.is_alive():
+                camera.terminate()
+        report = self.report(int(counters[0]), int(counters[1]))
+        if out is not None:
+            self.write(out, report)
+        return report
+
+    # ------------------------------------------------------------------ results
+    def report(self, frames_sent: int = 0, frames_dropped: int = 0) -> dict[str, Any]:
+        """Rates, latency, time-sync and accuracy figures of what was received."""
+        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        out: dict[str, Any] = {
+            "camera_frames_sent": frames_sent,
+            "camera_frames_dropped": frames_dropped,
+            "messages_received": len(self.stats.received),
+            "timesync_answers": self.stats.timesync_answers,
+            "rates_set_hz": {str(k): v for k, v in self.stats.rates_set.items()},
+            "link": vars(self.stats.link),
+        }
+        rtt = np.array(self.stats.timesync_rtt_ns) * 1e-6
+        if len(rtt):
+            out["timesync_rtt_ms_p50"] = float(np.percentile(rtt, 50))
+            out["timesync_rtt_ms_p99"] = float(np.percentile(rtt, 99))
+        if len(rec) < 10:
+            out["error"] = "fewer than 10 pose messages received"
+            return out
+        rx = np.array([r.rx_ns for r in rec]) * 1e-9
+        t_sim = np.array([r.t_sim_s for r in rec])
+        est = np.array([r.position for r in rec])
+        gt = np.array([r.true_position for r in rec])
+        rx_sim = np.array([self.t_sim_of_mono(r.rx_ns) for r in rec])
+        latency_ms = (rx_sim - t_sim) * 1e3
+        align = umeyama(est, gt, with_scale=False)
+        err = np.linalg.norm(align.apply(est) - gt, axis=1)
+        sim3 = umeyama(est, gt, with_scale=True)
+        length = path_length(gt)
+        sync_err = np.abs([r.sync_error_us for r in rec])
+        out.update(
+            {
+                "message": self._main_kind(),
+                "received": len(rec),
+                "received_rate_hz": float((len(rx) - 1) / (rx[-1] - rx[0])),
+                "first_pose_s": float(t_sim[0]),
+                "latency_ms_p50": float(np.percentile(latency_ms, 50)),
+                "latency_ms_p99": float(np.percentile(latency_ms, 99)),
+                "timesync_error_ms_max": float(sync_err.max() * 1e-3),
+                "timesync_error_ms_p99": float(np.percentile(sync_err, 99) * 1e-3),
+                "ate_m": float(np.sqrt(np.mean(err**2))),
+                "path_m": length,
+                "ate_pct": float(100 * np.sqrt(np.mean(err**2)) / length) if length else None,
+                "scale_error_pct": float(100 * (1.0 / sim3.scale - 1.0)),
+                "resets": len({r.reset_counter for r in rec}) - 1,
+            }
+        )
+        return out
+
+    def _main_kind(self) -> str:
+        kinds = [r.kind for r in self.stats.received]
+        if "VISION_POSITION_ESTIMATE" in kinds:
+            return "VISION_POSITION_ESTIMATE"
+        return "ODOMETRY"
+
+    def write(self, out: Path, report: dict[str, Any]) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+        with (out / "received.csv").open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(
+                [
+                    "rx_ns",
+                    "kind",
+                    "time_usec",
+                    "t_sim_s",
+                    "x",
+                    "y",
+                    "z",
+                    "roll",
+                    "pitch",
+                    "yaw",
+                    "reset_counter",
+                    "x_true",
+                    "y_true",
+                    "z_true",
+                    "roll_true",
+                    "pitch_true",
+                    "yaw_true",
+                    "sync_error_us",
+                ]
+            )
+            for r in self.stats.received:
+                w.writerow(
+                    [
+                        r.rx_ns,
+                        r.kind,
+                        r.time_usec,
+                        f"{r.t_sim_s:.6f}",
+                        *r.position,
+                        *r.rpy,
+                        r.reset_counter,
+                        *r.true_position,
+                        *r.true_rpy,
+                        f"{r.sync_error_us:.1f}",
+                    ]
+                )
+        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        if len(rec) >= 10:
+            self._plot(rec, out / "autopilot.png")
+
+    def _plot(self, rec: list[Received], path: Path) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        est = np.array([r.position for r in rec])
+        gt = np.array([r.true_position for r in rec])
+        t = np.array([r.t_sim_s for r in rec])
+        aligned = umeyama(est, gt, with_scale=False).apply(est)
+        fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+        axes[0].plot(gt[:, 1], gt[:, 0], "k-", lw=1.5, label="truth")
+        axes[0].plot(aligned[:, 1], aligned[:, 0], "r-", lw=0.8, label="received (SE3-aligned)")
+        axes[0].set_xlabel("east [m]")
+        axes[0].set_ylabel("north [m]")
+        axes[0].axis("equal")
+        axes[0].legend()
+        axes[1].plot(t, np.linalg.norm(aligned - gt, axis=1), "r-", lw=0.8)
+        axes[1].set_xlabel("flight time [s]")
+        axes[1].set_ylabel("position error [m]")
+        axes[0].set_title("What the autopilot received")
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+
+
+def _suppress_cancel(task: asyncio.Task[None]) -> None:  # pragma: no cover - helper
+    with contextlib.suppress(asyncio.CancelledError):
+        task.result()
