@@ -24,11 +24,10 @@ $(STAMP): pyproject.toml | sysdeps
 
 venv: $(STAMP)
 
-# Record a short SITL dataset (hills, lawnmower) and write a PNG contact sheet of it.
+# The SITL autopilot and the service together on the default scenario (hills, lawnmower, 60 s,
+# real time over loopback); prints what the autopilot received and where the plots are.
 demo: venv
-	$(BIN)/companion sitl record --terrain hills --trajectory lawnmower --seconds 10 --seed 1 \
-	  --out $(OUT)/demo-hills-lawnmower --overwrite
-	$(BIN)/companion sitl sheet $(OUT)/demo-hills-lawnmower
+	$(BIN)/companion demo --config config/sitl.toml --out $(OUT)/demo
 
 lint: venv
 	$(BIN)/ruff check companion drivers sitl tests
@@ -45,6 +44,7 @@ test: lint typecheck unit
 bench: venv
 	$(BIN)/companion bench render
 	$(BIN)/companion bench vo --terrain hills --trajectory lawnmower --seconds 60
+	$(BIN)/companion bench attitude --terrain hills --trajectory lawnmower --seconds 60
 
 # docs/RESULTS.md, metric scale: every method on 4 terrains x 2 trajectories x 3 seeds (long)
 RESULTS := $(OUT)/results

@@ -340,7 +340,7 @@ def cmd_bench_attitude(args: argparse.Namespace) -> int:
     specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
     inputs = []
     pipe_ranges = run.ranges_used
-    for (time_us, cloud, segment, _), ranges in zip(run.frames, pipe_ranges, strict=True):
+    for (time_us, cloud, segment, _, _), ranges in zip(run.frames, pipe_ranges, strict=True):
         inputs.append((time_us, ranges, cloud, segment))
     est = RollPitch(specs, cfg.attitude)
     ms = []

@@ -249,7 +249,7 @@ class AttitudeRun:
     series: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     attitude_ms: list[float] = field(default_factory=list)
     reasons: dict[str, int] = field(default_factory=dict)
-    frames: list[tuple[int, Any, int, F64]] = field(default_factory=list)
+    frames: list[tuple[int, Any, int, F64, F64 | None]] = field(default_factory=list)
     ranges_used: list[dict[int, float]] = field(default_factory=list)  # with frames
 
     def array(self, name: str) -> F64:
@@ -295,14 +295,18 @@ def run_attitude(
                     row[name] = (est.roll_rad, est.pitch_rad)
             if tilt.fused is not None:
                 row["fused"] = (tilt.fused.roll_rad, tilt.fused.pitch_rad)
-            other = ablation.step(step.frame.time_us, inp[0], inp[1], pipe.vo.resets)
+            ap_now = pipe.attitude_at(step.frame.time_us)
+            other = ablation.step(step.frame.time_us, inp[0], inp[1], pipe.vo.resets, ap_now)
             if other.fused is not None:
                 row["fused_ground"] = (other.fused.roll_rad, other.fused.pitch_rad)
             for reason in tilt.reasons:
                 key = re.sub(r"[0-9.]+ m", "x m", reason)
                 run.reasons[key] = run.reasons.get(key, 0) + 1
             if keep_frames:
-                run.frames.append((step.frame.time_us, inp[1], pipe.vo.resets, step.T_world_body))
+                ap = pipe.attitude_at(step.frame.time_us)
+                run.frames.append(
+                    (step.frame.time_us, inp[1], pipe.vo.resets, step.T_world_body, ap)
+                )
                 run.ranges_used.append(dict(inp[0]))
         for name in SERIES:
             run.series[name].append(row[name])
@@ -325,8 +329,8 @@ def replay_attitude(
 
     est = RollPitch(specs, opts)
     out = {n: np.full((len(run.frames), 2), np.nan) for n in ("ground", "gravity", "fused")}
-    for k, (time_us, cloud, segment, _) in enumerate(run.frames):
-        step = est.step(time_us, ranges_at(time_us), cloud, segment)
+    for k, (time_us, cloud, segment, _, R_ap) in enumerate(run.frames):
+        step = est.step(time_us, ranges_at(time_us), cloud, segment, R_ap)
         for name, tilt in (
             ("ground", step.ground),
             ("gravity", step.gravity),

@@ -171,7 +171,9 @@ class Pipeline:
             position = out.T_vo_cam[:3, 3] * est.scale + lever_m
         cloud = CloudView(T_vo_body[:3, :3], position, points)
         self.tilt_input = (range_m, cloud)
-        return self.attitude.step(time_us, range_m, cloud, self.vo.resets)
+        return self.attitude.step(
+            time_us, range_m, cloud, self.vo.resets, self.attitude_at(time_us)
+        )
 
     def _pose(self, time_us: int) -> PoseEstimate | None:
         est = self.estimates.get(self.method_name)

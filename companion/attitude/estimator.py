@@ -92,15 +92,28 @@ class RollPitch:
         range_m: Mapping[int, float],
         cloud: CloudView | None,
         segment: int,
+        R_world_body_autopilot: F64 | None = None,
     ) -> TiltStep:
         """One frame: ``range_m`` holds the valid readings [m] by sensor id at ``time_us``;
         ``cloud`` the VO view (None when not tracking with a scale); ``segment`` the VO map
-        index (a new one resets the filter)."""
+        index (a new one resets the filter); ``R_world_body_autopilot`` the autopilot's
+        attitude at that time, used as a gravity anchor when attitude.autopilot_sigma_deg > 0."""
         o = self.opts
         reasons: list[str] = []
         if cloud is not None and segment != self.segment:
             self.filter.reset(time_us)
             self.segment = segment
+        if cloud is not None and R_world_body_autopilot is not None and o.autopilot_sigma_deg > 0:
+            roll_ap, pitch_ap = tilt_from_normal(R_world_body_autopilot.T @ np.array([0, 0, 1.0]))
+            self.filter.update(
+                time_us,
+                roll_ap,
+                pitch_ap,
+                np.eye(2) * np.radians(o.autopilot_sigma_deg) ** 2,
+                cloud.R_vo_body,
+                source="autopilot",
+                correlation_s=o.autopilot_correlation_s,
+            )
         ids = [i for i in self.ids if i in range_m and np.isfinite(range_m[i])]
         for i in self.ids:
             if i not in ids:
@@ -132,6 +145,7 @@ class RollPitch:
                 measurement.pitch_rad,
                 measurement.cov_rad2,
                 cloud.R_vo_body,
+                source="ranges",
             )
         return TiltStep(ground, gravity, self._fused(time_us, cloud), tuple(reasons), terrain_tilt)
 

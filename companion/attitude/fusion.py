@@ -72,7 +72,7 @@ class TiltFilter:
         self.kf.x = np.zeros((2, 1))
         self.kf.P = np.eye(2) * self.init_sigma**2
         self.time_us = time_us
-        self.last_update_us: int | None = None
+        self.last_update_us: dict[str, int] = {}
 
     @property
     def tilt_error(self) -> F64:
@@ -90,14 +90,24 @@ class TiltFilter:
         self.time_us = max(self.time_us, time_us)
 
     def update(
-        self, time_us: int, roll_rad: float, pitch_rad: float, cov_rad2: F64, R_vo_body: F64
+        self,
+        time_us: int,
+        roll_rad: float,
+        pitch_rad: float,
+        cov_rad2: F64,
+        R_vo_body: F64,
+        source: str = "ranges",
+        correlation_s: float | None = None,
     ) -> bool:
-        """Predict to ``time_us`` and fuse a measured (roll, pitch) with covariance (2, 2);
-        False when gated out or not finite."""
+        """Predict to ``time_us`` and fuse a measured (roll, pitch) with covariance (2, 2)
+        from ``source`` (errors correlated over correlation_s, default the filter's); False
+        when gated out or not finite."""
         if not (np.isfinite(roll_rad) and np.isfinite(pitch_rad) and np.all(np.isfinite(cov_rad2))):
             self.rejected += 1
             return False
-        dt_s = 1.0 if self.last_update_us is None else (time_us - self.last_update_us) * 1e-6
+        last = self.last_update_us.get(source)
+        dt_s = 1.0 if last is None else (time_us - last) * 1e-6
+        tau = self.correlation_s if correlation_s is None else correlation_s
         self.predict(time_us)
         z = tilt_error_of(roll_rad, pitch_rad, R_vo_body)
         J = np.empty((2, 2))
@@ -110,7 +120,7 @@ class TiltFilter:
                 - tilt_error_of(roll_rad - d[0], pitch_rad - d[1], R_vo_body)
             ) / (2 * h)
         # errors correlated over correlation_s carry less information than independent ones
-        inflation = max(1.0, self.correlation_s / max(dt_s, 1e-3))
+        inflation = max(1.0, tau / max(dt_s, 1e-3))
         R = J @ cov_rad2 @ J.T * inflation + np.eye(2) * 1e-12
         y = z - self.tilt_error
         S = self.kf.P + R
@@ -118,7 +128,7 @@ class TiltFilter:
             self.rejected += 1
             return False
         self.kf.update(z.reshape(2, 1), R=R)
-        self.last_update_us = time_us
+        self.last_update_us[source] = time_us
         self.accepted += 1
         return True
 

@@ -42,4 +42,12 @@ class AttitudeOptions:
         "time over which tilt measurement errors stay correlated (the same cloud patch) [s]",
         ge=0,
     )
+    autopilot_sigma_deg: float = opt(
+        0.0,
+        "sigma of the autopilot's roll/pitch as a gravity anchor for the fusion [deg] (0 = unused)",
+        ge=0,
+    )
+    autopilot_correlation_s: float = opt(
+        30.0, "time over which the autopilot's roll/pitch errors stay correlated [s]", ge=0
+    )
     gate_chi2: float = opt(13.8, "chi-square gate (2 dof) on a tilt measurement's innovation", gt=0)

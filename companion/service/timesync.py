@@ -11,11 +11,11 @@ own requests: round trip rtt = now - ts1 and offset = (ts1 + now) / 2 - tc1 (com
 autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored, and
 so are samples much slower than the fastest recent ones (a reply that waited in a busy peer's
 socket buffer is asymmetric, and its offset is off by up to half its round trip: the NTP
-practice of trusting the fastest exchanges); the others feed an exponential filter whose gain starts at 1 and decays to alpha_final (fast
-convergence, then smoothing), plus a skew estimate so that a drifting autopilot clock (a few
-ppm to a few hundred ppm on a cheap crystal) stays aligned between samples. Several successive
-samples far from the estimate (an autopilot reboot: its clock jumps back) reset the filter, as
-PX4 does.
+practice of trusting the fastest exchanges); the others feed an exponential filter whose gain
+starts at 1 and decays to alpha_final (fast convergence, then smoothing), plus a skew estimate
+so that a drifting autopilot clock (a few ppm to a few hundred ppm on a cheap crystal) stays
+aligned between samples. Several successive samples far from the estimate (an autopilot reboot:
+its clock jumps back) reset the filter, as PX4 does.
 """
 
 from __future__ import annotations
