@@ -13,9 +13,11 @@ import asyncio
 import os
 import socket
 
+import numpy as np
 import pytest
 
 from companion.config import load_config
+from companion.geometry import so3
 from companion.service.app import Service
 from sitl.autopilot import AutopilotOptions, SimAutopilot
 
@@ -53,6 +55,15 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
         async with Service(cfg) as service:
             await service.run(opts.warmup_s + SECONDS + 0.5)
         report = await stub_task
+        # what the autopilot decoded (pymavlink, MAVLink 2) against what the service sent
+        sent = {p.time_us: p for p in service.stats.sent}
+        pairs = [(r, sent[r.time_usec]) for r in stub.stats.received if r.time_usec in sent]
+        assert len(pairs) >= 100
+        for r, pose in pairs:
+            np.testing.assert_allclose(r.position, pose.position_ned_m, rtol=1e-6, atol=1e-5)
+            rpy = so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))
+            np.testing.assert_allclose(r.rpy, rpy, atol=1e-6)
+            assert r.reset_counter == pose.reset_counter
         return report, service.summary()
 
     report, summary = asyncio.run(both())

@@ -241,3 +241,23 @@ def test_camera_urls_are_checked(tmp_path) -> None:
     with pytest.raises(ConfigError, match=r"service\.camera_url"):
         open_camera(f"folder:{tmp_path / 'missing'}")
     assert isinstance(open_camera("0"), VideoCaptureSource)
+
+
+def test_folder_source_replays_at_the_recorded_rate(tmp_path) -> None:
+    import time
+
+    from companion.config import load_config
+    from sitl.dataset import record
+
+    cfg = load_config(overrides={"sitl": {"terrain": "flat", "seconds": 0.5}})
+    path = record(cfg, tmp_path / "ds", image_format="png", progress=False)
+    t0 = time.monotonic()
+    frames = list(open_camera(f"folder:{path}").frames())
+    elapsed = time.monotonic() - t0
+    assert len(frames) == 15
+    dt_us = np.diff([f.time_us for f in frames])
+    np.testing.assert_allclose(dt_us, 1e6 / 30, atol=2)  # recorded spacing kept
+    assert elapsed >= 14 / 30 - 0.01  # not faster than recorded
+    fast = list(open_camera(f"folder:{path}?fast").frames())
+    assert [f.seq for f in fast] == [f.seq for f in frames]
+    np.testing.assert_array_equal(fast[3].image_bgr, frames[3].image_bgr)

@@ -64,6 +64,7 @@ class ServiceStats:
     process_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     publish_times_ns: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
     warnings: deque[str] = field(default_factory=lambda: deque(maxlen=20))
+    sent: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=200))  # last poses
 
 
 class Service:
@@ -271,6 +272,7 @@ class Service:
             self.stats.publish_times_ns.append(t)
             self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
             self.stats.last_reset_counter = pose.reset_counter
+            self.stats.sent.append(pose)
 
     async def _sleep(self, seconds: float) -> None:
         with contextlib.suppress(TimeoutError):
