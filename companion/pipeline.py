@@ -34,6 +34,7 @@ from companion.vo.odometry import VisualOdometry
 F64 = NDArray[np.float64]
 
 ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a frame
+VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [us]
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
 VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
@@ -69,7 +70,8 @@ class Pipeline:
         self.metric_positions: dict[str, F64 | None] = dict.fromkeys(self.methods)
         self.scale_input: ScaleInput | None = None
         self.vo_output: VoOutput | None = None
-        self._last_pose: tuple[int, F64] | None = None
+        # recent (time_us, reset_counter, position) for the velocity
+        self._recent: deque[tuple[int, int, F64]] = deque(maxlen=16)
         self.last_scale_ms = 0.0  # time spent on the scale in the last frame [ms]
         self.attitude: RollPitch | None = None
         n_sensors = len(config.attitude.sensor_ids or self.specs)
@@ -183,10 +185,8 @@ class Pipeline:
             return None
         R_world_vo = so3.rot_z(self.vo.yaw_vo_rad)
         position = R_world_vo @ p
-        velocity = np.full(3, np.nan)
-        if self._last_pose is not None and time_us > self._last_pose[0]:
-            velocity = (position - self._last_pose[1]) / ((time_us - self._last_pose[0]) * 1e-6)
-        self._last_pose = (time_us, position)
+        reset_counter = self.trajectories[self.method_name].reset_counter
+        velocity = self._velocity(time_us, reset_counter, position)
         # covariance over (x, y, z, roll, pitch, yaw): position from the scale's relative
         # sigma times the distance travelled in this VO map (at least 1 m) plus a 2 cm floor;
         # roll/pitch from the fused tilt (else a VO default); yaw from the VO default
@@ -208,9 +208,24 @@ class Pipeline:
             so3.matrix_to_quat(R_world_vo @ R_vo_body),
             velocity,
             cov,
-            self.trajectories[self.method_name].reset_counter,
+            reset_counter,
             quality,
         )
+
+    def _velocity(self, time_us: int, reset_counter: int, position: F64) -> F64:
+        """NED velocity [m/s] as the difference over the last VELOCITY_WINDOW_US of poses of
+        the same VO map (a longer base than one frame: frame-to-frame noise divided by 33 ms
+        would dominate); NaN until such a pose exists (after a reset or a gap)."""
+        recent = self._recent
+        while recent and (
+            recent[0][1] != reset_counter or time_us - recent[0][0] > VELOCITY_WINDOW_US
+        ):
+            recent.popleft()
+        velocity = np.full(3, np.nan)
+        if recent and time_us - recent[0][0] >= VELOCITY_WINDOW_US // 2:
+            velocity = (position - recent[0][2]) / ((time_us - recent[0][0]) * 1e-6)
+        recent.append((time_us, reset_counter, position))
+        return velocity
 
     def T_vo_body(self) -> F64 | None:
         """The body's orientation in the VO frame at the camera's VO position (the lever arm

@@ -36,6 +36,7 @@ from companion.types import CameraFrame
 FRAME_HEADER = struct.Struct("<4sIqHHIII")
 FRAME_MAGIC = b"CFRM"
 FORMAT_BGR8 = 0
+MAX_SIDE_PX = 8192  # a header claiming more is corrupt (never allocate from garbage)
 
 
 def encode_frame(frame: CameraFrame) -> bytes:
@@ -50,7 +51,10 @@ def encode_frame(frame: CameraFrame) -> bytes:
 
 
 class CameraSource:
-    """Base: ``frames()`` yields CameraFrame until the source ends or ``close()``."""
+    """Base: ``frames()`` yields CameraFrame until the source ends or ``close()``.
+    ``finite``: a recording that ends for good (a file, a folder), not a live device."""
+
+    finite = False
 
     def __init__(self) -> None:
         self.closed = False
@@ -96,7 +100,8 @@ class SitlStream(CameraSource):
                     if head is None:
                         break
                     magic, seq, time_us, w, h, fmt, n, _ = FRAME_HEADER.unpack(head)
-                    if magic != FRAME_MAGIC or fmt != FORMAT_BGR8 or n != w * h * 3:
+                    ok_size = 16 <= w <= MAX_SIDE_PX and 16 <= h <= MAX_SIDE_PX
+                    if magic != FRAME_MAGIC or fmt != FORMAT_BGR8 or not ok_size or n != w * h * 3:
                         self.bad_frames += 1
                         break  # lost framing: reconnect
                     payload = self._recv_exact(sock, n)
@@ -119,6 +124,8 @@ class SitlStream(CameraSource):
 
 class FolderSource(CameraSource):
     """A recorded dataset (ours or EuRoC) replayed at its rate (or as fast as possible)."""
+
+    finite = True
 
     def __init__(self, path: Path, realtime: bool = True) -> None:
         super().__init__()
@@ -153,11 +160,14 @@ class VideoCaptureSource(CameraSource):
     def __init__(self, spec: str | int) -> None:
         super().__init__()
         self.spec = spec
+        self.finite = isinstance(spec, str) and Path(spec).is_file()  # a video file ends
 
     def frames(self) -> Iterator[CameraFrame]:
         import cv2
 
         cap = cv2.VideoCapture(self.spec)
+        # a stalled network stream must not block forever (FFmpeg/GStreamer backends)
+        cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, 2000)
         if not cap.isOpened():
             raise DatasetError(f"camera {self.spec!r}: cannot open")
         seq = 0
@@ -165,6 +175,8 @@ class VideoCaptureSource(CameraSource):
             while not self.closed:
                 if not cap.grab():
                     return
+                # the time grab() returned: exposure + readout + transfer later than the
+                # exposure (a V4L2 buffer timestamp would be better; see docs/service.md)
                 t_us = time.monotonic_ns() // 1000
                 ok, img = cap.retrieve()
                 if not ok or img is None:

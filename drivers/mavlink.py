@@ -64,6 +64,7 @@ class LinkStats:
     tx_messages: int = 0
     tx_dropped: int = 0  # nothing to send to yet, or the transport failed
     reconnects: int = 0
+    handler_errors: int = 0  # exceptions raised by on_message (a bug, but the link lives)
 
 
 class Parser:
@@ -101,6 +102,7 @@ class MavlinkLink:
     def __init__(self, url: str, system_id: int, component_id: int, on_message: OnMessage) -> None:
         self.url = LinkUrl.parse(url)
         self.on_message = on_message
+        self.peer_system_id = system_id  # udpin answers the address this system spoke from
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.stats = LinkStats()
         self._parser = Parser()
@@ -154,11 +156,18 @@ class MavlinkLink:
         )
 
     # ------------------------------------------------------------------ I/O
-    def _received(self, data: bytes) -> None:
+    def _received(self, data: bytes, addr: tuple[str, int] | None = None) -> None:
         self.stats.rx_bytes += len(data)
         now = time.monotonic_ns()
         for msg in self._parser.feed(data, self.stats):
-            self.on_message(msg, now)
+            if addr is not None and (
+                self._peer is None or msg.get_srcSystem() == self.peer_system_id
+            ):
+                self._peer = addr  # udpin: the autopilot's address (it may change port)
+            try:
+                self.on_message(msg, now)
+            except Exception:  # a handler bug must not take the link down: count it
+                self.stats.handler_errors += 1
 
     def send(self, msg: Any) -> bool:
         """Encode and send a pymavlink message; False when it could not be sent."""
@@ -207,23 +216,35 @@ class MavlinkLink:
                 self._writer = None
                 writer.close()
             self.stats.reconnects += 1
+            await asyncio.sleep(delay * random.uniform(0.5, 1.5))
 
     def _open_serial(self) -> None:
-        import serial  # pyserial
-
-        self._serial = serial.Serial(self.url.host, self.url.port, timeout=0.1)
         thread = threading.Thread(target=self._serial_reader, name="mavlink-serial", daemon=True)
         thread.start()
 
     def _serial_reader(self) -> None:
+        """Read the port; when it fails (a USB adapter unplugged), close it and reopen it with
+        capped, jittered backoff."""
+        import serial  # pyserial
+
         loop = self._loop
         assert loop is not None
+        delay = 0.2
         while not self._closing:
+            if self._serial is None or not self._serial.is_open:
+                try:
+                    self._serial = serial.Serial(self.url.host, self.url.port, timeout=0.1)
+                    delay = 0.2
+                except (OSError, ValueError, serial.SerialException):
+                    time.sleep(delay * random.uniform(0.5, 1.5))
+                    delay = min(delay * 2, 5.0)
+                    continue
             try:
                 data = self._serial.read(4096)
-            except Exception:
+            except (OSError, serial.SerialException):
                 self.stats.reconnects += 1
-                time.sleep(0.5)
+                with contextlib.suppress(Exception):
+                    self._serial.close()
                 continue
             if data:
                 loop.call_soon_threadsafe(self._received, bytes(data))
@@ -234,9 +255,7 @@ class _Udp(asyncio.DatagramProtocol):
         self.link = link
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.link.url.kind == "udpin":
-            self.link._peer = addr  # answer whoever spoke last (a peer that changed port)
-        self.link._received(data)
+        self.link._received(data, addr if self.link.url.kind == "udpin" else None)
 
     def error_received(self, exc: Exception) -> None:  # ICMP port unreachable etc.
         self.link.stats.tx_dropped += 1

@@ -13,18 +13,19 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import RangefinderConfig
 from companion.geometry import so3
 from companion.types import AttitudeSample, PoseEstimate, RangeSample
 
-MSG_ID_ATTITUDE = 30
-MSG_ID_DISTANCE_SENSOR = 132
-MAV_CMD_SET_MESSAGE_INTERVAL = 511
-MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward
-MAV_FRAME_LOCAL_FRD = 20
-MAV_FRAME_BODY_FRD = 12
-MAV_ESTIMATOR_TYPE_VISION = 1
+MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
+MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
+MAV_CMD_SET_MESSAGE_INTERVAL = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+MAV_SENSOR_ROTATION_PITCH_270 = mavlink.MAV_SENSOR_ROTATION_PITCH_270  # downward
+MAV_FRAME_LOCAL_FRD = mavlink.MAV_FRAME_LOCAL_FRD
+MAV_FRAME_BODY_FRD = mavlink.MAV_FRAME_BODY_FRD
+MAV_ESTIMATOR_TYPE_VISION = mavlink.MAV_ESTIMATOR_TYPE_VISION
 
 
 def range_from_distance_sensor(

@@ -18,6 +18,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import random
 import sys
 import threading
 import time
@@ -52,6 +53,7 @@ class ServiceStats:
     frames_processed: int = 0
     published: int = 0
     not_published: int = 0  # processed frames without a pose (not tracking / no scale)
+    stale: int = 0  # poses not sent because their frame was older than stale_frame_ms
     ranges_in: int = 0
     ranges_rejected: int = 0
     attitudes_in: int = 0
@@ -85,10 +87,14 @@ class Service:
         self._slot: CameraFrame | None = None
         self._slot_lock = threading.Lock()
         self._frame_ready = asyncio.Event()
-        self._ranges: list[RangeSample] = []
-        self._attitudes: list[AttitudeSample] = []
+        # bounded: if the pipeline stalls, the oldest samples go first
+        self._ranges: deque[RangeSample] = deque(maxlen=4096)
+        self._attitudes: deque[AttitudeSample] = deque(maxlen=4096)
         self._stop = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._rate_pending: int | None = None
+        self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
         self._attitude_rates = np.zeros(3)
 
@@ -106,17 +112,21 @@ class Service:
             "pipeline": self._pipeline_loop(),
         }
         for name, coro in loops.items():
-            self._tg.create_task(coro, name=name)
+            self._tasks.append(self._tg.create_task(coro, name=name))
         return self
 
-    async def __aexit__(self, *exc: object) -> None:
+    async def __aexit__(self, *exc: Any) -> None:
+        """Stop every loop; a loop's exception reaches the caller (as an ExceptionGroup)."""
         self._stop.set()
         self._frame_ready.set()
         self.camera.close()
-        if self._tg is not None:
-            with contextlib.suppress(Exception):
-                await self._tg.__aexit__(None, None, None)
-        await self.link.__aexit__(*exc)
+        try:
+            if self._tg is not None:
+                for task in self._tasks:
+                    task.cancel()
+                await self._tg.__aexit__(*exc)
+        finally:
+            await self.link.__aexit__(*exc)
 
     async def run(self, duration_s: float | None = None) -> None:
         """Serve until ``stop()`` or for duration_s seconds."""
@@ -137,7 +147,8 @@ class Service:
             if reply is not None:  # a request: answer at once
                 self.link.send(self.link.mav.timesync_encode(reply.tc1, reply.ts1))
                 self.stats.timesync_replies += 1
-            elif msg.get_srcSystem() == self.config.service.system_id:
+            elif msg.ts1 in self._timesync_sent:  # an answer to one of our own requests
+                self._timesync_sent.remove(msg.ts1)
                 self.sync.on_reply(msg.tc1, msg.ts1, rx_ns)
             return
         if kind == "HEARTBEAT":
@@ -146,8 +157,13 @@ class Service:
                 self.stats.autopilot_system_id = msg.get_srcSystem()
             return
         if kind == "COMMAND_ACK":
-            if msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result == 0:
-                self.stats.rates_acknowledged.add(int(getattr(msg, "result_param2", 0)))
+            if (
+                msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL
+                and msg.result == 0
+                and self._rate_pending is not None
+            ):
+                self.stats.rates_acknowledged.add(self._rate_pending)
+                self._rate_pending = None
             return
         if kind == "DISTANCE_SENSOR":
             sample = messages.range_from_distance_sensor(msg, self.sensors, self._fc_to_us(msg))
@@ -182,12 +198,15 @@ class Service:
     async def _timesync_loop(self) -> None:
         period = 1.0 / self.config.service.timesync_rate_hz
         while not self._stop.is_set():
-            self.link.send(self.link.mav.timesync_encode(0, now_ns()))
+            ts1 = now_ns()
+            self._timesync_sent.append(ts1)
+            self.link.send(self.link.mav.timesync_encode(0, ts1))
             await self._sleep(period)
 
     async def _rates_loop(self) -> None:
-        """Ask for DISTANCE_SENSOR and ATTITUDE rates until acknowledged; again after the
-        autopilot was silent for 3 s (it may have rebooted)."""
+        """Ask for DISTANCE_SENSOR and ATTITUDE rates, one request in flight at a time (PX4's
+        COMMAND_ACK does not say which message it was for); again after 3 s of autopilot
+        silence (it may have rebooted)."""
         o = self.config.service
         wanted = {
             messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
@@ -197,31 +216,67 @@ class Service:
             hb = self.stats.autopilot_heartbeat_ns
             if hb and now_ns() - hb > 3_000_000_000:
                 self.stats.rates_acknowledged.clear()
-            if hb:
-                for msg_id, rate in wanted.items():
-                    if msg_id not in self.stats.rates_acknowledged:
-                        self.link.send(
-                            messages.set_message_interval(
-                                self.link.mav, self.stats.autopilot_system_id, msg_id, rate
-                            )
-                        )
-            await self._sleep(1.0)
+            missing = [m for m in wanted if m not in self.stats.rates_acknowledged]
+            if hb and missing:
+                self._rate_pending = missing[0]
+                self.link.send(
+                    messages.set_message_interval(
+                        self.link.mav,
+                        self.stats.autopilot_system_id,
+                        missing[0],
+                        wanted[missing[0]],
+                    )
+                )
+                await self._sleep(0.3)
+            else:
+                await self._sleep(1.0)
 
     async def _camera_loop(self) -> None:
+        """Read the camera in a daemon thread (a blocked driver call can never hold up the
+        exit). A finite source (a file, a folder) that ends stops the service; a live one that
+        ends or fails is reopened with capped, jittered backoff."""
         loop = asyncio.get_running_loop()
+        delay = 0.5
+        while not self._stop.is_set():
+            done: asyncio.Future[BaseException | None] = loop.create_future()
 
-        def reader() -> None:
-            for frame in self.camera.frames():
-                if self._stop.is_set():
-                    return
-                with self._slot_lock:
-                    if self._slot is not None:
-                        self.stats.frames_dropped += 1
-                    self._slot = frame
-                    self.stats.frames_in += 1
-                loop.call_soon_threadsafe(self._frame_ready.set)
+            def reader(done: asyncio.Future[BaseException | None] = done) -> None:
+                error: BaseException | None = None
+                try:
+                    for frame in self.camera.frames():
+                        if self._stop.is_set():
+                            break
+                        with self._slot_lock:
+                            if self._slot is not None:
+                                self.stats.frames_dropped += 1
+                            self._slot = frame
+                            self.stats.frames_in += 1
+                        loop.call_soon_threadsafe(self._frame_ready.set)
+                except Exception as e:  # a driver error: reported, the source is reopened
+                    error = e
 
-        await asyncio.to_thread(reader)
+                def finish() -> None:
+                    if not done.done():
+                        done.set_result(error)
+
+                with contextlib.suppress(RuntimeError):  # the loop may be closed at exit
+                    loop.call_soon_threadsafe(finish)
+
+            threading.Thread(target=reader, name="camera", daemon=True).start()
+            error = await done
+            if self._stop.is_set():
+                return
+            if error is None and self.camera.finite:
+                self._warn("camera: the recording ended; stopping")
+                self.stop()
+                return
+            self._warn(f"camera: {'failed: ' + str(error) if error else 'stream ended'}; reopening")
+            await self._sleep(delay * random.uniform(0.5, 1.5))
+            delay = min(delay * 2, 5.0)
+
+    def _warn(self, text: str) -> None:
+        log.warning(text)
+        self.stats.warnings.append(text)
 
     async def _pipeline_loop(self) -> None:
         while not self._stop.is_set():
@@ -231,8 +286,9 @@ class Service:
                 frame, self._slot = self._slot, None
             if frame is None:
                 continue
-            ranges, self._ranges = self._ranges, []
-            atts, self._attitudes = self._attitudes, []
+            ranges, atts = list(self._ranges), list(self._attitudes)
+            self._ranges.clear()
+            self._attitudes.clear()
             t0 = time.perf_counter()
             pose = await asyncio.to_thread(self._process, frame, ranges, atts)
             self.stats.process_ms.append((time.perf_counter() - t0) * 1e3)
@@ -255,6 +311,10 @@ class Service:
         self._last_vo_state = out.state if out is not None else VoState.INITIALIZING
         if pose is None or not messages.is_finite_pose(pose):
             self.stats.not_published += 1
+            return
+        age_ms = (now_ns() / 1e3 - frame.time_us) / 1e3
+        if age_ms > self.config.service.stale_frame_ms:  # too old to help the autopilot
+            self.stats.stale += 1
             return
         o = self.config.service.output
         mav = self.link.mav
@@ -302,6 +362,8 @@ class Service:
             "timesync_converged": self.sync.converged,
             "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
+            "stale": s.stale,
+            "warnings": list(s.warnings),
             "vo_resets": self.pipeline.vo.resets,
             "reset_counter": s.last_reset_counter,
             "scale": scale.scale if scale is not None else None,
