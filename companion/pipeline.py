@@ -157,6 +157,12 @@ class Pipeline:
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
         return self._pose(frame.time_us)
 
+    def background_work(self) -> bool:
+        """Work that the last frame's pose did not need (building a keyframe: triangulation
+        and local bundle adjustment). The service runs it after publishing; if nobody calls
+        it, the next feed_frame does it first. Returns whether there was any."""
+        return self.vo.finish_pending()
+
     def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:
         """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
         out = self.vo_output

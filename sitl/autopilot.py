@@ -41,6 +41,7 @@ from companion.config import Config, from_dict, to_dict
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.geometry import so3
 from companion.service.timesync import ClockSync, reply_for
+from companion.types import CameraFrame
 from drivers.camera import encode_frame
 from drivers.mavlink import LinkStats, Parser
 
@@ -62,6 +63,7 @@ class AutopilotOptions:
     readout_ms: float = 4.0  # a frame leaves the camera this long after its exposure
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
+    prerender: bool = False  # render every frame before the flight (frees the CPU during it)
 
 
 @dataclass
@@ -91,14 +93,29 @@ class AutopilotStats:
 
 
 def camera_process(
-    cfg_dict: dict[str, Any], port: int, flight_start_ns: int, readout_ms: float, counters: Any
+    cfg_dict: dict[str, Any],
+    port: int,
+    flight_start_ns: int,
+    readout_ms: float,
+    counters: Any,
+    prerender: bool = False,
+    ready: Any = None,
 ) -> None:
-    """Child process: render the flight ahead and stream each frame at exposure + readout."""
+    """Child process: render the flight (ahead of time, or all of it before the flight with
+    ``prerender``) and stream each frame at exposure + readout."""
     from sitl.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
     scenario = Scenario(cfg)
     scenario.step(0)  # compile the kernels before the flight
+    images: list[Any] = []
+    if prerender:
+        images = [scenario.step(k).frame.image_bgr for k in range(scenario.n_frames)]
+    if ready is not None:
+        ready.set()
+    while counters[2] == 0:  # the parent sets the flight start once everybody is ready
+        time.sleep(0.01)
+    flight_start_ns = int(counters[2])
     server = socket.create_server(("127.0.0.1", port), reuse_port=False)
     server.settimeout(0.2)
     client: socket.socket | None = None
@@ -109,8 +126,8 @@ def camera_process(
         if time.monotonic_ns() > release_ns + period_ns:
             counters[1] += 1  # behind: this frame is lost, as a camera would lose it
             continue
-        step = scenario.step(seq)
-        frame = step.frame.__class__(expose_ns // 1000, seq, step.frame.image_bgr)
+        image = images[seq] if prerender else scenario.step(seq).frame.image_bgr
+        frame = CameraFrame(expose_ns // 1000, seq, image)
         payload = encode_frame(frame)
         while client is None:
             try:
@@ -326,18 +343,24 @@ class SimAutopilot:
             await asyncio.sleep(0.004)
 
     async def run(self, out: Path | None = None) -> dict[str, Any]:
-        """Fly the scenario (warm-up, flight, linger) and return the report."""
+        """Fly the scenario (camera ready, warm-up, flight, linger) and return the report.
+        MAVLink runs from the start (heartbeats, time sync); the sensors and the camera only
+        during the flight."""
         loop = asyncio.get_running_loop()
         ctx = mp.get_context("spawn")
-        counters = ctx.Array("q", 2)  # frames sent, frames dropped
+        counters = ctx.Array("q", 3)  # frames sent, frames dropped, flight start [ns]
+        ready = ctx.Event()
+        self.flight_start_ns = time.monotonic_ns() + 10**15  # not before the camera is ready
         camera = ctx.Process(
             target=camera_process,
             args=(
                 to_dict(self.cfg),
                 self.opts.camera_port,
-                self.flight_start_ns,
+                0,
                 self.opts.readout_ms,
                 counters,
+                self.opts.prerender,
+                ready,
             ),
             daemon=True,
             name="sitl-camera",
@@ -353,7 +376,6 @@ class SimAutopilot:
             Proto, local_addr=(self.opts.host, self.opts.listen_port)
         )
         self._transport = transport
-        end_ns = self.flight_start_ns + int((self.cfg.sitl.seconds + self.opts.linger_s) * 1e9)
         try:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
@@ -362,6 +384,13 @@ class SimAutopilot:
                     tg.create_task(self._attitude_loop()),
                     tg.create_task(self._distance_loop()),
                 ]
+                # the world is built (and, with prerender, every frame rendered)
+                await asyncio.to_thread(ready.wait)
+                self.flight_start_ns = time.monotonic_ns() + int(self.opts.warmup_s * 1e9)
+                counters[2] = self.flight_start_ns
+                end_ns = self.flight_start_ns + int(
+                    (self.cfg.sitl.seconds + self.opts.linger_s) * 1e9
+                )
                 await asyncio.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
                 for t in tasks:
                     t.cancel()

@@ -53,7 +53,8 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
         stub = SimAutopilot(cfg, opts)
         stub_task = asyncio.create_task(stub.run(tmp_path / "autopilot"))
         async with Service(cfg) as service:
-            await service.run(opts.warmup_s + SECONDS + 0.5)
+            stub_task.add_done_callback(lambda _: service.stop())
+            await service.run()
         report = await stub_task
         # what the autopilot decoded (pymavlink, MAVLink 2) against what the service sent
         sent = {p.time_us: p for p in service.stats.sent}

@@ -294,6 +294,7 @@ class Service:
             self.stats.process_ms.append((time.perf_counter() - t0) * 1e3)
             self.stats.frames_processed += 1
             self._publish(frame, pose)
+            await asyncio.to_thread(self.pipeline.background_work)  # after the send
 
     def _process(
         self, frame: CameraFrame, ranges: list[RangeSample], atts: list[AttitudeSample]
@@ -343,6 +344,7 @@ class Service:
         """Figures of the run so far (the exit report)."""
         s = self.stats
         lat = np.array(s.latency_ms)
+        proc = np.array(s.process_ms)
         times = np.array(s.publish_times_ns) * 1e-9
         rate = float((len(times) - 1) / (times[-1] - times[0])) if len(times) > 1 else 0.0
         scale = self.pipeline.estimates.get(self.pipeline.method_name)
@@ -355,6 +357,8 @@ class Service:
             "publish_rate_hz": rate,
             "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+            "process_ms_p50": float(np.percentile(proc, 50)) if len(proc) else None,
+            "process_ms_p99": float(np.percentile(proc, 99)) if len(proc) else None,
             "ranges_in": s.ranges_in,
             "ranges_rejected": s.ranges_rejected,
             "attitudes_in": s.attitudes_in,

@@ -113,6 +113,8 @@ class VisualOdometry:
         self.T_cam_vo = np.eye(4)
         self._T_prev = np.eye(4)
         self._frames_since_kf = 0
+        self._pending_keyframe: tuple[U8, int] | None = None  # (gray, time_us) to build
+        self._keyframe_added = False  # a keyframe was built since the last output
         self._ref_time_us = 0
         self._ref_frames = 0
         self._ref_R_vo_cam = np.eye(3)
@@ -466,10 +468,12 @@ class VisualOdometry:
     def process(self, frame: CameraFrame, R_world_body: F64 | None = None) -> VoOutput:
         """One frame in, one VoOutput out. ``R_world_body``: the attitude at the frame time
         (used to gravity-align the VO frame at initialisation), or None."""
+        self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
         self.n_frames += 1
         img = frame.image_bgr
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-        is_kf = False
+        is_kf = self._keyframe_added
+        self._keyframe_added = False
         self._track(gray)
         if self.state != VoState.TRACKING:
             self._ref_frames += 1
@@ -492,8 +496,19 @@ class VisualOdometry:
         else:
             self._check_candidates()
             self._frames_since_kf += 1
-            if self._need_keyframe():
-                self._add_keyframe(gray, frame.time_us)
-                is_kf = True
+            if self._need_keyframe():  # built after this frame's output (finish_pending)
+                self._pending_keyframe = (gray, frame.time_us)
         self._prev_gray = gray
         return self._output(frame.time_us, is_kf)
+
+    def finish_pending(self) -> bool:
+        """Build the keyframe the last frame asked for (new points, triangulation, local BA),
+        off the latency-critical path: the service calls this after publishing; otherwise
+        the next ``process`` does. The next output has is_keyframe = True. Returns whether
+        a keyframe was built."""
+        pending, self._pending_keyframe = self._pending_keyframe, None
+        if pending is None or self.state != VoState.TRACKING:
+            return False
+        self._add_keyframe(*pending)
+        self._keyframe_added = True
+        return True
