@@ -245,7 +245,8 @@ class AttitudeRun:
 
     Series (F, 2) over (roll, pitch): truth; vo (VO rotation alone); ground (ranges relative to
     the ground under the hits); gravity (ranges, terrain-compensated); fused (the published
-    attitude); fused_ground (the fusion fed with uncompensated tilts, for comparison).
+    attitude: the VO rotation with the configured anchors); fused_ranges (the fusion fed with
+    the compensated range tilts alone, no autopilot anchor, for comparison).
     attitude_ms (F,) cost of the roll/pitch step; reasons: how often each refusal was seen.
     frames: what a replay needs (time_us, ranges used, cloud, segment, T_world_body).
     """
@@ -261,7 +262,7 @@ class AttitudeRun:
         return np.array(self.series[name], dtype=np.float64).reshape(-1, 2)
 
 
-SERIES = ("truth", "vo", "ground", "gravity", "fused", "fused_ground")
+SERIES = ("truth", "vo", "ground", "gravity", "fused", "fused_ranges")
 
 
 def run_attitude(
@@ -279,7 +280,9 @@ def run_attitude(
     pipe = Pipeline(config)
     if pipe.attitude is None:
         raise ValueError("roll/pitch needs 3 distance sensors and attitude.enabled")
-    ablation = RollPitch(pipe.specs, dataclasses.replace(config.attitude, compensate=False))
+    # the fusion fed by the compensated range tilts alone (no autopilot anchor), for comparison
+    ranges_only = dataclasses.replace(config.attitude, fuse_ranges=True, autopilot_sigma_deg=0.0)
+    ablation = RollPitch(pipe.specs, ranges_only)
     run = AttitudeRun(series={n: [] for n in SERIES})
     nan2 = (float("nan"), float("nan"))
     for step in steps:
@@ -303,7 +306,7 @@ def run_attitude(
             ap_now = pipe.attitude_at(step.frame.time_us)
             other = ablation.step(step.frame.time_us, inp[0], inp[1], pipe.vo.resets, ap_now)
             if other.fused is not None:
-                row["fused_ground"] = (other.fused.roll_rad, other.fused.pitch_rad)
+                row["fused_ranges"] = (other.fused.roll_rad, other.fused.pitch_rad)
             for reason in tilt.reasons:
                 key = re.sub(r"[0-9.]+ m", "x m", reason)
                 run.reasons[key] = run.reasons.get(key, 0) + 1

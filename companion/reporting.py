@@ -280,7 +280,7 @@ ATTITUDE_LABELS = {
     "ground": "ranges, uncompensated",
     "gravity": "ranges, compensated",
     "fused": "fused (published)",
-    "fused_ground": "fused, uncompensated",
+    "fused_ranges": "fused, range tilts only",
 }
 
 
@@ -343,7 +343,13 @@ def _attitude_plot(run: AttitudeRun, path: Path, title: str) -> Path:
     t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
     truth = np.degrees(run.array("truth"))
     fig, axes = plt.subplots(4, 1, figsize=(10, 11), sharex=True)
-    colours = {"vo": "tab:blue", "ground": "tab:gray", "gravity": "tab:orange", "fused": "tab:red"}
+    colours = {
+        "vo": "tab:blue",
+        "ground": "tab:gray",
+        "gravity": "tab:orange",
+        "fused_ranges": "tab:green",
+        "fused": "tab:red",
+    }
     for j, angle in enumerate(("roll", "pitch")):
         ax = axes[j]
         ax.plot(t, truth[:, j], "k-", lw=1.2, label="truth")

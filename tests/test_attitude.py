@@ -144,6 +144,38 @@ def test_ground_slope_is_removed_by_the_compensation(rpy_deg, slope_rpy_deg, yaw
     assert step.terrain_tilt_rad == pytest.approx(slope, abs=np.radians(0.5))
 
 
+def test_compensation_inherits_a_tilt_error_of_the_vo_frame() -> None:
+    """Why the range tilts cannot correct the VO's tilt drift (docs/methods.md): when the VO
+    frame is tilted by e, its cloud and its R_vo_body are both tilted by e, and the compensated
+    tilt equals the VO's own tilt, not the truth."""
+    specs, ranges, cloud, (roll, pitch) = compensation_case((4, -3, 20), (6, -5, 0))
+    R_err = so3.exp(np.radians([0.8, -0.6, 0.0]))  # the VO frame's tilt error
+    drifted = CloudView(
+        R_err @ cloud.R_vo_body, R_err @ cloud.body_position_m, cloud.points_m @ R_err.T
+    )
+    step = RollPitch(specs, AttitudeOptions()).step(0, ranges, drifted, 0)
+    assert step.gravity is not None
+    vo_roll, vo_pitch = tilt_truth(drifted.R_vo_body)
+    assert step.gravity.roll_rad == pytest.approx(vo_roll, abs=1e-6)
+    assert step.gravity.pitch_rad == pytest.approx(vo_pitch, abs=1e-6)
+    assert np.hypot(vo_roll - roll, vo_pitch - pitch) > np.radians(0.5)
+
+
+def test_autopilot_anchor_removes_a_vo_frame_tilt_error() -> None:
+    specs, ranges, cloud, (roll, pitch) = compensation_case((4, -3, 20), (6, -5, 0))
+    R_err = so3.exp(np.radians([0.8, -0.6, 0.0]))
+    R_world_body = so3.rpy_to_matrix(*np.radians((4, -3, 20)))
+    drifted = CloudView(
+        R_err @ cloud.R_vo_body, R_err @ cloud.body_position_m, cloud.points_m @ R_err.T
+    )
+    est = RollPitch(specs, AttitudeOptions())
+    for k in range(600):  # 20 s at 30 Hz; the VO frame is 1 deg off
+        step = est.step(k * 33_333, ranges, drifted, 0, R_world_body)
+    assert step.fused is not None
+    assert step.fused.roll_rad == pytest.approx(roll, abs=np.radians(0.1))
+    assert step.fused.pitch_rad == pytest.approx(pitch, abs=np.radians(0.1))
+
+
 def test_a_hit_on_a_wall_edge_is_refused() -> None:
     specs, ranges, cloud, _ = compensation_case((0, 0, 0), (0, 0, 0))
     # sensor 0's beam lands on a 0.6 m box top: its range is short, the cloud is the ground

@@ -138,7 +138,7 @@ class RollPitch:
             gravity, terrain_tilt, why = self._compensated(time_us, ids, range_m, raw, cloud)
             reasons.extend(why)
         measurement = gravity if o.compensate else ground
-        if cloud is not None and measurement is not None:
+        if cloud is not None and measurement is not None and o.fuse_ranges:
             self.filter.update(
                 time_us,
                 measurement.roll_rad,

@@ -32,7 +32,7 @@ class AttitudeOptions:
         40.0, "terrain under the hits steeper than this is refused [deg]", gt=0, le=85
     )
     drift_deg_per_sqrt_s: float = opt(
-        0.005, "random walk of the VO frame's tilt error [deg / sqrt(s)]", ge=0
+        0.05, "random walk of the VO frame's tilt error [deg / sqrt(s)]", ge=0
     )
     init_sigma_deg: float = opt(
         0.5, "sigma of the VO frame's tilt error at initialisation [deg]", gt=0
@@ -42,12 +42,16 @@ class AttitudeOptions:
         "time over which tilt measurement errors stay correlated (the same cloud patch) [s]",
         ge=0,
     )
+    fuse_ranges: bool = opt(
+        False,
+        "also fuse the range tilts (they share the VO frame's drift: docs/methods.md)",
+    )
     autopilot_sigma_deg: float = opt(
-        0.0,
-        "sigma of the autopilot's roll/pitch as a gravity anchor for the fusion [deg] (0 = unused)",
+        0.5,
+        "sigma of the autopilot's roll/pitch as the fusion's gravity anchor [deg] (0 = unused)",
         ge=0,
     )
     autopilot_correlation_s: float = opt(
-        30.0, "time over which the autopilot's roll/pitch errors stay correlated [s]", ge=0
+        1.0, "time over which the autopilot's roll/pitch errors stay correlated [s]", ge=0
     )
     gate_chi2: float = opt(13.8, "chi-square gate (2 dof) on a tilt measurement's innovation", gt=0)
