@@ -53,6 +53,10 @@ def surfaces_under(
     None for a hit with fewer than min_points there or a singular fit. Batched over the K
     hits (one set of array operations for all)."""
     K = len(xy_m)
+    reach = 2.0 * radius_m  # only the points near some hit matter: drop the rest first
+    lo, hi = xy_m.min(axis=0) - reach, xy_m.max(axis=0) + reach
+    keep = np.all((points_m[:, :2] >= lo) & (points_m[:, :2] <= hi), axis=1)
+    points_m = points_m[keep]
     dxy = points_m[None, :, :2] - xy_m[:, None, :]  # (K, N, 2)
     d2 = np.einsum("knj,knj->kn", dxy, dxy)
     near = d2 < (2.0 * radius_m) ** 2
@@ -100,8 +104,8 @@ def surfaces_under(
 
 def rotation_to_vertical(normal: F64) -> F64:
     """The smallest rotation (3, 3) that maps the unit vector ``normal`` onto e_z."""
-    axis = np.cross(normal, E_Z)
-    s = float(np.linalg.norm(axis))
+    axis = np.array([normal[1], -normal[0], 0.0])  # normal x e_z
+    s = float(np.hypot(normal[0], normal[1]))
     angle = float(np.arctan2(s, float(normal @ E_Z)))
     if s < 1e-12:
         return np.eye(3)
