@@ -359,8 +359,16 @@ def _attitude_plot(run: AttitudeRun, path: Path, title: str) -> Path:
         ax = axes[2 + j]
         for name, colour in colours.items():
             e = np.degrees(wrap_rad(run.array(name)[:, j] - run.array("truth")[:, j]))
-            ax.plot(t, e, color=colour, lw=0.6, label=ATTITUDE_LABELS[name])
-        ax.set_ylim(-3, 3)
+            raw = name in ("ground", "gravity")  # per-sample range tilts: noisy, drawn light
+            ax.plot(
+                t,
+                e,
+                color=colour,
+                lw=0.4 if raw else 1.0,
+                alpha=0.45 if raw else 1.0,
+                label=ATTITUDE_LABELS[name],
+            )
+        ax.set_ylim(-4, 4)
         ax.set_ylabel(f"{angle} error [deg]")
         ax.legend(loc="upper right", fontsize=8, ncol=2)
     axes[-1].set_xlabel("time [s]")
@@ -384,7 +392,7 @@ def write_attitude_study(
         lines.append(f"| {kind} | " + " | ".join(names) + " |")
         lines.append("|---" * (len(names) + 1) + "|")
         for xv, vals in points:
-            shown = f"{xv * 100:.0f} cm" if kind == "sigma" else f"{xv:.1f} m"
+            shown = f"{xv * 100:.1f} cm" if kind == "sigma" else f"{xv:.1f} m"
             lines.append(f"| {shown} | " + " | ".join(f"{vals[n]:.3f}" for n in names) + " |")
         lines.append("")
         for n in names:

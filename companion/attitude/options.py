@@ -24,7 +24,7 @@ class AttitudeOptions:
     edge_gate_m: float = opt(
         0.15, "a hit this far from the cloud's surface is on an edge or another surface [m]", gt=0
     )
-    min_spread_m: float = opt(0.05, "hit points closer than this to a line are collinear [m]", gt=0)
+    min_spread_m: float = opt(0.02, "hit points closer than this to a line are collinear [m]", gt=0)
     max_tilt_deg: float = opt(
         60.0, "a ground plane tilted more than this from the body is refused [deg]", gt=0, le=85
     )

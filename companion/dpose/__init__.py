@@ -1,0 +1,1 @@
+"""d-Pose: a direct metric 6DoF pose from four laser marks left on the surface."""
