@@ -156,8 +156,28 @@ def triangle_rangefinders(spacing_m: float, sigma_m: float = 0.01) -> tuple[Rang
     )
 
 
+def dpose_rangefinders(sigma_m: float = 0.01) -> tuple[RangefinderConfig, ...]:
+    """The four d-Pose lasers (ids 0-3): distance sensors that also leave marks, their beams
+    along companion.dpose.pattern.DPOSE_BEAMS (tilt = pitch of the mount, azimuth = yaw),
+    5 cm apart around the body origin."""
+    from companion.dpose.pattern import DPOSE_BEAMS
+
+    out = []
+    for k, (tilt_deg, az_deg) in enumerate(DPOSE_BEAMS):
+        a = math.radians(az_deg)
+        xyz = (round(0.05 * math.cos(a), 4), round(0.05 * math.sin(a), 4), 0.06)
+        out.append(
+            RangefinderConfig(
+                sensor_id=k,
+                mount=MountConfig(xyz_m=xyz, rpy_deg=(0.0, tilt_deg, az_deg)),
+                sigma_a_m=sigma_m,
+            )
+        )
+    return tuple(out)
+
+
 TerrainName = Literal["flat", "hills", "urban", "slope"]
-TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb"]
+TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb", "spiral"]
 LaserMarkMode = Literal["off", "live", "painted"]
 
 
@@ -181,7 +201,9 @@ class SitlConfig:
     """The simulated world and flight."""
 
     terrain: TerrainName = opt("hills", "terrain: flat, hills, urban or slope")
-    trajectory: TrajectoryName = opt("lawnmower", "hover, circle, lawnmower, figure8 or climb")
+    trajectory: TrajectoryName = opt(
+        "lawnmower", "hover, circle, lawnmower, figure8, climb or spiral"
+    )
     seed: int = opt(1, "seed of terrain, noise and faults", ge=0)
     seconds: float = opt(60.0, "flight duration [s]", gt=0, le=36000)
     altitude_m: float = opt(

@@ -26,7 +26,7 @@ from sitl.world import World
 
 F64 = NDArray[np.float64]
 
-TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb")
+TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral")
 GRAVITY_M_S2 = 9.80665
 LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
@@ -75,6 +75,9 @@ def _polyline_xy(name: str, speed: float) -> F64:
         return np.stack([14.0 * np.sin(a), 7.0 * np.sin(2 * a)], axis=1)
     if name == "climb":
         return np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 0.0]])
+    if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
+        a = np.linspace(0.0, 2 * np.pi, 73)
+        return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
 
 
@@ -134,6 +137,13 @@ class Trajectory:
             agl = np.where(tc < t_pattern0, lo, agl)
             agl = np.where(tc > t_pattern1, lo, agl)
             xy = _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / dur, tp)
+        if name == "spiral":  # 3 m at the start (arming), then 2 -> 8 -> 2 m, yaw turning
+            dur = max(t_pattern1 - t_pattern0, 1e-6)
+            phase = np.clip(tp / dur, 0.0, 1.0)
+            agl = 5.0 - 3.0 * np.cos(2 * np.pi * phase)
+            agl = np.where(tc < t_pattern0, 3.0, np.clip(agl, 2.0, 8.0))
+            agl = np.where(tc > t_pattern1, 2.0, agl)
+            xy = _walk(poly, 0.3, tp)
         if takeoff_landing:
             base = agl.copy()
             up = np.clip((tc - _GROUND_REST_S) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
@@ -164,6 +174,9 @@ class Trajectory:
         yaw = np.unwrap(yaw)
         if name == "climb":
             yaw = np.zeros_like(yaw)
+        if name == "spiral":  # one full turn of the heading over the pattern phase
+            dur = max(t_pattern1 - t_pattern0, 1e-6)
+            yaw = 2 * np.pi * np.clip((tc - t_pattern0) / dur, 0.0, 1.0)
         yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
         self._yaw = make_interp_spline(t, yaw, k=5)
         self._pos_d1 = self._pos.derivative(1)

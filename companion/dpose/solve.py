@@ -4,21 +4,29 @@ relative to the pattern (pure; thesis chapter 7, reconstructed in DESIGN.md sect
 The pattern frame is the body frame at the arming time: the marks' 3D points there are
 ``o_k + d_k u_k`` from the lasers' mounts and the four measured distances (metric).
 
-Vertex map: with exactly four detections, every one of the 24 labellings is solved by PnP
-(SQPnP, OpenCV, globally optimal for any 4 points, coplanar or not) and scored by its
-reprojection RMS in pixels. The best labelling is accepted only if (a) its RMS is at most
-``max_rms_px``, (b) every other labelling is worse by ``ambiguity_ratio`` and by at least
-``min_gap_px``, and (c) all marks are in front of the camera. Anything else (three or five
-detections, an ambiguous or a bad fit) yields no pose and a reason: a wrong vertex map would
-give a confidently wrong pose, which is worse than none. The pattern's similarity margin
-(:mod:`companion.dpose.pattern`) is what keeps wrong labellings far from the right one.
+Vertex map: every labelling (which detection is which mark) is solved and scored by its
+reprojection RMS in pixels. With the autopilot's roll/pitch as a prior (the normal case), a
+labelling's pose has only yaw and position left, found in closed form
+(:func:`poses_known_tilt`), batched over all labellings, and with up to ``max_detections``
+detections every ordered choice of four is tried (distractors must then lose like wrong
+labellings do). Without the prior, exactly four detections are needed and each labelling is
+solved by IPPE (both planar solutions) and kept only if the body's tilt is plausible. The best
+labelling is accepted only if (a) its RMS is at most ``max_rms_px``, (b) every other labelling
+is worse by ``ambiguity_ratio`` and by at least ``min_gap_px``, and (c) all marks are in front
+of the camera. Anything else (three detections, an ambiguous or a bad fit) yields no pose and
+a reason: a wrong vertex map would give a confidently wrong pose, which is worse than
+none. The pattern's similarity margin (:mod:`companion.dpose.pattern`) is what keeps wrong
+labellings far from the right one.
 
-Pose: the accepted PnP solution refined by Levenberg-Marquardt on the reprojection error;
-covariance sigma_px^2 (J^T J)^-1 over (rotation vector, translation) of T_cam_pattern.
+Pose: the accepted solution refined by Gauss-Newton on the reprojection error [px / sigma]
+plus the priors (the autopilot's tilt, the lasers' height above the pattern plane);
+covariance (J^T J)^-1 of that weighted problem over (rotation vector, translation) of
+T_cam_pattern.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -42,6 +50,7 @@ class SolveOptions:
     pixel_sigma: float = 1.0  # detection noise for the covariance [px]
     max_tilt_deg: float = 35.0  # the body's tilt from its attitude at arming (no priors)
     prior_gate_deg: float = 10.0  # a pose's tilt from the autopilot's (with priors)
+    max_detections: int = 7  # with priors, up to this many detections are sorted out
 
 
 @dataclass(frozen=True, slots=True)
@@ -168,8 +177,11 @@ def solve(
     the ground it marked), which removes the strongly tilted poses that a wrong labelling of
     a small (weak-perspective) pattern can otherwise fit."""
     o = opts or SolveOptions()
-    if len(pixels) != 4:
-        return None, f"{len(pixels)} marks detected, 4 needed"
+    n_det = len(pixels)
+    if n_det < 4:
+        return None, f"{n_det} marks detected, 4 needed"
+    if n_det > 4 and (priors is None or n_det > o.max_detections):
+        return None, f"{n_det} marks detected, 4 needed"
     norm = camera.pixels_to_normalized(pixels)
     focal = 0.5 * (camera.fx + camera.fy)
     eye = np.eye(3)
@@ -185,10 +197,12 @@ def solve(
     else:  # a multirotor over the ground it marked: not far from its attitude at arming
         R_ref = np.eye(3)
         cos_max = np.cos(np.radians(o.max_tilt_deg))
-    perms = np.asarray(PERMUTATIONS)
-    norms = norm[perms]  # (24, 4, 2)
     scored: list[tuple[float, tuple[int, ...], F64, F64]] = []
     if priors is not None:  # the prior's roll/pitch in the pattern frame, yaw left free
+        # every ordered choice of 4 of the detections (24 when there are exactly 4; with
+        # distractors, every subset too: a wrong subset must then lose by the same margins)
+        labellings = np.asarray(list(itertools.permutations(range(n_det), 4)))
+        norms = norm[labellings]  # (L, 4, 2)
         r, p, _ = so3.matrix_to_rpy(priors.R_pattern_body)
         R_tilt_cam = so3.rpy_to_matrix(r, p, 0.0) @ priors.R_cam_body.T
         Rs, ts, valid = poses_known_tilt(obj, norms, R_tilt_cam)
@@ -197,7 +211,7 @@ def solve(
             scored.append(
                 (
                     float(rms_all[k]),
-                    PERMUTATIONS[k],
+                    tuple(int(i) for i in labellings[k]),
                     so3.log(Rs[k]).reshape(3, 1),
                     ts[k].reshape(3, 1),
                 )
