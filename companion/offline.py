@@ -347,3 +347,87 @@ def replay_attitude(
             if tilt is not None:
                 out[name][k] = (tilt.roll_rad, tilt.pitch_rad)
     return out
+
+
+@dataclass
+class DposeRun:
+    """Per-frame d-Pose and VO poses of a SITL flight, relative to the arming pose.
+
+    time_us (F,); height_m (F,) true height above the marks; truth, dpose, vo: (F, 4, 4)
+    T_pattern_body (the body relative to its pose at arming; NaN where missing); reasons:
+    how often d-Pose gave no pose and why; dpose_ms (F,) its cost per frame.
+    """
+
+    time_us: list[int] = field(default_factory=list)
+    height_m: list[float] = field(default_factory=list)
+    truth: list[F64] = field(default_factory=list)
+    dpose: list[F64] = field(default_factory=list)
+    vo: list[F64] = field(default_factory=list)
+    reasons: dict[str, int] = field(default_factory=dict)
+    dpose_ms: list[float] = field(default_factory=list)
+    arm_time_us: int = 0
+
+
+def run_dpose(config: Config, scenario: Any, arm_time_s: float) -> DposeRun:
+    """Fly the SITL scenario (its rangefinders are the four d-Pose lasers, marks painted at
+    arm_time_s): arm d-Pose at the first frame at or after arm_time_s with the lasers'
+    readings, the true body pose (the world reference) and the autopilot's attitude; then run
+    d-Pose and the VO pipeline on every frame."""
+    from companion.dpose.estimator import Dpose
+    from companion.geometry import se3
+
+    pipe = Pipeline(config)
+    specs = {r.sensor_id: r.spec() for r in config.rangefinders}
+    dpose = Dpose(pipe.camera, pipe.T_body_cam, specs)
+    run = DposeRun()
+    nan44 = np.full((4, 4), np.nan)
+    T_arm: F64 | None = None
+    vo_anchor: tuple[F64, F64] | None = None  # (VO pose, true pose) at the first VO pose
+    vo_reset = -1
+    sims = scenario.ranges
+
+    def ranges_at(time_us: int) -> dict[int, float]:
+        got = {}
+        for i, rf in enumerate(config.rangefinders):
+            smp = sims.measure(i, time_us).sample
+            if smp is not None and smp.is_valid:
+                got[rf.sensor_id] = smp.distance_m
+        return got
+
+    for step in scenario.steps():
+        for a in step.attitudes:
+            pipe.feed_attitude(a)
+        for r in step.ranges:
+            if r.sample is not None:
+                pipe.feed_range(r.sample)
+        pose = pipe.feed_frame(step.frame)
+        pipe.background_work()
+        t_us = step.frame.time_us
+        R_ap = pipe.attitude_at(t_us)
+        if T_arm is None:
+            if t_us * 1e-6 + 1e-9 < arm_time_s or R_ap is None:
+                continue
+            dpose.arm(ranges_at(t_us), step.T_world_body, R_ap)
+            T_arm = step.T_world_body.copy()
+            run.arm_time_us = t_us
+        truth = se3.inverse(T_arm) @ step.T_world_body
+        t0 = time.perf_counter()
+        res = dpose.step(t_us, step.frame.image_bgr, R_ap, ranges_at(t_us))
+        run.dpose_ms.append((time.perf_counter() - t0) * 1e3)
+        if res is None:
+            key = dpose.last_reason.split(" (")[0]
+            run.reasons[key] = run.reasons.get(key, 0) + 1
+        vo_rel = nan44
+        if pose is not None:
+            T_vo = se3.from_quat(pose.quat_wxyz_ned_frd, pose.position_ned_m)
+            if vo_anchor is None or pose.reset_counter != vo_reset:
+                # the VO is relative: anchor it to the truth once (and after a reset)
+                vo_anchor, vo_reset = (T_vo, truth), pose.reset_counter
+            vo_rel = vo_anchor[1] @ se3.inverse(vo_anchor[0]) @ T_vo
+        run.time_us.append(t_us)
+        assert dpose.pattern is not None
+        run.height_m.append(float(dpose.pattern[:, 2].mean() - truth[2, 3]))
+        run.truth.append(truth)
+        run.dpose.append(res.T_pattern_body if res is not None else nan44)
+        run.vo.append(vo_rel)
+    return run

@@ -407,3 +407,82 @@ def write_attitude_study(
         ax.legend(fontsize=8)
     axes[0].set_title(title)
     return "\n".join(lines), _save(plt, fig, out / "attitude_study.png")
+
+
+def _pose_errors(est: F64, truth: F64) -> tuple[F64, F64]:
+    """Translation [m] and rotation [deg] errors (F,) of (F, 4, 4) poses; NaN where missing."""
+    t = np.linalg.norm(est[:, :3, 3] - truth[:, :3, 3], axis=1)
+    r = np.full(len(est), np.nan)
+    ok = np.all(np.isfinite(est[:, :3, :3]), axis=(1, 2))
+    for k in np.flatnonzero(ok):
+        r[k] = np.degrees(so3.angle_between(est[k, :3, :3], truth[k, :3, :3]))
+    return t, r
+
+
+def dpose_metrics(run: Any) -> list[dict[str, Any]]:
+    """MSE and RMSE of translation and orientation for d-Pose and the VO, over all frames
+    after arming and in height bands; availability."""
+    truth = np.array(run.truth)
+    h = np.array(run.height_m)
+    rows = []
+    for name in ("dpose", "vo"):
+        t_err, r_err = _pose_errors(np.array(getattr(run, name)), truth)
+        for band, sel in (
+            ("all", np.ones(len(h), dtype=bool)),
+            ("2-6 m", (h >= 2.0) & (h <= 6.0)),
+            ("6-8 m", (h > 6.0) & (h <= 8.0)),
+        ):
+            ok = sel & np.isfinite(t_err) & np.isfinite(r_err)
+            n = int(ok.sum())
+            rows.append(
+                {
+                    "estimate": "d-Pose" if name == "dpose" else "VO (M-MSCwK)",
+                    "heights": band,
+                    "frames": int(sel.sum()),
+                    "available": float(n / max(int(sel.sum()), 1)),
+                    "t_mse_m2": float(np.mean(t_err[ok] ** 2)) if n else float("nan"),
+                    "t_rmse_m": float(np.sqrt(np.mean(t_err[ok] ** 2))) if n else float("nan"),
+                    "r_mse_deg2": float(np.mean(r_err[ok] ** 2)) if n else float("nan"),
+                    "r_rmse_deg": float(np.sqrt(np.mean(r_err[ok] ** 2))) if n else float("nan"),
+                }
+            )
+    return rows
+
+
+def write_dpose(run: Any, out: Path, title: str) -> str:
+    """dpose_metrics.json, dpose.md and dpose.png in ``out``; returns the Markdown table."""
+    rows = dpose_metrics(run)
+    (out / "dpose_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
+    lines = [
+        "| estimate | heights | frames | available | translation MSE | translation RMSE "
+        "| orientation MSE | orientation RMSE |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['estimate']} | {r['heights']} | {r['frames']} | {100 * r['available']:.1f} % "
+            f"| {r['t_mse_m2']:.2e} m² | {r['t_rmse_m']:.3f} m | {r['r_mse_deg2']:.3f} deg² "
+            f"| {r['r_rmse_deg']:.3f} deg |"
+        )
+    table = "\n".join(lines)
+    why = "\n".join(
+        f"- {n} frames: {k}" for k, n in sorted(run.reasons.items(), key=lambda x: -x[1])
+    )
+    (out / "dpose.md").write_text(f"# {title}\n\n{table}\n\nNo pose because:\n{why}\n")
+    plt = _plt()
+    t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
+    truth = np.array(run.truth)
+    fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    axes[0].plot(t, run.height_m, "k-")
+    axes[0].set_ylabel("height above the marks [m]")
+    for name, colour, label in (("vo", "tab:blue", "VO (M-MSCwK)"), ("dpose", "tab:red", "d-Pose")):
+        t_err, r_err = _pose_errors(np.array(getattr(run, name)), truth)
+        axes[1].plot(t, t_err * 100, color=colour, lw=0.8, label=label)
+        axes[2].plot(t, r_err, color=colour, lw=0.8, label=label)
+    axes[1].set_ylabel("translation error [cm]")
+    axes[2].set_ylabel("orientation error [deg]")
+    axes[2].set_xlabel("time since arming [s]")
+    axes[1].legend()
+    axes[0].set_title(title)
+    _save(plt, fig, out / "dpose.png")
+    return table

@@ -1,6 +1,6 @@
 """Red laser marks in a colour image, with sub-pixel centres (pure).
 
-Redness r = R - max(G, B) (8-bit, as int16) is high for a red laser dot and low for grass,
+Redness r = max(R - max(G, B), 0) (8-bit) is high for a red laser dot and low for grass,
 gravel, asphalt and most bricks (whose red excess stays below ~90 levels in our textures and in
 daylight photographs). Pixels above ``threshold`` form connected blobs; a blob is a mark when
 its area is plausible for a dot (blur spreads it, so up to ``max_area_px``) and its peak is
@@ -30,10 +30,10 @@ class DetectOptions:
     max_area_px: int = 400
 
 
-def redness(image_bgr: U8) -> NDArray[np.int16]:
-    """R - max(G, B) per pixel (H, W), int16."""
-    img = image_bgr.astype(np.int16)
-    out: NDArray[np.int16] = img[..., 2] - np.maximum(img[..., 0], img[..., 1])
+def redness(image_bgr: U8) -> U8:
+    """max(R - max(G, B), 0) per pixel (H, W), uint8 (saturating OpenCV arithmetic)."""
+    b, g, r = cv2.split(image_bgr)
+    out: U8 = cv2.subtract(r, cv2.max(g, b))
     return out
 
 
@@ -41,7 +41,7 @@ def detect_marks(image_bgr: U8, opts: DetectOptions | None = None) -> F64:
     """Centres (N, 2) [px, distorted image coordinates] of the red marks, brightest first."""
     o = opts or DetectOptions()
     red = redness(image_bgr)
-    mask = (red > o.threshold).astype(np.uint8)
+    _, mask = cv2.threshold(red, o.threshold, 1, cv2.THRESH_BINARY)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     found: list[tuple[float, float, float]] = []
     for k in range(1, n):
