@@ -277,6 +277,22 @@ class SimAutopilot:
             next_t += period_s
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
 
+    def _log_live(self) -> None:
+        """A line every 5 s with what arrived and its error so far (SE(3)-aligned)."""
+        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        t = self.t_sim_of_mono(time.monotonic_ns())
+        if len(rec) < 10 or t < 0:
+            return
+        recent = [r for r in rec if r.rx_ns > time.monotonic_ns() - 5_000_000_000]
+        est = np.array([r.position for r in rec])
+        gt = np.array([r.true_position for r in rec])
+        err = np.linalg.norm(umeyama(est, gt, with_scale=False).apply(est) - gt, axis=1)
+        print(
+            f"[sitl {t:5.1f} s] {len(recent) / 5.0:4.1f} Hz {self._main_kind()}, "
+            f"position error now {err[-1]:.3f} m, ATE so far {np.sqrt(np.mean(err**2)):.3f} m",
+            flush=True,
+        )
+
     def _heartbeat(self) -> None:
         self.send(self.mav.heartbeat_encode(2, 12, 0, 0, 4))  # QUADROTOR, PX4, ACTIVE
 
@@ -383,6 +399,7 @@ class SimAutopilot:
                     tg.create_task(self._every(0.1, self._timesync)),
                     tg.create_task(self._attitude_loop()),
                     tg.create_task(self._distance_loop()),
+                    tg.create_task(self._every(5.0, self._log_live)),
                 ]
                 # the world is built (and, with prerender, every frame rendered)
                 await asyncio.to_thread(ready.wait)
