@@ -6,7 +6,8 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 OUT     ?= out
 
-.PHONY: all venv sysdeps demo test lint typecheck unit bench results clean
+.PHONY: all venv sysdeps demo test lint typecheck unit bench results results-attitude \
+	results-dpose clean
 
 all: test
 
@@ -45,6 +46,7 @@ bench: venv
 	$(BIN)/companion bench render
 	$(BIN)/companion bench vo --terrain hills --trajectory lawnmower --seconds 60
 	$(BIN)/companion bench attitude --terrain hills --trajectory lawnmower --seconds 60
+	$(BIN)/companion bench dpose --terrain hills --seconds 30
 
 # docs/RESULTS.md, metric scale: every method on 4 terrains x 2 trajectories x 3 seeds (long)
 RESULTS := $(OUT)/results
@@ -56,6 +58,22 @@ results: venv
 	$(BIN)/companion eval --methods all --sensor-study --terrain hills --trajectory lawnmower \
 	  --seconds 60 --seed 1 --out $(RESULTS)/study-hills --no-progress
 	$(BIN)/companion report $(RESULTS)/*-*-*
+
+# docs/RESULTS.md, roll/pitch (issue 5) and d-Pose (issue 6)
+results-attitude: venv
+	for t in flat hills urban slope; do \
+	  $(BIN)/companion eval --attitude --terrain $$t --seconds 60 --spacing 0.5 --no-progress \
+	    --out $(RESULTS)/attitude-$$t || exit 1; done
+	$(BIN)/companion eval --attitude --terrain flat --seconds 60 --spacing 0.5 --study \
+	  --no-progress --out $(RESULTS)/attitude-study
+	$(BIN)/companion eval --attitude --terrain hills --trajectory circle --seconds 600 \
+	  --spacing 0.5 --no-progress --out $(RESULTS)/attitude-hills-circle-600
+
+results-dpose: venv
+	for t in flat hills slope; do \
+	  $(BIN)/companion eval --dpose --terrain $$t --seconds 60 --out $(RESULTS)/dpose-$$t \
+	  || exit 1; done
+	$(BIN)/companion eval --dpose --random 10000
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

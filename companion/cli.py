@@ -431,6 +431,67 @@ def cmd_bench_attitude(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_dpose(args: argparse.Namespace) -> int:
+    """Benchmark d-Pose per frame (detection, vertex map, pose) on one core: the frames of a
+    spiral flight over painted marks are rendered first, then only Dpose.step is timed."""
+    import dataclasses
+    import time
+
+    import cv2
+    import numpy as np
+
+    from companion.bench import machine_description
+    from companion.config import dpose_rangefinders
+    from companion.dpose.estimator import Dpose
+    from companion.geometry import so3
+    from sitl.scenario import Scenario
+
+    cv2.setNumThreads(1)
+    overrides = _sitl_overrides(args)
+    overrides.setdefault("sitl", {}).setdefault("trajectory", "spiral")
+    cfg = load_config(getattr(args, "config", None), overrides)
+    render = dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=1.0)
+    cfg = dataclasses.replace(
+        cfg,
+        rangefinders=dpose_rangefinders(),
+        sitl=dataclasses.replace(cfg.sitl, render=render),
+    )
+    sc = Scenario(cfg)
+    specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
+    dpose = Dpose(cfg.camera.model(), cfg.camera.T_body_cam(), specs)
+
+    def ranges_at(t_us: int) -> dict[int, float]:
+        got = {}
+        for i, rf in enumerate(cfg.rangefinders):
+            smp = sc.ranges.measure(i, t_us).sample
+            if smp is not None and smp.is_valid:
+                got[rf.sensor_id] = smp.distance_m
+        return got
+
+    frames = []
+    for st in sc.steps(start=30):
+        R = st.T_world_body[:3, :3]
+        if not dpose.armed:
+            dpose.arm(ranges_at(st.frame.time_us), st.T_world_body, R)
+        frames.append(
+            (st.frame, R @ so3.exp(np.radians(0.1) * np.ones(3)), ranges_at(st.frame.time_us))
+        )
+    ms, found = [], 0
+    for frame, R_ap, ranges in frames:
+        t0 = time.perf_counter()
+        res = dpose.step(frame.time_us, frame.image_bgr, R_ap, ranges)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        found += res is not None
+    a = np.array(ms)
+    print(f"machine: {machine_description()}")
+    print(
+        f"d-Pose step on {cfg.sitl.terrain}/spiral ({len(a)} frames, 640x480, one core): "
+        f"median {np.median(a):.2f} ms, p99 {np.percentile(a, 99):.2f} ms, max {a.max():.2f} ms; "
+        f"pose in {100 * found / len(a):.1f} % of frames"
+    )
+    return EXIT_OK
+
+
 def cmd_bench_vo(args: argparse.Namespace) -> int:
     """Benchmark the VO: per-frame time on one core (median, p99) and peak RSS."""
     import cv2
@@ -680,6 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sitl_flags(p_ba)
     p_ba.add_argument("--no-progress", action="store_true")
     p_ba.set_defaults(func=cmd_bench_attitude)
+    p_bd = bench_sub.add_parser("dpose", help="d-Pose cost per frame, one core")
+    _add_sitl_flags(p_bd)
+    p_bd.set_defaults(func=cmd_bench_dpose)
 
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
     p_rep.add_argument("dirs", nargs="+", type=Path)
