@@ -26,9 +26,11 @@ $(STAMP): pyproject.toml | sysdeps
 venv: $(STAMP)
 
 # The SITL autopilot and the service together on the default scenario (hills, lawnmower, 60 s,
-# real time over loopback); prints what the autopilot received and where the plots are.
+# real time over loopback); prints what the autopilot received and where the plots are. The
+# camera is rendered first (about a minute), so that on a 2-core machine the renderer does not
+# take the CPU from the service during the flight (docs/BENCHMARKS.md has both figures).
 demo: venv
-	$(BIN)/companion demo --config config/sitl.toml --out $(OUT)/demo
+	$(BIN)/companion demo --config config/sitl.toml --prerender --out $(OUT)/demo
 
 lint: venv
 	$(BIN)/ruff check companion drivers sitl tests

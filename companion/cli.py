@@ -609,6 +609,8 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
         f"127.0.0.1:{stub.opts.companion_port}, camera on tcp 127.0.0.1:{stub.opts.camera_port}",
         flush=True,
     )
+    if args.prerender:
+        print("rendering every camera frame before the flight (about a minute)...", flush=True)
     report = asyncio.run(stub.run(out))
     print(json.dumps(report, indent=2))
     print(f"report, received.csv and plot in {out}")
