@@ -84,4 +84,5 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert summary["frames_in"] >= 0.97 * SECONDS * cfg.camera.rate_hz
     assert report["resets"] == 0
     assert summary["link"]["rx_bad"] == 0
+    assert summary["pipeline_errors"] == 0
     assert (tmp_path / "autopilot" / "autopilot.png").exists()

@@ -118,6 +118,10 @@ class RollPitch:
         for i in self.ids:
             if i not in ids:
                 reasons.append(f"sensor {i}: no valid reading")
+        if len(ids) < 3:
+            self.refused += 1
+            reason = f"{len(ids)} valid readings, 3 needed"
+            return TiltStep(None, None, self._fused(time_us, cloud), (*reasons, reason))
         try:
             raw = self._ground(ids, range_m)
         except GeometryError as e:

@@ -37,6 +37,8 @@ from drivers import messages
 
 log = logging.getLogger("companion.service")
 
+MAX_CONSECUTIVE_PIPELINE_ERRORS = 30  # about a second of frames: then the service ends
+
 
 def now_ns() -> int:
     """Our clock: monotonic [ns] (the camera's and the time sync's)."""
@@ -54,6 +56,7 @@ class ServiceStats:
     published: int = 0
     not_published: int = 0  # processed frames without a pose (not tracking / no scale)
     stale: int = 0  # poses not sent because their frame was older than stale_frame_ms
+    pipeline_errors: int = 0  # frames on which the pipeline raised (a bug: logged)
     ranges_in: int = 0
     ranges_rejected: int = 0
     attitudes_in: int = 0
@@ -279,6 +282,7 @@ class Service:
         self.stats.warnings.append(text)
 
     async def _pipeline_loop(self) -> None:
+        failures = 0
         while not self._stop.is_set():
             await self._frame_ready.wait()
             self._frame_ready.clear()
@@ -290,7 +294,19 @@ class Service:
             self._ranges.clear()
             self._attitudes.clear()
             t0 = time.perf_counter()
-            pose = await asyncio.to_thread(self._process, frame, ranges, atts)
+            try:
+                pose = await asyncio.to_thread(self._process, frame, ranges, atts)
+            except Exception:
+                # a bug on one frame must not take the autopilot's estimate down for good:
+                # log it, count it, skip the frame; a persistent failure ends the service
+                # (systemd restarts it)
+                log.exception("pipeline failed on frame %d", frame.seq)
+                self.stats.pipeline_errors += 1
+                failures += 1
+                if failures >= MAX_CONSECUTIVE_PIPELINE_ERRORS:
+                    raise
+                continue
+            failures = 0
             self.stats.process_ms.append((time.perf_counter() - t0) * 1e3)
             self.stats.frames_processed += 1
             self._publish(frame, pose)
@@ -367,6 +383,7 @@ class Service:
             "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
             "stale": s.stale,
+            "pipeline_errors": s.pipeline_errors,
             "warnings": list(s.warnings),
             "vo_resets": self.pipeline.vo.resets,
             "reset_counter": s.last_reset_counter,
