@@ -593,6 +593,108 @@ def cmd_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+EXIT_NOT_RUNNING = 3  # as `systemctl status` for a unit that is not active
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """The status JSON as a readable table (plain text, aligned)."""
+
+    def fmt(v: Any, unit: str = "", digits: int = 2) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, float):
+            return f"{v:.{digits}f}{unit}"
+        return f"{v}{unit}"
+
+    ap, cam, vo, sc, att, out = (
+        st["autopilot"],
+        st["camera"],
+        st["vo"],
+        st["scale"],
+        st["attitude"],
+        st["output"],
+    )
+    rows = [
+        ("uptime", fmt(st["uptime_s"], " s", 0)),
+        (
+            "autopilot",
+            f"{ap['url']}  system {fmt(ap['system_id'])}  heartbeat "
+            f"{fmt(ap['heartbeat_age_s'], ' s ago', 1)}",
+        ),
+        (
+            "  time sync",
+            f"{'converged' if ap['timesync_converged'] else 'NOT converged'}  "
+            f"offset {fmt(ap['timesync_offset_ms'], ' ms', 3)}  "
+            f"rtt {fmt(ap['timesync_rtt_ms'], ' ms', 2)}",
+        ),
+        ("  messages", f"{ap['rx_messages']} in, {ap['rx_bad']} bad"),
+        (
+            "camera",
+            f"{cam['url']}  {fmt(cam['fps'], ' fps', 1)}  {cam['frames']} frames, "
+            f"{cam['dropped']} dropped, last {fmt(cam['last_frame_age_s'], ' s ago', 2)}",
+        ),
+        (
+            "VO",
+            f"{vo['state']}  {vo['features']} features  {vo['keyframes']} keyframes  "
+            f"{vo['resets']} resets",
+        ),
+        (
+            "scale",
+            f"{sc['method']}  {fmt(sc['value'], '', 4)} ± {fmt(sc['sigma'], '', 4)}  "
+            f"{sc['sensors_used']} sensors  ranges {sc['ranges_in']} in, "
+            f"{sc['ranges_rejected']} rejected",
+        ),
+        (
+            "roll/pitch",
+            f"{fmt(att['roll_deg'], '°')} / {fmt(att['pitch_deg'], '°')}  "
+            f"± {fmt(att['sigma_deg'], '°', 3)}  "
+            f"compensation {'on' if att['compensation'] else 'off'}",
+        ),
+        (
+            "output",
+            f"{out['message']}  {fmt(out['rate_hz'], ' Hz', 1)}  {out['published']} sent  "
+            f"reset_counter {out['reset_counter']}  "
+            f"latency p50 {fmt(out['latency_ms_p50'], ' ms', 1)}",
+        ),
+        (
+            "MQTT",
+            "connected"
+            if st["mqtt"].get("connected")
+            else ("enabled, not connected" if st["mqtt"].get("enabled") else "disabled"),
+        ),
+    ]
+    width = max(len(k) for k, _ in rows)
+    lines = [f"{k:<{width}}  {v}" for k, v in rows]
+    warnings = st.get("warnings") or []
+    lines.append(f"{'warnings':<{width}}  " + ("none" if not warnings else warnings[-1]))
+    lines.extend(f"{'':<{width}}  {w}" for w in warnings[-5:-1][::-1])
+    for r in att.get("reasons", [])[:3]:
+        lines.append(f"{'':<{width}}  roll/pitch: {r}")
+    return "\n".join(lines)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Show the running service's state (exit 3 when it is not running)."""
+    import json
+    import time
+
+    from companion.service.status import read_status, status_path
+
+    path = Path(args.socket) if args.socket else status_path(_load(args).service.status_socket)
+    while True:
+        st = read_status(path)
+        if st is None:
+            print(f"companion is not running (no service on {path})")
+            return EXIT_NOT_RUNNING
+        text = json.dumps(st, indent=2) if args.json else format_status(st)
+        if args.watch:
+            print("\033[H\033[2J" + text, flush=True)
+            time.sleep(1.0)
+            continue
+        print(text)
+        return EXIT_OK
+
+
 def cmd_sitl_run(args: argparse.Namespace) -> int:
     """The PX4-like SITL autopilot with its camera stream (sitl/autopilot.py)."""
     import asyncio
@@ -760,6 +862,13 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     p_run.add_argument("--seed", type=int, help=argparse.SUPPRESS)
     p_run.set_defaults(func=cmd_run)
+
+    p_status = sub.add_parser("status", help="the running service's state (exit 3 if none)")
+    p_status.add_argument("--config", type=Path, help="TOML config (for service.status_socket)")
+    p_status.add_argument("--socket", type=Path, help="status socket path")
+    p_status.add_argument("--json", action="store_true", help="JSON for machines")
+    p_status.add_argument("--watch", action="store_true", help="refresh every second")
+    p_status.set_defaults(func=cmd_status)
 
     p_demo = sub.add_parser("demo", help="SITL autopilot + service together, with a summary")
     _add_sitl_flags(p_demo)

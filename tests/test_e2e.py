@@ -19,6 +19,7 @@ import pytest
 from companion.config import load_config
 from companion.geometry import so3
 from companion.service.app import Service
+from companion.service.status import read_status
 from sitl.autopilot import AutopilotOptions, SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "60"))
@@ -51,6 +52,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
             "service": {
                 "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
                 "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
+                "status_socket": str(tmp_path / "status.sock"),
             },
         },
     )
@@ -60,7 +62,15 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
         stub_task = asyncio.create_task(stub.run(tmp_path / "autopilot"))
         async with Service(cfg) as service:
             stub_task.add_done_callback(lambda _: service.stop())
+
+            async def look() -> None:  # `companion status` while it flies
+                while service.stats.published < 300:
+                    await asyncio.sleep(0.2)
+                seen.update(await asyncio.to_thread(read_status, tmp_path / "status.sock"))
+
+            looker = asyncio.create_task(look())
             await service.run()
+            looker.cancel()
         report = await stub_task
         # what the autopilot decoded (pymavlink, MAVLink 2) against what the service sent
         sent = {p.time_us: p for p in service.stats.sent}
@@ -73,7 +83,13 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
             assert r.reset_counter == pose.reset_counter
         return report, service.summary()
 
+    seen: dict = {}
     report, summary = asyncio.run(both())
+    assert seen["vo"]["state"] == "TRACKING"
+    assert 25.0 <= seen["camera"]["fps"] <= 35.0
+    assert seen["autopilot"]["timesync_converged"] and seen["autopilot"]["system_id"] == 1
+    assert sorted(seen["autopilot"]["rates_acknowledged"]) == [30, 132]
+    assert seen["scale"]["value"] > 0 and seen["output"]["rate_hz"] > 25.0
     print(report, summary)
     assert "error" not in report, report
     assert report["received_rate_hz"] >= 29.0

@@ -31,6 +31,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.pipeline import Pipeline
+from companion.service.status import StatusServer, status_path
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from drivers import messages
@@ -86,6 +87,8 @@ class Service:
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url)
         self.link = MavlinkLink(o.mavlink_url, o.system_id, o.component_id, self._on_message)
+        self.status_server = StatusServer(status_path(o.status_socket), self.status)
+        self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
         self.sensors = {r.sensor_id: r for r in config.rangefinders}
         self._slot: CameraFrame | None = None
         self._slot_lock = threading.Lock()
@@ -104,6 +107,7 @@ class Service:
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Service:
         sys.setswitchinterval(0.0005)  # let the event loop in often while the worker computes
+        await self.status_server.__aenter__()  # first: a second instance stops here (exit 2)
         await self.link.__aenter__()
         self._tg = asyncio.TaskGroup()
         await self._tg.__aenter__()
@@ -130,6 +134,7 @@ class Service:
                 await self._tg.__aexit__(*exc)
         finally:
             await self.link.__aexit__(*exc)
+            await self.status_server.__aexit__(*exc)
 
     async def run(self, duration_s: float | None = None) -> None:
         """Serve until ``stop()`` or for duration_s seconds."""
@@ -254,6 +259,7 @@ class Service:
                                 self.stats.frames_dropped += 1
                             self._slot = frame
                             self.stats.frames_in += 1
+                            self._frame_times_ns.append(now_ns())
                         loop.call_soon_threadsafe(self._frame_ready.set)
                 except Exception as e:  # a driver error: reported, the source is reopened
                     error = e
@@ -389,6 +395,76 @@ class Service:
             "reset_counter": s.last_reset_counter,
             "scale": scale.scale if scale is not None else None,
             "link": vars(self.link.stats),
+        }
+
+    def status(self) -> dict[str, Any]:
+        """What `companion status` shows (served as JSON on the status socket)."""
+        now = now_ns()
+        s, p, o = self.stats, self.pipeline, self.config.service
+        frames = list(self._frame_times_ns)
+        fps = (len(frames) - 1) / ((frames[-1] - frames[0]) * 1e-9) if len(frames) > 1 else 0.0
+        pubs = [t for t in s.publish_times_ns if now - t < 5_000_000_000]
+        out = p.vo_output
+        est = p.estimates.get(p.method_name)
+        tilt = p.tilt
+        fused = tilt.fused if tilt is not None else None
+        lat = list(s.latency_ms)[-300:]
+        return {
+            "uptime_s": (now - s.started_ns) * 1e-9,
+            "autopilot": {
+                "url": o.mavlink_url,
+                "heartbeat_age_s": (now - s.autopilot_heartbeat_ns) * 1e-9
+                if s.autopilot_heartbeat_ns
+                else None,
+                "system_id": s.autopilot_system_id or None,
+                "timesync_converged": self.sync.converged,
+                "timesync_offset_ms": self.sync.offset_at(now) * 1e-6
+                if self.sync.converged
+                else None,
+                "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
+                "rates_acknowledged": sorted(s.rates_acknowledged),
+                "rx_messages": self.link.stats.rx_messages,
+                "rx_bad": self.link.stats.rx_bad,
+            },
+            "camera": {
+                "url": o.camera_url,
+                "fps": fps,
+                "frames": s.frames_in,
+                "dropped": s.frames_dropped,
+                "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
+            },
+            "vo": {
+                "state": out.state.name if out is not None else "INITIALIZING",
+                "features": int(len(out.features.pixels)) if out is not None else 0,
+                "keyframes": len(p.vo.keyframes),
+                "resets": p.vo.resets,
+            },
+            "scale": {
+                "method": p.method_name,
+                "value": est.scale if est is not None else None,
+                "sigma": est.sigma if est is not None else None,
+                "sensors_used": est.n_used if est is not None else 0,
+                "ranges_in": s.ranges_in,
+                "ranges_rejected": s.ranges_rejected + p.ranges.rejected,
+            },
+            "attitude": {
+                "roll_deg": float(np.degrees(fused.roll_rad)) if fused else None,
+                "pitch_deg": float(np.degrees(fused.pitch_rad)) if fused else None,
+                "sigma_deg": float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
+                if fused
+                else None,
+                "compensation": self.config.attitude.compensate,
+                "reasons": list(tilt.reasons) if tilt is not None else [],
+            },
+            "output": {
+                "message": o.output,
+                "rate_hz": len(pubs) / 5.0,
+                "published": s.published,
+                "reset_counter": s.last_reset_counter,
+                "latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
+            },
+            "mqtt": {"enabled": False},
+            "warnings": list(s.warnings),
         }
 
     def write_report(self, path: Path) -> None:

@@ -34,3 +34,8 @@ class ServiceOptions:
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0
     )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
+    status_socket: str = opt(
+        "",
+        "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "
+        "else $XDG_RUNTIME_DIR/companion.sock, else /tmp/companion-UID.sock)",
+    )
