@@ -446,9 +446,19 @@ class SimAutopilot:
         gt = np.array([r.true_position for r in rec])
         rx_sim = np.array([self.t_sim_of_mono(r.rx_ns) for r in rec])
         latency_ms = (rx_sim - t_sim) * 1e3
-        align = umeyama(est, gt, with_scale=False)
-        err = np.linalg.norm(align.apply(est) - gt, axis=1)
-        sim3 = umeyama(est, gt, with_scale=True)
+        # as EKF2 does on a reset_counter change (it re-anchors the vision frame), each segment
+        # between resets is aligned on its own (SE(3), no scale); segments of < 10 poses are
+        # left out of the ATE
+        resets = np.array([r.reset_counter for r in rec])
+        err = np.full(len(rec), np.nan)
+        for value in np.unique(resets):
+            seg = resets == value
+            if seg.sum() >= 10:
+                a = umeyama(est[seg], gt[seg], with_scale=False)
+                err[seg] = np.linalg.norm(a.apply(est[seg]) - gt[seg], axis=1)
+        main_seg = resets == np.bincount(resets - resets.min()).argmax() + resets.min()
+        sim3 = umeyama(est[main_seg], gt[main_seg], with_scale=True)
+        err = err[np.isfinite(err)]
         length = path_length(gt)
         sync_err = np.abs([r.sync_error_us for r in rec])
         out.update(
@@ -466,6 +476,7 @@ class SimAutopilot:
                 "ate_pct": float(100 * np.sqrt(np.mean(err**2)) / length) if length else None,
                 "scale_error_pct": float(100 * (1.0 / sim3.scale - 1.0)),
                 "resets": len({r.reset_counter for r in rec}) - 1,
+                "ate_segments": int(len(np.unique(resets))),
             }
         )
         return out
