@@ -11,11 +11,16 @@ OUT     ?= out
 
 all: test
 
-# System packages: only what the Python wheels do not bring (venv support on Debian's python3).
+# System packages: only what the Python wheels do not bring (venv support on Debian's python3,
+# and the Mosquitto broker that the MQTT tests start on 127.0.0.1).
 sysdeps:
 	@$(PY) -c 'import ensurepip, venv' 2>/dev/null || { \
 	  echo "installing python3-venv (apt-get)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; }
+	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || { \
+	  echo "installing mosquitto (apt-get)"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto >/dev/null 2>&1 || { \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto; }; }
 
 $(STAMP): pyproject.toml | sysdeps
 	$(PY) -m venv $(VENV)
@@ -39,7 +44,7 @@ lint: venv
 typecheck: venv
 	$(BIN)/mypy
 
-unit: venv
+unit: venv sysdeps
 	$(BIN)/python -m pytest
 
 test: lint typecheck unit

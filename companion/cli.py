@@ -596,6 +596,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 EXIT_NOT_RUNNING = 3  # as `systemctl status` for a unit that is not active
 
 
+def _mqtt_line(m: dict[str, Any]) -> str:
+    if not m.get("enabled"):
+        return "disabled"
+    state = "connected" if m.get("connected") else "NOT connected"
+    return f"{state}, {m.get('queued', 0)} queued, {m.get('dropped', 0)} dropped"
+
+
 def format_status(st: dict[str, Any]) -> str:
     """The status JSON as a readable table (plain text, aligned)."""
 
@@ -656,12 +663,7 @@ def format_status(st: dict[str, Any]) -> str:
             f"reset_counter {out['reset_counter']}  "
             f"latency p50 {fmt(out['latency_ms_p50'], ' ms', 1)}",
         ),
-        (
-            "MQTT",
-            "connected"
-            if st["mqtt"].get("connected")
-            else ("enabled, not connected" if st["mqtt"].get("enabled") else "disabled"),
-        ),
+        ("MQTT", _mqtt_line(st["mqtt"])),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]

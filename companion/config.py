@@ -387,5 +387,6 @@ def describe(obj: Any, prefix: str = "") -> list[str]:
             for i, item in enumerate(value):
                 lines.extend(describe(item, f"{key}[{i}]."))
         else:
-            lines.append(f"{key} = {to_dict(value)!r}  # {f.metadata.get('help', '')}")
+            shown = "'***'" if f.metadata.get("secret") and value else repr(to_dict(value))
+            lines.append(f"{key} = {shown}  # {f.metadata.get('help', '')}")
     return lines

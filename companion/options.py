@@ -7,9 +7,12 @@ from dataclasses import field
 from typing import Any
 
 
-def opt(default: Any, help: str, **bounds: float) -> Any:
-    """A config field with a one-line help text and optional numeric bounds (ge, gt, le, lt)."""
-    meta = {"help": help, **bounds}
+def opt(default: Any, help: str, secret: bool = False, **bounds: float) -> Any:
+    """A config field with a one-line help text, optional numeric bounds (ge, gt, le, lt), and
+    ``secret`` for values that must never be logged (describe() prints them as ***)."""
+    meta: dict[str, Any] = {"help": help, **bounds}
+    if secret:
+        meta["secret"] = True
     if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
         value = default
         return field(default_factory=lambda: value, metadata=meta)

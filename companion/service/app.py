@@ -31,6 +31,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.pipeline import Pipeline
+from companion.service.mqtt import MqttPublisher
 from companion.service.status import StatusServer, status_path
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
@@ -88,6 +89,10 @@ class Service:
         self.camera = open_camera(o.camera_url)
         self.link = MavlinkLink(o.mavlink_url, o.system_id, o.component_id, self._on_message)
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
+        self.mqtt: MqttPublisher | None = (
+            MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
+        )
+        self._last_pose: PoseEstimate | None = None
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
         self.sensors = {r.sensor_id: r for r in config.rangefinders}
         self._slot: CameraFrame | None = None
@@ -109,6 +114,8 @@ class Service:
         sys.setswitchinterval(0.0005)  # let the event loop in often while the worker computes
         await self.status_server.__aenter__()  # first: a second instance stops here (exit 2)
         await self.link.__aenter__()
+        if self.mqtt is not None:
+            await self.mqtt.__aenter__()
         self._tg = asyncio.TaskGroup()
         await self._tg.__aenter__()
         loops = {
@@ -118,6 +125,9 @@ class Service:
             "camera": self._camera_loop(),
             "pipeline": self._pipeline_loop(),
         }
+        if self.mqtt is not None:
+            loops["mqtt-status"] = self._mqtt_status_loop()
+            loops["mqtt-pose"] = self._mqtt_pose_loop()
         for name, coro in loops.items():
             self._tasks.append(self._tg.create_task(coro, name=name))
         return self
@@ -133,6 +143,8 @@ class Service:
                     task.cancel()
                 await self._tg.__aexit__(*exc)
         finally:
+            if self.mqtt is not None:
+                await self.mqtt.__aexit__(*exc)
             await self.link.__aexit__(*exc)
             await self.status_server.__aexit__(*exc)
 
@@ -286,6 +298,32 @@ class Service:
     def _warn(self, text: str) -> None:
         log.warning(text)
         self.stats.warnings.append(text)
+        if self.mqtt is not None:
+            self.mqtt.publish_event(text)
+
+    async def _mqtt_status_loop(self) -> None:
+        assert self.mqtt is not None
+        while not self._stop.is_set():
+            self.mqtt.publish_status(self.status())
+            await self._sleep(1.0 / self.config.service.mqtt.status_hz)
+
+    async def _mqtt_pose_loop(self) -> None:
+        assert self.mqtt is not None
+        sent_time = -1
+        while not self._stop.is_set():
+            pose = self._last_pose
+            if pose is not None and pose.time_us != sent_time:
+                sent_time = pose.time_us
+                self.mqtt.publish_pose(
+                    {
+                        "time_us": pose.time_us,
+                        "position_ned_m": pose.position_ned_m.tolist(),
+                        "quat_wxyz": pose.quat_wxyz_ned_frd.tolist(),
+                        "reset_counter": pose.reset_counter,
+                        "quality_pct": pose.quality_pct,
+                    }
+                )
+            await self._sleep(1.0 / self.config.service.mqtt.pose_hz)
 
     async def _pipeline_loop(self) -> None:
         failures = 0
@@ -354,8 +392,11 @@ class Service:
             self.stats.published += 1
             self.stats.publish_times_ns.append(t)
             self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
+            if pose.reset_counter != self.stats.last_reset_counter:
+                self._warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
             self.stats.last_reset_counter = pose.reset_counter
             self.stats.sent.append(pose)
+            self._last_pose = pose
 
     async def _sleep(self, seconds: float) -> None:
         with contextlib.suppress(TimeoutError):
@@ -463,7 +504,13 @@ class Service:
                 "reset_counter": s.last_reset_counter,
                 "latency_ms_p50": float(np.percentile(lat, 50)) if lat else None,
             },
-            "mqtt": {"enabled": False},
+            "mqtt": {
+                "enabled": self.mqtt is not None,
+                "connected": self.mqtt.stats.connected if self.mqtt else False,
+                "queued": self.mqtt.queued if self.mqtt else 0,
+                "dropped": self.mqtt.stats.dropped if self.mqtt else 0,
+                "published": self.mqtt.stats.published if self.mqtt else 0,
+            },
             "warnings": list(s.warnings),
         }
 

@@ -11,6 +11,24 @@ OutputName = Literal["vision_position_estimate", "odometry", "both"]
 
 
 @dataclass(frozen=True, slots=True)
+class MqttOptions:
+    """Fleet telemetry to an MQTT broker (aiomqtt): topics companion/<system_id>/..."""
+
+    enabled: bool = opt(False, "publish status (1 Hz, retained), pose (10 Hz) and events")
+    host: str = opt("127.0.0.1", "broker host")
+    port: int = opt(1883, "broker port (8883 for TLS)", ge=1, le=65535)
+    username: str = opt("", "user name (empty = none)")
+    password: str = opt("", "password (never logged)", secret=True)
+    tls: bool = opt(False, "connect with TLS")
+    ca_file: str = opt("", "CA certificate file for TLS (empty = the system's)")
+    topic_prefix: str = opt("companion", "first topic level")
+    status_hz: float = opt(1.0, "status rate [Hz]", gt=0, le=10)
+    pose_hz: float = opt(10.0, "pose rate [Hz]", gt=0, le=50)
+    queue_size: int = opt(200, "messages kept while the broker is away (oldest dropped)", ge=1)
+    keepalive_s: int = opt(10, "MQTT keepalive [s] (the broker sends the will after 1.5x)", ge=2)
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceOptions:
     """Links, rates and what is sent to the autopilot."""
 
@@ -34,6 +52,7 @@ class ServiceOptions:
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0
     )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
+    mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
     status_socket: str = opt(
         "",
         "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "

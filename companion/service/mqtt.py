@@ -1,0 +1,129 @@
+"""Fleet telemetry over MQTT (aiomqtt): ``<prefix>/<system_id>/status`` (retained, with the
+last will ``offline``), ``.../pose`` and ``.../events``.
+
+It never blocks or slows the pipeline: ``publish_*`` only append to a bounded queue (the oldest
+message is dropped and counted when it is full) and wake the sender task. The sender connects
+with capped, jittered backoff (0.5 s doubling to 30 s), announces ``online`` (retained), and
+drains the queue; when the broker goes away it reconnects and carries on with what is queued.
+The password is passed to the client only, never logged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import random
+import ssl
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+from companion.service.options import MqttOptions
+
+log = logging.getLogger("companion.mqtt")
+
+
+@dataclass
+class MqttStats:
+    connected: bool = False
+    published: int = 0
+    dropped: int = 0  # oldest messages dropped because the queue was full
+    connects: int = 0
+    last_error: str = ""
+
+
+class MqttPublisher:
+    """``async with MqttPublisher(opts, system_id) as mqtt: mqtt.publish_status({...})``."""
+
+    def __init__(self, opts: MqttOptions, system_id: int) -> None:
+        self.opts = opts
+        base = f"{opts.topic_prefix}/{system_id}"
+        self.topic_status = f"{base}/status"
+        self.topic_pose = f"{base}/pose"
+        self.topic_events = f"{base}/events"
+        self.stats = MqttStats()
+        self._queue: deque[tuple[str, bytes, bool]] = deque(maxlen=opts.queue_size)
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+
+    @property
+    def queued(self) -> int:
+        return len(self._queue)
+
+    async def __aenter__(self) -> MqttPublisher:
+        self._task = asyncio.create_task(self._run(), name="mqtt")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+
+    # ------------------------------------------------------------------ producers
+    def _put(self, topic: str, payload: dict[str, Any], retain: bool) -> None:
+        if len(self._queue) == self._queue.maxlen:
+            self.stats.dropped += 1  # deque drops the oldest on append
+        self._queue.append((topic, json.dumps(payload, default=str).encode(), retain))
+        self._wake.set()
+
+    def publish_status(self, status: dict[str, Any]) -> None:
+        self._put(self.topic_status, {"state": "online", **status}, retain=True)
+
+    def publish_pose(self, pose: dict[str, Any]) -> None:
+        self._put(self.topic_pose, pose, retain=False)
+
+    def publish_event(self, text: str, **fields: Any) -> None:
+        self._put(self.topic_events, {"event": text, **fields}, retain=False)
+
+    # ------------------------------------------------------------------ sender
+    def _client(self) -> Any:
+        import aiomqtt
+
+        o = self.opts
+        tls_context = None
+        if o.tls:
+            tls_context = ssl.create_default_context(cafile=o.ca_file or None)
+        return aiomqtt.Client(
+            o.host,
+            o.port,
+            username=o.username or None,
+            password=o.password or None,
+            will=aiomqtt.Will(self.topic_status, b'{"state": "offline"}', qos=1, retain=True),
+            keepalive=o.keepalive_s,
+            tls_context=tls_context,
+            timeout=5.0,
+        )
+
+    async def _run(self) -> None:
+        import aiomqtt
+
+        delay = 0.5
+        while True:
+            try:
+                async with self._client() as client:
+                    self.stats.connected = True
+                    self.stats.connects += 1
+                    delay = 0.5
+                    log.info("MQTT connected to %s:%d", self.opts.host, self.opts.port)
+                    await client.publish(
+                        self.topic_status, b'{"state": "online"}', qos=1, retain=True
+                    )
+                    while True:
+                        while self._queue:
+                            topic, payload, retain = self._queue[0]
+                            await client.publish(topic, payload, qos=0, retain=retain)
+                            self._queue.popleft()  # only once it went out
+                            self.stats.published += 1
+                        self._wake.clear()
+                        await self._wake.wait()
+            except aiomqtt.MqttError as e:
+                self.stats.last_error = str(e)
+            finally:
+                if self.stats.connected:
+                    log.warning("MQTT connection lost: %s", self.stats.last_error or "closed")
+                self.stats.connected = False
+            await asyncio.sleep(delay * random.uniform(0.5, 1.5))
+            delay = min(delay * 2, 30.0)

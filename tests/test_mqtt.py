@@ -1,0 +1,168 @@
+"""MQTT telemetry against a real Mosquitto broker started on 127.0.0.1 (installed by make)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import aiomqtt
+import pytest
+
+from companion.config import describe, load_config
+from companion.service.mqtt import MqttPublisher
+from companion.service.options import MqttOptions
+
+MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Broker:
+    """A Mosquitto process on 127.0.0.1:port (start/stop at will; same port)."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.port = free_port()
+        self.conf = tmp / "mosquitto.conf"
+        self.conf.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n")
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(
+            [MOSQUITTO, "-c", str(self.conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", self.port)) == 0:
+                    return
+            time.sleep(0.05)
+        raise RuntimeError("mosquitto did not start")
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.terminate()
+            self.proc.wait(5)
+            self.proc = None
+
+
+@pytest.fixture
+def broker(tmp_path):
+    if not Path(MOSQUITTO).exists():
+        pytest.fail("mosquitto is not installed (make test installs it with apt-get)")
+    b = Broker(tmp_path)
+    b.start()
+    yield b
+    b.stop()
+
+
+async def collect(port: int, topic: str, n: int, timeout_s: float = 10.0) -> list:
+    got: list = []
+    async with aiomqtt.Client("127.0.0.1", port) as sub:
+        await sub.subscribe(topic)
+        async with asyncio.timeout(timeout_s):
+            async for msg in sub.messages:
+                got.append((str(msg.topic), json.loads(msg.payload), msg.retain))
+                if len(got) >= n:
+                    break
+    return got
+
+
+def opts(port: int, **kw) -> MqttOptions:
+    return MqttOptions(enabled=True, port=port, keepalive_s=2, **kw)
+
+
+def test_status_pose_and_events_reach_a_subscriber(broker) -> None:
+    async def run() -> list:
+        async with MqttPublisher(opts(broker.port), 7) as pub:
+            listener = asyncio.create_task(collect(broker.port, "companion/7/#", 4))
+            await asyncio.sleep(0.5)
+            pub.publish_status({"vo": "TRACKING"})
+            pub.publish_pose({"position_ned_m": [1.0, 2.0, -3.0]})
+            pub.publish_event("VO re-initialised: reset_counter 1")
+            got = await listener
+            assert pub.stats.connected and pub.stats.dropped == 0
+            return got
+
+    got = asyncio.run(run())
+    by_topic = {t: (p, r) for t, p, r in got}
+    assert by_topic["companion/7/status"][0]["state"] == "online"
+    assert by_topic["companion/7/pose"][0]["position_ned_m"] == [1.0, 2.0, -3.0]
+    assert "reset_counter 1" in by_topic["companion/7/events"][0]["event"]
+    # the status is retained: a late subscriber gets the last one at once
+    late = asyncio.run(collect(broker.port, "companion/7/status", 1, timeout_s=3))
+    assert late[0][2] is True
+
+
+def test_broker_down_never_blocks_and_oldest_are_dropped_then_resume(broker) -> None:
+    broker.stop()
+
+    async def run() -> tuple[MqttPublisher, float, list]:
+        async with MqttPublisher(opts(broker.port, queue_size=50), 3) as pub:
+            t0 = time.perf_counter()
+            for k in range(500):
+                pub.publish_pose({"k": k})
+            elapsed = time.perf_counter() - t0
+            await asyncio.sleep(1.0)
+            assert not pub.stats.connected
+            assert pub.queued == 50 and pub.stats.dropped == 450
+            broker.start()  # back: the publisher reconnects by itself (backoff <= a few s)
+            got = await collect(broker.port, "companion/3/pose", 1, timeout_s=15)
+            await asyncio.sleep(0.5)
+            return pub, elapsed, got
+
+    pub, elapsed, got = asyncio.run(run())
+    assert elapsed < 0.05  # 500 publishes without a broker cost nothing
+    assert pub.stats.connects >= 1 and pub.stats.published >= 1
+    assert got[0][1]["k"] >= 450  # what survived the outage is the newest
+
+
+def test_last_will_says_offline_when_the_service_dies(broker, tmp_path) -> None:
+    script = tmp_path / "pub.py"
+    script.write_text(
+        "import asyncio, sys\n"
+        "from companion.service.mqtt import MqttPublisher\n"
+        "from companion.service.options import MqttOptions\n"
+        "async def main():\n"
+        f"    async with MqttPublisher(MqttOptions(enabled=True, port={broker.port}), 9) as p:\n"
+        "        p.publish_status({'vo': 'TRACKING'})\n"
+        "        await asyncio.sleep(0.5)\n"
+        "        print('up', flush=True)\n"
+        "        await asyncio.sleep(60)\n"
+        "asyncio.run(main())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == b"up"
+
+        async def watch() -> list:
+            listener = asyncio.create_task(collect(broker.port, "companion/9/status", 2))
+            await asyncio.sleep(0.5)
+            proc.send_signal(signal.SIGKILL)  # no DISCONNECT: the broker sends the will
+            return await listener
+
+        got = asyncio.run(watch())
+    finally:
+        proc.kill()
+        proc.wait()
+    states = [payload["state"] for _, payload, _ in got]
+    assert states[0] == "online" and states[-1] == "offline"
+
+
+def test_the_password_is_never_in_the_startup_log() -> None:
+    cfg = load_config(overrides={"service": {"mqtt": {"password": "hunter2", "username": "u"}}})
+    text = "\n".join(describe(cfg))
+    assert "hunter2" not in text
+    assert "service.mqtt.password = '***'" in text
