@@ -33,6 +33,7 @@ from companion.config import Config
 from companion.pipeline import Pipeline
 from companion.service.mqtt import MqttPublisher
 from companion.service.status import StatusServer, status_path
+from companion.service.systemd import SdNotify
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from drivers import messages
@@ -93,6 +94,7 @@ class Service:
             MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
         )
         self._last_pose: PoseEstimate | None = None
+        self.systemd = SdNotify()
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
         self.sensors = {r.sensor_id: r for r in config.rangefinders}
         self._slot: CameraFrame | None = None
@@ -125,15 +127,20 @@ class Service:
             "camera": self._camera_loop(),
             "pipeline": self._pipeline_loop(),
         }
+        if self.systemd.watchdog_s:
+            loops["watchdog"] = self._watchdog_loop()
         if self.mqtt is not None:
             loops["mqtt-status"] = self._mqtt_status_loop()
             loops["mqtt-pose"] = self._mqtt_pose_loop()
         for name, coro in loops.items():
             self._tasks.append(self._tg.create_task(coro, name=name))
+        o = self.config.service
+        self.systemd.ready(f"link {o.mavlink_url}, camera {o.camera_url}")
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
         """Stop every loop; a loop's exception reaches the caller (as an ExceptionGroup)."""
+        self.systemd.stopping()
         self._stop.set()
         self._frame_ready.set()
         self.camera.close()
@@ -294,6 +301,13 @@ class Service:
             self._warn(f"camera: {'failed: ' + str(error) if error else 'stream ended'}; reopening")
             await self._sleep(delay * random.uniform(0.5, 1.5))
             delay = min(delay * 2, 5.0)
+
+    async def _watchdog_loop(self) -> None:
+        """WATCHDOG=1 every half WatchdogSec, from the event loop: a stuck loop sends none."""
+        assert self.systemd.watchdog_s is not None
+        while not self._stop.is_set():
+            self.systemd.watchdog()
+            await self._sleep(self.systemd.watchdog_s / 2)
 
     def _warn(self, text: str) -> None:
         log.warning(text)
