@@ -92,6 +92,9 @@ class RangefinderConfig:
     rate_hz: float = opt(50.0, "measurement rate [Hz]", gt=0, le=1000)
     dropout_prob: float = opt(0.0, "probability that a reading is missing (SITL)", ge=0, le=1)
     outlier_prob: float = opt(0.0, "probability of a gross outlier reading (SITL)", ge=0, le=1)
+    serial: str = opt(
+        "", "a TFmini on the companion: DEVICE or DEVICE:BAUD (empty: DISTANCE_SENSOR from PX4)"
+    )
 
     def __post_init__(self) -> None:
         if self.max_m <= self.min_m:

@@ -95,6 +95,7 @@ class Service:
         )
         self._last_pose: PoseEstimate | None = None
         self.systemd = SdNotify()
+        self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
         self.sensors = {r.sensor_id: r for r in config.rangefinders}
         self._slot: CameraFrame | None = None
@@ -106,15 +107,45 @@ class Service:
         self._stop = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._rate_pending: int | None = None
         self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
         self._attitude_rates = np.zeros(3)
 
+    def _tfmini(self, rf: Any) -> Any:
+        """A rangefinder wired to the companion (drivers.rangefinder)."""
+        from drivers.rangefinder import TfminiSerial
+
+        device, baud = rf.serial, 115200
+        head, _, tail = rf.serial.rpartition(":")
+        if head and tail.isdigit():
+            device, baud = head, int(tail)
+        return TfminiSerial(device, rf.sensor_id, rf.min_m, rf.max_m, self._range_from_thread, baud)
+
+    def _range_from_thread(self, sample: RangeSample) -> None:
+        """A serial rangefinder's sample (its reader thread) -> the event loop's queue."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+
+        def put() -> None:
+            if sample.is_valid:
+                self.stats.ranges_in += 1
+                self._ranges.append(sample)
+            else:
+                self.stats.ranges_rejected += 1
+
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(put)
+
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Service:
         sys.setswitchinterval(0.0005)  # let the event loop in often while the worker computes
         await self.status_server.__aenter__()  # first: a second instance stops here (exit 2)
+        self._loop = asyncio.get_running_loop()
+        for drv in self.tfminis:
+            drv.start()
         await self.link.__aenter__()
         if self.mqtt is not None:
             await self.mqtt.__aenter__()
@@ -150,6 +181,8 @@ class Service:
                     task.cancel()
                 await self._tg.__aexit__(*exc)
         finally:
+            for drv in self.tfminis:
+                drv.close()
             if self.mqtt is not None:
                 await self.mqtt.__aexit__(*exc)
             await self.link.__aexit__(*exc)
