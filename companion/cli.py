@@ -225,17 +225,8 @@ def cmd_eval_attitude(args: argparse.Namespace) -> int:
         def point(spacing_m: float, sigma_m: float) -> dict[str, float]:
             rfs = triangle_rangefinders(spacing_m, sigma_m)
             sim = RangeSimulator(scenario.world, scenario.trajectory, rfs, s.seed)
-
-            def ranges_at(time_us: int) -> dict[int, float]:
-                got = {}
-                for i, rf in enumerate(rfs):
-                    smp = sim.measure(i, time_us).sample
-                    if smp is not None and smp.is_valid:
-                        got[rf.sensor_id] = smp.distance_m
-                return got
-
             specs = {rf.sensor_id: rf.spec() for rf in rfs}
-            series = replay_attitude(run, specs, cfg.attitude, ranges_at)
+            series = replay_attitude(run, specs, cfg.attitude, sim.valid_at)
             # the published (fused) attitude does not use the ranges by default: the study is
             # about the range tilts themselves
             vals = {
@@ -258,19 +249,33 @@ def cmd_eval_attitude(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_eval_dpose(args: argparse.Namespace) -> int:
-    """d-Pose on a SITL flight over its painted marks (spiral, 2-8 m, yaw over the full circle)
-    against the VO, or (--random N) over N random synthetic poses."""
-    import dataclasses
+DPOSE_ARM_S = 1.0  # d-Pose runs: the marks are painted (and d-Pose armed) at this time [s]
 
-    import numpy as np
+
+def _dpose_config(args: argparse.Namespace) -> Config:
+    """The SITL config of a d-Pose run: the four d-Pose lasers, marks painted at DPOSE_ARM_S,
+    the spiral flight unless another trajectory is asked for."""
+    import dataclasses
 
     from companion.config import dpose_rangefinders
 
     overrides = _sitl_overrides(args)
     overrides.setdefault("sitl", {}).setdefault("trajectory", "spiral")
     cfg = load_config(getattr(args, "config", None), overrides)
-    cfg = dataclasses.replace(cfg, rangefinders=dpose_rangefinders())
+    render = dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=DPOSE_ARM_S)
+    return dataclasses.replace(
+        cfg,
+        rangefinders=dpose_rangefinders(),
+        sitl=dataclasses.replace(cfg.sitl, render=render),
+    )
+
+
+def cmd_eval_dpose(args: argparse.Namespace) -> int:
+    """d-Pose on a SITL flight over its painted marks (spiral, 2-8 m, yaw over the full circle)
+    against the VO, or (--random N) over N random synthetic poses."""
+    import numpy as np
+
+    cfg = _dpose_config(args)
     if args.random:
         from companion.dpose.solve import reference_points
         from companion.evaluation.dpose import random_pose_study
@@ -304,14 +309,11 @@ def cmd_eval_dpose(args: argparse.Namespace) -> int:
     from companion.reporting import write_dpose
     from sitl.scenario import Scenario
 
-    arm_s = 1.0
-    render = dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=arm_s)
-    cfg = dataclasses.replace(cfg, sitl=dataclasses.replace(cfg.sitl, render=render))
     s = cfg.sitl
     name = f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
     out = Path(args.out) if args.out else Path("out") / "eval" / f"{name}-dpose"
     out.mkdir(parents=True, exist_ok=True)
-    run = run_dpose(cfg, Scenario(cfg), arm_s)
+    run = run_dpose(cfg, Scenario(cfg), DPOSE_ARM_S)
     table = write_dpose(run, out, f"d-Pose on {name}")
     ms = np.array(run.dpose_ms)
     print(table)
@@ -434,47 +436,33 @@ def cmd_bench_attitude(args: argparse.Namespace) -> int:
 def cmd_bench_dpose(args: argparse.Namespace) -> int:
     """Benchmark d-Pose per frame (detection, vertex map, pose) on one core: the frames of a
     spiral flight over painted marks are rendered first, then only Dpose.step is timed."""
-    import dataclasses
     import time
 
     import cv2
     import numpy as np
 
     from companion.bench import machine_description
-    from companion.config import dpose_rangefinders
     from companion.dpose.estimator import Dpose
     from companion.geometry import so3
     from sitl.scenario import Scenario
 
     cv2.setNumThreads(1)
-    overrides = _sitl_overrides(args)
-    overrides.setdefault("sitl", {}).setdefault("trajectory", "spiral")
-    cfg = load_config(getattr(args, "config", None), overrides)
-    render = dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=1.0)
-    cfg = dataclasses.replace(
-        cfg,
-        rangefinders=dpose_rangefinders(),
-        sitl=dataclasses.replace(cfg.sitl, render=render),
-    )
+    cfg = _dpose_config(args)
     sc = Scenario(cfg)
     specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
     dpose = Dpose(cfg.camera.model(), cfg.camera.T_body_cam(), specs)
-
-    def ranges_at(t_us: int) -> dict[int, float]:
-        got = {}
-        for i, rf in enumerate(cfg.rangefinders):
-            smp = sc.ranges.measure(i, t_us).sample
-            if smp is not None and smp.is_valid:
-                got[rf.sensor_id] = smp.distance_m
-        return got
 
     frames = []
     for st in sc.steps(start=30):
         R = st.T_world_body[:3, :3]
         if not dpose.armed:
-            dpose.arm(ranges_at(st.frame.time_us), st.T_world_body, R)
+            dpose.arm(sc.ranges.valid_at(st.frame.time_us), st.T_world_body, R)
         frames.append(
-            (st.frame, R @ so3.exp(np.radians(0.1) * np.ones(3)), ranges_at(st.frame.time_us))
+            (
+                st.frame,
+                R @ so3.exp(np.radians(0.1) * np.ones(3)),
+                sc.ranges.valid_at(st.frame.time_us),
+            )
         )
     ms, found = [], 0
     for frame, R_ap, ranges in frames:

@@ -20,7 +20,7 @@ from companion.config import Config
 from companion.evaluation.trajectory import ate_rmse, path_length
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Pipeline
-from companion.types import AttitudeSample, CameraFrame, RangeSample, VoState
+from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 
 F64 = NDArray[np.float64]
 Event = CameraFrame | RangeSample | AttitudeSample
@@ -49,6 +49,17 @@ class VoRun:
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
+
+
+def feed_step(pipe: Pipeline, step: Any) -> PoseEstimate | None:
+    """One SITL step (``Scenario.steps()``) into the pipeline: its attitudes and ranges (in
+    time order, dropouts left out), then its frame; returns the frame's pose."""
+    for a in step.attitudes:
+        pipe.feed_attitude(a)
+    for r in step.ranges:
+        if r.sample is not None:
+            pipe.feed_range(r.sample)
+    return pipe.feed_frame(step.frame)
 
 
 def peak_rss_mb() -> float:
@@ -186,12 +197,7 @@ def run_scale(
     nan3 = np.full(3, np.nan)
     T_body_cam = pipe.T_body_cam
     for step in steps:
-        for a in step.attitudes:
-            pipe.feed_attitude(a)
-        for r in step.ranges:
-            if r.sample is not None:
-                pipe.feed_range(r.sample)
-        pipe.feed_frame(step.frame)
+        feed_step(pipe, step)
         out = pipe.vo_output
         assert out is not None
         tracking = out.state == VoState.TRACKING
@@ -286,12 +292,7 @@ def run_attitude(
     run = AttitudeRun(series={n: [] for n in SERIES})
     nan2 = (float("nan"), float("nan"))
     for step in steps:
-        for a in step.attitudes:
-            pipe.feed_attitude(a)
-        for r in step.ranges:
-            if r.sample is not None:
-                pipe.feed_range(r.sample)
-        pipe.feed_frame(step.frame)
+        feed_step(pipe, step)
         run.time_us.append(step.frame.time_us)
         row: dict[str, tuple[float, float]] = dict.fromkeys(SERIES, nan2)
         row["truth"] = _tilt_of(step.T_world_body[:3, :3])
@@ -384,23 +385,9 @@ def run_dpose(config: Config, scenario: Any, arm_time_s: float) -> DposeRun:
     T_arm: F64 | None = None
     vo_anchor: tuple[F64, F64] | None = None  # (VO pose, true pose) at the first VO pose
     vo_reset = -1
-    sims = scenario.ranges
-
-    def ranges_at(time_us: int) -> dict[int, float]:
-        got = {}
-        for i, rf in enumerate(config.rangefinders):
-            smp = sims.measure(i, time_us).sample
-            if smp is not None and smp.is_valid:
-                got[rf.sensor_id] = smp.distance_m
-        return got
-
+    ranges_at = scenario.ranges.valid_at
     for step in scenario.steps():
-        for a in step.attitudes:
-            pipe.feed_attitude(a)
-        for r in step.ranges:
-            if r.sample is not None:
-                pipe.feed_range(r.sample)
-        pose = pipe.feed_frame(step.frame)
+        pose = feed_step(pipe, step)
         pipe.background_work()
         t_us = step.frame.time_us
         R_ap = pipe.attitude_at(t_us)

@@ -103,6 +103,16 @@ class RangeSimulator:
         sample = RangeSample(time_us, rf.sensor_id, float(d), rf.min_m, rf.max_m, quality)
         return TrueRange(sample, true_d, hit[0])
 
+    def valid_at(self, time_us: int) -> dict[int, float]:
+        """The valid readings [m] of every sensor at ``time_us`` by id (dropouts and invalid
+        readings left out): what a replay at frame times needs."""
+        got = {}
+        for i, rf in enumerate(self.rangefinders):
+            smp = self.measure(i, time_us).sample
+            if smp is not None and smp.is_valid:
+                got[rf.sensor_id] = smp.distance_m
+        return got
+
     def between(self, t0_s: float, t1_s: float) -> list[TrueRange]:
         """All readings of all sensors with times in [t0_s, t1_s), sorted by time then id."""
         out: list[tuple[int, int, TrueRange]] = []

@@ -115,8 +115,9 @@ def test_watchdog_pings_stop_when_the_event_loop_is_stuck(tmp_path) -> None:
     assert any(m.startswith(b"STOPPING=1") for m in msgs)
 
 
-@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="needs systemd-analyze")
 def test_unit_file_passes_systemd_analyze_verify(tmp_path) -> None:
+    if shutil.which("systemd-analyze") is None:  # Debian's systemd package has it
+        pytest.fail("systemd-analyze is not installed: the unit file cannot be verified")
     text = UNIT.read_text()
     for key in (
         "Type=notify",

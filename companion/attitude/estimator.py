@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.attitude.fusion import TiltFilter
+from companion.attitude.fusion import TiltFilter, vo_tilt_cov_in_body
 from companion.attitude.ground import RangeTilt, beams_body, tilt_from_normal, tilt_from_ranges
 from companion.attitude.options import AttitudeOptions
 from companion.attitude.terrain import compensate, surfaces_under, terrain_tilt_cov
@@ -165,11 +165,13 @@ class RollPitch:
         reasons: list[str] = []
         if len(cloud.points_m) == 0:
             return None, float("nan"), ["no metric VO cloud yet: compensation waits for the scale"]
-        hits = cloud.body_position_m + raw.points_body @ cloud.R_vo_body.T
+        hits_m = cloud.body_position_m + raw.points_body @ cloud.R_vo_body.T
         keep: list[int] = []
         heights: list[float] = []
         sigmas: list[float] = []
-        patches = surfaces_under(cloud.points_m, hits[:, :2], o.patch_radius_m, o.min_patch_points)
+        patches = surfaces_under(
+            cloud.points_m, hits_m[:, :2], o.patch_radius_m, o.min_patch_points
+        )
         for k, (i, patch) in enumerate(zip(ids, patches, strict=True)):
             if patch is None:
                 reasons.append(f"sensor {i}: too few cloud points around the hit")
@@ -177,8 +179,8 @@ class RollPitch:
                 reasons.append(
                     f"sensor {i}: surface around the hit too rough ({patch.rms_m:.2f} m)"
                 )
-            elif abs(hits[k, 2] - patch.height_m) > o.edge_gate_m:
-                off = abs(hits[k, 2] - patch.height_m)
+            elif abs(hits_m[k, 2] - patch.height_m) > o.edge_gate_m:
+                off = abs(hits_m[k, 2] - patch.height_m)
                 reasons.append(f"sensor {i}: hit {off:.2f} m off the surface around it (edge?)")
             else:
                 keep.append(k)
@@ -193,7 +195,7 @@ class RollPitch:
             except GeometryError as e:
                 self.refused += 1
                 return None, float("nan"), [*reasons, str(e)]
-        xy = hits[keep, :2]
+        xy = hits_m[keep, :2]
         n_vo, cov_t = terrain_tilt_cov(xy, np.array(heights), np.array(sigmas))
         terrain_tilt = float(np.arccos(np.clip(n_vo[2], -1.0, 1.0)))
         if np.degrees(terrain_tilt) > o.max_terrain_tilt_deg:
@@ -202,11 +204,7 @@ class RollPitch:
             return None, terrain_tilt, [*reasons, why]
         g_b = compensate(raw.normal_body, n_vo, cloud.R_vo_body)
         roll, pitch = tilt_from_normal(g_b)
-        R = cloud.R_vo_body
-        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-        c, s = np.cos(yaw), np.sin(yaw)
-        Rot = np.array([[c, s], [-s, c]])  # VO-frame tilt -> body (roll, pitch) axes
-        cov = raw.cov_rad2 + Rot @ cov_t @ Rot.T
+        cov = raw.cov_rad2 + vo_tilt_cov_in_body(cov_t, cloud.R_vo_body)
         est = TiltEstimate(time_us, roll, pitch, cov, "gravity", len(keep))
         return est, terrain_tilt, reasons
 

@@ -41,6 +41,15 @@ def tilt_error_of(roll_rad: float, pitch_rad: float, R_vo_body: F64) -> F64:
     return np.asarray(v / s * np.arctan2(s, m[2]), dtype=np.float64)
 
 
+def vo_tilt_cov_in_body(cov_rad2: F64, R_vo_body: F64) -> F64:
+    """A (2, 2) covariance of a small tilt about the VO frame's x, y axes, expressed over the
+    body's (roll, pitch): rotated by the body's yaw in the VO frame."""
+    yaw = float(np.arctan2(R_vo_body[1, 0], R_vo_body[0, 0]))
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rot = np.array([[c, s], [-s, c]])
+    return np.asarray(Rot @ cov_rad2 @ Rot.T, dtype=np.float64)
+
+
 def corrected_rotation(tilt_error: F64, R_vo_body: F64) -> F64:
     """R (3, 3) = exp([e_x, e_y, 0]) R_vo_body: the VO rotation with its tilt error removed."""
     return so3.exp(np.array([tilt_error[0], tilt_error[1], 0.0])) @ R_vo_body
@@ -137,7 +146,4 @@ class TiltFilter:
         R = corrected_rotation(self.tilt_error, R_vo_body)
         roll, pitch = tilt_from_normal(R.T @ np.array([0.0, 0.0, 1.0]))
         # e is a rotation in the VO frame: in body (roll, pitch) axes it turns by the yaw
-        yaw = float(np.arctan2(R_vo_body[1, 0], R_vo_body[0, 0]))
-        c, s = np.cos(yaw), np.sin(yaw)
-        Rot = np.array([[c, s], [-s, c]])
-        return roll, pitch, Rot @ self.cov @ Rot.T
+        return roll, pitch, vo_tilt_cov_in_body(self.cov, R_vo_body)

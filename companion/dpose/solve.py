@@ -49,7 +49,6 @@ class SolveOptions:
     min_gap_px: float = 6.0
     pixel_sigma: float = 1.0  # detection noise for the covariance [px]
     max_tilt_deg: float = 35.0  # the body's tilt from its attitude at arming (no priors)
-    prior_gate_deg: float = 10.0  # a pose's tilt from the autopilot's (with priors)
     max_detections: int = 7  # with priors, up to this many detections are sorted out
 
 
@@ -186,17 +185,6 @@ def solve(
     focal = 0.5 * (camera.fx + camera.fy)
     eye = np.eye(3)
     obj = np.ascontiguousarray(pattern, dtype=np.float64)
-    centre = obj.mean(axis=0)
-    _, sv, Vt = np.linalg.svd(obj - centre)
-    normal = Vt[2]
-    obj_plane = np.ascontiguousarray(obj - np.outer((obj - centre) @ normal, normal))
-    planar = bool(sv[2] < 1e-3 * max(sv[0], 1e-9) or np.abs((obj - centre) @ normal).max() < 2e-3)
-    if priors is not None:  # the autopilot's tilt: only poses near it are plausible
-        R_cam_body, R_ref = priors.R_cam_body, priors.R_pattern_body
-        cos_max = np.cos(np.radians(o.prior_gate_deg))
-    else:  # a multirotor over the ground it marked: not far from its attitude at arming
-        R_ref = np.eye(3)
-        cos_max = np.cos(np.radians(o.max_tilt_deg))
     scored: list[tuple[float, tuple[int, ...], F64, F64]] = []
     if priors is not None:  # the prior's roll/pitch in the pattern frame, yaw left free
         # every ordered choice of 4 of the detections (24 when there are exactly 4; with
@@ -217,13 +205,21 @@ def solve(
                 )
             )
     else:
+        # a multirotor over the ground it marked: not far from its attitude at arming
+        cos_max = np.cos(np.radians(o.max_tilt_deg))
+        centre = obj.mean(axis=0)
+        _, sv, Vt = np.linalg.svd(obj - centre)
+        normal = Vt[2]
+        obj_plane = np.ascontiguousarray(obj - np.outer((obj - centre) @ normal, normal))
+        off_plane = np.abs((obj - centre) @ normal).max()
+        planar = bool(sv[2] < 1e-3 * max(sv[0], 1e-9) or off_plane < 2e-3)
         for perm in PERMUTATIONS:
             img = np.ascontiguousarray(norm[list(perm)], dtype=np.float64)
             best: tuple[float, F64, F64] | None = None
             for rvec, tvec in _candidates(obj, obj_plane, img, planar, eye):
-                if R_cam_body is not None:
+                if R_cam_body is not None:  # the body's tilt from its attitude at arming
                     R_pattern_body = so3.exp(rvec.ravel()).T @ R_cam_body
-                    if float(R_pattern_body[:, 2] @ R_ref[:, 2]) < cos_max:
+                    if float(R_pattern_body[2, 2]) < cos_max:
                         continue
                 rms = _rms_px(obj, img, rvec, tvec, focal)
                 if best is None or rms < best[0]:
@@ -240,8 +236,7 @@ def solve(
     if second_rms < max(o.ambiguity_ratio * best_s[0], best_s[0] + o.min_gap_px):
         return None, f"ambiguous labelling ({best_s[0]:.1f} px vs {second_rms:.1f} px)"
     img = np.ascontiguousarray(norm[list(best_s[1])], dtype=np.float64)
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, eye, None, best_s[2].copy(), best_s[3].copy())
-    T, cov = refine(obj, img, focal, rvec.ravel(), tvec.ravel(), priors, o.pixel_sigma)
+    T, cov = refine(obj, img, focal, best_s[2].ravel(), best_s[3].ravel(), priors, o.pixel_sigma)
     rms = _rms_px(obj, img, so3.log(T[:3, :3]), T[:3, 3], focal)
     return DposeSolution(T, tuple(int(i) for i in best_s[1]), rms, second_rms, cov), "ok"
 
@@ -305,13 +300,11 @@ def refine(
 
     # Gauss-Newton with a forward-difference Jacobian (6 parameters, ~11 residuals)
     x = np.concatenate([rvec, tvec]).astype(np.float64)
-    step = np.array([1e-6] * 3 + [1e-6] * 3)
+    h = 1e-6
     J = np.zeros((0, 6))
     for _ in range(8):
         r0 = residuals(x)
-        J = np.column_stack(
-            [(residuals(x + step[k] * np.eye(6)[k]) - r0) / step[k] for k in range(6)]
-        )
+        J = np.column_stack([(residuals(x + h * np.eye(6)[k]) - r0) / h for k in range(6)])
         H = J.T @ J
         dx = np.linalg.solve(H + 1e-9 * np.eye(6), -J.T @ r0)
         x = x + dx
