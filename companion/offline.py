@@ -90,12 +90,12 @@ def run_vo(
             run.frame_ms.append((t1 - t0) * 1e3)
             run.total_ms.append((time.perf_counter() - t0) * 1e3)
             run.scale_ms.append(pipe.last_scale_ms)
-            out = pipe.vo_output
-            assert out is not None
-            T = out.T_vo_cam if out.state == VoState.TRACKING else None
+            out = pipe.vo_output  # None: the frame check rejected the frame
+            state = out.state if out is not None else VoState.LOST
+            T = out.T_vo_cam if out is not None and state == VoState.TRACKING else None
             run.time_us.append(ev.time_us)
-            run.state.append(out.state)
-            run.keyframe.append(out.is_keyframe)
+            run.state.append(state)
+            run.keyframe.append(out is not None and out.is_keyframe)
             run.T_vo_cam.append(T if T is not None else np.full((4, 4), np.nan))
             seg = pipe.vo.resets if pipe.vo.ever_initialized else -1
             run.segment.append(seg)
@@ -198,14 +198,13 @@ def run_scale(
     T_body_cam = pipe.T_body_cam
     for step in steps:
         feed_step(pipe, step)
-        out = pipe.vo_output
-        assert out is not None
-        tracking = out.state == VoState.TRACKING
+        out = pipe.vo_output  # None: the frame check rejected the frame
+        tracking = out is not None and out.state == VoState.TRACKING
         run.time_us.append(step.frame.time_us)
         run.tracking.append(tracking)
         run.segment.append(pipe.vo.resets)
         run.gt_position.append(step.T_world_body[:3, 3].copy())
-        run.vo_position.append(out.T_vo_cam[:3, 3].copy() if tracking else nan3)
+        run.vo_position.append(out.T_vo_cam[:3, 3].copy() if out and tracking else nan3)
         run.gt_cam_position.append((step.T_world_body @ T_body_cam)[:3, 3])
         for n in names:
             est = pipe.estimates[n] if tracking else None
@@ -213,7 +212,7 @@ def run_scale(
             run.scale[n].append(est.scale if est is not None else float("nan"))
             run.position[n].append(pos if pos is not None and est is not None else nan3)
         s_true = float("nan")
-        if tracking:
+        if out is not None and tracking:
             f = out.features
             has = f.point_ids >= 0
             if has.any():

@@ -29,6 +29,7 @@ from companion.types import (
     VoOutput,
     VoState,
 )
+from companion.vo.frame_check import FrameCheck, FrameProblem
 from companion.vo.odometry import VisualOdometry
 
 F64 = NDArray[np.float64]
@@ -59,6 +60,10 @@ class Pipeline:
         self.T_body_cam = config.camera.T_body_cam() if T_body_cam is None else T_body_cam
         self.T_cam_body = se3.inverse(self.T_body_cam)
         self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
+        self.frame_check = FrameCheck(config.vo)
+        self.frame_problem: FrameProblem | None = None  # of the last frame fed
+        self.gaps = 0  # times tracking was dropped after a gap between usable frames
+        self._last_good_us: int | None = None
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
         self.ranges = RangeHistory()
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
@@ -120,13 +125,27 @@ class Pipeline:
         """Run the VO and the scale on a frame; the metric pose once tracking with a scale.
 
         The VO result stays in ``vo_output``, every method's scale in ``estimates`` and the
-        metric body positions (VO orientation) in ``metric_positions``."""
-        self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
+        metric body positions (VO orientation) in ``metric_positions``.
+
+        A frame that the camera check rejects (frozen, dark, saturated, blank, out of order:
+        ``frame_problem``) gives no pose and is not seen by the VO; when usable frames
+        resume more than ``vo.max_gap_ms`` after the last one, the VO drops its map and
+        initialises anew, so the poses after a camera fault carry a new reset_counter."""
         self.scale_input = None
         self.tilt = None
         self.tilt_input = None
         self.last_scale_ms = 0.0
         self.last_attitude_ms = 0.0
+        self.frame_problem = self.frame_check.check(frame)
+        if self.frame_problem is not None:
+            self.vo_output = None
+            return None
+        last = self._last_good_us
+        if last is not None and frame.time_us - last > self.config.vo.max_gap_ms * 1e3:
+            self.vo.lose()
+            self.gaps += 1
+        self._last_good_us = frame.time_us
+        self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
         if out.state != VoState.TRACKING:
             return None
         t0 = time.perf_counter()

@@ -501,6 +501,19 @@ class VisualOdometry:
         self._prev_gray = gray
         return self._output(frame.time_us, is_kf)
 
+    def lose(self) -> None:
+        """Drop tracking and the map (the input was interrupted: a camera fault or a gap).
+        The next frames start a new initialisation; its success counts a reset, so the
+        poses after it carry a new reset_counter."""
+        if self.state == VoState.TRACKING:
+            self.state = VoState.LOST
+        self.points.clear()
+        self.point_sigma.clear()
+        self.keyframes = []
+        self.tracks = Tracks.empty()
+        self._pending_keyframe = None
+        self._prev_gray = None
+
     def finish_pending(self) -> bool:
         """Build the keyframe the last frame asked for (new points, triangulation, local BA),
         off the latency-critical path: the service calls this after publishing; otherwise

@@ -33,3 +33,9 @@ class VoOptions:
     max_rotation_deg_per_frame: float = opt(
         25.0, "a larger rotation between frames is a failure (LOST)", gt=0
     )
+    max_gap_ms: float = opt(
+        250.0, "a longer gap between usable frames loses tracking (new VO map) [ms]", gt=0
+    )
+    dark_level: float = opt(12.0, "a frame whose mean grey level is below this is dark", ge=0)
+    bright_level: float = opt(243.0, "a frame whose mean grey level is above this is saturated")
+    min_contrast: float = opt(3.0, "a frame whose grey-level std is below this is blank", ge=0)

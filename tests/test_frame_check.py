@@ -1,0 +1,98 @@
+"""Camera faults before the VO: the frame check, and the pipeline's behaviour around them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from companion.config import load_config
+from companion.offline import feed_step
+from companion.pipeline import Pipeline
+from companion.types import CameraFrame
+from companion.vo.frame_check import FrameCheck, FrameProblem
+from sitl.scenario import Scenario
+
+
+@pytest.fixture(scope="module")
+def steps() -> list[object]:
+    cfg = load_config(
+        overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 14.0}}
+    )
+    return list(Scenario(cfg).steps())
+
+
+def _frame(t_us: int, seq: int, img: np.ndarray) -> CameraFrame:
+    return CameraFrame(t_us, seq, img)
+
+
+def test_each_failure_mode_has_its_verdict(steps: list[object]) -> None:
+    img = steps[40].frame.image_bgr  # type: ignore[attr-defined]
+    other = steps[41].frame.image_bgr  # type: ignore[attr-defined]
+    chk = FrameCheck()
+    assert chk.check(_frame(1000, 0, img)) is None
+    assert chk.check(_frame(2000, 1, other)) is None  # noise: two exposures always differ
+    assert chk.check(_frame(3000, 2, other.copy())) == FrameProblem.FROZEN
+    assert chk.check(_frame(2500, 3, img)) == FrameProblem.OUT_OF_ORDER
+    assert chk.check(_frame(4000, 4, np.zeros_like(img))) == FrameProblem.DARK
+    assert chk.check(_frame(5000, 5, np.full_like(img, 255))) == FrameProblem.SATURATED
+    assert chk.check(_frame(6000, 6, np.full_like(img, 128))) == FrameProblem.BLANK
+    # a noisy but textureless frame (a lens against a wall) is blank too, a dim one is fine
+    rng = np.random.default_rng(3)
+    flat = np.clip(128 + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+    assert chk.check(_frame(7000, 7, flat)) == FrameProblem.BLANK
+    dim = (img.astype(np.float64) * 0.25).astype(np.uint8)
+    assert chk.check(_frame(8000, 8, dim)) is None
+    assert chk.counts == {
+        "out_of_order": 1,
+        "frozen": 1,
+        "dark": 1,
+        "saturated": 1,
+        "blank": 2,
+    }
+
+
+def _run(steps: list[object], faulty: dict[int, np.ndarray | None]) -> tuple[Pipeline, list]:
+    """Feed the flight; frames listed in ``faulty`` get that image (None: the frame is lost)."""
+    pipe = Pipeline(load_config())
+    poses = []
+    for s in steps:
+        seq = s.frame.seq  # type: ignore[attr-defined]
+        if seq in faulty:
+            img = faulty[seq]
+            if img is None:
+                poses.append(None)
+                continue
+            s = dataclasses.replace(s, frame=CameraFrame(s.frame.time_us, seq, img))  # type: ignore
+        poses.append(feed_step(pipe, s))
+    return pipe, poses
+
+
+def test_a_frozen_camera_gives_no_pose_and_resumes_with_a_new_reset_counter(
+    steps: list[object],
+) -> None:
+    frozen_img = steps[209].frame.image_bgr  # type: ignore[attr-defined]
+    pipe, poses = _run(steps, {k: frozen_img.copy() for k in range(210, 240)})  # 1 s frozen
+    assert poses[209] is not None and poses[209].reset_counter == 0
+    assert all(p is None for p in poses[210:240])  # nothing from a frozen image
+    assert pipe.frame_check.counts["frozen"] == 30
+    back = [k for k in range(240, len(poses)) if poses[k] is not None]
+    assert back and back[0] < 240 + 90, "no pose within 3 s of the camera's return"
+    assert poses[back[0]].reset_counter == 1  # the autopilot is told: a discontinuity
+    assert pipe.gaps == 1 and pipe.vo.resets == 1
+
+
+def test_one_bad_frame_is_skipped_without_a_reset(steps: list[object]) -> None:
+    img = steps[150].frame.image_bgr  # type: ignore[attr-defined]
+    pipe, poses = _run(steps, {150: np.zeros_like(img), 151: None, 152: None})
+    assert poses[149] is not None and poses[150] is None
+    assert all(p is not None and p.reset_counter == 0 for p in poses[153:])
+    assert pipe.gaps == 0 and pipe.frame_check.counts["dark"] == 1
+
+
+def test_a_gap_without_frames_resets(steps: list[object]) -> None:
+    pipe, poses = _run(steps, dict.fromkeys(range(210, 225)))  # 0.5 s unplugged
+    assert pipe.gaps == 1
+    back = [p for p in poses[225:] if p is not None]
+    assert back and all(p.reset_counter == 1 for p in back)
