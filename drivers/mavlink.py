@@ -27,6 +27,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
+from drivers.signing import RESERVE_UNITS, Signing
 
 OnMessage = Callable[[Any, int], None]
 
@@ -68,11 +69,19 @@ class LinkStats:
 
 
 class Parser:
-    """Bytes -> MAVLink messages (robust: bad frames are counted and skipped)."""
+    """Bytes -> MAVLink messages (robust: bad frames are counted and skipped). With a signing
+    state (``drivers.signing``), frames are checked against it; refused ones are bad data."""
 
-    def __init__(self) -> None:
-        self.mav = mavlink.MAVLink(None)
-        self.mav.robust_parsing = True
+    def __init__(self, signing_state: Any = None) -> None:
+        self.signing_state = signing_state
+        self.mav = self._new()
+
+    def _new(self) -> Any:
+        mav = mavlink.MAVLink(None)
+        mav.robust_parsing = True
+        if self.signing_state is not None:
+            mav.signing = self.signing_state
+        return mav
 
     def feed(self, data: bytes, stats: LinkStats) -> list[Any]:
         out: list[Any] = []
@@ -90,8 +99,7 @@ class Parser:
                 msg = nxt
         except Exception:  # pymavlink raises on some malformed payloads: count, go on
             stats.rx_bad += 1
-            self.mav = mavlink.MAVLink(None)
-            self.mav.robust_parsing = True
+            self.mav = self._new()
         stats.rx_messages += len(out)
         return out
 
@@ -99,13 +107,24 @@ class Parser:
 class MavlinkLink:
     """One MAVLink link as an async context manager (the transport lives inside it)."""
 
-    def __init__(self, url: str, system_id: int, component_id: int, on_message: OnMessage) -> None:
+    def __init__(
+        self,
+        url: str,
+        system_id: int,
+        component_id: int,
+        on_message: OnMessage,
+        signing: Signing | None = None,
+    ) -> None:
         self.url = LinkUrl.parse(url)
         self.on_message = on_message
         self.peer_system_id = system_id  # udpin answers the address this system spoke from
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.stats = LinkStats()
         self._parser = Parser()
+        self.signing = signing
+        if signing is not None:  # one signing state for what we send and what we parse
+            signing.apply(self.mav, self._parser.mav)
+            self._parser.signing_state = self.mav.signing
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: tuple[str, int] | None = None
         self._writer: asyncio.StreamWriter | None = None
@@ -129,7 +148,16 @@ class MavlinkLink:
             self._tasks.append(asyncio.create_task(self._tcp_loop(), name="mavlink-tcp"))
         else:
             self._open_serial()
+        if self.signing is not None:
+            self._tasks.append(asyncio.create_task(self._signing_loop(), name="mavlink-signing"))
         return self
+
+    async def _signing_loop(self) -> None:
+        """Once a second: the signing timestamp follows the wall clock, persisted ahead."""
+        assert self.signing is not None
+        while not self._closing:
+            self.signing.tick()
+            await asyncio.sleep(1.0)
 
     async def __aexit__(self, *exc: object) -> None:
         self._closing = True
@@ -171,6 +199,10 @@ class MavlinkLink:
 
     def send(self, msg: Any) -> bool:
         """Encode and send a pymavlink message; False when it could not be sent."""
+        store = self.signing.store if self.signing is not None else None
+        if store is not None and self.mav.signing.timestamp > store.persisted - RESERVE_UNITS // 2:
+            assert self.signing is not None
+            self.signing.tick()  # a signed frame from the peer moved it far forward: persist first
         try:
             buf = msg.pack(self.mav)
         except Exception:

@@ -44,6 +44,8 @@ from companion.service.timesync import ClockSync, reply_for
 from companion.types import CameraFrame
 from drivers.camera import encode_frame
 from drivers.mavlink import LinkStats, Parser
+from drivers.signing import Signing
+from sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MSG_ATTITUDE = 30
@@ -64,6 +66,14 @@ class AutopilotOptions:
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
+    faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/faults.py)
+    signing_key: bytes = b""  # MAVLink 2 signing with this 32-byte key (empty: unsigned)
+    require_signed: bool = True  # with a key: refuse unsigned frames except HEARTBEAT
+    gcs_listen_port: int = 18570  # the ground-station endpoint (sitl/px4_services.py); 0 = none
+    gcs_port: int = 14550  # where the ground-station endpoint sends (QGroundControl, MAVSDK)
+    armed: bool = False  # report the vehicle armed in HEARTBEAT
+    has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
+    camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
 
 
 @dataclass
@@ -89,6 +99,8 @@ class AutopilotStats:
     timesync_answers: int = 0
     heartbeats_from_companion: int = 0
     rates_set: dict[int, float] = field(default_factory=dict)
+    rate_requests_s: list[float] = field(default_factory=list)  # flight times of requests
+    reboots: int = 0
     link: LinkStats = field(default_factory=LinkStats)
 
 
@@ -100,9 +112,10 @@ def camera_process(
     counters: Any,
     prerender: bool = False,
     ready: Any = None,
+    faults: tuple[Fault, ...] = (),
 ) -> None:
     """Child process: render the flight (ahead of time, or all of it before the flight with
-    ``prerender``) and stream each frame at exposure + readout."""
+    ``prerender``) and stream each frame at exposure + readout; camera faults applied."""
     from sitl.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
@@ -116,17 +129,41 @@ def camera_process(
     while counters[2] == 0:  # the parent sets the flight start once everybody is ready
         time.sleep(0.01)
     flight_start_ns = int(counters[2])
-    server = socket.create_server(("127.0.0.1", port), reuse_port=False)
-    server.settimeout(0.2)
+
+    def listen() -> socket.socket:
+        srv = socket.create_server(("127.0.0.1", port), reuse_port=False)
+        srv.settimeout(0.2)
+        return srv
+
+    server: socket.socket | None = listen()
     client: socket.socket | None = None
     period_ns = int(1e9 / cfg.camera.rate_hz)
+    last_good: Any = None
     for seq in range(scenario.n_frames):
         expose_ns = flight_start_ns + seq * period_ns
         release_ns = expose_ns + int(readout_ms * 1e6)
+        now_faults = active(faults, seq / cfg.camera.rate_hz) & CAMERA_KINDS
+        if "camera_unplug" in now_faults:  # gone from the bus: no stream, no connections
+            for sock in (client, server):
+                if sock is not None:
+                    sock.close()
+            client = server = None
+            counters[1] += 1
+            continue
+        if server is None:
+            server = listen()
         if time.monotonic_ns() > release_ns + period_ns:
             counters[1] += 1  # behind: this frame is lost, as a camera would lose it
             continue
         image = images[seq] if prerender else scenario.step(seq).frame.image_bgr
+        if "camera_freeze" in now_faults and last_good is not None:
+            image = last_good
+        elif "camera_black" in now_faults:
+            image = np.zeros_like(image)
+        elif "camera_saturated" in now_faults:
+            image = np.full_like(image, 255)
+        else:
+            last_good = image
         frame = CameraFrame(expose_ns // 1000, seq, image)
         payload = encode_frame(frame)
         while client is None:
@@ -150,7 +187,8 @@ def camera_process(
             client = None
     if client is not None:
         client.close()
-    server.close()
+    if server is not None:
+        server.close()
 
 
 class SimAutopilot:
@@ -171,6 +209,11 @@ class SimAutopilot:
         self.ranges = RangeSimulator(self.world, self.trajectory, cfg.rangefinders, s.seed)
         self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
         self.parser = Parser()
+        self.signing: Signing | None = None
+        if self.opts.signing_key:  # as PX4 with a key: signs everything, refuses unsigned
+            self.signing = Signing(self.opts.signing_key, None, 1, self.opts.require_signed)
+            self.signing.apply(self.mav, self.parser.mav)
+            self.parser.signing_state = self.mav.signing
         self.sync = ClockSync()
         self.stats = AutopilotStats()
         now = time.monotonic_ns()
@@ -179,6 +222,9 @@ class SimAutopilot:
         self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
+        from sitl.px4_services import Px4Services
+
+        self.px4 = Px4Services(self)  # parameters, EV fusion, shell, ground-station endpoint
 
     # ------------------------------------------------------------------ clocks
     def clock_ns(self, mono_ns: int) -> int:
@@ -193,8 +239,13 @@ class SimAutopilot:
         return (mono_ns - self.flight_start_ns) * 1e-9
 
     # ------------------------------------------------------------------ I/O
+    def silent(self) -> bool:
+        """A link fault (cable out, rebooting) is on: nothing is sent or heard."""
+        t = self.t_sim_of_mono(time.monotonic_ns())
+        return bool(active(self.opts.faults, t) & {"link_silence", "autopilot_reboot"})
+
     def send(self, msg: Any) -> None:
-        if self._transport is None:
+        if self._transport is None or self.silent():
             return
         try:
             buf = msg.pack(self.mav)
@@ -205,10 +256,14 @@ class SimAutopilot:
 
     def _on_datagram(self, data: bytes) -> None:
         rx_ns = time.monotonic_ns()
+        if self.silent():
+            return
         for msg in self.parser.feed(data, self.stats.link):
             self._on_message(msg, rx_ns)
 
     def _on_message(self, msg: Any, rx_ns: int) -> None:
+        if self.px4.handle(msg, False, rx_ns):
+            return
         kind = msg.get_type()
         if kind == "TIMESYNC":
             reply = reply_for(msg.tc1, msg.ts1, self.clock_ns(time.monotonic_ns()))
@@ -222,6 +277,7 @@ class SimAutopilot:
         elif kind == "HEARTBEAT":
             self.stats.heartbeats_from_companion += 1
         elif kind == "COMMAND_LONG" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.stats.rate_requests_s.append(self.t_sim_of_mono(rx_ns))
             msg_id, interval_us = int(msg.param1), float(msg.param2)
             ok = msg_id in self.rates_hz and interval_us > 0
             if ok:
@@ -240,6 +296,7 @@ class SimAutopilot:
             self._on_pose(msg, kind, rx_ns)
 
     def _on_pose(self, msg: Any, kind: str, rx_ns: int) -> None:
+        self.px4.on_vision(msg, kind, rx_ns)  # what PX4 and EKF2 make of it
         if not self.sync.converged:
             return  # PX4 does not use the timestamps before its filter converged
         t_usec = int(msg.usec if kind == "VISION_POSITION_ESTIMATE" else msg.time_usec)
@@ -294,7 +351,7 @@ class SimAutopilot:
         )
 
     def _heartbeat(self) -> None:
-        self.send(self.mav.heartbeat_encode(2, 12, 0, 0, 4))  # QUADROTOR, PX4, ACTIVE
+        self.send(self.mav.heartbeat_encode(2, 12, self.px4.base_mode(), 0, 4))  # QUADROTOR, PX4
 
     def _timesync(self) -> None:
         self.send(self.mav.timesync_encode(0, self.clock_ns(time.monotonic_ns())))
@@ -358,11 +415,44 @@ class SimAutopilot:
                 last_t = t
             await asyncio.sleep(0.004)
 
+    async def _listen(self, port: int) -> None:
+        """(Re)open our UDP socket on ``port`` (0: any free one); we send from it too."""
+        stub = self
+
+        class Proto(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+                stub._on_datagram(data)
+
+        old = self._transport
+        transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+            Proto, local_addr=(self.opts.host, port)
+        )
+        self._transport = transport
+        if old is not None:
+            old.close()
+
+    async def _fault_loop(self) -> None:
+        """Link faults that happen at an instant: a new UDP port; the end of a reboot."""
+        pending = sorted(
+            (f for f in self.opts.faults if f.kind in ("link_port_change", "autopilot_reboot")),
+            key=lambda f: f.end_s if f.kind == "autopilot_reboot" else f.start_s,
+        )
+        for f in pending:
+            at = f.end_s if f.kind == "autopilot_reboot" else f.start_s
+            while self.t_sim_of_mono(time.monotonic_ns()) < at:
+                await asyncio.sleep(0.005)
+            if f.kind == "link_port_change":
+                await self._listen(0)
+            else:  # back from a reboot: a new boot clock, time sync and default rates
+                self.boot_ns = time.monotonic_ns()
+                self.sync = ClockSync()
+                self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
+                self.stats.reboots += 1
+
     async def run(self, out: Path | None = None) -> dict[str, Any]:
         """Fly the scenario (camera ready, warm-up, flight, linger) and return the report.
         MAVLink runs from the start (heartbeats, time sync); the sensors and the camera only
         during the flight."""
-        loop = asyncio.get_running_loop()
         ctx = mp.get_context("spawn")
         counters = ctx.Array("q", 3)  # frames sent, frames dropped, flight start [ns]
         ready = ctx.Event()
@@ -377,21 +467,17 @@ class SimAutopilot:
                 counters,
                 self.opts.prerender,
                 ready,
+                self.opts.faults,
             ),
             daemon=True,
             name="sitl-camera",
         )
-        camera.start()
-        stub = self
-
-        class Proto(asyncio.DatagramProtocol):
-            def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-                stub._on_datagram(data)
-
-        transport, _ = await loop.create_datagram_endpoint(
-            Proto, local_addr=(self.opts.host, self.opts.listen_port)
-        )
-        self._transport = transport
+        if self.opts.camera:
+            camera.start()
+        else:
+            ready.set()
+        await self._listen(self.opts.listen_port)
+        await self.px4.open_gcs()
         try:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
@@ -400,6 +486,8 @@ class SimAutopilot:
                     tg.create_task(self._attitude_loop()),
                     tg.create_task(self._distance_loop()),
                     tg.create_task(self._every(5.0, self._log_live)),
+                    tg.create_task(self._fault_loop()),
+                    *(tg.create_task(c, name=n) for n, c in self.px4.loops().items()),
                 ]
                 # the world is built (and, with prerender, every frame rendered)
                 await asyncio.to_thread(ready.wait)
@@ -412,8 +500,11 @@ class SimAutopilot:
                 for t in tasks:
                     t.cancel()
         finally:
-            transport.close()
-            camera.join(timeout=5)
+            if self._transport is not None:
+                self._transport.close()
+            self.px4.close()
+            if self.opts.camera:
+                camera.join(timeout=5)
             if camera.is_alive():
                 camera.terminate()
         report = self.report(int(counters[0]), int(counters[1]))
@@ -432,6 +523,7 @@ class SimAutopilot:
             "timesync_answers": self.stats.timesync_answers,
             "rates_set_hz": {str(k): v for k, v in self.stats.rates_set.items()},
             "link": vars(self.stats.link),
+            "signing": self.signing.counters() if self.signing else None,
         }
         rtt = np.array(self.stats.timesync_rtt_ns) * 1e-6
         if len(rtt):
@@ -456,6 +548,20 @@ class SimAutopilot:
             if seg.sum() >= 10:
                 a = umeyama(est[seg], gt[seg], with_scale=False)
                 err[seg] = np.linalg.norm(a.apply(est[seg]) - gt[seg], axis=1)
+        out["faults"] = [
+            fault_metrics(
+                f,
+                rx_sim,
+                t_sim,
+                resets,
+                np.array([r.sync_error_us for r in rec]),
+                self.stats.rate_requests_s,
+                self.cfg.camera.rate_hz,
+                self.opts.readout_ms,
+            )
+            for f in self.opts.faults
+        ]
+        out["reboots"] = self.stats.reboots
         main_seg = resets == np.bincount(resets - resets.min()).argmax() + resets.min()
         sim3 = umeyama(est[main_seg], gt[main_seg], with_scale=True)
         err = err[np.isfinite(err)]

@@ -36,6 +36,7 @@ from companion.service.status import StatusServer, status_path
 from companion.service.systemd import SdNotify
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
+from companion.vo.frame_check import FrameProblem
 from drivers import messages
 
 log = logging.getLogger("companion.service")
@@ -88,7 +89,15 @@ class Service:
         self.sync = ClockSync()
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url)
-        self.link = MavlinkLink(o.mavlink_url, o.system_id, o.component_id, self._on_message)
+        from drivers.signing import Signing
+
+        self.link = MavlinkLink(
+            o.mavlink_url,
+            o.system_id,
+            o.component_id,
+            self._on_message,
+            Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
+        )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt: MqttPublisher | None = (
             MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
@@ -111,6 +120,9 @@ class Service:
         self._rate_pending: int | None = None
         self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
+        self._frame_problem: FrameProblem | None = None  # the camera fault in progress
+        self._autopilot_lost = False
+        self._sync_resets = 0
         self._attitude_rates = np.zeros(3)
 
     def _tfmini(self, rf: Any) -> Any:
@@ -274,7 +286,14 @@ class Service:
         }
         while not self._stop.is_set():
             hb = self.stats.autopilot_heartbeat_ns
-            if hb and now_ns() - hb > 3_000_000_000:
+            silent = bool(hb) and now_ns() - hb > 3_000_000_000
+            if silent and not self._autopilot_lost:
+                self._warn("autopilot: no heartbeat for 3 s (link lost?)")
+            elif self._autopilot_lost and not silent:
+                self._warn("autopilot: heartbeat back; asking for the message rates again")
+            self._autopilot_lost = silent
+            if silent or self.sync.resets != self._sync_resets:  # gone, or its clock jumped
+                self._sync_resets = self.sync.resets
                 self.stats.rates_acknowledged.clear()
             missing = [m for m in wanted if m not in self.stats.rates_acknowledged]
             if hb and missing:
@@ -296,9 +315,10 @@ class Service:
         exit). A finite source (a file, a folder) that ends stops the service; a live one that
         ends or fails is reopened with capped, jittered backoff."""
         loop = asyncio.get_running_loop()
-        delay = 0.5
+        delay, reported = 0.5, False
         while not self._stop.is_set():
             done: asyncio.Future[BaseException | None] = loop.create_future()
+            frames_before = self.stats.frames_in
 
             def reader(done: asyncio.Future[BaseException | None] = done) -> None:
                 error: BaseException | None = None
@@ -331,7 +351,12 @@ class Service:
                 self._warn("camera: the recording ended; stopping")
                 self.stop()
                 return
-            self._warn(f"camera: {'failed: ' + str(error) if error else 'stream ended'}; reopening")
+            if self.stats.frames_in > frames_before:  # it worked for a while: retry soon
+                delay, reported = 0.5, False
+            if not reported:  # once per outage, not once per attempt
+                why = f"failed: {error}" if error else "stream ended"
+                self._warn(f"camera: {why}; reopening until it is back")
+                reported = True
             await self._sleep(delay * random.uniform(0.5, 1.5))
             delay = min(delay * 2, 5.0)
 
@@ -415,6 +440,13 @@ class Service:
         return p.feed_frame(frame)
 
     def _publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
+        problem, prev = self.pipeline.frame_problem, self._frame_problem
+        if problem != prev:  # a camera fault starts or ends: say so once
+            if problem is not None:
+                self._warn(f"camera: {problem.value} frames; not publishing")
+            elif prev is not None:
+                self._warn(f"camera: usable frames again (after {prev.value} ones)")
+            self._frame_problem = problem
         out = self.pipeline.vo_output
         self._last_vo_state = out.state if out is not None else VoState.INITIALIZING
         if pose is None or not messages.is_finite_pose(pose):
@@ -483,6 +515,7 @@ class Service:
             "reset_counter": s.last_reset_counter,
             "scale": scale.scale if scale is not None else None,
             "link": vars(self.link.stats),
+            "signing": self.link.signing.counters() if self.link.signing else None,
         }
 
     def status(self) -> dict[str, Any]:
@@ -513,6 +546,8 @@ class Service:
                 "rates_acknowledged": sorted(s.rates_acknowledged),
                 "rx_messages": self.link.stats.rx_messages,
                 "rx_bad": self.link.stats.rx_bad,
+                "handler_errors": self.link.stats.handler_errors,
+                "signing": self.link.signing.counters() if self.link.signing else None,
             },
             "camera": {
                 "url": o.camera_url,
@@ -520,6 +555,9 @@ class Service:
                 "frames": s.frames_in,
                 "dropped": s.frames_dropped,
                 "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
+                "problem": self._frame_problem.value if self._frame_problem else None,
+                "rejected": {k: v for k, v in p.frame_check.counts.items() if v},
+                "gaps": p.gaps,
             },
             "vo": {
                 "state": out.state.name if out is not None else "INITIALIZING",

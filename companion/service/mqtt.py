@@ -22,6 +22,8 @@ from typing import Any
 
 from companion.service.options import MqttOptions
 
+MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
+
 log = logging.getLogger("companion.mqtt")
 
 
@@ -126,4 +128,4 @@ class MqttPublisher:
                     log.warning("MQTT connection lost: %s", self.stats.last_error or "closed")
                 self.stats.connected = False
             await asyncio.sleep(delay * random.uniform(0.5, 1.5))
-            delay = min(delay * 2, 30.0)
+            delay = min(delay * 2, MAX_BACKOFF_S)

@@ -29,6 +29,20 @@ class MqttOptions:
 
 
 @dataclass(frozen=True, slots=True)
+class SigningOptions:
+    """MAVLink 2 signing of the autopilot link (off while key_file is empty)."""
+
+    key_file: str = opt("", "32-byte secret (raw or 64 hex digits), mode 0600; empty = off")
+    require_signed: bool = opt(True, "refuse unsigned/badly signed frames (HEARTBEAT allowed)")
+    link_id: int = opt(0, "our signing link id", ge=0, le=255)
+    timestamp_file: str = opt(
+        "",
+        "where the last signing timestamp persists (empty: $STATE_DIRECTORY/"
+        "signing_timestamp under systemd, else next to the key file)",
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceOptions:
     """Links, rates and what is sent to the autopilot."""
 
@@ -53,6 +67,7 @@ class ServiceOptions:
     )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
     mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
+    signing: SigningOptions = opt(SigningOptions(), "MAVLink 2 signing of the autopilot link")
     status_socket: str = opt(
         "",
         "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "

@@ -62,14 +62,14 @@ class FrameCheck:
         sample = np.ascontiguousarray(img[STEP // 2 :: STEP, STEP // 2 :: STEP])
         frozen = self._last_sample is not None and np.array_equal(sample, self._last_sample)
         self._last_sample = sample
-        if frozen:
-            return FrameProblem.FROZEN
         grey = sample.mean(axis=2) if sample.ndim == 3 else sample.astype(np.float64)
         mean = float(grey.mean())
-        if mean < self.opts.dark_level:
+        if mean < self.opts.dark_level:  # (a run of black frames is dark, not frozen)
             return FrameProblem.DARK
         if mean > self.opts.bright_level:
             return FrameProblem.SATURATED
         if float(grey.std()) < self.opts.min_contrast:
             return FrameProblem.BLANK
+        if frozen:
+            return FrameProblem.FROZEN
         return None

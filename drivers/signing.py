@@ -1,0 +1,193 @@
+"""MAVLink 2 message signing: the key, the timestamp that never goes back, pymavlink's setup.
+
+Signing (https://mavlink.io/en/guide/message_signing.html) appends 13 bytes to each MAVLink 2
+frame: link id, a 48-bit timestamp in 10 us units since 2015-01-01 00:00 UTC, and the first
+6 bytes of SHA-256(key | frame | link id | timestamp). A receiver rejects a frame whose
+timestamp is not newer than the last one of its (link, system, component) stream, so a sender
+whose timestamp goes back (a board without a real-time clock that booted with an old date, a
+restored image) is locked out until its clock passes the old value again. Therefore:
+
+- the key is a 32-byte secret in a file (raw 32 bytes, or 64 hex digits), refused unless only
+  its owner may read it (mode 0600 or 0400);
+- the timestamp starts at max(wall clock, the persisted value) and the persisted value is kept
+  ahead of every timestamp used (written ``RESERVE_UNITS`` ahead, atomically: temporary file,
+  fsync, rename, fsync of the directory), so a crash or a power cut never makes it go back;
+- one ``MAVLinkSigning`` state is shared by the sender and the parser of a link, so a valid
+  signed frame from the autopilot with a newer timestamp moves our own forward (as the
+  specification asks);
+- with ``require_signed``, unsigned or badly signed frames are refused, except HEARTBEAT (as
+  PX4 does, so that a peer with the wrong key is still visible as a peer).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import time
+from pathlib import Path
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.errors import ConfigError
+from companion.service.options import SigningOptions
+
+EPOCH_2015_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC, the signing timestamp's origin
+UNITS_PER_S = 100_000  # the timestamp counts 10 us units
+RESERVE_UNITS = 60 * UNITS_PER_S  # the persisted value runs this far ahead of the one used
+ALLOWED_UNSIGNED = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT})
+
+
+def load_key(path: str | Path, key: str = "service.signing.key_file") -> bytes:
+    """The 32-byte secret in ``path``; ConfigError naming ``key`` when the file is missing,
+    readable by others than its owner, or not 32 bytes / 64 hex digits."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as e:
+        raise ConfigError(f"{key}: cannot read {p}: {e.strerror}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise ConfigError(f"{key}: {p} is not a regular file")
+    if st.st_mode & 0o077:
+        raise ConfigError(
+            f"{key}: {p} has mode {stat.S_IMODE(st.st_mode):04o}; a signing key must be "
+            f"readable by its owner only (chmod 600 {p})"
+        )
+    data = p.read_bytes()
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        with contextlib.suppress(ValueError):
+            return bytes.fromhex(text.decode("ascii"))
+    raise ConfigError(f"{key}: {p} must hold 32 bytes or 64 hex digits, it holds {len(data)} bytes")
+
+
+def wall_units(now_s: float | None = None) -> int:
+    """The wall clock in signing units (10 us since 2015-01-01 UTC)."""
+    now = time.time() if now_s is None else now_s
+    return max(0, int((now - EPOCH_2015_S) * UNITS_PER_S))
+
+
+class TimestampStore:
+    """The persisted signing timestamp: ``start()`` once, ``keep_ahead(ts)`` as it advances."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.persisted = 0
+        self.writes = 0
+
+    def read(self) -> int:
+        """The stored value (0 when there is none or it is unreadable: a fresh board)."""
+        try:
+            return max(0, int(self.path.read_text().strip()))
+        except (OSError, ValueError):
+            return 0
+
+    def start(self, now_s: float | None = None) -> int:
+        """The first timestamp to use: after everything used before, and not behind the wall
+        clock. Persists the reserve ahead of it before it is used."""
+        first = max(wall_units(now_s), self.read() + 1)
+        self._write(first + RESERVE_UNITS)
+        return first
+
+    def keep_ahead(self, timestamp: int) -> None:
+        """Called as the timestamp advances: rewrites the file when the reserve is half used
+        (a rare write: about once per 30 s of wall-clock advance)."""
+        if timestamp > self.persisted - RESERVE_UNITS // 2:
+            self._write(timestamp + RESERVE_UNITS)
+
+    def _write(self, value: int) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, f"{value}\n".encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, self.path)
+        with contextlib.suppress(OSError):  # the rename itself durable
+            dfd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        self.persisted = value
+        self.writes += 1
+
+
+def default_timestamp_file(opts: SigningOptions) -> Path:
+    """Where the timestamp persists when ``timestamp_file`` is empty."""
+    if opts.timestamp_file:
+        return Path(opts.timestamp_file)
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return Path(state.split(":")[0]) / "signing_timestamp"
+    return Path(opts.key_file).with_name("signing_timestamp")
+
+
+class Signing:
+    """Signing of one link: ``apply(sender_mav, parser_mav)`` then ``tick()`` about once a
+    second (wall-clock advance and persistence). Without a store (a simulator) the timestamp
+    starts at the wall clock and is not persisted."""
+
+    def __init__(
+        self,
+        key: bytes,
+        store: TimestampStore | None,
+        link_id: int = 0,
+        require_signed: bool = True,
+    ) -> None:
+        if len(key) != 32:
+            raise ValueError("a MAVLink signing key has 32 bytes")
+        self.key = key
+        self.store = store
+        self.link_id = link_id
+        self.require_signed = require_signed
+        self.state: Any = None
+
+    @staticmethod
+    def from_options(opts: SigningOptions) -> Signing | None:
+        """None when signing is off (no key file configured)."""
+        if not opts.key_file:
+            return None
+        key = load_key(opts.key_file)
+        return Signing(
+            key, TimestampStore(default_timestamp_file(opts)), opts.link_id, opts.require_signed
+        )
+
+    def apply(self, sender: Any, parser: Any) -> None:
+        """Set up pymavlink's signing on a link's sender and parser (one shared state)."""
+        s = sender.signing
+        s.secret_key = self.key
+        s.link_id = self.link_id
+        s.sign_outgoing = True
+        s.timestamp = self.store.start() if self.store is not None else wall_units()
+        s.allow_unsigned_callback = self._allow_unsigned
+        parser.signing = s
+        self.state = s
+
+    def _allow_unsigned(self, _mav: Any, msg_id: int) -> bool:
+        return not self.require_signed or msg_id in ALLOWED_UNSIGNED
+
+    def tick(self) -> None:
+        """Advance the timestamp to the wall clock (never back) and keep the file ahead."""
+        if self.state is None:
+            return
+        self.state.timestamp = max(self.state.timestamp, wall_units())
+        if self.store is not None:
+            self.store.keep_ahead(self.state.timestamp)
+
+    def counters(self) -> dict[str, int]:
+        """pymavlink's counts: frames signed correctly, badly, and unsigned ones refused."""
+        s = self.state
+        if s is None:
+            return {}
+        return {
+            "good_signatures": int(s.goodsig_count),
+            "bad_signatures": int(s.badsig_count),
+            "unsigned_accepted": int(s.unsigned_count),
+            "refused": int(s.reject_count),
+        }

@@ -1,0 +1,161 @@
+"""Fault injection against the running service and the SITL autopilot, in real time.
+
+One signed flight (MAVLink 2 signing on both ends, as a hardened vehicle would fly) carries a
+schedule of faults, each in its own window, while the MQTT broker is down for a minute:
+
+- camera: 1 s frozen, 1 s black, 1 s saturated, 2 s unplugged. Nothing from those frames may
+  reach the autopilot, publishing stops within 100 ms of the last good frame, and resumes
+  with a new reset_counter;
+- autopilot link: 10 s of silence, a new UDP port, a reboot (its clock restarts at zero). The
+  service asks for its message rates again and the time sync is back within 1 ms;
+- MQTT broker down from 5 s to 65 s: the output rate away from the faults stays >= 28 Hz with
+  the broker down and after it is back, and the retained status is fresh again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import time
+
+import aiomqtt
+import numpy as np
+import pytest
+from peers import MOSQUITTO, Broker, free_port
+
+from companion.config import load_config
+from companion.service.app import Service
+from sitl.autopilot import AutopilotOptions, SimAutopilot
+from sitl.faults import Fault
+
+SECONDS = 75.0
+CAMERA_FAULTS = (
+    Fault("camera_freeze", 10.0, 1.0),
+    Fault("camera_black", 16.0, 1.0),
+    Fault("camera_saturated", 22.0, 1.0),
+    Fault("camera_unplug", 28.0, 2.0),
+)
+LINK_FAULTS = (
+    Fault("link_silence", 36.0, 10.0),
+    Fault("link_port_change", 51.0),
+    Fault("autopilot_reboot", 56.0, 2.0),
+)
+BROKER_DOWN_S = (5.0, 65.0)
+CLEAN_WINDOWS_S = ((5.0, 9.5), (61.0, 65.0), (67.0, 74.0))  # no fault; broker down, down, up
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
+    if not os.path.exists(MOSQUITTO):
+        pytest.fail("mosquitto is not installed (make test installs it with apt-get)")
+    broker = Broker(tmp_path)
+    broker.start()
+    key = bytes(range(32))
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_bytes(key)
+    key_file.chmod(0o600)
+    udp_stub, udp_us = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    tcp_cam = free_port()
+    opts = AutopilotOptions(
+        listen_port=udp_stub,
+        companion_port=udp_us,
+        camera_port=tcp_cam,
+        warmup_s=4.0,
+        prerender=True,
+        faults=CAMERA_FAULTS + LINK_FAULTS,
+        signing_key=key,
+    )
+    cfg = load_config(
+        "config/sitl.toml",
+        {
+            "sitl": {"seconds": SECONDS},
+            "service": {
+                "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
+                "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
+                "status_socket": str(tmp_path / "status.sock"),
+                "signing": {"key_file": str(key_file)},
+                "mqtt": {"enabled": True, "port": broker.port, "keepalive_s": 2},
+            },
+        },
+    )
+
+    async def fly() -> tuple[SimAutopilot, dict, dict, dict]:
+        stub = SimAutopilot(cfg, opts)
+        stub_task = asyncio.create_task(stub.run(tmp_path / "autopilot"))
+        async with Service(cfg) as service:
+            stub_task.add_done_callback(lambda _: service.stop())
+
+            async def broker_outage() -> dict:
+                def t_flight() -> float:
+                    return stub.t_sim_of_mono(time.monotonic_ns())
+
+                while t_flight() < BROKER_DOWN_S[0]:
+                    await asyncio.sleep(0.05)
+                broker.stop()
+                published_down = service.mqtt.stats.published if service.mqtt else 0
+                while t_flight() < BROKER_DOWN_S[1]:
+                    await asyncio.sleep(0.05)
+                broker.start()
+                back, uptime_back = time.monotonic(), service.status()["uptime_s"]
+                async with aiomqtt.Client("127.0.0.1", broker.port) as sub:
+                    await sub.subscribe("companion/1/status")
+                    async with asyncio.timeout(20):  # reconnection backoff <= 10 s x 1.5
+                        async for msg in sub.messages:
+                            status = json.loads(msg.payload)
+                            if status.get("uptime_s", 0.0) >= uptime_back:  # a fresh one
+                                break
+                return {
+                    "published_down": published_down,
+                    "status": status,
+                    "resumed_after_s": time.monotonic() - back,
+                }
+
+            outage = asyncio.create_task(broker_outage())
+            await service.run()
+            mqtt_seen = await outage
+            summary = service.summary()
+            status = service.status()
+            mqtt_stats = vars(service.mqtt.stats) if service.mqtt else {}
+        report = await stub_task
+        return stub, report, summary, {"mqtt": mqtt_seen, "status": status, "stats": mqtt_stats}
+
+    try:
+        stub, report, summary, extra = asyncio.run(fly())
+    finally:
+        broker.stop()
+    print(json.dumps(report["faults"], indent=1), summary, extra["stats"], extra["mqtt"])
+    assert "error" not in report, report
+    faults = {f["kind"]: f for f in report["faults"]}
+    for f in CAMERA_FAULTS:
+        m = faults[f.kind]
+        assert m["poses_from_fault_time"] == 0, m  # nothing from a bad frame
+        assert m["stop_after_last_good_frame_ms"] <= 100.0, m
+        assert m["resume_s"] is not None and m["resume_s"] <= 5.0, m
+        assert m["reset_counter_after"] > m["reset_counter_before"], m
+    silence, port, reboot = (faults[f.kind] for f in LINK_FAULTS)
+    assert silence["rate_requests_after"] >= 1 and reboot["rate_requests_after"] >= 1
+    for m in (silence, port, reboot):
+        assert m["resume_s"] is not None and m["resume_s"] <= 5.0, m
+        assert m["sync_error_ms_after"] is not None and m["sync_error_ms_after"] <= 1.0, m
+    assert port["resume_s"] <= 1.0  # the service answers the new port at once
+    assert report["reboots"] == 1
+    # the output rate away from the faults, with the broker down and after it is back
+    rec = [r for r in stub.stats.received if r.kind == report["message"]]
+    t_pose = np.array([r.t_sim_s for r in rec])
+    for lo, hi in CLEAN_WINDOWS_S:
+        n = int(((t_pose >= lo) & (t_pose < hi)).sum())
+        assert n / (hi - lo) >= 28.0, (lo, hi, n)
+    # telemetry resumed: a fresh retained status after the broker came back
+    assert extra["mqtt"]["resumed_after_s"] <= 20.0
+    assert extra["stats"]["published"] > extra["mqtt"]["published_down"]
+    # signed both ways, nothing refused, no handler error, no pipeline error
+    assert report["signing"]["good_signatures"] > 1000 and report["signing"]["refused"] == 0
+    assert summary["signing"]["good_signatures"] > 1000 and summary["signing"]["refused"] == 0
+    assert summary["link"]["handler_errors"] == 0 and summary["pipeline_errors"] == 0
+    rejected = extra["status"]["camera"]["rejected"]
+    assert rejected["frozen"] >= 25 and rejected["dark"] >= 25 and rejected["saturated"] >= 25
+    warnings = " | ".join(summary["warnings"])
+    assert "frozen" in warnings and "heartbeat back" in warnings
