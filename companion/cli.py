@@ -903,6 +903,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_eval.add_argument("--no-progress", action="store_true")
     p_eval.set_defaults(func=cmd_eval)
+
+    from companion.calibration.cli import add_parser as add_calibrate_parser
+
+    add_calibrate_parser(sub)  # companion calibrate board | intrinsics | lasers | sim-*
     return parser
 
 

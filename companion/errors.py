@@ -19,3 +19,17 @@ class DatasetError(CompanionError):
 
 class SitlError(CompanionError):
     """The simulator was asked for something it cannot produce."""
+
+
+class Px4Error(CompanionError):
+    """``companion px4 check | configure`` cannot do its job with the autopilot: no link or no
+    heartbeat, a parameter that cannot be read or written, a vehicle that is armed."""
+
+
+class CalibrationError(CompanionError):
+    """``companion calibrate`` cannot work with its input (no images, no board found, a bad
+    board spec or ranges file). The message says what to fix."""
+
+
+class NotEnoughViewsError(CalibrationError):
+    """Too few usable board views for a trustworthy intrinsic calibration."""
