@@ -83,21 +83,38 @@ class Parser:
             mav.signing = self.signing_state
         return mav
 
-    def feed(self, data: bytes, stats: LinkStats) -> list[Any]:
+    def feed(self, data: bytes, stats: LinkStats, datagram: bool = False) -> list[Any]:
+        """The messages in ``data`` (bad frames counted in ``stats.rx_bad``).
+
+        ``datagram``: ``data`` is one UDP datagram, a unit of its own: bytes left over at its
+        end (a truncated frame, a length byte that promised more) are dropped instead of
+        swallowing the start of the next datagram. On a byte stream (serial, TCP), a frame
+        that fails its CRC is searched again from its second byte: its length byte may be
+        the corrupted one, and then good frames start inside what pymavlink took for it."""
         out: list[Any] = []
         try:
             msg = self.mav.parse_char(data)
-            for _ in range(len(data) + 8):
-                if msg is not None:
-                    if msg.get_type() == "BAD_DATA":
-                        stats.rx_bad += 1
-                    else:
-                        out.append(msg)
-                nxt = self.mav.parse_char(b"")
-                if nxt is None and msg is None:
-                    break
-                msg = nxt
+            while msg is not None:
+                if msg.get_type() != "BAD_DATA":
+                    out.append(msg)
+                else:
+                    stats.rx_bad += 1
+                    raw = bytes(msg.data)
+                    if (
+                        not datagram
+                        and len(raw) > 1
+                        and raw[0] in (0xFD, 0xFE)
+                        and ("signature" not in str(getattr(msg, "reason", "")))
+                    ):
+                        rest = raw[1:] + bytes(self.mav.buf[self.mav.buf_index :])
+                        self.mav = self._new()
+                        msg = self.mav.parse_char(rest)
+                        continue
+                msg = self.mav.parse_char(b"")
         except Exception:  # pymavlink raises on some malformed payloads: count, go on
+            stats.rx_bad += 1
+            self.mav = self._new()
+        if datagram and self.mav.buf_len() > 0:
             stats.rx_bad += 1
             self.mav = self._new()
         stats.rx_messages += len(out)
@@ -184,10 +201,12 @@ class MavlinkLink:
         )
 
     # ------------------------------------------------------------------ I/O
-    def _received(self, data: bytes, addr: tuple[str, int] | None = None) -> None:
+    def _received(
+        self, data: bytes, addr: tuple[str, int] | None = None, datagram: bool = False
+    ) -> None:
         self.stats.rx_bytes += len(data)
         now = time.monotonic_ns()
-        for msg in self._parser.feed(data, self.stats):
+        for msg in self._parser.feed(data, self.stats, datagram):
             if addr is not None and (
                 self._peer is None or msg.get_srcSystem() == self.peer_system_id
             ):
@@ -287,7 +306,7 @@ class _Udp(asyncio.DatagramProtocol):
         self.link = link
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.link._received(data, addr if self.link.url.kind == "udpin" else None)
+        self.link._received(data, addr if self.link.url.kind == "udpin" else None, True)
 
     def error_received(self, exc: Exception) -> None:  # ICMP port unreachable etc.
         self.link.stats.tx_dropped += 1

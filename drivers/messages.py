@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import RangefinderConfig
 from companion.geometry import so3
-from companion.types import AttitudeSample, PoseEstimate, RangeSample
+from companion.types import AttitudeSample, PoseEstimate, RangeSample, SignalQuality
 
 MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
@@ -28,30 +28,51 @@ MAV_FRAME_BODY_FRD = mavlink.MAV_FRAME_BODY_FRD
 MAV_ESTIMATOR_TYPE_VISION = mavlink.MAV_ESTIMATOR_TYPE_VISION
 
 
+RANGE_MAX_AGE_US = 500_000  # a reading older than this at reception is refused
+RANGE_MAX_AHEAD_US = 50_000  # one stamped this far after its reception is refused (clock)
+
+
 def range_from_distance_sensor(
-    msg: Any, sensors: Mapping[int, RangefinderConfig], time_us: int
-) -> RangeSample | None:
-    """A RangeSample from DISTANCE_SENSOR, or None when it is not one of our downward sensors
-    or its value is not a distance (the caller counts it). Limits: the tighter of the
-    message's and the configured ones; the sample keeps signal_quality for is_valid."""
+    msg: Any, sensors: Mapping[int, RangefinderConfig], time_us: int, rx_us: int
+) -> tuple[RangeSample | None, str]:
+    """A RangeSample from DISTANCE_SENSOR, or None and why not (the caller counts the reason):
+    ``unknown_id`` / ``not_downward`` (not one of our sensors), ``no_reading`` (0 or 65535),
+    ``out_of_range`` (outside the tighter of the message's and the configured limits),
+    ``invalid`` (signal_quality 1), ``from_the_past`` / ``from_the_future`` (its time in our
+    clock, ``time_us``, against its reception ``rx_us``: a stale reading or a clock that
+    jumped). The covariance byte is not used (the configured noise model is)."""
     rf = sensors.get(int(msg.id))
-    if rf is None or int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
-        return None
+    if rf is None:
+        return None, "unknown_id"
+    if int(msg.orientation) != MAV_SENSOR_ROTATION_PITCH_270:
+        return None, "not_downward"
     d_cm, lo_cm, hi_cm = int(msg.current_distance), int(msg.min_distance), int(msg.max_distance)
     if d_cm <= 0 or d_cm >= 65535:
-        return None
+        return None, "no_reading"
+    if time_us < rx_us - RANGE_MAX_AGE_US:
+        return None, "from_the_past"
+    if time_us > rx_us + RANGE_MAX_AHEAD_US:
+        return None, "from_the_future"
     lo = max(rf.min_m, lo_cm * 0.01) if lo_cm > 0 else rf.min_m
-    hi = min(rf.max_m, hi_cm * 0.01) if hi_cm > 0 else rf.max_m
+    hi = min(rf.max_m, hi_cm * 0.01) if 0 < hi_cm < 65535 else rf.max_m
     quality = int(getattr(msg, "signal_quality", 0))
     sample = RangeSample(time_us, rf.sensor_id, d_cm * 0.01, lo, hi, quality)
-    return sample if sample.is_valid else None
+    if quality == SignalQuality.INVALID:
+        return None, "invalid"
+    if not sample.is_valid:
+        return None, "out_of_range"
+    return sample, ""
 
 
 def attitude_from_message(msg: Any, time_us: int) -> AttitudeSample | None:
-    """An AttitudeSample from ATTITUDE (ZYX roll/pitch/yaw [rad]); None if not finite."""
+    """An AttitudeSample from ATTITUDE (ZYX roll/pitch/yaw [rad]); None unless finite and
+    inside the Euler ranges (|roll|, |yaw| <= pi, |pitch| <= pi/2) with rates below 50 rad/s."""
     rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=np.float64)
     rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=np.float64)
     if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
+        return None
+    limits = np.array([np.pi, np.pi / 2, np.pi]) + 1e-6
+    if np.any(np.abs(rpy) > limits) or np.any(np.abs(rates) > 50.0):
         return None
     q = so3.matrix_to_quat(so3.rpy_to_matrix(*rpy))
     return AttitudeSample(time_us, q, rates)

@@ -171,19 +171,41 @@ def test_distance_sensor_mapping() -> None:
             ).pack(mav)
         )
 
-    s = messages.range_from_distance_sensor(ds(612), sensors, 42)
+    s, why = messages.range_from_distance_sensor(ds(612), sensors, 42, 50)
     assert s is not None and s.distance_m == pytest.approx(6.12) and s.sensor_id == 1
-    assert s.time_us == 42
-    for bad in (
-        ds(0),
-        ds(65535),
-        ds(5),
-        ds(4500),
-        ds(612, quality=1),
-        ds(612, sid=9),
-        ds(612, orientation=0),
+    assert s.time_us == 42 and why == ""
+    for bad, reason, t_us in (
+        (ds(0), "no_reading", 42),
+        (ds(65535), "no_reading", 42),
+        (ds(5), "out_of_range", 42),
+        (ds(4500), "out_of_range", 42),
+        (ds(612, quality=1), "invalid", 42),
+        (ds(612, sid=9), "unknown_id", 42),
+        (ds(612, orientation=0), "not_downward", 42),
+        (ds(612), "from_the_past", 50 - 600_000),
+        (ds(612), "from_the_future", 50 + 60_000),
     ):
-        assert messages.range_from_distance_sensor(bad, sensors, 42) is None
+        assert messages.range_from_distance_sensor(bad, sensors, t_us, 50) == (None, reason)
+
+
+def test_implausible_attitudes_are_refused() -> None:
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def att(*v: float):
+        return decode(mav.attitude_encode(10, *v).pack(mav))
+
+    assert messages.attitude_from_message(att(0.1, -0.2, 3.0, 0.0, 0.1, 0.2), 5) is not None
+    for v in (
+        (np.nan, 0, 0, 0, 0, 0),
+        (0, 0, 0, np.inf, 0, 0),
+        (4.0, 0, 0, 0, 0, 0),
+        (0, 1.7, 0, 0, 0, 0),
+        (0, 0, 1e30, 0, 0, 0),
+        (0, 0, 0, 0, 0, 80.0),
+    ):
+        assert messages.attitude_from_message(att(*v), 5) is None
 
 
 def test_garbage_is_counted_not_raised() -> None:

@@ -63,7 +63,10 @@ class ServiceStats:
     pipeline_errors: int = 0  # frames on which the pipeline raised (a bug: logged)
     ranges_in: int = 0
     ranges_rejected: int = 0
+    ranges_rejected_by: dict[str, int] = field(default_factory=dict)  # reason -> count
     attitudes_in: int = 0
+    attitudes_rejected: int = 0  # not finite or outside the Euler ranges
+    foreign_messages: int = 0  # from another system id than the configured autopilot's
     timesync_replies: int = 0
     last_reset_counter: int = 0
     autopilot_heartbeat_ns: int = 0
@@ -223,6 +226,9 @@ class Service:
                 self._timesync_sent.remove(msg.ts1)
                 self.sync.on_reply(msg.tc1, msg.ts1, rx_ns)
             return
+        if msg.get_srcSystem() != self.config.service.system_id:
+            self.stats.foreign_messages += 1  # another vehicle or a ground station: not ours
+            return
         if kind == "HEARTBEAT":
             if msg.get_srcComponent() == 1 and msg.autopilot != 8:  # 8 = MAV_AUTOPILOT_INVALID
                 self.stats.autopilot_heartbeat_ns = rx_ns
@@ -238,16 +244,21 @@ class Service:
                 self._rate_pending = None
             return
         if kind == "DISTANCE_SENSOR":
-            sample = messages.range_from_distance_sensor(msg, self.sensors, self._fc_to_us(msg))
+            sample, why = messages.range_from_distance_sensor(
+                msg, self.sensors, self._fc_to_us(msg), rx_ns // 1000
+            )
             if sample is None:
                 self.stats.ranges_rejected += 1
+                self.stats.ranges_rejected_by[why] = self.stats.ranges_rejected_by.get(why, 0) + 1
             else:
                 self.stats.ranges_in += 1
                 self._ranges.append(sample)
             return
-        if kind == "ATTITUDE":
+        if kind == "ATTITUDE" and msg.get_srcComponent() == 1:
             att = messages.attitude_from_message(msg, self._fc_to_us(msg))
-            if att is not None:
+            if att is None:
+                self.stats.attitudes_rejected += 1
+            else:
                 self._attitude_rates = att.rates_rad_s
                 self.stats.attitudes_in += 1
                 self._attitudes.append(att)
@@ -547,6 +558,8 @@ class Service:
                 "rx_messages": self.link.stats.rx_messages,
                 "rx_bad": self.link.stats.rx_bad,
                 "handler_errors": self.link.stats.handler_errors,
+                "foreign_messages": s.foreign_messages,
+                "attitudes_rejected": s.attitudes_rejected,
                 "signing": self.link.signing.counters() if self.link.signing else None,
             },
             "camera": {
@@ -572,6 +585,7 @@ class Service:
                 "sensors_used": est.n_used if est is not None else 0,
                 "ranges_in": s.ranges_in,
                 "ranges_rejected": s.ranges_rejected + p.ranges.rejected,
+                "rejected_by": dict(s.ranges_rejected_by),
             },
             "attitude": {
                 "roll_deg": float(np.degrees(fused.roll_rad)) if fused else None,

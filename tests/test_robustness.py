@@ -1,0 +1,258 @@
+"""Bad input against the service: 100,000 random and mutated MAVLink packets on its port, bad
+distance readings, an autopilot serial port that vanishes and returns, a bad config."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import socket
+import struct
+import subprocess
+import sys
+import time
+import tty
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from peers import free_port
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.config import load_config
+from companion.offline import feed_step
+from companion.pipeline import Pipeline
+from companion.service.app import Service
+from companion.service.status import read_status
+from companion.types import RangeSample
+from drivers.mavlink import MavlinkLink
+from sitl.scenario import Scenario
+
+
+def _absurd_float(rng: np.random.Generator) -> float:
+    return float(rng.choice([np.nan, np.inf, -np.inf, 1e38, -1e38, 0.0, rng.normal(0, 1e3)]))
+
+
+def _random_message(mav: Any, rng: np.random.Generator) -> Any:
+    """A well-formed message of a type the service handles (or ignores), absurd fields."""
+    f = lambda: _absurd_float(rng)  # noqa: E731
+    u = lambda bits: int(rng.integers(0, 2**bits))  # noqa: E731
+    kind = int(rng.integers(0, 8))
+    if kind == 0:
+        return mav.heartbeat_encode(u(8), u(8), u(8), u(32), u(8))
+    if kind == 1:
+        return mav.timesync_encode(u(63) - 2**62, u(63) - 2**62)
+    if kind == 2:
+        return mav.attitude_encode(u(32), f(), f(), f(), f(), f(), f())
+    if kind == 3:
+        return mav.distance_sensor_encode(
+            u(32), u(16), u(16), u(16), u(8), u(8), u(8), u(8), f(), f(), [f()] * 4, u(8)
+        )
+    if kind == 4:
+        return mav.command_ack_encode(u(16), u(8), u(8), u(32) - 2**31, u(8), u(8))
+    if kind == 5:
+        return mav.command_long_encode(u(8), u(8), u(16), u(8), f(), f(), f(), f(), f(), f(), f())
+    if kind == 6:
+        return mav.param_value_encode(b"EKF2_EV_CTRL", f(), u(8), u(16), u(16))
+    return mav.odometry_encode(
+        u(32), u(8), u(8), f(), f(), f(), [f()] * 4, f(), f(), f(), f(), f(), f(),
+        [f()] * 21, [f()] * 21, u(8), u(8), u(8) - 128,
+    )  # fmt: skip
+
+
+def fuzz_packets(n: int, seed: int) -> list[bytes]:
+    """n datagrams: valid frames with absurd fields, flipped bytes, truncated frames, wrong
+    length bytes, wrong CRCs, unknown message ids with a valid CRC, random bytes, and
+    several frames glued into one datagram."""
+    rng = np.random.default_rng(seed)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    out: list[bytes] = []
+    for _ in range(n):
+        mav.srcSystem = 1 if rng.uniform() < 0.8 else int(rng.integers(0, 256))
+        buf = bytearray(_random_message(mav, rng).pack(mav))
+        r = rng.uniform()
+        if r < 0.25:
+            pass  # well formed, absurd values
+        elif r < 0.45:
+            for i in rng.integers(0, len(buf), int(rng.integers(1, 4))):
+                buf[i] ^= int(rng.integers(1, 256))
+        elif r < 0.6:
+            buf = buf[: int(rng.integers(1, len(buf)))]
+        elif r < 0.7:
+            buf[1] = int(rng.integers(0, 256))  # payload length
+        elif r < 0.8:
+            buf[-1] ^= 0x5A  # CRC
+        elif r < 0.9:  # an id nobody knows, with a CRC computed without a CRC extra
+            buf[7:10] = struct.pack("<I", int(rng.integers(20000, 2**24)))[:3]
+            crc = mavlink.x25crc(bytes(buf[1:-2]))
+            buf[-2:] = struct.pack("<H", crc.crc)
+        elif r < 0.95:
+            buf = bytearray(rng.integers(0, 256, int(rng.integers(1, 300)), dtype=np.uint8))
+        else:
+            more = [_random_message(mav, rng).pack(mav) for _ in range(int(rng.integers(1, 4)))]
+            buf += b"".join(more)
+        out.append(bytes(buf))
+    return out
+
+
+@pytest.mark.timeout(300)
+def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
+    packets = fuzz_packets(100_000, seed=11)
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = load_config(
+        None,
+        {
+            "service": {
+                "mavlink_url": f"udpin:127.0.0.1:{port}",
+                "camera_url": f"sitl://127.0.0.1:{free_port()}",  # no camera: it keeps trying
+                "status_socket": str(tmp_path / "status.sock"),
+            }
+        },
+    )
+    loop_errors: list[Any] = []
+
+    async def main() -> tuple[dict, dict | None, bool, int]:
+        asyncio.get_running_loop().set_exception_handler(lambda _l, ctx: loop_errors.append(ctx))
+        async with Service(cfg) as service:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.bind(("127.0.0.1", 0))
+            sent = 0
+            for k in range(0, len(packets), 100):  # bursts the loop can keep up with
+                for p in packets[k : k + 100]:
+                    sock.sendto(p, ("127.0.0.1", port))
+                    sent += len(p)
+                await asyncio.sleep(0.002)
+            await asyncio.sleep(1.0)
+            status = await asyncio.to_thread(read_status, tmp_path / "status.sock")
+            # still answering: a real TIMESYNC request after the storm
+            mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+            sock.settimeout(0.1)
+            answered = False
+            sock.sendto(mav.timesync_encode(0, 424242).pack(mav), ("127.0.0.1", port))
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 2 and not answered:
+                with contextlib.suppress(TimeoutError):
+                    data = await asyncio.to_thread(sock.recv, 4096)
+                    answered = any(
+                        m.get_type() == "TIMESYNC" and m.ts1 == 424242
+                        for m in mav.parse_buffer(data) or []
+                    )
+            tasks_alive = all(not t.done() for t in service._tasks)
+            summary = service.summary()
+            sock.close()
+        return summary, status, answered and tasks_alive, sent
+
+    summary, status, alive, sent = asyncio.run(main())
+    link = summary["link"]
+    print(link, summary["ranges_rejected"], summary["attitudes_in"])
+    assert alive and not loop_errors
+    assert link["handler_errors"] == 0
+    assert link["rx_bytes"] >= 0.95 * sent  # the storm was read, not lost in the socket
+    assert link["rx_bad"] > 20_000 and link["rx_messages"] > 20_000
+    assert status is not None and status["autopilot"]["rx_bad"] > 0
+    assert status["autopilot"]["foreign_messages"] > 1000
+    assert status["autopilot"]["attitudes_rejected"] > 100
+    assert summary["ranges_rejected"] > 100
+
+
+def test_bad_ranges_are_counted_and_do_not_move_the_scale() -> None:
+    """Two pipelines fed the same flight; one also gets every kind of bad reading before each
+    frame (NaN, infinite, negative, zero, below min, above max, invalid quality, unknown
+    sensor, repeated and older time stamps). The scale must be identical to the bit."""
+    cfg = load_config(
+        overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 8.0}}
+    )
+    clean, dirty = Pipeline(cfg), Pipeline(cfg)
+    injected = 0
+    for step in Scenario(cfg).steps():
+        feed_step(clean, step)
+        feed_step(dirty, step)
+        a, b = clean.estimates[clean.method_name], dirty.estimates[dirty.method_name]
+        assert (a is None) == (b is None)
+        if a is not None and b is not None:
+            assert a.scale == b.scale and a.sigma == b.sigma
+        # after this frame's readings, before the next frame's: every kind of bad one
+        t = step.frame.time_us
+        for rf in cfg.rangefinders:
+            lo, hi = rf.min_m, rf.max_m
+            for d, q, sid, tt in (
+                (np.nan, 100, rf.sensor_id, t),
+                (np.inf, 100, rf.sensor_id, t),
+                (-1.0, 100, rf.sensor_id, t),
+                (0.0, 100, rf.sensor_id, t),
+                (lo * 0.5, 100, rf.sensor_id, t),
+                (hi * 2.0, 100, rf.sensor_id, t),
+                (5.0, 1, rf.sensor_id, t),
+                (5.0, 100, 200 + rf.sensor_id, t),
+                (5.0, 100, rf.sensor_id, t - 10_000_000),  # older than the last one
+            ):
+                if tt < t and rf.sensor_id not in dirty.ranges.sensors():
+                    continue  # nothing to be older than yet (the service refuses it by age)
+                dirty.feed_range(RangeSample(tt, sid, d, lo, hi, q))
+                injected += 1
+        for r in step.ranges:  # the same readings again: refused
+            if r.sample is not None:
+                dirty.feed_range(r.sample)
+                injected += 1
+    assert clean.estimates[clean.method_name] is not None
+    assert dirty.ranges.rejected - clean.ranges.rejected == injected
+
+
+def test_the_autopilot_serial_port_vanishes_and_returns(tmp_path) -> None:
+    """A USB serial adapter: its device path disappears (the pty closes, the symlink goes) and
+    comes back as a new device under the same name; the link reopens it by itself."""
+    dev = tmp_path / "ttyACM0"
+
+    def plug() -> int:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        if dev.is_symlink():
+            dev.unlink()
+        dev.symlink_to(os.ttyname(slave))
+        os.close(slave)  # only the link holds the device open
+        return master
+
+    got: list[str] = []
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    hb = mav.heartbeat_encode(2, 12, 0, 0, 4).pack(mav)
+
+    async def main() -> int:
+        link = MavlinkLink(f"serial:{dev}:921600", 1, 197, lambda m, t: got.append(m.get_type()))
+        master = plug()
+        async with link:
+            for _ in range(30):
+                os.write(master, hb)
+                await asyncio.sleep(0.05)
+            before = len(got)
+            os.close(master)  # unplugged
+            dev.unlink()
+            await asyncio.sleep(1.0)
+            master = plug()  # back, a new device node behind the same name
+            deadline = time.monotonic() + 10
+            while len(got) < before + 10 and time.monotonic() < deadline:
+                os.write(master, hb)
+                await asyncio.sleep(0.05)
+            os.close(master)
+            assert before >= 20
+            return link.stats.reconnects
+
+    reconnects = asyncio.run(main())
+    assert got.count("HEARTBEAT") >= 30 and reconnects >= 1
+
+
+def test_a_bad_config_exits_2_naming_the_key_and_starts_nothing(tmp_path) -> None:
+    sock = tmp_path / "status.sock"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[service]\nmavlink_url = "udp://nowhere"\nstatus_socket = "{sock}"\n')
+    r = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert r.returncode == 2
+    errors = [line for line in r.stderr.splitlines() if "service.mavlink_url" in line]
+    assert len(errors) == 1 and "Traceback" not in r.stderr
+    assert not sock.exists()
