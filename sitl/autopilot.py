@@ -67,6 +67,8 @@ class AutopilotOptions:
     linger_s: float = 2.0  # keep listening this long after the flight
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
     faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/faults.py)
+    loop_from_frame: int = 0  # with loop_frames: where the repeated stretch of frames starts
+    loop_frames: int = 0  # > 0: frames repeat with this period (a periodic flight: soak runs)
     signing_key: bytes = b""  # MAVLink 2 signing with this 32-byte key (empty: unsigned)
     require_signed: bool = True  # with a key: refuse unsigned frames except HEARTBEAT
     gcs_listen_port: int = 18570  # the ground-station endpoint (sitl/px4_services.py); 0 = none
@@ -113,17 +115,26 @@ def camera_process(
     prerender: bool = False,
     ready: Any = None,
     faults: tuple[Fault, ...] = (),
+    loop: tuple[int, int] = (0, 0),
 ) -> None:
     """Child process: render the flight (ahead of time, or all of it before the flight with
-    ``prerender``) and stream each frame at exposure + readout; camera faults applied."""
+    ``prerender``) and stream each frame at exposure + readout; camera faults applied.
+    ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
+    (only valid for a flight that is periodic there: it renders first + n frames at most)."""
     from sitl.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
     scenario = Scenario(cfg)
     scenario.step(0)  # compile the kernels before the flight
+    first, n_loop = loop
+
+    def source(k: int) -> int:
+        return k if n_loop <= 0 or k < first + n_loop else first + (k - first) % n_loop
+
     images: list[Any] = []
     if prerender:
-        images = [scenario.step(k).frame.image_bgr for k in range(scenario.n_frames)]
+        n_distinct = min(scenario.n_frames, first + n_loop) if n_loop > 0 else scenario.n_frames
+        images = [scenario.step(k).frame.image_bgr for k in range(n_distinct)]
     if ready is not None:
         ready.set()
     while counters[2] == 0:  # the parent sets the flight start once everybody is ready
@@ -155,7 +166,8 @@ def camera_process(
         if time.monotonic_ns() > release_ns + period_ns:
             counters[1] += 1  # behind: this frame is lost, as a camera would lose it
             continue
-        image = images[seq] if prerender else scenario.step(seq).frame.image_bgr
+        src = source(seq)
+        image = images[src] if prerender else scenario.step(src).frame.image_bgr
         if "camera_freeze" in now_faults and last_good is not None:
             image = last_good
         elif "camera_black" in now_faults:
@@ -258,7 +270,7 @@ class SimAutopilot:
         rx_ns = time.monotonic_ns()
         if self.silent():
             return
-        for msg in self.parser.feed(data, self.stats.link):
+        for msg in self.parser.feed(data, self.stats.link, datagram=True):
             self._on_message(msg, rx_ns)
 
     def _on_message(self, msg: Any, rx_ns: int) -> None:
@@ -468,6 +480,7 @@ class SimAutopilot:
                 self.opts.prerender,
                 ready,
                 self.opts.faults,
+                (self.opts.loop_from_frame, self.opts.loop_frames),
             ),
             daemon=True,
             name="sitl-camera",

@@ -507,6 +507,7 @@ class Service:
             "frames_dropped": s.frames_dropped,
             "frames_processed": s.frames_processed,
             "published": s.published,
+            "not_published": s.not_published,
             "publish_rate_hz": rate,
             "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
