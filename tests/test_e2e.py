@@ -90,6 +90,8 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert seen["autopilot"]["timesync_converged"] and seen["autopilot"]["system_id"] == 1
     assert sorted(seen["autopilot"]["rates_acknowledged"]) == [30, 132]
     assert seen["scale"]["value"] > 0 and seen["output"]["rate_hz"] > 25.0
+    rates = seen["scale"]["match_rate"]  # per sensor: 35-50 % of frames match on hills
+    assert len(rates) == 4 and min(rates.values()) > 0.1, rates
     print(report, summary)
     assert "error" not in report, report
     assert report["received_rate_hz"] >= 29.0

@@ -34,6 +34,7 @@ from companion.types import ScaleEstimate, VoOutput
 
 F64 = NDArray[np.float64]
 
+MATCH_WINDOW = 300  # attempts kept per sensor for the match rate (10 s at 30 Hz)
 METHODS = ("MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane")
 
 
@@ -77,6 +78,13 @@ class Method:
     sigma: float = float("nan")
     n_used: int = 0
     segment: int = -1
+    # per sensor: did its MSC match succeed, over the last MATCH_WINDOW attempts (status)
+    match_history: dict[int, deque[bool]] = field(default_factory=dict)
+
+    def match_rates(self) -> dict[int, float]:
+        """Per sensor id: the share of recent frames with a reading whose MSC match (a
+        consistent VO patch around the laser pixel) succeeded."""
+        return {sid: sum(h) / len(h) for sid, h in sorted(self.match_history.items()) if h}
 
     def reset(self) -> None:
         self.scale = None
@@ -107,7 +115,7 @@ class Method:
     def _msc(self, inp: ScaleInput, sensor_id: int) -> msc.MscMeasurement | None:
         rng, p_cam, sig = inp.lasers[sensor_id]
         del rng
-        return msc.measure(
+        m = msc.measure(
             sensor_id,
             inp.vo.features,
             inp.T_cam_vo,
@@ -117,6 +125,9 @@ class Method:
             self.opts.patch_half_px,
             self.opts.slope_factor,
         )
+        history = self.match_history.setdefault(sensor_id, deque(maxlen=MATCH_WINDOW))
+        history.append(m is not None)
+        return m
 
 
 @dataclass

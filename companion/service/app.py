@@ -584,6 +584,9 @@ class Service:
                 "value": est.scale if est is not None else None,
                 "sigma": est.sigma if est is not None else None,
                 "sensors_used": est.n_used if est is not None else 0,
+                "match_rate": {
+                    str(k): v for k, v in p.methods[p.method_name].match_rates().items()
+                },
                 "ranges_in": s.ranges_in,
                 "ranges_rejected": s.ranges_rejected + p.ranges.rejected,
                 "rejected_by": dict(s.ranges_rejected_by),
