@@ -10,11 +10,13 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 import tty
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from peers import free_port
@@ -256,3 +258,105 @@ def test_a_bad_config_exits_2_naming_the_key_and_starts_nothing(tmp_path) -> Non
     errors = [line for line in r.stderr.splitlines() if "service.mavlink_url" in line]
     assert len(errors) == 1 and "Traceback" not in r.stderr
     assert not sock.exists()
+
+
+class MjpegCamera:
+    """A network camera: an MJPEG stream over HTTP (what IP cameras and mjpg-streamer serve),
+    read by the service through cv2.VideoCapture (FFmpeg). ``stop()`` unplugs it (the stream
+    and the server go), ``start()`` brings it back on the same port."""
+
+    def __init__(self) -> None:
+        self.port = free_port()
+        self.server: Any = None
+        self.running = threading.Event()
+
+    def start(self) -> None:
+        import http.server
+        import socketserver
+
+        cam = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=f")
+                self.end_headers()
+                rng = np.random.default_rng(0)
+                while cam.running.is_set():
+                    img = cv2.GaussianBlur(
+                        rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (5, 5), 0
+                    )
+                    jpg = cv2.imencode(".jpg", img)[1].tobytes()
+                    head = b"--f\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
+                    try:
+                        self.wfile.write(head % len(jpg) + jpg + b"\r\n")
+                    except OSError:
+                        return
+                    time.sleep(1 / 15)
+
+            def log_message(self, *args: Any) -> None:
+                pass
+
+        class Server(socketserver.ThreadingMixIn, http.server.HTTPServer):
+            allow_reuse_address = True
+            daemon_threads = True
+
+        self.running.set()
+        self.server = Server(("127.0.0.1", self.port), Handler)
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def stop(self) -> None:
+        self.running.clear()
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
+    cam = MjpegCamera()
+    cam.start()
+    cfg = load_config(
+        None,
+        {
+            "service": {
+                "mavlink_url": f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+                "camera_url": f"http://127.0.0.1:{cam.port}/stream.mjpg",
+                "status_socket": str(tmp_path / "status.sock"),
+            }
+        },
+    )
+
+    async def wait_frames(service: Service, n: int, timeout_s: float) -> bool:
+        target = service.stats.frames_in + n
+        end = time.monotonic() + timeout_s
+        while service.stats.frames_in < target and time.monotonic() < end:
+            await asyncio.sleep(0.05)
+        return service.stats.frames_in >= target
+
+    async def main() -> dict[str, Any]:
+        async with Service(cfg) as service:
+            assert await wait_frames(service, 30, 10.0)
+            t_first = service._frame_times_ns[-1] // 1000
+            cam.stop()  # unplugged
+            await asyncio.sleep(0.5)
+            frames_gone = service.stats.frames_in
+            await asyncio.sleep(2.5)
+            down = service.status()
+            assert service.stats.frames_in == frames_gone  # nothing while it is away
+            cam.start()  # back
+            back = await wait_frames(service, 30, 10.0)
+            return {
+                "back": back,
+                "down": down,
+                "warnings": list(service.stats.warnings),
+                "t_first": t_first,
+            }
+
+    try:
+        r = asyncio.run(main())
+    finally:
+        cam.stop()
+    assert r["back"], "no frames within 10 s of the camera's return"
+    assert r["down"]["camera"]["last_frame_age_s"] > 2.0
+    reports = [w for w in r["warnings"] if w.startswith("camera:")]
+    assert len(reports) == 1 and "reopening" in reports[0]  # once per outage, not per attempt
+    assert abs(r["t_first"] - time.monotonic_ns() // 1000) < 60e6  # our monotonic clock
