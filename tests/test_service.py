@@ -224,6 +224,31 @@ def test_garbage_is_counted_not_raised() -> None:
     assert stats.rx_bad > 0
 
 
+def test_a_corrupted_length_byte_costs_one_frame_on_a_stream() -> None:
+    """pymavlink waits for as many bytes as a corrupted length byte promises, swallowing the
+    good frames behind it; our parser searches the failed frame again from its second byte."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frames = [mav.attitude_encode(k, 0.1, 0.2, 0.3, 0, 0, 0).pack(mav) for k in range(400)]
+    rng = np.random.default_rng(5)
+    bad = set(rng.choice(np.arange(1, 399), 40, replace=False).tolist())
+    stream = bytearray()
+    for k, f in enumerate(frames):
+        b = bytearray(f)
+        if k in bad:
+            b[1] = 255  # a length byte hit by noise: promises 255 payload bytes
+        stream += b
+    stream += bytes(300)  # the line goes on (a frame promising more is only judged then)
+    parser, stats = Parser(), LinkStats()
+    got = []
+    for i in range(0, len(stream), 64):  # serial reads of 64 bytes
+        got += parser.feed(bytes(stream[i : i + 64]), stats)
+    times = [m.time_boot_ms for m in got]
+    assert set(times) == set(range(400)) - bad  # every good frame, nothing invented
+    assert stats.rx_bad >= len(bad)
+
+
 def test_sitl_stream_round_trip() -> None:
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
