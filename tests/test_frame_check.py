@@ -81,6 +81,11 @@ def test_a_frozen_camera_gives_no_pose_and_resumes_with_a_new_reset_counter(
     assert back and back[0] < 240 + 90, "no pose within 3 s of the camera's return"
     assert poses[back[0]].reset_counter == 1  # the autopilot is told: a discontinuity
     assert pipe.gaps == 1 and pipe.vo.resets == 1
+    # the new map's scale starts weak (init_sigma_rel 0.2): the covariance says so, then
+    # shrinks as the lasers' matches come in
+    sigma_m = [np.sqrt(p.covariance_6x6[0, 0]) if p is not None else np.nan for p in poses]
+    assert sigma_m[back[0]] >= 0.2 and sigma_m[back[0]] > 1.5 * sigma_m[209]
+    assert np.nanmax(sigma_m[back[0] + 30 : back[0] + 45]) < 0.5 * sigma_m[back[0]]
 
 
 def test_one_bad_frame_is_skipped_without_a_reset(steps: list[object]) -> None:
