@@ -433,6 +433,23 @@ def cmd_bench_attitude(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_bench_soak(args: argparse.Namespace) -> int:
+    """The soak benchmark (sitl/soak.py): prints its figures, writes out/soak/soak.json."""
+    import json
+
+    from companion.bench import machine_description
+    from sitl.soak import run_soak
+
+    if args.minutes <= 0:
+        raise ConfigError(f"--minutes: must be > 0, got {args.minutes}")
+    _load(args)  # a bad config stops here
+    print(f"machine: {machine_description()}", flush=True)
+    print(f"soak: {args.minutes:g} min circle flight, service as its own process", flush=True)
+    result = run_soak(args.minutes, args.out, str(args.config))
+    print(json.dumps(result, indent=2, default=str))
+    return EXIT_OK
+
+
 def cmd_bench_dpose(args: argparse.Namespace) -> int:
     """Benchmark d-Pose per frame (detection, vertex map, pose) on one core: the frames of a
     spiral flight over painted marks are rendered first, then only Dpose.step is timed."""
@@ -591,6 +608,15 @@ def _mqtt_line(m: dict[str, Any]) -> str:
     return f"{state}, {m.get('queued', 0)} queued, {m.get('dropped', 0)} dropped"
 
 
+def _signing_text(ap: dict[str, Any]) -> str:
+    sg = ap.get("signing")
+    if not sg:
+        return ", unsigned link"
+    return f", signed: {sg['good_signatures']} good, {sg['bad_signatures']} bad signatures, " + (
+        f"{sg['refused']} refused"
+    )
+
+
 def format_status(st: dict[str, Any]) -> str:
     """The status JSON as a readable table (plain text, aligned)."""
 
@@ -622,11 +648,13 @@ def format_status(st: dict[str, Any]) -> str:
             f"offset {fmt(ap['timesync_offset_ms'], ' ms', 3)}  "
             f"rtt {fmt(ap['timesync_rtt_ms'], ' ms', 2)}",
         ),
-        ("  messages", f"{ap['rx_messages']} in, {ap['rx_bad']} bad"),
+        ("  messages", f"{ap['rx_messages']} in, {ap['rx_bad']} bad" + _signing_text(ap)),
         (
             "camera",
             f"{cam['url']}  {fmt(cam['fps'], ' fps', 1)}  {cam['frames']} frames, "
-            f"{cam['dropped']} dropped, last {fmt(cam['last_frame_age_s'], ' s ago', 2)}",
+            f"{cam['dropped']} dropped, last {fmt(cam['last_frame_age_s'], ' s ago', 2)}"
+            + (f"  NOW {cam['problem'].upper()} FRAMES" if cam.get("problem") else "")
+            + "".join(f", {n} {k}" for k, n in (cam.get("rejected") or {}).items()),
         ),
         (
             "VO",
@@ -638,6 +666,13 @@ def format_status(st: dict[str, Any]) -> str:
             f"{sc['method']}  {fmt(sc['value'], '', 4)} ± {fmt(sc['sigma'], '', 4)}  "
             f"{sc['sensors_used']} sensors  ranges {sc['ranges_in']} in, "
             f"{sc['ranges_rejected']} rejected",
+        ),
+        (
+            "  matches",
+            "  ".join(
+                f"sensor {k} {100 * v:.0f} %" for k, v in (sc.get("match_rate") or {}).items()
+            )
+            or "-",
         ),
         (
             "roll/pitch",
@@ -690,15 +725,25 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
     import asyncio
     import json
 
+    from drivers.signing import load_key
     from sitl.autopilot import AutopilotOptions, SimAutopilot
+    from sitl.faults import Fault
 
     cfg = _load(args)
     out = Path(args.out) if args.out else Path("out") / "sitl-run"
-    stub = SimAutopilot(cfg, AutopilotOptions(prerender=args.prerender))
+    faults = tuple(Fault.parse(f) for f in args.fault or ())
+    key = load_key(args.signing_key, "--signing-key") if args.signing_key else b""
+    stub = SimAutopilot(
+        cfg, AutopilotOptions(prerender=args.prerender, faults=faults, signing_key=key)
+    )
+    for f in faults:
+        print(f"fault: {f.kind} at {f.start_s:g} s for {f.duration_s:g} s", flush=True)
     print(
         f"SITL autopilot: {cfg.sitl.terrain}/{cfg.sitl.trajectory} {cfg.sitl.seconds:g} s, "
         f"listening on 127.0.0.1:{stub.opts.listen_port}, sending to "
-        f"127.0.0.1:{stub.opts.companion_port}, camera on tcp 127.0.0.1:{stub.opts.camera_port}",
+        f"127.0.0.1:{stub.opts.companion_port}, camera on tcp 127.0.0.1:{stub.opts.camera_port}; "
+        f"ground station (`companion px4 check --url udpin://127.0.0.1:{stub.opts.gcs_port}`) "
+        f"from udp {stub.opts.gcs_listen_port} to {stub.opts.gcs_port}",
         flush=True,
     )
     if args.prerender:
@@ -813,6 +858,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_srun.add_argument(
         "--prerender", action="store_true", help="render every frame before the flight"
     )
+    p_srun.add_argument(
+        "--fault",
+        action="append",
+        metavar="KIND@START+DURATION",
+        help="inject a fault (repeatable): camera_freeze, camera_black, camera_saturated, "
+        "camera_unplug, link_silence, link_port_change, autopilot_reboot (sitl/faults.py)",
+    )
+    p_srun.add_argument(
+        "--signing-key", help="sign with this 32-byte key file and refuse unsigned frames"
+    )
     p_srun.set_defaults(func=cmd_sitl_run)
     p_sheet = sitl_sub.add_parser("sheet", help="write a PNG contact sheet of a dataset")
     p_sheet.add_argument("dataset", type=Path)
@@ -838,6 +893,13 @@ def build_parser() -> argparse.ArgumentParser:
     p_bd = bench_sub.add_parser("dpose", help="d-Pose cost per frame, one core")
     _add_sitl_flags(p_bd)
     p_bd.set_defaults(func=cmd_bench_dpose)
+    p_bs = bench_sub.add_parser(
+        "soak", help="the service process against the SITL for a long flight: memory, drops"
+    )
+    p_bs.add_argument("--minutes", type=float, default=30.0, help="flight length [min]")
+    p_bs.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
+    p_bs.add_argument("--out", type=Path, default=Path("out/soak"))
+    p_bs.set_defaults(func=cmd_bench_soak)
 
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
     p_rep.add_argument("dirs", nargs="+", type=Path)
@@ -907,6 +969,10 @@ def build_parser() -> argparse.ArgumentParser:
     from companion.calibration.cli import add_parser as add_calibrate_parser
 
     add_calibrate_parser(sub)  # companion calibrate board | intrinsics | lasers | sim-*
+
+    from companion.px4.cli import add_parser as add_px4_parser
+
+    add_px4_parser(sub)  # companion px4 check | configure
     return parser
 
 
