@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.errors import GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.types import CameraFrame, VoFeatures, VoOutput, VoState
@@ -112,6 +113,9 @@ class VisualOdometry:
         self._next_kf = 0
         self.T_cam_vo = np.eye(4)
         self._T_prev = np.eye(4)
+        self._prev_time_us: int | None = None  # the last frame given to process()
+        self._velocity_dt_us: int | None = None  # the interval _T_prev -> T_cam_vo spans
+        self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self._frames_since_kf = 0
         self._pending_keyframe: tuple[U8, int] | None = None  # (gray, time_us) to build
         self._keyframe_added = False  # a keyframe was built since the last output
@@ -157,20 +161,27 @@ class VisualOdometry:
         out: F32 = pts.reshape(-1, 2)
         return out
 
-    def _track(self, gray: U8) -> None:
-        """KLT from the previous image; drops lost and out-of-image features."""
+    def _track(self, gray: U8, guess_px: F32 | None = None) -> None:
+        """KLT from the previous image; drops lost and out-of-image features. ``guess_px``
+        (N, 2): where the features are expected (after skipped frames), else no motion."""
         if self._prev_gray is None or len(self.tracks) == 0:
             self.tracks = Tracks.empty()
             return
         w = self.opts.klt_window_px
+        flags = 0
+        nxt_in = None
+        if guess_px is not None:
+            flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+            nxt_in = np.ascontiguousarray(guess_px, dtype=np.float32).reshape(-1, 1, 2)
         nxt, status, _ = cv2.calcOpticalFlowPyrLK(
             self._prev_gray,
             gray,
             self.tracks.px.reshape(-1, 1, 2),
-            None,
+            nxt_in,
             winSize=(w, w),
             maxLevel=self.opts.klt_levels,
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+            flags=flags,
         )
         nxt = nxt.reshape(-1, 2)
         ok = (status.ravel() == 1) & self.camera.in_image(nxt, margin_px=2.0)
@@ -264,6 +275,39 @@ class VisualOdometry:
         return True
 
     # ------------------------------------------------------------------ tracking
+    def _interval_prediction(self, time_us: int) -> tuple[F64 | None, F32 | None]:
+        """When this frame's interval differs from the one the velocity was measured over
+        (frames skipped upstream: the service takes the newest frame while the last one's
+        keyframe work runs), the constant-velocity pose scaled to this interval, and where
+        the tracks should be in this frame (the KLT's start: from no motion, a pyramidal KLT
+        loses most features beyond ~20 px of flow). (None, None) at the nominal rate, so
+        regular streams are tracked exactly as before."""
+        last, dt_v = self._prev_time_us, self._velocity_dt_us
+        if self.state != VoState.TRACKING or last is None or not dt_v or dt_v <= 0:
+            return None, None
+        ratio = (time_us - last) / dt_v
+        if 0.5 <= ratio <= 1.5:
+            return None, None
+        T_rel = self.T_cam_vo @ se3.inverse(self._T_prev)  # motion over dt_v
+        try:
+            T_pred = se3.exp(ratio * se3.log(T_rel)) @ self.T_cam_vo
+        except GeometryError:  # not rigid (numerically): keep the plain prediction
+            return None, None
+        if ratio < 1.0 or len(self.tracks) == 0:
+            return T_pred, None
+        tr = self.tracks
+        T_new_old = T_pred @ se3.inverse(self.T_cam_vo)  # current camera -> predicted camera
+        rays = np.column_stack([self._normalized(tr.px), np.ones(len(tr))])
+        has = tr.pid >= 0
+        p_cur = rays * self._median_depth()  # features without a 3D point: at median depth
+        if has.any():
+            X = np.array([self.points[int(p)] for p in tr.pid[has]])
+            p_cur[has] = se3.transform(self.T_cam_vo, X)
+        uv, ok = self.camera.project(se3.transform(T_new_old, p_cur))
+        ok &= np.all(np.isfinite(uv), axis=1)
+        guess = np.where(ok[:, None], uv, tr.px).astype(np.float32)
+        return T_pred, guess
+
     def _estimate_pose(self) -> bool:
         tr = self.tracks
         has = tr.pid >= 0
@@ -271,8 +315,10 @@ class VisualOdometry:
             return False
         X = np.array([self.points[int(p)] for p in tr.pid[has]])
         xy = self._normalized(tr.px[has])
-        # constant-velocity prediction
-        T_pred = self.T_cam_vo @ se3.inverse(self._T_prev) @ self.T_cam_vo
+        # constant-velocity prediction (over this frame's interval when frames were skipped)
+        T_pred = self._T_pred
+        if T_pred is None:
+            T_pred = self.T_cam_vo @ se3.inverse(self._T_prev) @ self.T_cam_vo
         result = estimate_pose(
             X, xy, T_pred, self.focal_px, self.opts.inlier_px, self.opts.min_tracked_points
         )
@@ -474,7 +520,8 @@ class VisualOdometry:
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
         is_kf = self._keyframe_added
         self._keyframe_added = False
-        self._track(gray)
+        self._T_pred, guess_px = self._interval_prediction(frame.time_us)
+        self._track(gray, guess_px)
         if self.state != VoState.TRACKING:
             self._ref_frames += 1
             if len(self.tracks) < self.opts.init_min_points or (
@@ -499,6 +546,10 @@ class VisualOdometry:
             if self._need_keyframe():  # built after this frame's output (finish_pending)
                 self._pending_keyframe = (gray, frame.time_us)
         self._prev_gray = gray
+        self._T_pred = None
+        if self.state == VoState.TRACKING and self._prev_time_us is not None:
+            self._velocity_dt_us = frame.time_us - self._prev_time_us
+        self._prev_time_us = frame.time_us
         return self._output(frame.time_us, is_kf)
 
     def lose(self) -> None:
