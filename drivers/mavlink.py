@@ -27,9 +27,10 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
-from drivers.signing import RESERVE_UNITS, Signing
+from drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 
 OnMessage = Callable[[Any, int], None]
+MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,46 +78,60 @@ class Parser:
         self.mav = self._new()
 
     def _new(self) -> Any:
-        mav = mavlink.MAVLink(None)
+        mav = VerifyingMAVLink(None)
         mav.robust_parsing = True
         if self.signing_state is not None:
             mav.signing = self.signing_state
         return mav
 
+    def _restart_at(self, data: bytes) -> None:
+        """Parse from the next start-of-frame marker in ``data`` (the state reset in place)."""
+        starts = [i for i in (data.find(b"\xfd"), data.find(b"\xfe")) if i >= 0]
+        mav = self.mav
+        mav.buf = bytearray(data[min(starts) :]) if starts else bytearray()
+        mav.buf_index = 0
+        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+
     def feed(self, data: bytes, stats: LinkStats, datagram: bool = False) -> list[Any]:
-        """The messages in ``data`` (bad frames counted in ``stats.rx_bad``).
+        """The messages in ``data`` (bad frames counted in ``stats.rx_bad``; frames of a
+        message id we do not know are bad too: pymavlink returns them before checking their
+        CRC or signature).
 
         ``datagram``: ``data`` is one UDP datagram, a unit of its own: bytes left over at its
         end (a truncated frame, a length byte that promised more) are dropped instead of
         swallowing the start of the next datagram. On a byte stream (serial, TCP), a frame
-        that fails its CRC is searched again from its second byte: its length byte may be
-        the corrupted one, and then good frames start inside what pymavlink took for it."""
+        that fails its CRC is searched again from its next start marker: its length byte may
+        be the corrupted one, and then good frames start inside what pymavlink took for it
+        (at most ``MAX_RESYNCS`` times per call, so that a flood of markers costs no more
+        than pymavlink's own parsing)."""
         out: list[Any] = []
+        resyncs = 0
         try:
             msg = self.mav.parse_char(data)
             while msg is not None:
-                if msg.get_type() != "BAD_DATA":
+                kind = msg.get_type()
+                if kind != "BAD_DATA" and not kind.startswith("UNKNOWN_"):
                     out.append(msg)
                 else:
                     stats.rx_bad += 1
-                    raw = bytes(msg.data)
+                    raw = bytes(getattr(msg, "data", b"") or b"")
                     if (
                         not datagram
+                        and kind == "BAD_DATA"
+                        and resyncs < MAX_RESYNCS
                         and len(raw) > 1
                         and raw[0] in (0xFD, 0xFE)
-                        and ("signature" not in str(getattr(msg, "reason", "")))
+                        and "signature" not in str(getattr(msg, "reason", ""))
                     ):
-                        rest = raw[1:] + bytes(self.mav.buf[self.mav.buf_index :])
-                        self.mav = self._new()
-                        msg = self.mav.parse_char(rest)
-                        continue
+                        resyncs += 1
+                        self._restart_at(raw[1:] + bytes(self.mav.buf[self.mav.buf_index :]))
                 msg = self.mav.parse_char(b"")
         except Exception:  # pymavlink raises on some malformed payloads: count, go on
             stats.rx_bad += 1
             self.mav = self._new()
         if datagram and self.mav.buf_len() > 0:
             stats.rx_bad += 1
-            self.mav = self._new()
+            self._restart_at(b"")
         stats.rx_messages += len(out)
         return out
 
@@ -207,14 +222,22 @@ class MavlinkLink:
         self.stats.rx_bytes += len(data)
         now = time.monotonic_ns()
         for msg in self._parser.feed(data, self.stats, datagram):
-            if addr is not None and (
-                self._peer is None or msg.get_srcSystem() == self.peer_system_id
+            if (
+                addr is not None
+                and self.authentic(msg)
+                and (self._peer is None or msg.get_srcSystem() == self.peer_system_id)
             ):
                 self._peer = addr  # udpin: the autopilot's address (it may change port)
             try:
                 self.on_message(msg, now)
             except Exception:  # a handler bug must not take the link down: count it
                 self.stats.handler_errors += 1
+
+    def authentic(self, msg: Any) -> bool:
+        """Whether ``msg`` may change state: always without signing; with signing, only when
+        its signature was verified (an unsigned HEARTBEAT is let through for visibility, but
+        it must not redirect our output or keep a silent autopilot looking alive)."""
+        return self.signing is None or bool(msg.get_signed())
 
     def send(self, msg: Any) -> bool:
         """Encode and send a pymavlink message; False when it could not be sent."""
@@ -227,6 +250,7 @@ class MavlinkLink:
         except Exception:
             self.stats.tx_dropped += 1
             return False
+        self.mav.seq = (self.mav.seq + 1) % 256  # pack() does not count: the peer's loss stats
         return self.send_bytes(buf)
 
     def send_bytes(self, buf: bytes) -> bool:

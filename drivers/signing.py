@@ -22,8 +22,12 @@ restored image) is locked out until its clock passes the old value again. Theref
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
+import logging
 import os
 import stat
+import struct
 import time
 from pathlib import Path
 from typing import Any
@@ -37,6 +41,36 @@ EPOCH_2015_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC, the signing timestamp's
 UNITS_PER_S = 100_000  # the timestamp counts 10 us units
 RESERVE_UNITS = 60 * UNITS_PER_S  # the persisted value runs this far ahead of the one used
 ALLOWED_UNSIGNED = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT})
+NEW_STREAM_WINDOW_UNITS = 60 * UNITS_PER_S  # a new stream may start this far behind us
+
+log = logging.getLogger("companion.signing")
+
+
+class VerifyingMAVLink(mavlink.MAVLink):  # type: ignore[misc]
+    """pymavlink's parser with the signature verified *before* the replay state changes.
+
+    pymavlink's ``check_signature`` records a stream's timestamp before it compares the MAC,
+    so one forged frame (any signature) with timestamp 2**48 - 2 locks the real sender's
+    stream out until restart, and forged frames can grow the stream table without bound.
+    Here the MAC is checked first (constant-time), and only a genuine frame moves the
+    stream's timestamp and ours (the specification's order)."""
+
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        s = self.signing
+        digest = hashlib.sha256(bytes(s.secret_key) + bytes(msgbuf[:-6])).digest()[:6]
+        if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
+            return False
+        tlow, thigh = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
+        timestamp = tlow + (thigh << 32)
+        stream = (msgbuf[-13], srcSystem, srcComponent)
+        last = s.stream_timestamps.get(stream)
+        if last is not None and timestamp <= last:
+            return False  # a replay, or older than what this stream already sent
+        if last is None and timestamp + NEW_STREAM_WINDOW_UNITS < s.timestamp:
+            return False  # a "new" stream from long ago: a recorded frame
+        s.stream_timestamps[stream] = timestamp
+        s.timestamp = max(s.timestamp, timestamp)
+        return True
 
 
 def load_key(path: str | Path, key: str = "service.signing.key_file") -> bytes:
@@ -77,6 +111,7 @@ class TimestampStore:
         self.path = Path(path)
         self.persisted = 0
         self.writes = 0
+        self.write_errors = 0
 
     def read(self) -> int:
         """The stored value (0 when there is none or it is unreadable: a fresh board)."""
@@ -89,14 +124,24 @@ class TimestampStore:
         """The first timestamp to use: after everything used before, and not behind the wall
         clock. Persists the reserve ahead of it before it is used."""
         first = max(wall_units(now_s), self.read() + 1)
-        self._write(first + RESERVE_UNITS)
+        try:
+            self._write(first + RESERVE_UNITS)
+        except OSError as e:
+            raise ConfigError(
+                f"service.signing.timestamp_file: cannot write {self.path}: {e.strerror}"
+            ) from None
         return first
 
     def keep_ahead(self, timestamp: int) -> None:
         """Called as the timestamp advances: rewrites the file when the reserve is half used
         (a rare write: about once per 30 s of wall-clock advance)."""
         if timestamp > self.persisted - RESERVE_UNITS // 2:
-            self._write(timestamp + RESERVE_UNITS)
+            try:
+                self._write(timestamp + RESERVE_UNITS)
+            except OSError as e:  # a full or read-only disk: say so, keep signing
+                if not self.write_errors:
+                    log.warning("signing timestamp not persisted (%s): %s", self.path, e)
+                self.write_errors += 1
 
     def _write(self, value: int) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -190,4 +235,5 @@ class Signing:
             "bad_signatures": int(s.badsig_count),
             "unsigned_accepted": int(s.unsigned_count),
             "refused": int(s.reject_count),
+            "timestamp_write_errors": self.store.write_errors if self.store else 0,
         }

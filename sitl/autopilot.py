@@ -261,6 +261,7 @@ class SimAutopilot:
             return
         try:
             buf = msg.pack(self.mav)
+            self.mav.seq = (self.mav.seq + 1) % 256
             self._transport.sendto(buf, (self.opts.host, self.opts.companion_port))
             self.stats.link.tx_messages += 1
         except OSError:
@@ -347,18 +348,25 @@ class SimAutopilot:
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
 
     def _log_live(self) -> None:
-        """A line every 5 s with what arrived and its error so far (SE(3)-aligned)."""
-        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        """A line every 5 s: the rate of the last 5 s and the position error of the current
+        reset segment's last 100 s (SE(3)-aligned; bounded work however long the flight)."""
+        rec = self.stats.received[-3000:]
         t = self.t_sim_of_mono(time.monotonic_ns())
+        if not rec:
+            return
+        kind = self._main_kind()
+        rec = [r for r in rec if r.kind == kind and r.reset_counter == rec[-1].reset_counter]
         if len(rec) < 10 or t < 0:
             return
-        recent = [r for r in rec if r.rx_ns > time.monotonic_ns() - 5_000_000_000]
+        since = time.monotonic_ns() - 5_000_000_000
+        recent = sum(1 for r in rec if r.rx_ns > since)
         est = np.array([r.position for r in rec])
         gt = np.array([r.true_position for r in rec])
         err = np.linalg.norm(umeyama(est, gt, with_scale=False).apply(est) - gt, axis=1)
         print(
-            f"[sitl {t:5.1f} s] {len(recent) / 5.0:4.1f} Hz {self._main_kind()}, "
-            f"position error now {err[-1]:.3f} m, ATE so far {np.sqrt(np.mean(err**2)):.3f} m",
+            f"[sitl {t:5.1f} s] {recent / 5.0:4.1f} Hz {kind}, reset_counter "
+            f"{rec[-1].reset_counter}, position error now {err[-1]:.3f} m, "
+            f"RMS over the last {len(rec) / 30.0:.0f} s {np.sqrt(np.mean(err**2)):.3f} m",
             flush=True,
         )
 
@@ -528,7 +536,7 @@ class SimAutopilot:
     # ------------------------------------------------------------------ results
     def report(self, frames_sent: int = 0, frames_dropped: int = 0) -> dict[str, Any]:
         """Rates, latency, time-sync and accuracy figures of what was received."""
-        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        rec = self._main_received()
         out: dict[str, Any] = {
             "camera_frames_sent": frames_sent,
             "camera_frames_dropped": frames_dropped,
@@ -571,6 +579,10 @@ class SimAutopilot:
                 self.stats.rate_requests_s,
                 self.cfg.camera.rate_hz,
                 self.opts.readout_ms,
+                min(
+                    (g.start_s for g in self.opts.faults if g.start_s >= f.end_s and g != f),
+                    default=float("inf"),
+                ),
             )
             for f in self.opts.faults
         ]
@@ -599,6 +611,11 @@ class SimAutopilot:
             }
         )
         return out
+
+    def _main_received(self) -> list[Received]:
+        """The received poses of the main kind (the kind is looked up once, not per pose)."""
+        kind = self._main_kind()
+        return [r for r in self.stats.received if r.kind == kind]
 
     def _main_kind(self) -> str:
         kinds = [r.kind for r in self.stats.received]
@@ -648,7 +665,7 @@ class SimAutopilot:
                         f"{r.sync_error_us:.1f}",
                     ]
                 )
-        rec = [r for r in self.stats.received if r.kind == self._main_kind()]
+        rec = self._main_received()
         if len(rec) >= 10:
             self._plot(rec, out / "autopilot.png")
 

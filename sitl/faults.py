@@ -84,15 +84,19 @@ def fault_metrics(
     rate_requests_s: Sequence[float],
     frame_rate_hz: float,
     readout_ms: float,
+    next_start_s: float = float("inf"),
 ) -> dict[str, Any]:
     """What the autopilot saw around ``fault``. Arrays: one entry per received pose, in
     reception order: reception and pose (exposure) times in flight seconds, reset_counter,
-    time-sync conversion error [us]."""
+    time-sync conversion error [us]. Poses are put before/during/after the fault by their
+    frame index, as the camera decides which frames are faulty (``seq / rate`` in the
+    window); the settled time-sync window ends at the next fault's start."""
     start, end = fault.start_s, fault.end_s
     out: dict[str, Any] = {"kind": fault.kind, "start_s": start, "end_s": end}
-    during = (t_pose_s >= start) & (t_pose_s < end)
+    t_frame = np.round(t_pose_s * frame_rate_hz) / frame_rate_hz  # the frame's nominal time
+    during = (t_frame >= start) & (t_frame < end)
     out["poses_from_fault_time"] = int(during.sum())
-    before = t_pose_s < start
+    before = t_frame < start
     out["reset_counter_before"] = int(reset_counter[before][-1]) if before.any() else None
     if fault.kind in CAMERA_KINDS:
         # the last good frame: the last exposure before the fault, released after readout
@@ -102,7 +106,7 @@ def fault_metrics(
         out["stop_after_last_good_frame_ms"] = (
             float((rx_s[late].max() - release) * 1e3) if late.any() else 0.0
         )
-    after = t_pose_s >= end
+    after = t_frame >= end
     if after.any():
         first = int(np.flatnonzero(after)[0])
         out["resume_s"] = float(rx_s[first] - end)
@@ -110,7 +114,7 @@ def fault_metrics(
     else:
         out["resume_s"] = None
         out["reset_counter_after"] = None
-    settled = (t_pose_s >= end + 5.0) & (t_pose_s < end + 15.0)
+    settled = (t_pose_s >= end + 2.0) & (t_pose_s < min(end + 12.0, next_start_s))
     out["sync_error_ms_after"] = (
         float(np.abs(sync_error_us[settled]).max() * 1e-3) if settled.any() else None
     )

@@ -44,6 +44,10 @@ def test_each_failure_mode_has_its_verdict(steps: list[object]) -> None:
     assert chk.check(_frame(7000, 7, flat)) == FrameProblem.BLANK
     dim = (img.astype(np.float64) * 0.25).astype(np.uint8)
     assert chk.check(_frame(8000, 8, dim)) is None
+    night = (img.astype(np.float64) * 0.02).astype(np.uint8)  # dark, with a few lights
+    night[::40, ::40] = 255
+    night[100:140, 200:260] = 230
+    assert float(night.mean()) < 12 and chk.check(_frame(9000, 9, night)) is None
     assert chk.counts == {
         "out_of_order": 1,
         "frozen": 1,

@@ -9,13 +9,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from peers import free_port
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
 from companion.errors import ConfigError
-from drivers.mavlink import MavlinkLink
+from drivers.mavlink import LinkStats, MavlinkLink, Parser
 from drivers.signing import (
     RESERVE_UNITS,
     UNITS_PER_S,
@@ -169,8 +170,15 @@ def test_a_wrong_key_is_refused_both_ways(tmp_path) -> None:
     got, counters, parsed = run_link(key_file, tmp_path / "ts", bytes(32))
     assert got == ["HEARTBEAT"] * 6  # only heartbeats pass: the peer stays visible
     assert counters["good_signatures"] == 0 and counters["bad_signatures"] == 10
-    # our answers to its heartbeats carry our signature: the peer refuses every one
-    assert [m.get_type() for m in parsed] == ["BAD_DATA"] * 6
+    # its heartbeats are visible but not authentic: we never learnt its address, so nothing
+    # of ours went there; and what we sign, a peer with another key refuses
+    assert parsed == []
+    ours = mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
+    Signing(KEY, None).apply(ours, mavlink.MAVLink(None))
+    frame = ours.heartbeat_encode(18, 8, 0, 0, 4).pack(ours)
+    assert [m.get_type() for m in Peer(bytes(32), 1).mav.parse_buffer(frame) or []] == [
+        "BAD_DATA"
+    ]
 
 
 def test_the_timestamp_follows_a_peer_that_is_ahead(tmp_path) -> None:
@@ -193,3 +201,88 @@ def test_the_timestamp_follows_a_peer_that_is_ahead(tmp_path) -> None:
     ts = asyncio.run(main())
     assert ts > wall_units() + 3500 * UNITS_PER_S
     assert TimestampStore(tmp_path / "ts").read() > ts  # persisted ahead of what was used
+
+
+def _parser_with_signing() -> tuple[Parser, Any]:
+    sig = Signing(KEY, None, link_id=0)
+    ours = mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
+    parser = Parser()
+    sig.apply(ours, parser.mav)
+    parser.signing_state = ours.signing
+    return parser, ours.signing
+
+
+def _signer(key: bytes, timestamp: int) -> Any:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    s = mav.signing
+    s.secret_key, s.link_id, s.sign_outgoing, s.timestamp = key, 0, True, timestamp
+    return mav
+
+
+def test_a_forged_frame_cannot_lock_out_the_autopilot() -> None:
+    """pymavlink records a stream's timestamp before checking the MAC: one frame with a
+    junk signature and timestamp 2**48 - 2 would make every later genuine frame 'old'."""
+    parser, state = _parser_with_signing()
+    autopilot, attacker = _signer(KEY, wall_units()), _signer(bytes(32), 2**48 - 2)
+    stats = LinkStats()
+
+    def attitude(mav: Any) -> bytes:
+        return bytes(mav.attitude_encode(1, 0, 0, 0, 0, 0, 0).pack(mav))
+
+    assert [m.get_type() for m in parser.feed(attitude(autopilot), stats, True)] == ["ATTITUDE"]
+    for _ in range(1000):  # forged frames: refused, and they leave no trace
+        attacker.srcComponent = int(np.random.default_rng(_).integers(0, 256))
+        assert parser.feed(attitude(attacker), stats, True) == []
+    for _ in range(3):
+        assert [m.get_type() for m in parser.feed(attitude(autopilot), stats, True)] == ["ATTITUDE"]
+    assert len(state.stream_timestamps) == 1  # only the genuine stream is remembered
+    assert state.timestamp < 2**48 - 2
+
+
+def test_unknown_message_ids_are_bad_data_not_messages() -> None:
+    """pymavlink returns frames of unknown ids before checking their CRC or signature."""
+    parser, _ = _parser_with_signing()
+    u = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    buf = bytearray(u.heartbeat_encode(2, 12, 0, 0, 4).pack(u))
+    buf[7:10] = (0x123456).to_bytes(3, "little")
+    stats = LinkStats()
+    assert parser.feed(bytes(buf), stats, True) == [] and stats.rx_bad == 1
+
+
+def test_an_unsigned_heartbeat_does_not_redirect_the_signed_link(tmp_path) -> None:
+    port = free_port(socket.SOCK_DGRAM)
+    signing = Signing(KEY, TimestampStore(tmp_path / "ts"), link_id=0)
+    seen: list[str] = []
+
+    async def main() -> tuple[Any, Any, int]:
+        link = MavlinkLink(
+            f"udpin:127.0.0.1:{port}", 1, 197, lambda m, t: seen.append(m.get_type()), signing
+        )
+        async with link:
+            autopilot, attacker = Peer(KEY, port), Peer(None, port)
+            autopilot.send(autopilot.mav.heartbeat_encode(2, 12, 0, 0, 4))
+            await asyncio.sleep(0.1)
+            peer_before = link._peer
+            for _ in range(20):
+                attacker.send(attacker.mav.heartbeat_encode(2, 12, 0, 0, 4))
+            await asyncio.sleep(0.1)
+            link.send(link.mav.heartbeat_encode(18, 8, 0, 0, 4))
+            got = await asyncio.to_thread(autopilot.receive, 0.2)
+            return peer_before, link._peer, len(got)
+
+    before, after, n_got = asyncio.run(main())
+    assert seen.count("HEARTBEAT") == 21  # visible...
+    assert after == before and n_got == 1  # ...but our output still goes to the autopilot
+
+
+def test_an_unwritable_timestamp_file_is_a_config_error(tmp_path) -> None:
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("")
+    with pytest.raises(ConfigError, match=r"service\.signing\.timestamp_file"):
+        TimestampStore(blocker / "signing_timestamp").start()
+    # later failures (a full disk) are counted, never raised into the sender
+    store = TimestampStore(tmp_path / "ts")
+    t = store.start()
+    store.path = blocker / "gone"
+    store.keep_ahead(t + RESERVE_UNITS)
+    assert store.write_errors == 1

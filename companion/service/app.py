@@ -36,7 +36,7 @@ from companion.service.status import StatusServer, status_path
 from companion.service.systemd import SdNotify
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
-from companion.vo.frame_check import FrameProblem
+from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import messages
 
 log = logging.getLogger("companion.service")
@@ -56,6 +56,7 @@ class ServiceStats:
     started_ns: int = field(default_factory=now_ns)
     frames_in: int = 0
     frames_dropped: int = 0
+    frames_rejected: int = 0  # refused by the frame check (frozen, dark, saturated, ...)
     frames_processed: int = 0
     published: int = 0
     not_published: int = 0  # processed frames without a pose (not tracking / no scale)
@@ -123,6 +124,7 @@ class Service:
         self._rate_pending: int | None = None
         self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
+        self.frame_check = FrameCheck(config.vo)  # on every delivered frame (reader thread)
         self._frame_problem: FrameProblem | None = None  # the camera fault in progress
         self._autopilot_lost = False
         self._sync_resets = 0
@@ -230,7 +232,11 @@ class Service:
             self.stats.foreign_messages += 1  # another vehicle or a ground station: not ours
             return
         if kind == "HEARTBEAT":
-            if msg.get_srcComponent() == 1 and msg.autopilot != 8:  # 8 = MAV_AUTOPILOT_INVALID
+            if (
+                msg.get_srcComponent() == 1
+                and msg.autopilot != 8  # MAV_AUTOPILOT_INVALID
+                and self.link.authentic(msg)  # signing: an unsigned one proves nothing
+            ):
                 self.stats.autopilot_heartbeat_ns = rx_ns
                 self.stats.autopilot_system_id = msg.get_srcSystem()
             return
@@ -337,12 +343,24 @@ class Service:
                     for frame in self.camera.frames():
                         if self._stop.is_set():
                             break
+                        # every delivered frame is checked (a few us), not only the ones the
+                        # pipeline gets to: a frozen frame must be compared with the frame
+                        # before it, not with the last one processed
+                        problem = self.frame_check.check(frame)
+                        if problem != self._frame_problem:
+                            loop.call_soon_threadsafe(
+                                self._camera_problem, problem, self._frame_problem
+                            )
+                            self._frame_problem = problem
                         with self._slot_lock:
+                            self.stats.frames_in += 1
+                            self._frame_times_ns.append(now_ns())
+                            if problem is not None:  # never reaches the pipeline: no pose
+                                self.stats.frames_rejected += 1
+                                continue
                             if self._slot is not None:
                                 self.stats.frames_dropped += 1
                             self._slot = frame
-                            self.stats.frames_in += 1
-                            self._frame_times_ns.append(now_ns())
                         loop.call_soon_threadsafe(self._frame_ready.set)
                 except Exception as e:  # a driver error: reported, the source is reopened
                     error = e
@@ -450,14 +468,14 @@ class Service:
             p.feed_range(r)
         return p.feed_frame(frame)
 
+    def _camera_problem(self, problem: FrameProblem | None, prev: FrameProblem | None) -> None:
+        """A camera fault starts or ends (on the event loop): said once, not per frame."""
+        if problem is not None:
+            self._warn(f"camera: {problem.value} frames; not publishing")
+        elif prev is not None:
+            self._warn(f"camera: usable frames again (after {prev.value} ones)")
+
     def _publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
-        problem, prev = self.pipeline.frame_problem, self._frame_problem
-        if problem != prev:  # a camera fault starts or ends: say so once
-            if problem is not None:
-                self._warn(f"camera: {problem.value} frames; not publishing")
-            elif prev is not None:
-                self._warn(f"camera: usable frames again (after {prev.value} ones)")
-            self._frame_problem = problem
         out = self.pipeline.vo_output
         self._last_vo_state = out.state if out is not None else VoState.INITIALIZING
         if pose is None or not messages.is_finite_pose(pose):
@@ -505,6 +523,7 @@ class Service:
             "uptime_s": (now_ns() - s.started_ns) * 1e-9,
             "frames_in": s.frames_in,
             "frames_dropped": s.frames_dropped,
+            "frames_rejected": s.frames_rejected,
             "frames_processed": s.frames_processed,
             "published": s.published,
             "not_published": s.not_published,
@@ -570,7 +589,7 @@ class Service:
                 "dropped": s.frames_dropped,
                 "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
                 "problem": self._frame_problem.value if self._frame_problem else None,
-                "rejected": {k: v for k, v in p.frame_check.counts.items() if v},
+                "rejected": {k: v for k, v in self.frame_check.counts.items() if v},
                 "gaps": p.gaps,
             },
             "vo": {

@@ -10,7 +10,7 @@ vehicle stands still, with confidence. The checks work on a subsampled grey imag
 Verdicts (``FrameProblem``): ``OUT_OF_ORDER`` (time_us not after the last frame's), ``FROZEN``
 (the subsample is byte-identical to the previous frame's: sensor noise makes two real
 exposures differ), ``DARK`` / ``SATURATED`` (mean grey level below ``dark_level`` / above
-``bright_level``), ``BLANK`` (grey-level standard deviation below ``min_contrast``: no texture,
+``bright_level`` with a spread as small as that margin), ``BLANK`` (grey-level standard deviation below ``min_contrast``: no texture,
 e.g. a lens against a surface), or None for a usable frame.
 """
 
@@ -64,11 +64,14 @@ class FrameCheck:
         self._last_sample = sample
         grey = sample.mean(axis=2) if sample.ndim == 3 else sample.astype(np.float64)
         mean = float(grey.mean())
-        if mean < self.opts.dark_level:  # (a run of black frames is dark, not frozen)
+        std = float(grey.std())
+        # dark / saturated: a low mean *and* little spread (a night scene with lights is dark
+        # on average but textured); a run of black frames is dark, not frozen
+        if mean < self.opts.dark_level and std < self.opts.dark_level:
             return FrameProblem.DARK
-        if mean > self.opts.bright_level:
+        if mean > self.opts.bright_level and std < 255.0 - self.opts.bright_level:
             return FrameProblem.SATURATED
-        if float(grey.std()) < self.opts.min_contrast:
+        if std < self.opts.min_contrast:
             return FrameProblem.BLANK
         if frozen:
             return FrameProblem.FROZEN
