@@ -66,6 +66,9 @@ def _input_errors(func: Command) -> Command:
         except CalibrationError as e:
             print(f"companion: calibrate: {e}", file=sys.stderr)
             return EXIT_INPUT
+        except (OSError, cv2.error) as e:  # an unwritable --out, an image format OpenCV lacks
+            print(f"companion: calibrate: cannot write the output: {e}", file=sys.stderr)
+            return EXIT_INPUT
 
     return run
 
