@@ -100,10 +100,10 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert report["timesync_rtt_ms_p99"] <= 5.0
     assert report["latency_ms_p50"] < 100.0
     assert summary["frames_in"] >= 0.97 * SECONDS * cfg.camera.rate_hz
-    # one VO re-initialisation was seen in one of five real-time runs (at 52 s; never offline,
-    # not even with frames dropped there): allowed here, the ATE is per reset segment as EKF2
-    # re-anchors on reset_counter; tracked in the closing note for the reliability issue
-    assert report["resets"] <= 1
+    # no VO re-initialisation unless the service went more than vo.max_gap_ms without a frame
+    # (a stall of the whole machine): skipped frames after a slow keyframe used to lose
+    # tracking in real time (3-4 frame jumps); the VO now predicts across them
+    assert report["resets"] <= summary["vo_gaps"], (report["resets"], summary["vo_gaps"])
     assert summary["link"]["rx_bad"] == 0
     assert summary["pipeline_errors"] == 0
     assert (tmp_path / "autopilot" / "autopilot.png").exists()

@@ -543,6 +543,7 @@ class Service:
             "pipeline_errors": s.pipeline_errors,
             "warnings": list(s.warnings),
             "vo_resets": self.pipeline.vo.resets,
+            "vo_gaps": self.pipeline.gaps,  # resets forced by > vo.max_gap_ms without frames
             "reset_counter": s.last_reset_counter,
             "scale": scale.scale if scale is not None else None,
             "link": vars(self.link.stats),
