@@ -12,11 +12,14 @@ Two stages, as in PX4 (DESIGN.md section 6; PX4's ``mavlink_receiver.cpp`` and E
    message. ``timestamp_sample`` = ``time_usec`` moved into the autopilot's clock by its time
    sync once that has converged, else the reception time (PX4's ``Timesync::sync_stamp``).
 2. EKF2, run every ``EKF2_PREDICT_US``. A sample enters the EV buffer at
-   ``timestamp_sample - EKF2_EV_DELAY`` (only if newer than the newest there; the buffer holds
-   ``EKF2_DELAY_MAX / EKF2_PREDICT_US + 1`` samples). The filter works on a delayed horizon
-   ``now - EKF2_DELAY_MAX`` and takes the newest sample with ``time <= horizon < time + 100 ms``
-   (older ones are discarded: a sample that arrives more than ``EKF2_DELAY_MAX + 100 ms``
-   after its time stamp is never used). Fusion of each part starts only when the sample quality
+   ``timestamp_sample - EKF2_EV_DELAY`` (only if newer than the newest there; the ring buffer
+   holds ``min(round(1.5 D / P), max(2, ceil(D / P)))`` samples, D = EKF2_DELAY_MAX, P =
+   EKF2_PREDICT_US, as EstimatorInterface::initialise_interface sizes it, and overwrites the
+   oldest). The filter works on a delayed horizon ``now - EKF2_DELAY_MAX`` and takes the newest
+   sample with ``time <= horizon < time + 100 ms`` (older ones are discarded: a sample that
+   arrives more than ``EKF2_DELAY_MAX + 100 ms`` after its time stamp is never used; one stamped
+   in the future waits until the horizon reaches it, fused late, unless newer samples overwrite
+   it first). Fusion of each part starts only when the sample quality
    is at least ``EKF2_EV_QMIN`` (if > 0), consecutive samples are less than 200 ms apart
    (EV_MAX_INTERVAL: >= 5 Hz) and the newest arrived less than 200 ms ago; it stops when no
    sample reached the horizon for 400 ms ("vision data stopped"). Per part:
@@ -165,7 +168,10 @@ class EvFusion:
         return float(self.params.get(name))
 
     def _buffer_length(self) -> int:
-        return int(self._p("EKF2_DELAY_MAX") * 1000 / max(1.0, self._p("EKF2_PREDICT_US"))) + 1
+        """EKF2's observation buffer length (EstimatorInterface::initialise_interface)."""
+        delay_ms = max(self._p("EKF2_DELAY_MAX"), self._p("EKF2_EV_DELAY"))
+        period_ms = max(0.1, self._p("EKF2_PREDICT_US") / 1000.0)
+        return min(round(1.5 * delay_ms / period_ms), max(2, math.ceil(delay_ms / period_ms)))
 
     @property
     def ev_ctrl(self) -> int:
@@ -173,10 +179,11 @@ class EvFusion:
         return int(self.params.get("EKF2_EV_CTRL"))
 
     def mag_heading(self) -> bool:
-        """A magnetometer gives EKF2 a north-aligned heading (fitted, declared, not disabled)."""
+        """A magnetometer gives EKF2 a north-aligned heading (fitted, declared, not disabled).
+        SYS_HAS_MAG is a count in newer PX4 (0 none, 1, 2 ... magnetometers), 0 / 1 before."""
         return (
             self.has_mag
-            and int(self.params.get("SYS_HAS_MAG")) == 1
+            and int(self.params.get("SYS_HAS_MAG")) >= 1
             and int(self.params.get("EKF2_MAG_TYPE")) != 5  # 5 = None
         )
 

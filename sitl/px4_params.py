@@ -19,9 +19,16 @@ instead ("C-cast", ArduPilot's convention, or pymavlink's ``param_set_send(name,
 sends the float 3.0 = 0x40400000 with the INT32 type: PX4 accepts it and stores 1077936128.
 That is the well-known ``EKF2_EV_CTRL = 1077936128`` trap, reproduced here byte for byte.
 
-Defaults are PX4's (v1.14/v1.15 module.yaml files) for the parameters PX4 itself ships; the few
-values that describe this stub's own links (the Ethernet MAVLink instance of the companion, on
-the stub's UDP ports) are set as a board wired that way would have them.
+Defaults are PX4 v1.14's (its module.yaml files; v1.15 ships the same for these) for the
+parameters PX4 itself ships. They differ by version: EKF2_EV_CTRL is 15 up to v1.15 and 0 from
+v1.16 on (PX4 PR 23307); after v1.16 MAV_n_CONFIG gave way to SER_<port>_PROT and MAV_ETH_EN,
+and MAV_n_BROADCAST defaults to 1 on every instance (v1.14: 1, 0, 0). The few values that
+describe this stub's own links (the Ethernet MAVLink instance of the companion, on the stub's
+UDP ports) are set as a board wired that way would have them.
+
+``clamp`` (name -> (lo, hi)) makes the stub keep a written value inside limits of its own and
+echo what it kept, as an autopilot whose module constrains a parameter after the write: the
+read-back then differs from what was written (configure's MISMATCH).
 """
 
 from __future__ import annotations
@@ -82,7 +89,7 @@ PX4_DEFAULTS: tuple[ParamSpec, ...] = tuple(
             _f("EKF2_EVP_NOISE", 0.1),
             _f("EKF2_EVV_GATE", 3.0),
             _f("EKF2_EVV_NOISE", 0.1),
-            _i("EKF2_EV_CTRL", 0),
+            _i("EKF2_EV_CTRL", 15),  # v1.14/v1.15; 0 from v1.16 on
             _f("EKF2_EV_DELAY", 0.0),
             _i("EKF2_EV_NOISE_MD", 0),
             _f("EKF2_EV_POS_X", 0.0),
@@ -130,7 +137,9 @@ PX4_DEFAULTS: tuple[ParamSpec, ...] = tuple(
             _i("MAV_1_FORWARD", 0),
             _i("MAV_1_MODE", 2),  # Onboard
             _i("MAV_1_RATE", 0),
-            _i("MAV_2_BROADCAST", 1),
+            _i("MAV_0_BROADCAST", 1),
+            _i("MAV_1_BROADCAST", 0),
+            _i("MAV_2_BROADCAST", 0),  # v1.14: the stub sends to a fixed port anyway
             _i("MAV_2_CONFIG", 0),
             _i("MAV_2_FORWARD", 0),
             _i("MAV_2_MODE", 0),
@@ -154,7 +163,7 @@ PX4_DEFAULTS: tuple[ParamSpec, ...] = tuple(
             _i("SYS_AUTOSTART", 4001),
             _i("SYS_HAS_BARO", 1),
             _i("SYS_HAS_GPS", 1),
-            _i("SYS_HAS_MAG", 1),
+            _i("SYS_HAS_MAG", 1),  # a count in newer PX4 (0: none, 2: two magnetometers)
             _i("SYS_HITL", 0),
         ),
         key=lambda s: s.name,
@@ -196,8 +205,11 @@ def as_float32(value: float) -> float:
 class ParamStore:
     """The parameters of one autopilot: typed values, by name and by index (alphabetical)."""
 
-    def __init__(self, specs: list[ParamSpec]) -> None:
+    def __init__(
+        self, specs: list[ParamSpec], clamp: dict[str, tuple[float, float]] | None = None
+    ) -> None:
         self._specs = {s.name: s for s in sorted(specs, key=lambda s: s.name)}
+        self.clamp = dict(clamp or {})  # name -> (lo, hi): written values kept inside
         self._names = list(self._specs)
         self._values: dict[str, ParamValue] = {
             s.name: (
@@ -255,10 +267,13 @@ class ParamStore:
         if name not in self._specs or declared_type != self.type_of(name):
             self.sets_refused += 1
             return False
-        if declared_type == MAV_PARAM_TYPE_INT32:
-            self._values[name] = wire_to_int32(wire)
-        else:
-            self._values[name] = as_float32(wire)
+        value: ParamValue = (
+            wire_to_int32(wire) if declared_type == MAV_PARAM_TYPE_INT32 else as_float32(wire)
+        )
+        if name in self.clamp:
+            lo, hi = self.clamp[name]
+            value = type(value)(min(max(value, lo), hi))
+        self._values[name] = value
         self.sets_accepted += 1
         return True
 

@@ -12,7 +12,10 @@ while the local position is valid, as PX4 sends it), STATUSTEXT, the parameter p
 shell, TIMESYNC answers, AUTOPILOT_VERSION on request (PARAM_ENCODE_BYTEWISE among its
 capabilities) and a COMMAND_ACK for every command (UNSUPPORTED for what the stub does not do).
 The onboard link gets the parameter protocol and the shell too; TIMESYNC replies from the
-companion feed the emulated ``timesync_status``.
+companion feed the emulated ``timesync_status``. Like PX4 SITL (POSIX), the stub sends to the
+companion's fixed port from the start; PX4 on a flight controller (NuttX) instead waits for a
+first packet to learn its UDP partner (and broadcasts before that only outside Onboard mode,
+with MAV_n_BROADCAST = 1), which ``companion px4 check`` reports for a service on another host.
 """
 
 from __future__ import annotations

@@ -7,9 +7,12 @@ how one looks inside a real PX4 from a ground station (QGroundControl's MAVLink 
 ``mavlink_shell.py``, MAVSDK's shell plugin).
 
 Commands served here, in PX4's output format:
-- ``listener <topic> [-n N]``: the last message of a uORB topic (``TOPIC: name``, the struct
-  name, then ``    field: value`` lines; timestamps followed by ``(x seconds ago)``), or
-  ``never published``;
+- ``listener <topic> [-n N]``: the last message of a uORB topic as PX4's
+  ``orb_print_message_internal`` prints it: ``TOPIC: name``, `` name`` again, then
+  ``    field: value`` lines (floats ``%.5f``, booleans ``True`` / ``False``, arrays
+  ``[a, b, c]``); ``timestamp`` followed by ``(x.xxxxxx seconds ago)``, ``timestamp_sample`` by
+  ``(N us before timestamp)`` (``timestamp`` minus it), a quaternion ``q`` by its Euler angles;
+  or ``never published``;
 - ``uorb top -1 [topic ...]``: one table of publication rates (TOPIC NAME, INST, #SUB, RATE,
   #Q, SIZE) of the published topics matching the filters;
 - anything else: ``nsh: <command>: command not found``.
@@ -39,18 +42,37 @@ def _value(v: Any) -> str:
     return str(v)
 
 
+def _euler_deg(q: Any) -> tuple[float, float, float]:
+    """Roll, pitch, yaw [deg] of a Hamilton w, x, y, z quaternion (matrix::Eulerf)."""
+    w, x, y, z = (float(c) for c in q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return math.degrees(roll), math.degrees(pitch), math.degrees(yaw)
+
+
 def format_listener(topic: Topic | None, name: str, now_us: int) -> str:
-    """``listener <name>`` output."""
+    """``listener <name>`` output, in PX4's format (``orb_print_message_internal``)."""
     if topic is None:
         return f"listener: topic {name} not found\n"
     if topic.fields is None:
         return "never published\n"
-    lines = [f"TOPIC: {topic.name}", f" {topic.struct}"]
+    lines = [f"TOPIC: {topic.name}", f" {topic.name}"]
+    stamp = 0
     for key, v in topic.fields.items():
-        if key.startswith("timestamp") and isinstance(v, int):
-            lines.append(f"    {key}: {v} ({(now_us - v) * 1e-6:.6f} seconds ago)")
-        else:
-            lines.append(f"    {key}: {_value(v)}")
+        text = f"    {key}: {_value(v)}"
+        if key == "timestamp" and isinstance(v, int):
+            stamp = v
+            if v:
+                text += f" ({(now_us - v) * 1e-6:.6f} seconds ago)"
+        elif key == "timestamp_sample" and isinstance(v, int) and v and stamp:
+            text += f" ({stamp - v} us before timestamp)"
+        elif key == "q" and isinstance(v, (tuple, list)) and len(v) == 4:
+            angles = _euler_deg(v)
+            if all(math.isfinite(a) for a in angles):
+                r, p, y = angles
+                text += f" (Roll: {r:.1f} deg, Pitch: {p:.1f} deg, Yaw: {y:.1f} deg)"
+        lines.append(text)
     return "\n" + "\n".join(lines) + "\n\n"
 
 

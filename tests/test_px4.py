@@ -41,10 +41,9 @@ from sitl.autopilot import AutopilotOptions, SimAutopilot
 from sitl.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 
 WATCH_S = 2.0
-CONFIGURED = {  # what configure writes on the stub's PX4 defaults (ODOMETRY output)
-    "EKF2_EV_CTRL": 15,
+CONFIGURED = {  # what configure writes on the stub's PX4 v1.14 defaults (ODOMETRY output)
+    "EKF2_EV_CTRL": 7,  # position, height, velocity; no yaw: the stub has a magnetometer
     "EKF2_HGT_REF": 3,
-    "EKF2_GPS_CTRL": 0,
 }
 
 
@@ -193,6 +192,8 @@ def test_parameters_through_mavsdk_and_float_encoded_ints(tmp_path: Path) -> Non
     async def scenario() -> None:
         async with sitl(tmp_path) as s:
             store = s.stub.px4.params
+            from companion.px4.rules import LinkContext, evaluate
+
             # the whole list, with PX4's types, through MAVSDK's param plugin
             async with Px4Link(s.gcs_url, 8.0) as px4:
                 params = await px4.params()
@@ -201,11 +202,20 @@ def test_parameters_through_mavsdk_and_float_encoded_ints(tmp_path: Path) -> Non
                     assert p.is_int == (store.type_of(name) == MAV_PARAM_TYPE_INT32), name
                     assert p.value == pytest.approx(store.get(name), rel=1e-6), name
 
-            # PX4's defaults: EKF2 is not told to use vision at all
+            # PX4 v1.14's default (the stub's) EKF2_EV_CTRL = 15 fuses us, yaw included,
+            # which fights the magnetometer: a warning, nothing written for it
+            v114 = {r.name: r for r in evaluate(params, LinkContext("odometry"))}
+            ev = v114["EKF2_EV_CTRL"]
+            assert ev.status is Status.WARN and "magnetometer" in ev.why and not ev.targets
+            # PX4 v1.16's default, 0: EKF2 is not told to use vision at all
+            set_params(s.stub, {"EKF2_EV_CTRL": 0})
             fresh = await run_check(s.cfg, s.options(watch_s=0))
             assert row(fresh, "EKF2_EV_CTRL").status is Status.FAIL
             assert "ignores our horizontal position" in row(fresh, "EKF2_EV_CTRL").why
             assert fresh.problems >= 1
+            # not watched: the GNSS height reference is a warning worded so, not a failure
+            hgt = row(fresh, "EKF2_HGT_REF")
+            assert hgt.status is Status.WARN and "not watched" in hgt.why
 
             # a script writes EKF2_EV_CTRL = 3 the C-cast way (the float 3.0, typed INT32):
             # PX4 keeps the float's bytes as an integer
@@ -228,7 +238,7 @@ def test_parameters_through_mavsdk_and_float_encoded_ints(tmp_path: Path) -> Non
             ev = row(report, "EKF2_EV_CTRL")
             assert ev.value == "1077936128" and ev.status is Status.FAIL
             assert "float-encoded" in ev.why and "float 3" in ev.why
-            assert ev.targets and ev.targets[0].is_int and ev.targets[0].value == 15
+            assert ev.targets and ev.targets[0].is_int and ev.targets[0].value == 7
             delay = row(report, "EKF2_EV_DELAY")
             assert delay.status is Status.FAIL and "int-encoded" in delay.why
             # configure restores what the tool meant (5 ms is acceptable), as a REAL32
@@ -274,7 +284,7 @@ def test_configure_fixes_a_float_encoded_ev_ctrl_with_typed_writes(
 
     asyncio.run(scenario())
     out = capsys.readouterr().out
-    assert "EKF2_EV_CTRL   INT32   1077936128 -> 15" in out
+    assert "EKF2_EV_CTRL  INT32   1077936128 -> 7" in out
     assert "result: OK" in out
 
 
@@ -299,11 +309,34 @@ def test_configure_refuses_while_armed(tmp_path: Path) -> None:
                 await run_configure(s.cfg, s.options(yes=True), show=print)
             argv = ["px4", "configure", "--config", str(write_toml(tmp_path, s.cfg))]
             code = await asyncio.to_thread(cli.main, [*argv, "--url", s.gcs_url, "--yes"])
-            assert s.stub.px4.params.get("EKF2_EV_CTRL") == 0  # untouched
+            assert s.stub.px4.params.get("EKF2_EV_CTRL") == 15  # untouched (v1.14 default)
             assert s.stub.px4.params.sets_accepted == 0
             return code
 
     assert asyncio.run(scenario()) == 1
+
+
+@pytest.mark.timeout(60)
+def test_configure_reports_a_write_the_autopilot_did_not_keep(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The autopilot keeps EKF2_HGT_REF inside 0..2 (as a module constraining a parameter after
+    the write would): the value read back from it differs, configure says so and exits 1."""
+
+    async def scenario() -> int:
+        async with sitl(tmp_path) as s:
+            store = s.stub.px4.params
+            store.clamp["EKF2_HGT_REF"] = (0, 2)
+            argv = ["px4", "configure", "--config", str(write_toml(tmp_path, s.cfg))]
+            code = await asyncio.to_thread(cli.main, [*argv, "--url", s.gcs_url, "--yes"])
+            assert store.get("EKF2_HGT_REF") == 2 and store.sets_accepted >= 1
+            return code
+
+    assert asyncio.run(scenario()) == 1
+    out = capsys.readouterr().out
+    assert "EKF2_HGT_REF  INT32   1 -> 3" in out
+    assert "EKF2_HGT_REF: 2 (INT32) MISMATCH: wrote 3" in out
+    assert "result: 1 problem(s)" in out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -336,6 +369,8 @@ FUSION_CASES = {
         False,
         "stale timestamps",
     ),
+    # ahead of PX4's clock: EKF2 holds them until its delayed horizon gets there (a warning)
+    "future_timestamps_fused_late": ("odometry", Sender(stamp_offset_us=150_000), {}, True, None),
     "vpe_without_north_heading": (
         "vision_position_estimate",
         Sender(kind="vpe"),
@@ -372,6 +407,8 @@ def test_fusion_reported_only_when_our_output_meets_the_rules(tmp_path: Path, ca
     else:
         assert report.problems >= 1
         assert v.reasons and reason in v.reasons[0], text
+    if case == "future_timestamps_fused_late":
+        assert any("fused late by" in w for w in v.warnings), text
     if case == "vpe_without_north_heading":
         assert row(report, "EKF2_MAG_TYPE").status is Status.FAIL
 
@@ -394,30 +431,77 @@ def test_float_and_int_encodings_are_inverse_and_detected() -> None:
     assert int_encoded_float(0.1) is None and int_encoded_float(0.0) is None
 
 
+# ``listener`` output as PX4 prints it (uORB's orb_print_message_internal): the timestamp with
+# "(x seconds ago)", timestamp_sample with "(N us before timestamp)", a device_id with its
+# decoded type, a quaternion followed by its Euler angles, a flags field with its bits
 PX4_LISTENER = (
     "listener vehicle_visual_odometry\r\n\n"
     "TOPIC: vehicle_visual_odometry\n"
-    " vehicle_odometry\n"
+    " vehicle_visual_odometry\n"
     "    timestamp: 71100704 (0.004519 seconds ago)\n"
-    "    timestamp_sample: 71090001 (0.015222 seconds ago)\n"
-    "    position: [1.2000, -0.4000, nan]\n"
+    "    timestamp_sample: 71090001 (10703 us before timestamp)\n"
+    "    device_id: 8682243 (Type: 0x84, UAVCAN:0 (0x7B))\n"
+    "    position: [1.20000, -0.40000, nan]\n"
+    "    q: [0.70697, 0.00669, -0.00373, 0.70720] (Roll: 0.2 deg, Pitch: -0.8 deg, Yaw: 90.0 deg)\n"
     "    pose_frame: 2\n"
     "    quality: 80\n"
-    "    cs_ev_pos: True\n"
+    "    reset_counter: 0\n"
     " \x1b[Knsh> "
+)
+PX4_FLAGS = (
+    "listener estimator_status_flags\n\n"
+    "TOPIC: estimator_status_flags 2 instances\n\n"
+    "Instance 0:\n"
+    " estimator_status_flags\n"
+    "    timestamp: 191878100 (0.000580 seconds ago)\n"
+    "    control_status_changes: 12\n"
+    "    filter_fault_flags: 0\n"
+    "    innovation_fault_flags: 6 (0b110)\n"
+    "    cs_tilt_align: True\n"
+    "    cs_yaw_align: True\n"
+    "    cs_ev_pos: True\n\n"
+    "Instance 1:\n"
+    " estimator_status_flags\n"
+    "    timestamp: 191878000 (0.000680 seconds ago)\n"
+    "    cs_ev_pos: False\n"
+    "nsh> "
 )
 
 
 def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
-    from companion.px4.shell import parse_listener, parse_uorb_top
+    from companion.px4.fusion import sample_age_ms
+    from companion.px4.shell import number, parse_listener, parse_uorb_top
 
     f = parse_listener(PX4_LISTENER)
     assert f is not None
     assert f["timestamp"] == 71100704 and f["timestamp_age_s"] == pytest.approx(0.004519)
-    assert f["timestamp"] - f["timestamp_sample"] == 10703
+    assert f["timestamp_sample"] == 71090001
+    assert f["timestamp_sample_before_timestamp_us"] == 10703
+    assert sample_age_ms(f) == pytest.approx(10.703)
+    assert f["device_id"] == 8682243  # the leading integer of "N (Type: ...)"
+    assert f["q"] == pytest.approx([0.70697, 0.00669, -0.00373, 0.70720])
     assert f["position"][:2] == [1.2, -0.4] and np.isnan(f["position"][2])
-    assert f["pose_frame"] == 2 and f["quality"] == 80 and f["cs_ev_pos"] is True
+    assert f["pose_frame"] == 2 and f["quality"] == 80
+    flags = parse_listener(PX4_FLAGS)
+    assert flags is not None and flags["_instances"] == 2
+    assert flags["cs_ev_pos"] is True and flags["innovation_fault_flags"] == 6  # instance 0
+    # a sample stamped ahead of PX4's clock: PX4 prints a negative difference
+    ahead = parse_listener(
+        "TOPIC: vehicle_visual_odometry\n vehicle_visual_odometry\n"
+        "    timestamp: 5000000 (0.010000 seconds ago)\n"
+        "    timestamp_sample: 5150000 (-150000 us before timestamp)\nnsh> "
+    )
+    assert sample_age_ms(ahead) == pytest.approx(-150.0)
+    # what it cannot read stays text, and counts as unknown
+    odd = parse_listener(
+        "TOPIC: vehicle_visual_odometry\n vehicle_visual_odometry\n"
+        "    timestamp: soon (later)\n    timestamp_sample: 12 (mystery)\n"
+        '    name: "a (b)"\nnsh> '
+    )
+    assert odd is not None and odd["name"] == "a (b)"
+    assert number(odd, "timestamp") is None and sample_age_ms(odd) is None
     assert parse_listener("listener timesync_status\nnever published\nnsh> ") is None
+    assert parse_listener("listener timesync_status\nnsh> ") is None  # no instance at all
     top = (
         "update: 1s, topics: 2, total publications: 31, 3.4 kB/s\n"
         "TOPIC NAME                          INST #SUB RATE #Q SIZE\n"
@@ -427,45 +511,250 @@ def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
     assert parse_uorb_top(top) == {"vehicle_visual_odometry": 29.0, "vehicle_mocap_odometry": 0.0}
 
 
-def test_serial_link_rules_name_mode_and_baud() -> None:
-    from companion.px4.rules import LinkContext, Param, evaluate
+def test_the_stub_prints_listener_output_in_px4s_format() -> None:
+    from companion.px4.fusion import sample_age_ms
+    from companion.px4.shell import parse_listener
+    from sitl.ekf_fusion import Topic
+    from sitl.px4_shell import format_listener
 
-    params = {
-        "MAV_0_CONFIG": Param("MAV_0_CONFIG", 101, True),
-        "MAV_1_CONFIG": Param("MAV_1_CONFIG", 102, True),
-        "MAV_1_MODE": Param("MAV_1_MODE", 0, True),
-        "MAV_2_CONFIG": Param("MAV_2_CONFIG", 0, True),
-        "SER_TEL2_BAUD": Param("SER_TEL2_BAUD", 57600, True),
+    t = Topic("vehicle_visual_odometry", "vehicle_odometry")
+    q = (0.70710678, 0.0, 0.0, 0.70710678)
+    t.publish({"timestamp": 2_000_000, "timestamp_sample": 1_990_000, "q": q}, 2_000_000)
+    text = format_listener(t, t.name, 2_004_519)
+    assert "    timestamp: 2000000 (0.004519 seconds ago)\n" in text
+    assert "    timestamp_sample: 1990000 (10000 us before timestamp)\n" in text
+    assert "(Roll: 0.0 deg, Pitch: 0.0 deg, Yaw: 90.0 deg)" in text
+    assert text.startswith("\nTOPIC: vehicle_visual_odometry\n vehicle_visual_odometry\n")
+    f = parse_listener(text)
+    assert f is not None and sample_age_ms(f) == pytest.approx(10.0)
+
+
+def _rows(params: dict[str, int | float], ctx: Any) -> dict[str, Row]:
+    from companion.px4.rules import Param, evaluate
+
+    typed = {k: Param(k, v, isinstance(v, int)) for k, v in params.items()}
+    return {r.name: r for r in evaluate(typed, ctx)}
+
+
+def test_ev_ctrl_bits_as_ekf2_reads_them() -> None:
+    from companion.px4.rules import LinkContext
+
+    ctx = LinkContext("odometry")
+    base: dict[str, int | float] = {"EKF2_HGT_REF": 0, "SYS_HAS_MAG": 1, "EKF2_MAG_TYPE": 0}
+    velocity_only = _rows({**base, "EKF2_EV_CTRL": 4}, ctx)["EKF2_EV_CTRL"]
+    assert velocity_only.status is Status.FAIL and "horizontal position" in velocity_only.why
+    assert velocity_only.targets[0].value == 7
+    position_only = _rows({**base, "EKF2_EV_CTRL": 1}, ctx)["EKF2_EV_CTRL"]
+    assert position_only.status is Status.WARN and position_only.targets[0].value == 7
+    assert _rows({**base, "EKF2_EV_CTRL": 7}, ctx)["EKF2_EV_CTRL"].status is Status.OK
+    # yaw: wanted without a magnetometer (SYS_HAS_MAG counts them), a warning with one
+    with_yaw = _rows({**base, "EKF2_EV_CTRL": 15}, ctx)["EKF2_EV_CTRL"]
+    assert with_yaw.status is Status.WARN and not with_yaw.targets
+    two_mags = _rows({**base, "SYS_HAS_MAG": 2, "EKF2_EV_CTRL": 15}, ctx)["EKF2_EV_CTRL"]
+    assert two_mags.status is Status.WARN  # 2 is two magnetometers, not "none"
+    no_mag = _rows({**base, "SYS_HAS_MAG": 0, "EKF2_EV_CTRL": 7}, ctx)["EKF2_EV_CTRL"]
+    assert no_mag.status is Status.WARN and no_mag.targets[0].value == 15 and "yaw" in no_mag.why
+    # EKF2_HGT_REF = vision needs bit 1
+    hgt = _rows({**base, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 1}, ctx)
+    assert hgt["EKF2_EV_CTRL"].status is Status.FAIL and "height" in hgt["EKF2_EV_CTRL"].why
+    assert "flat ground" in hgt["EKF2_HGT_REF"].why  # PX4's caveat on vision/range height
+
+
+def test_rules_for_delay_gnss_output_and_height_reference() -> None:
+    from companion.px4.rules import LinkContext
+
+    params: dict[str, int | float] = {
+        "EKF2_EV_DELAY": 50.0,
+        "EKF2_GPS_CTRL": 7,
+        "EKF2_HGT_REF": 1,
+        "MAV_2_CONFIG": 1000,
+        "MAV_2_MODE": 2,
+    }
+    rows = _rows(params, LinkContext("both", gps_seen=False))
+    assert rows["EKF2_EV_DELAY"].status is Status.WARN  # not FAIL: only with TIMESYNC working
+    assert "TIMESYNC" in rows["EKF2_EV_DELAY"].need
+    gps = rows["EKF2_GPS_CTRL"]
+    assert gps.status is Status.INFO and not gps.targets and "--no-gnss" in gps.why
+    assert "falls back" in rows["EKF2_HGT_REF"].why and rows["EKF2_HGT_REF"].status is Status.WARN
+    assert rows["service.output"].status is Status.WARN  # both messages on one topic
+    asked = _rows(params, LinkContext("odometry", gps_seen=False, no_gnss=True))
+    assert asked["EKF2_GPS_CTRL"].targets[0].value == 0
+    # a link mode without TIMESYNC: PX4 stamps at arrival, the delay is then right
+    normal = _rows({**params, "MAV_2_MODE": 0}, LinkContext("odometry"))
+    assert normal["EKF2_EV_DELAY"].status is Status.INFO
+    assert normal["MAV_2_MODE"].status is Status.WARN and "latency" in normal["MAV_2_MODE"].why
+
+
+def test_serial_link_rules_name_mode_and_baud() -> None:
+    from companion.px4.rules import LinkContext
+
+    params: dict[str, int | float] = {
+        "MAV_0_CONFIG": 101,
+        "MAV_1_CONFIG": 102,
+        "MAV_1_MODE": 0,
+        "MAV_2_CONFIG": 0,
+        "SER_TEL2_BAUD": 57600,
     }
     ctx = LinkContext("odometry", "TELEM2", "serial", 921600)
-    rows = {r.name: r for r in evaluate(params, ctx)}
+    rows = _rows(params, ctx)
     assert rows["MAV_1_CONFIG"].status is Status.OK
-    mode = rows["MAV_1_MODE"]
-    assert mode.status is Status.FAIL and mode.targets[0].value == 2 and mode.targets[0].reboot
+    mode = rows["MAV_1_MODE"]  # Normal: no TIMESYNC, fused but stamped at arrival
+    assert mode.status is Status.WARN and mode.targets[0].value == 2 and mode.targets[0].reboot
     baud = rows["SER_TEL2_BAUD"]
     assert baud.status is Status.FAIL and baud.targets[0].value == 921600
     assert rows["MAV_0_CONFIG"].status is Status.INFO  # the ground station's link, not ours
+    for ok_mode in (8, 11):  # External Vision, Onboard Low Bandwidth: both time-sync
+        assert _rows({**params, "MAV_1_MODE": ok_mode}, ctx)["MAV_1_MODE"].status is Status.OK
+    auto = _rows({**params, "SER_TEL2_BAUD": 0}, ctx)["SER_TEL2_BAUD"]
+    assert auto.status is Status.WARN and "Auto" in auto.value  # 0 is Auto, not slow
     # nothing on TELEM3: configure would enable the free instance 2 there
-    rows3 = {
-        r.name: r for r in evaluate(params, LinkContext("odometry", "TELEM3", "serial", 921600))
-    }
+    rows3 = _rows(params, LinkContext("odometry", "TELEM3", "serial", 921600))
     assert rows3["MAV_2_CONFIG"].status is Status.FAIL
     assert rows3["MAV_2_CONFIG"].targets[0].value == 103
+    # PX4 after 1.16: SER_<port>_PROT and MAV_ETH_EN instead of MAV_n_CONFIG
+    newer: dict[str, int | float] = {
+        "SER_TEL1_PROT": 1,
+        "SER_TEL2_PROT": 0,
+        "MAV_ETH_EN": 0,
+        "MAV_1_MODE": 2,
+        "MAV_1_REMOTE_PRT": 14540,
+    }
+    eth = _rows(newer, LinkContext("odometry", "ETHERNET", "udpin", 14540))
+    assert eth["MAV_ETH_EN"].status is Status.FAIL and eth["MAV_ETH_EN"].targets[0].value == 1
+    assert eth["MAV_1_MODE"].status is Status.OK  # Ethernet is the instance after TEL1
+    tel2 = _rows(newer, LinkContext("odometry", "TELEM2", "serial", 921600))
+    assert tel2["SER_TEL2_PROT"].status is Status.FAIL and "instance 1" in tel2["SER_TEL2_PROT"].why
 
 
-def test_without_a_shell_fusion_is_inferred_only_without_gnss() -> None:
+def test_udp_partner_rules_on_ethernet() -> None:
+    """PX4 on a flight controller answers only the first sender, and broadcasts only outside
+    Onboard mode with MAV_n_BROADCAST = 1: a listening service on another host never hears it."""
+    from companion.px4.rules import LinkContext
+
+    params: dict[str, int | float] = {
+        "MAV_2_CONFIG": 1000,
+        "MAV_2_MODE": 2,
+        "MAV_2_BROADCAST": 0,
+        "MAV_2_UDP_PRT": 14580,
+        "MAV_2_REMOTE_PRT": 14540,
+    }
+    sitl = _rows(params, LinkContext("odometry", link_kind="udpin", link_host="127.0.0.1"))
+    assert sitl["MAV_2_BROADCAST"].status is Status.OK  # PX4 SITL sends to 127.0.0.1 at once
+    board = LinkContext("odometry", link_kind="udpin", link_host="0.0.0.0")
+    deadlock = _rows(params, board)["MAV_2_BROADCAST"]
+    assert deadlock.status is Status.FAIL and "udpout:<autopilot IP>:14580" in deadlock.why
+    assert not deadlock.targets  # broadcasting changes nothing in Onboard mode
+    ev_mode = _rows({**params, "MAV_2_MODE": 8}, board)["MAV_2_BROADCAST"]
+    assert ev_mode.status is Status.FAIL and ev_mode.targets[0].value == 1
+    broadcast = _rows({**params, "MAV_2_MODE": 8, "MAV_2_BROADCAST": 1}, board)
+    assert broadcast["MAV_2_BROADCAST"].status is Status.OK
+    out = LinkContext("odometry", link_kind="udpout", link_port=14580, link_host="10.41.10.2")
+    sends_first = _rows(params, out)
+    assert sends_first["MAV_2_UDP_PRT"].status is Status.OK
+    assert sends_first["MAV_2_BROADCAST"].status is Status.WARN  # the partner's port sticks
+
+
+def _shell(**kw: Any) -> Any:
+    from companion.px4.fusion import ShellView
+
+    visual = {
+        "timestamp": 10_000_000,
+        "timestamp_age_s": 0.01,
+        "timestamp_sample": 9_990_000,
+        "pose_frame": 2,
+        "position": [1.0, 2.0, -3.0],
+        "quality": 80,
+    }
+    flags = {"timestamp_age_s": 0.01, "cs_ev_pos": True, "cs_yaw_align": True}
+    timesync = {"timestamp_age_s": 0.05, "round_trip_time": 900}
+    base: dict[str, Any] = {
+        "visual": visual,
+        "flags": flags,
+        "timesync": timesync,
+        "rates_hz": {"vehicle_visual_odometry": 30.0},
+    }
+    for k, v in kw.items():
+        merge = isinstance(v, dict) and k in ("visual", "flags", "timesync")
+        base[k] = {**base[k], **v} if merge else v
+    return ShellView(**base)
+
+
+def test_diagnosis_from_px4s_shell() -> None:
+    from companion.px4.fusion import Observations, diagnose
+    from companion.px4.rules import LinkContext, Param
+
+    params = {"EKF2_EV_CTRL": Param("EKF2_EV_CTRL", 7, True)}
+    ctx = LinkContext("odometry")
+
+    def verdict(**kw: Any) -> Any:
+        return diagnose(
+            Observations(watch_s=2.0, local_positions=20, shell=_shell(**kw)), params, ctx
+        )
+
+    fused = verdict()
+    assert fused.fused is True and not fused.reasons
+    # stamps 150 ms ahead: held until the delayed horizon reaches them, fused late; a warning
+    late = verdict(visual={"timestamp_sample": 10_150_000})
+    assert late.fused is True and not late.reasons
+    assert any("fused late by 150 ms" in w for w in late.warnings)
+    # 900 ms ahead: the 20-sample buffer (667 ms at 30 Hz) overwrites them first
+    lost = verdict(visual={"timestamp_sample": 10_900_000}, flags={"cs_ev_pos": False})
+    assert lost.fused is False and "lost" in lost.reasons[0]
+    # a fused verdict never comes with a "most likely" reason: the slow rate is a warning
+    slow = verdict(rates_hz={"vehicle_visual_odometry": 4.0})
+    assert slow.fused is True and not slow.reasons and any("rate" in w for w in slow.warnings)
+    # the shell answered but the flags did not come through: unknown, not "off"
+    assert verdict(flags=None).fused is None
+    assert verdict(flags={"cs_ev_pos": "?"}).fused is None
+    # fusion active, but EKF2 rejects our samples at the gate
+    aid = {"timestamp_age_s": 0.02, "fused": False, "innovation_rejected": True}
+    rejected = verdict(aid_pos=aid)
+    assert rejected.fused is False and "rejected at EKF2_EVP_GATE" in rejected.reasons[0]
+    assert verdict(aid_pos={**aid, "fused": True, "innovation_rejected": False}).fused is True
+    # EKF2 marks a sample below EKF2_EV_QMIN rejected too: named as such, not as the gate
+    strict = {**params, "EKF2_EV_QMIN": Param("EKF2_EV_QMIN", 90, True)}
+    obs = Observations(watch_s=2.0, local_positions=20, shell=_shell(aid_pos=aid))
+    low = diagnose(obs, strict, ctx)
+    assert low.fused is False and "EKF2_EV_QMIN" in low.reasons[0] and len(low.reasons) == 1
+    # non-numeric fields are unknown, never a crash
+    odd = verdict(visual={"timestamp": "x", "quality": "y"}, timesync={"round_trip_time": "z"})
+    assert odd.fused is True and any("timestamp_sample" in w for w in odd.warnings)
+
+
+def test_without_a_shell_fusion_is_inferred_only_when_nothing_else_can_aid() -> None:
     from companion.px4.fusion import Observations, diagnose
     from companion.px4.rules import LinkContext, Param
 
     params = {
         "EKF2_EV_CTRL": Param("EKF2_EV_CTRL", 11, True),
         "EKF2_GPS_CTRL": Param("EKF2_GPS_CTRL", 7, True),
+        "EKF2_OF_CTRL": Param("EKF2_OF_CTRL", 0, True),
+        "EKF2_NOAID_TOUT": Param("EKF2_NOAID_TOUT", 5_000_000, True),
     }
     ctx = LinkContext()
-    seen = Observations(watch_s=2.0, estimator_flags=0x12F, local_positions=20, gps_seen=False)
-    assert diagnose(seen, params, ctx).fused is True
-    with_gps = Observations(watch_s=2.0, estimator_flags=0x12F, local_positions=20, gps_seen=True)
-    assert diagnose(with_gps, params, ctx).fused is None  # GNSS may be what makes it valid
+    publishing = {"output": {"message": "ODOMETRY", "rate_hz": 30.0, "published": 900}}
+    all_along: dict[str, Any] = {
+        "watch_s": 5.0,
+        "estimator_flags": 0x12F,
+        "local_positions": 50,
+        "lpos_first_s": 0.1,
+        "lpos_last_s": 4.95,
+        "lpos_max_gap_s": 0.2,
+        "service": publishing,
+    }
+    v = diagnose(Observations(**all_along), params, ctx)
+    assert v.fused is True and "inferred" in v.headline
+    cannot_tell: list[dict[str, Any]] = [
+        {"gps_seen": True},  # GNSS may be what makes it valid
+        {"service": None},  # nothing says we publish
+        {"service": {"output": {"rate_hz": 0.0, "published": 0}}},  # we do not publish
+        {"lpos_last_s": 2.0},  # the position stopped being valid during the watch
+        {"watch_s": 2.0, "lpos_last_s": 1.95},  # shorter than EKF2_NOAID_TOUT: dead reckoning
+    ]
+    for change in cannot_tell:
+        assert diagnose(Observations(**{**all_along, **change}), params, ctx).fused is None
+    optical_flow = {**params, "EKF2_OF_CTRL": Param("EKF2_OF_CTRL", 1, True)}
+    assert diagnose(Observations(**all_along), optical_flow, ctx).fused is None
     nothing = Observations(watch_s=2.0, estimator_flags=0x0A5, local_positions=0)
     v = diagnose(nothing, params, ctx)
     assert v.fused is False and "service is not running" in v.reasons[0]

@@ -82,7 +82,14 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
     if fc_port == "auto":
         fc_port = "TELEM2" if link.kind == "serial" else "ETHERNET"
     socket = Path(opts.socket) if opts.socket else status_path(cfg.service.status_socket)
-    ctx = LinkContext(cfg.service.output, fc_port, link.kind, link.port)
+    ctx = LinkContext(
+        cfg.service.output,
+        fc_port,
+        link.kind,
+        link.port,
+        link_host=link.host,
+        no_gnss=opts.no_gnss,
+    )
     own = mavsdk_url(service_url, "service.mavlink_url")
     url = mavsdk_url(opts.url) if opts.url else own
     if url == own and service_status(socket) is not None:
@@ -136,6 +143,9 @@ async def run_check(cfg: Config, opts: Px4Options) -> CheckReport:
             watch_s=opts.watch_s,
             estimator_flags=seen["estimator_flags"],
             local_positions=int(seen["local_positions"]),
+            lpos_first_s=seen["lpos_first_s"],
+            lpos_last_s=seen["lpos_last_s"],
+            lpos_max_gap_s=seen["lpos_max_gap_s"],
             gps_seen=bool(seen["gps_seen"]),
             statustexts=tuple(seen["statustexts"]),
             shell=view,
@@ -161,7 +171,9 @@ def format_rows(rows: tuple[Row, ...] | list[Row]) -> str:
 def header(url: str, system_id: int, autopilot: str, armed: bool, n: int, ctx: LinkContext) -> str:
     """Two lines: the autopilot as reached, and our side."""
     link = (
-        f"{ctx.link_kind} {ctx.link_port}" if ctx.link_kind != "serial" else f"{ctx.link_port} baud"
+        f"{ctx.link_kind} {ctx.link_host}:{ctx.link_port}"
+        if ctx.link_kind != "serial"
+        else f"{ctx.link_host} at {ctx.link_port} baud"
     )
     return (
         f"autopilot: {autopilot} system {system_id} on {url}, "
@@ -180,7 +192,8 @@ def format_check(report: CheckReport) -> str:
     if v is not None:
         out += ["", f"fusion (watched {r.watch_s:.1f} s): {v.headline}"]
         if v.reasons:
-            out.append(f"  most likely: {v.reasons[0]}")
+            first = "most likely:" if v.fused is False else "because:    "
+            out.append(f"  {first} {v.reasons[0]}")
             out += [f"  also:        {x}" for x in v.reasons[1:]]
         out += [f"  warning:     {x}" for x in v.warnings]
         out += [f"  seen:        {x}" for x in v.evidence]

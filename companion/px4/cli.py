@@ -19,7 +19,7 @@ from companion.px4.options import Px4Options
 
 EXIT_OK, EXIT_PROBLEMS = 0, 1
 CHECK_ONLY = {"watch_s", "shell"}
-CONFIGURE_ONLY = {"yes"}
+CONFIGURE_ONLY = {"yes", "no_gnss"}
 
 
 def _flag(name: str) -> str:

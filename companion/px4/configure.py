@@ -32,15 +32,18 @@ class Change:
     target: Target
     before: int | float | None
     after: int | float | None
+    error: str = ""  # the write or the read-back failed: why
 
     @property
     def ok(self) -> bool:
         """Read back as written (float32 rounding allowed for a REAL32)."""
-        if self.after is None:
-            return False
-        if self.target.is_int:
-            return int(self.after) == int(self.target.value)
-        return math.isclose(float(self.after), float(self.target.value), rel_tol=1e-6, abs_tol=1e-9)
+        return self.after is not None and not self.error and _same(self.after, self.target)
+
+
+def _same(value: int | float, target: Target) -> bool:
+    if target.is_int:
+        return int(value) == int(target.value)
+    return math.isclose(float(value), float(target.value), rel_tol=1e-6, abs_tol=1e-9)
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,10 +128,20 @@ async def run_configure(
         if await px4.armed():
             raise Px4Error("the vehicle was armed meanwhile: nothing written")
         changes = []
-        for c in planned:
-            await px4.write(c.target)
-            after = await px4.read(c.target.name, c.target.is_int)
-            changes.append(Change(c.target, c.before, after))
+        for c in planned:  # every write is tried and read back, whatever the others did
+            error = ""
+            try:
+                await px4.write(c.target)
+            except Px4Error as e:
+                error = str(e)
+            after: int | float | None = None
+            try:
+                after = await px4.read(c.target.name, c.target.is_int)
+            except Px4Error as e:
+                error = error or str(e)
+            if after is not None and error and _same(after, c.target):
+                error = ""  # the acknowledgement got lost, the value is in
+            changes.append(Change(c.target, c.before, after, error))
         fresh = await px4.params()
     rows_after = tuple(evaluate(fresh, ctx))
     return ConfigureReport(head, planned, True, tuple(changes), rows_after)
@@ -140,9 +153,20 @@ def format_result(report: ConfigureReport) -> str:
         return ""
     lines = ["", "read back:"]
     for c in report.changes:
-        status = "OK" if c.ok else "MISMATCH"
+        if c.ok:
+            status = "OK"
+        elif c.after is None:
+            status = f"NOT READ BACK ({c.error})"
+        else:
+            status = f"MISMATCH: wrote {_show(c.target.value)}" + (
+                f" ({c.error})" if c.error else " (the autopilot kept another value)"
+            )
         lines.append(f"  {c.target.name}: {_show(c.after)} ({_type(c.target)}) {status}")
-    reboot = [c.target.name for c in report.changes if c.target.reboot]
+    reboot = [
+        c.target.name
+        for c in report.changes
+        if c.target.reboot and c.after is not None and c.after != c.before
+    ]
     if reboot:
         lines += [
             "",

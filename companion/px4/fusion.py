@@ -1,19 +1,29 @@
 """Is our estimate fused by EKF2, and if not, the most likely reason (pure: observations in).
 
 Evidence, strongest first:
-- PX4's own flags through its MAVLink shell: ``estimator_status_flags.cs_ev_pos`` (EKF2 fuses
-  our horizontal position), ``vehicle_visual_odometry`` (what PX4 made of our message: frame,
-  quality, its time stamp after the time-sync conversion against its arrival time),
-  ``vehicle_mocap_odometry``, ``timesync_status`` and ``uorb top`` (the rate PX4 receives);
+- PX4's own topics through its MAVLink shell: ``estimator_status_flags.cs_ev_pos`` (EKF2's
+  vision position fusion is active) together with ``estimator_aid_src_ev_pos`` (whether the
+  last sample passed the innovation gate and was fused), ``vehicle_visual_odometry`` (what PX4
+  made of our message: frame, quality, its time stamp after the time-sync conversion against
+  its arrival time), ``vehicle_mocap_odometry``, ``timesync_status`` and ``uorb top`` (the rate
+  PX4 receives);
 - MAVLink streams: ESTIMATOR_STATUS (POS_HORIZ_REL) and LOCAL_POSITION_NED (PX4 sends it only
   while the local position is valid), STATUSTEXT (PX4 complains about an unsupported
   estimator_type);
 - the service's status socket: what it sends, at which rate, and its time sync.
 
+A valid local position alone does not say who makes it valid: GNSS, optical flow
+(EKF2_OF_CTRL) or EKF2_NOAID_TOUT of dead reckoning after the last aiding all give one. So
+without the shell the verdict is "fused" only when none of those can be it: no GNSS, optical
+flow off, the service publishing, and a valid position all through a watch at least
+EKF2_NOAID_TOUT long; otherwise "cannot tell".
+
 The reasons follow DESIGN.md section 6 and EKF2: >= 5 Hz to start (samples < 200 ms apart),
 NED only with a north-aligned heading, estimator_type VISION (MOCAP goes to a topic EKF2 does
-not read), a frame PX4 knows, quality >= EKF2_EV_QMIN, and time stamps that, once converted,
-are younger than EKF2's buffer horizon (EKF2_DELAY_MAX + 100 ms).
+not read), a frame PX4 knows, quality >= EKF2_EV_QMIN, time stamps that, once converted, are
+younger than EKF2's buffer horizon (EKF2_DELAY_MAX + 100 ms), and samples that pass the
+innovation gate (EKF2_EVP_GATE). When EKF2 fuses us, what would have been a reason is a
+warning.
 """
 
 from __future__ import annotations
@@ -25,18 +35,21 @@ from typing import Any
 
 from companion.px4.encoding import float_encoded_int
 from companion.px4.rules import EV_HPOS, EV_VEL, LinkContext, Param
-from companion.px4.shell import Fields
+from companion.px4.shell import Fields, flag, number
 
 MIN_RATE_HZ = 5.0  # EKF2's EV_MAX_INTERVAL = 200 ms
 GOOD_RATE_HZ = 20.0  # PX4's docs ask for 30-50 Hz
 FRESH_S = 1.0  # a topic older than this is not being published any more
+FUTURE_TOLERANCE_MS = 20.0  # stamps this far ahead of PX4's clock are jitter, not an error
+LPOS_EDGE_S = 2.0  # LOCAL_POSITION_NED comes at >= 1 Hz (PX4's Normal mode): gaps above this
 POS_HORIZ_REL = 8  # ESTIMATOR_STATUS_FLAGS
 POSE_FRAMES = {0: "UNKNOWN", 1: "NED", 2: "FRD"}
+EKF2_BUFFER_MATCH_MS = 100.0  # RingBuffer::pop_first_older_than: time <= horizon < time + 100
 
 
 @dataclass(frozen=True, slots=True)
 class ShellView:
-    """What PX4's shell showed; a topic is None when never published."""
+    """What PX4's shell showed; a topic is None when never published (or not parsed)."""
 
     visual: Fields | None = None  # listener vehicle_visual_odometry
     mocap: Fields | None = None  # listener vehicle_mocap_odometry
@@ -53,6 +66,9 @@ class Observations:
     watch_s: float = 0.0  # how long it watched [s]
     estimator_flags: int | None = None  # the last ESTIMATOR_STATUS.flags
     local_positions: int = 0  # LOCAL_POSITION_NED messages received
+    lpos_first_s: float | None = None  # the first one, after the watch started [s]
+    lpos_last_s: float | None = None  # the last one, after the watch started [s]
+    lpos_max_gap_s: float | None = None  # the longest gap between two of them [s]
     gps_seen: bool = False  # a GPS_RAW_INT with a receiver (fix_type >= 1)
     statustexts: tuple[str, ...] = ()  # STATUSTEXT texts
     shell: ShellView | None = None  # None: no shell answer
@@ -61,7 +77,8 @@ class Observations:
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
-    """fused: True / False / None (cannot tell); reasons: most likely first."""
+    """fused: True / False / None (cannot tell); reasons: most likely first (for None: why
+    it cannot tell); warnings: what is wrong but does not stop fusion."""
 
     fused: bool | None
     headline: str
@@ -89,14 +106,38 @@ def _raw_float(params: Mapping[str, Param], name: str, default: float) -> float:
 
 
 def _frame_name(frame: Any) -> str:
-    return POSE_FRAMES.get(frame, str(frame)) if isinstance(frame, int) else str(frame)
+    if isinstance(frame, int) and not isinstance(frame, bool):
+        return POSE_FRAMES.get(frame, str(frame))
+    return "?"
+
+
+def _fmt(v: float | None, spec: str, unknown: str = "?") -> str:
+    return format(v, spec) if v is not None and math.isfinite(v) else unknown
 
 
 def _fresh(fields: Fields | None) -> bool:
-    if fields is None:
-        return False
-    age = fields.get("timestamp_age_s")
-    return isinstance(age, (int, float)) and age < FRESH_S
+    age = number(fields, "timestamp_age_s")
+    return age is not None and age < FRESH_S
+
+
+def sample_age_ms(v: Fields | None) -> float | None:
+    """How old our sample was when PX4 received it (``timestamp - timestamp_sample``, after
+    PX4's time-sync conversion) [ms]; negative: stamped in PX4's future; None: unknown."""
+    t, s = number(v, "timestamp"), number(v, "timestamp_sample")
+    if t is not None and s is not None and t > 0 and s > 0:
+        return (t - s) / 1000.0
+    before = number(v, "timestamp_sample_before_timestamp_us")
+    return before / 1000.0 if before is not None else None
+
+
+def ev_buffer_length(params: Mapping[str, Param]) -> int:
+    """EKF2's observation buffer length (EstimatorInterface::initialise_interface):
+    min(round(1.5 * delay / period), max(2, ceil(delay / period))), delay the larger of
+    EKF2_DELAY_MAX and EKF2_EV_DELAY [ms], period EKF2_PREDICT_US."""
+    delay_max = _raw_float(params, "EKF2_DELAY_MAX", 200.0)
+    delay_ms = max(delay_max, _raw_float(params, "EKF2_EV_DELAY", 0.0))
+    period_ms = max(0.1, _raw_float(params, "EKF2_PREDICT_US", 10000.0) / 1000.0)
+    return min(round(1.5 * delay_ms / period_ms), max(2, math.ceil(delay_ms / period_ms)))
 
 
 def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -> Verdict:
@@ -126,6 +167,12 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
         f"MAVLink: ESTIMATOR_STATUS flags {flags_text} "
         f"(horizontal position {'valid' if lpos_valid else 'not valid'}), "
         f"{obs.local_positions} LOCAL_POSITION_NED in {obs.watch_s:.1f} s"
+        + (
+            f" (first after {obs.lpos_first_s:.1f} s, last {obs.lpos_last_s:.1f} s, longest gap "
+            f"{_fmt(obs.lpos_max_gap_s, '.1f')} s)"
+            if obs.local_positions and obs.lpos_first_s is not None and obs.lpos_last_s is not None
+            else ""
+        )
     )
     for text in obs.statustexts[-3:]:
         evidence.append(f"PX4 says: {text}")
@@ -140,16 +187,7 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
                 "(LOCAL_POSITION_NED / ESTIMATOR_STATUS): is it streamed here?"
             )
     else:
-        evidence.append("PX4 shell: no answer (fusion inferred from MAVLink streams)")
-        gps_ctrl = _raw_int(params, "EKF2_GPS_CTRL") or 0
-        if lpos_valid and (not obs.gps_seen or gps_ctrl == 0):
-            fused = True
-        elif lpos_valid:
-            fused = None
-            reasons.append("a local position is valid, but GNSS may be what makes it valid")
-        else:
-            fused = False
-            _no_vision_reasons(obs, svc, reasons)
+        fused = _infer_without_shell(obs, params, svc, lpos_valid, reasons, evidence)
 
     if (
         fused is False
@@ -162,15 +200,87 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
         )
     if fused is False and not reasons:
         reasons.append("EKF2 receives valid vision but has not started fusing it")
+    if fused is True and reasons:
+        # fused all the same: what would have been a reason is worth a look, not a verdict
+        warnings[:0] = reasons
+        reasons.clear()
     if fused:
         headline = "FUSED: EKF2 fuses our estimate"
         if sh is None:
-            headline += " (inferred: valid local position without GNSS)"
+            headline += " (inferred: a valid local position all along, with no other aiding)"
     elif fused is None:
         headline = "UNKNOWN: cannot tell whether EKF2 fuses our estimate"
     else:
         headline = "NOT FUSED: EKF2 does not fuse our estimate"
     return Verdict(fused, headline, tuple(reasons), tuple(evidence), tuple(warnings))
+
+
+def _infer_without_shell(
+    obs: Observations,
+    params: Mapping[str, Param],
+    svc: Mapping[str, Any] | None,
+    lpos_valid: bool,
+    reasons: list[str],
+    evidence: list[str],
+) -> bool | None:
+    """The verdict from MAVLink streams alone: fused only when nothing else can make the
+    local position valid; None (cannot tell) otherwise."""
+    evidence.append("PX4 shell: no answer (fusion inferred from MAVLink streams)")
+    if not lpos_valid:
+        if obs.estimator_flags is None:
+            reasons.append(
+                "this link streams neither ESTIMATOR_STATUS nor LOCAL_POSITION_NED, and PX4's "
+                "shell did not answer: nothing tells whether EKF2 has a position"
+            )
+            return None
+        _no_vision_reasons(obs, svc, reasons)
+        return False
+    doubts: list[str] = []
+    gps_ctrl = _raw_int(params, "EKF2_GPS_CTRL")
+    if obs.gps_seen and gps_ctrl != 0:
+        doubts.append(
+            "a GNSS receiver reports and EKF2_GPS_CTRL fuses it: GNSS may be what makes the "
+            "local position valid"
+        )
+    of_ctrl = _raw_int(params, "EKF2_OF_CTRL")
+    if of_ctrl:
+        doubts.append(
+            f"EKF2_OF_CTRL = {of_ctrl}: optical flow may be what makes the local position valid"
+        )
+    published = _get(svc, "output", "published") or 0
+    rate = _get(svc, "output", "rate_hz") or 0.0
+    if svc is None:
+        doubts.append(
+            "the service is not running here (no status socket): nothing says we are publishing"
+        )
+    elif not published or rate < MIN_RATE_HZ:
+        doubts.append(
+            f"the service is not publishing (rate {rate:.1f} Hz, VO {_get(svc, 'vo', 'state')}): "
+            "the local position is valid without us"
+        )
+    first, last, gap = obs.lpos_first_s, obs.lpos_last_s, obs.lpos_max_gap_s
+    covered = (
+        obs.local_positions > 0
+        and first is not None
+        and last is not None
+        and first <= LPOS_EDGE_S
+        and obs.watch_s - last <= LPOS_EDGE_S
+        and (gap is None or gap <= LPOS_EDGE_S)
+    )
+    if not covered:
+        doubts.append(
+            "the local position was not valid all through the watch (LOCAL_POSITION_NED "
+            "missing at its start, its end or in between, or not streamed on this link)"
+        )
+    noaid_s = _raw_float(params, "EKF2_NOAID_TOUT", 5e6) / 1e6
+    if obs.watch_s < noaid_s:
+        doubts.append(
+            f"watched {obs.watch_s:.1f} s, less than EKF2_NOAID_TOUT ({noaid_s:g} s): dead "
+            "reckoning after an earlier aiding keeps the position valid that long "
+            f"(--watch-s {math.ceil(noaid_s)})"
+        )
+    reasons.extend(doubts)
+    return None if doubts else True
 
 
 def _service_evidence(
@@ -184,7 +294,7 @@ def _service_evidence(
     converged = _get(svc, "autopilot", "timesync_converged")
     evidence.append(
         f"service: sends {_get(svc, 'output', 'message')} at "
-        f"{rate if rate is not None else float('nan'):.1f} Hz "
+        f"{rate if isinstance(rate, (int, float)) else float('nan'):.1f} Hz "
         f"({_get(svc, 'output', 'published')} sent), VO {_get(svc, 'vo', 'state')}, "
         f"time sync {'converged' if converged else 'NOT converged'}"
         + (f" (rtt {rtt:.2f} ms)" if isinstance(rtt, (int, float)) else "")
@@ -222,9 +332,14 @@ def _no_vision_reasons(
     else:
         reasons.append(
             f"the service sends {_get(svc, 'output', 'message')} at {rate:.1f} Hz, but none "
-            "reaches EKF2: check the link (MAV_n_CONFIG, baud rate, signing) and that the "
-            "service talks to this autopilot"
+            "reaches EKF2: check the link (MAV_n_CONFIG, baud rate, signing, UDP partner) and "
+            "that the service talks to this autopilot"
         )
+
+
+def _on_off(fields: Fields, key: str) -> str:
+    v = flag(fields, key)
+    return "?" if v is None else ("on" if v else "off")
 
 
 def _diagnose_shell(
@@ -236,46 +351,88 @@ def _diagnose_shell(
     evidence: list[str],
     warnings: list[str],
     obs: Observations,
-) -> bool:
-    """Diagnosis from PX4's own topics; returns whether EKF2 fuses our position."""
-    flags = sh.flags or {}
-    fused = bool(flags.get("cs_ev_pos"))
+) -> bool | None:
+    """Diagnosis from PX4's own topics; whether EKF2 fuses our position (None: its flags did
+    not come through, so it cannot tell)."""
+    flags = sh.flags
+    fused: bool | None
     parts = ("ev_pos", "ev_hgt", "ev_vel", "ev_yaw", "yaw_align")
-    evidence.append(
-        "EKF2 (estimator_status_flags): "
-        + ", ".join(f"{p} {'on' if flags.get('cs_' + p) else 'off'}" for p in parts)
-    )
-    rates = sh.rates_hz or {}
-    rate = rates.get("vehicle_visual_odometry", 0.0)
-    v, m = sh.visual, sh.mocap
-    if v is not None:
-        age_ms = (v.get("timestamp", 0) - v.get("timestamp_sample", 0)) / 1000.0
+    if flags is None:
+        fused = None
+        evidence.append("EKF2 (estimator_status_flags): no answer, or not in PX4's format")
+        reasons.append(
+            "PX4's shell answered, but not with EKF2's estimator_status_flags (never published, "
+            "or output this check cannot read): EKF2's own fusion flags are unknown"
+        )
+    else:
+        fused = flag(flags, "cs_ev_pos")
         evidence.append(
-            f"PX4 receives (vehicle_visual_odometry): {rate:.1f} Hz, pose_frame "
-            f"{_frame_name(v.get('pose_frame'))}, quality "
-            f"{v.get('quality')}, sample {age_ms:.0f} ms old on arrival, last "
-            f"{v.get('timestamp_age_s', math.nan):.2f} s ago"
+            "EKF2 (estimator_status_flags): "
+            + ", ".join(f"{p} {_on_off(flags, 'cs_' + p)}" for p in parts)
+        )
+        if fused is None:
+            reasons.append("estimator_status_flags has no readable cs_ev_pos: cannot tell")
+    rates = sh.rates_hz or {}
+    rate: float | None = rates.get("vehicle_visual_odometry", 0.0) if rates else None
+    v, m = sh.visual, sh.mocap
+    age_ms = sample_age_ms(v)
+    if v is not None:
+        quality = number(v, "quality")
+        evidence.append(
+            f"PX4 receives (vehicle_visual_odometry): {_fmt(rate, '.1f')} Hz, pose_frame "
+            f"{_frame_name(v.get('pose_frame'))}, quality {_fmt(quality, '.0f')}, sample "
+            f"{_fmt(age_ms, '.0f')} ms old on arrival, last "
+            f"{_fmt(number(v, 'timestamp_age_s'), '.2f')} s ago"
         )
     else:
         evidence.append("PX4 receives (vehicle_visual_odometry): never published")
     if m is not None:
         evidence.append(
-            f"vehicle_mocap_odometry: {rates.get('vehicle_mocap_odometry', 0.0):.1f} Hz, last "
-            f"{m.get('timestamp_age_s', math.nan):.2f} s ago"
+            f"vehicle_mocap_odometry: {_fmt(rates.get('vehicle_mocap_odometry'), '.1f')} Hz, "
+            f"last {_fmt(number(m, 'timestamp_age_s'), '.2f')} s ago"
         )
     ts = sh.timesync
     ts_fresh = _fresh(ts)
     if ts is not None:
+        rtt_us = number(ts, "round_trip_time")
         evidence.append(
-            f"PX4 time sync (timesync_status): round trip {ts.get('round_trip_time', 0) / 1000:.2f}"
-            f" ms, last answer {ts.get('timestamp_age_s', math.nan):.2f} s ago"
+            f"PX4 time sync (timesync_status): round trip "
+            f"{_fmt(rtt_us / 1000 if rtt_us is not None else None, '.2f')} ms, last answer "
+            f"{_fmt(number(ts, 'timestamp_age_s'), '.2f')} s ago"
+        )
+    aid = sh.aid_pos if _fresh(sh.aid_pos) else None
+    if aid is not None:
+        ratio = aid.get("test_ratio")
+        evidence.append(
+            f"EKF2 vision position (estimator_aid_src_ev_pos): fused {_on_off(aid, 'fused')}, "
+            f"innovation rejected {_on_off(aid, 'innovation_rejected')}"
+            + (f", test ratio {ratio}" if isinstance(ratio, list) else "")
         )
 
-    if flags.get("cs_inertial_dead_reckoning"):
+    if flags is not None and flag(flags, "cs_inertial_dead_reckoning"):
         evidence.append(
             "EKF2 is dead-reckoning: its local position stays valid for EKF2_NOAID_TOUT after "
             "the last aiding, without us"
         )
+    if fused and aid is not None:
+        aid_fused, rejected = flag(aid, "fused"), flag(aid, "innovation_rejected")
+        if aid_fused is False or (aid_fused is None and rejected is True):
+            fused = False
+            gate = _raw_float(params, "EKF2_EVP_GATE", 5.0)
+            qmin = _raw_int(params, "EKF2_EV_QMIN") or 0
+            quality = number(v, "quality")
+            if qmin > 0 and quality is not None and quality < qmin:
+                reasons.append(  # ev_pos_control marks a low-quality sample rejected
+                    f"active but not fused: our quality {quality:.0f} is below EKF2_EV_QMIN = "
+                    f"{qmin}, and EKF2 marks such samples rejected"
+                )
+            else:
+                reasons.append(
+                    f"active but rejected at EKF2_EVP_GATE ({gate:g} SD): EKF2's vision position "
+                    "fusion is on (cs_ev_pos) but its innovation test refuses our samples "
+                    "(estimator_aid_src_ev_pos: not fused): our estimate disagrees with EKF2's "
+                    "(frame, scale, heading), or the covariance we send is too small"
+                )
     if not _fresh(v):
         if _fresh(m):
             reasons.append(
@@ -288,22 +445,24 @@ def _diagnose_shell(
         return fused
 
     assert v is not None
-    if rate < MIN_RATE_HZ:
+    if rate is not None and rate < MIN_RATE_HZ:
         reasons.append(
             f"rate too low: PX4 receives our estimate at {rate:.1f} Hz; EKF2 starts vision "
             "fusion only with samples less than 200 ms apart (>= 5 Hz), and PX4 asks for 30-50 Hz"
         )
-    elif rate < GOOD_RATE_HZ:
+    elif rate is not None and rate < GOOD_RATE_HZ:
         warnings.append(f"PX4 receives our estimate at {rate:.1f} Hz; PX4 asks for 30-50 Hz")
     frame = v.get("pose_frame")
-    position = v.get("position") or []
+    position = v.get("position")
+    position = position if isinstance(position, list) else []
+    yaw_align = flag(flags, "cs_yaw_align")
     if frame == 0 or any(not math.isfinite(x) for x in position[:2]):
         reasons.append(
             "wrong frame: PX4 cannot place our position (pose_frame UNKNOWN, position NaN); "
             "ODOMETRY frame_id must be MAV_FRAME_LOCAL_FRD (20) or LOCAL_NED (1) (or their "
             "FLU/ENU twins), child_frame_id MAV_FRAME_BODY_FRD (12)"
         )
-    elif frame == 1 and not flags.get("cs_yaw_align"):
+    elif frame == 1 and yaw_align is False:
         reasons.append(
             "wrong frame for this vehicle: our position is NED (VISION_POSITION_ESTIMATE, or "
             "ODOMETRY in LOCAL_NED) and EKF2 has no north-aligned heading (no magnetometer, "
@@ -311,36 +470,12 @@ def _diagnose_shell(
             "fuses at any heading, or enable EKF2_EV_CTRL bit 3 (yaw)"
         )
     qmin = _raw_int(params, "EKF2_EV_QMIN") or 0
-    quality = v.get("quality")
-    if qmin > 0 and isinstance(quality, int) and quality < qmin:
+    quality = number(v, "quality")
+    said = any("EKF2_EV_QMIN" in r for r in reasons)
+    if qmin > 0 and quality is not None and quality < qmin and not said:
         note = " (VISION_POSITION_ESTIMATE has no quality: PX4 uses 0)" if frame == 1 else ""
-        reasons.append(f"quality {quality} below EKF2_EV_QMIN = {qmin}{note}")
-    delay_max = _raw_float(params, "EKF2_DELAY_MAX", 200.0)
-    ev_delay = _raw_float(params, "EKF2_EV_DELAY", 0.0)
-    limit_ms = delay_max + 100.0 - ev_delay
-    age_ms = (v.get("timestamp", 0) - v.get("timestamp_sample", 0)) / 1000.0
-    sync_note = (
-        "PX4's time sync works, so the stamps themselves are off: stamp with the exposure time "
-        "in the clock you answer TIMESYNC with"
-        if ts_fresh
-        else "PX4 gets no TIMESYNC answers on this link"
-    )
-    if age_ms > limit_ms:
-        reasons.append(
-            f"stale timestamps: after PX4's time-sync conversion our samples are {age_ms:.0f} ms "
-            f"old on arrival; EKF2 only uses samples younger than ~{limit_ms:.0f} ms "
-            f"(EKF2_DELAY_MAX + 100 ms - EKF2_EV_DELAY): {sync_note}"
-        )
-    elif age_ms < -20.0:
-        reasons.append(
-            f"timestamps in the future: after PX4's time-sync conversion our samples are "
-            f"{-age_ms:.0f} ms ahead of PX4's clock, and EKF2's buffer drops them: {sync_note}"
-        )
-    if not ts_fresh:
-        warnings.append(
-            "PX4 has no recent TIMESYNC answer on the companion's link: it stamps our "
-            "messages with their arrival time (latency not compensated)"
-        )
+        reasons.append(f"quality {quality:.0f} below EKF2_EV_QMIN = {qmin}{note}")
+    _time_reasons(v, age_ms, rate, params, svc, ts_fresh, reasons, warnings)
     ev_ctrl = _raw_int(params, "EKF2_EV_CTRL") or 0
     if (
         ev_ctrl & EV_VEL
@@ -351,9 +486,68 @@ def _diagnose_shell(
             "velocity fusion enabled but PX4 cannot use our velocity (velocity_frame UNKNOWN): "
             "ODOMETRY child_frame_id must be MAV_FRAME_BODY_FRD (12)"
         )
-    if not fused and not reasons and (sh.aid_pos or {}).get("innovation_rejected"):
+    if not fused and not reasons and flag(aid, "innovation_rejected"):
         reasons.append(
             "EKF2 rejects our position at its innovation gate (EKF2_EVP_GATE): our estimate "
             "disagrees with EKF2's (frame, scale), or the covariance we send is too small"
         )
     return fused
+
+
+def _time_reasons(
+    v: Fields,
+    age_ms: float | None,
+    rate: float | None,
+    params: Mapping[str, Param],
+    svc: Mapping[str, Any] | None,
+    ts_fresh: bool,
+    reasons: list[str],
+    warnings: list[str],
+) -> None:
+    """Stamps too old for EKF2's buffer, or ahead of PX4's clock (held, then fused late, or
+    lost when the buffer overflows first); and whether PX4's time sync works."""
+    delay_max = _raw_float(params, "EKF2_DELAY_MAX", 200.0)
+    ev_delay = _raw_float(params, "EKF2_EV_DELAY", 0.0)
+    limit_ms = delay_max + EKF2_BUFFER_MATCH_MS - ev_delay
+    sync_note = (
+        "PX4's time sync works, so the stamps themselves are off: stamp with the exposure time "
+        "in the clock you answer TIMESYNC with"
+        if ts_fresh
+        else "PX4 gets no TIMESYNC answers on this link"
+    )
+    if age_ms is None:
+        warnings.append(
+            "PX4's vehicle_visual_odometry gave no readable timestamp_sample: the age of our "
+            "samples on arrival is unknown"
+        )
+    elif age_ms > limit_ms:
+        reasons.append(
+            f"stale timestamps: after PX4's time-sync conversion our samples are {age_ms:.0f} ms "
+            f"old on arrival; EKF2 only uses samples younger than ~{limit_ms:.0f} ms "
+            f"(EKF2_DELAY_MAX + 100 ms - EKF2_EV_DELAY): {sync_note}"
+        )
+    elif age_ms < -FUTURE_TOLERANCE_MS:
+        ahead_ms = -age_ms
+        hz = rate or _get(svc, "output", "rate_hz") or 30.0
+        length = ev_buffer_length(params)
+        span_ms = length / max(hz, 1e-3) * 1000.0
+        wait_ms = ahead_ms - ev_delay + delay_max  # from arrival until the horizon reaches it
+        if wait_ms >= span_ms:
+            reasons.append(
+                f"timestamps in the future: after PX4's time-sync conversion our samples are "
+                f"{ahead_ms:.0f} ms ahead of PX4's clock; EKF2 holds each until its delayed "
+                f"horizon (EKF2_DELAY_MAX = {delay_max:g} ms) reaches the stamp, {wait_ms:.0f} ms "
+                f"after arrival, but its buffer of {length} samples (~{span_ms:.0f} ms at "
+                f"{hz:.0f} Hz) overwrites them first: they are lost ({sync_note})"
+            )
+        else:
+            warnings.append(
+                f"timestamps {ahead_ms:.0f} ms in PX4's future: EKF2 holds each sample until "
+                f"its delayed horizon reaches the stamp, so it is fused late by {ahead_ms:.0f} ms "
+                f"(against the state of a later instant than it was measured): {sync_note}"
+            )
+    if not ts_fresh:
+        warnings.append(
+            "PX4 has no recent TIMESYNC answer on the companion's link: it stamps our "
+            "messages with their arrival time (latency not compensated)"
+        )

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import time
 from collections.abc import AsyncGenerator
 from typing import Any, TypeVar
 
@@ -154,16 +155,21 @@ class Px4Link:
         return bool(value if value is not None else await telemetry.armed())
 
     async def watch(self, seconds: float) -> dict[str, Any]:
-        """Listen ``seconds``: the last ESTIMATOR_STATUS flags, LOCAL_POSITION_NED count, a GPS
-        receiver seen, STATUSTEXTs."""
+        """Listen ``seconds``: the last ESTIMATOR_STATUS flags, LOCAL_POSITION_NED count with
+        the times of the first and last one and the longest gap between two [s after the
+        start], a GPS receiver seen, STATUSTEXTs."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         telemetry = TelemetryAsync(self.system)
         direct = MavlinkDirectAsync(self.system)
+        start = time.monotonic()
         seen: dict[str, Any] = {
             "estimator_flags": None,
             "local_positions": 0,
+            "lpos_first_s": None,
+            "lpos_last_s": None,
+            "lpos_max_gap_s": None,
             "gps_seen": False,
             "statustexts": [],
         }
@@ -183,6 +189,13 @@ class Px4Link:
 
         async def lpos() -> None:
             async for _ in telemetry.subscribe_position_velocity_ned():
+                t = time.monotonic() - start
+                last = seen["lpos_last_s"]
+                if last is None:
+                    seen["lpos_first_s"] = t
+                else:
+                    seen["lpos_max_gap_s"] = max(seen["lpos_max_gap_s"] or 0.0, t - last)
+                seen["lpos_last_s"] = t
                 seen["local_positions"] += 1
 
         tasks = [asyncio.create_task(c()) for c in (estimator, gps, texts, lpos)]

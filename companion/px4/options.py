@@ -31,3 +31,6 @@ class Px4Options:
     socket: str = opt("", "the service's status socket (empty: from service.status_socket)")
     shell: bool = opt(True, "ask PX4's MAVLink shell for EKF2's own fusion flags")
     yes: bool = opt(False, "configure: write without asking")
+    no_gnss: bool = opt(
+        False, "configure: also turn GNSS fusion off (EKF2_GPS_CTRL = 0) where none is fitted"
+    )

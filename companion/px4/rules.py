@@ -8,13 +8,17 @@ recommends. OK: as needed. INFO: context only.
 The rules follow PX4 1.14+ (EKF2_EV_CTRL / EKF2_HGT_REF, which replaced EKF2_AID_MASK /
 EKF2_HGT_MODE) and DESIGN.md section 6: VISION_POSITION_ESTIMATE is NED and needs a
 north-aligned heading; ODOMETRY (LOCAL_FRD / BODY_FRD, VISION) works at any heading; we stamp at
-exposure and PX4 converts through TIMESYNC, so EKF2_EV_DELAY stays 0; our covariance is real,
-so EKF2 should use it (EKF2_EV_NOISE_MD 0) with the noise parameters as floors.
+exposure and PX4 converts through TIMESYNC, so EKF2_EV_DELAY stays 0 where the link time-syncs;
+our covariance is real, so EKF2 should use it (EKF2_EV_NOISE_MD 0) with the noise parameters as
+floors. Defaults differ between versions (EKF2_EV_CTRL: 15 before PX4 1.16, 0 since); PX4
+after 1.16 configures ports with SER_<port>_PROT and MAV_ETH_EN instead of MAV_n_CONFIG, and
+the link rows follow whichever the firmware has.
 """
 
 from __future__ import annotations
 
 import enum
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -23,6 +27,11 @@ from companion.px4.encoding import float_encoded_int, int_encoded_float
 EV_HPOS, EV_VPOS, EV_VEL, EV_YAW = 1, 2, 4, 8
 PORT_CODES = {"TELEM1": 101, "TELEM2": 102, "TELEM3": 103, "TELEM4": 104, "ETHERNET": 1000}
 MIN_SERIAL_BAUD = 460800  # ODOMETRY at 30 Hz (~8 kB/s) + TIMESYNC + PX4's onboard streams
+TIMESYNC_MODES = frozenset({2, 5, 8, 9, 11})  # MAV_n_MODEs whose streams include TIMESYNC
+MAG_TYPE_NONE = 5
+LOOPBACK_HOSTS = ("127.", "localhost", "::1")
+# SER_<tag>_PROT ports in PX4's port order (firmware after 1.16 numbers MAVLink instances so)
+PORT_TAGS = ("TEL1", "TEL2", "TEL3", "TEL4", "GPS1", "GPS2", "GPS3", "RC", "WIFI", "EXT2")
 
 HGT_REF = {0: "baro", 1: "GNSS", 2: "range", 3: "vision"}
 MAV_MODE = {
@@ -51,6 +60,7 @@ SERIAL_PORT = {
     301: "Wifi",
     1000: "Ethernet",
 }
+BROADCAST = {0: "never", 1: "always", 2: "multicast only"}
 RNG_CTRL = {0: "off", 1: "conditional", 2: "enabled"}
 NOISE_MD = {0: "from the message", 1: "from the parameters"}
 MAG_TYPE = {0: "automatic", 1: "magnetic heading", 5: "none", 6: "init only"}
@@ -107,6 +117,8 @@ class LinkContext:
     link_kind: str = "udpin"  # the service's link: udpin, udpout, tcp or serial
     link_port: int = 14540  # its UDP/TCP port, or the serial baud rate
     gps_seen: bool | None = None  # a GNSS receiver reported while watching (None: not watched)
+    link_host: str = "127.0.0.1"  # its host (UDP/TCP: where it listens or sends to)
+    no_gnss: bool = False  # configure --no-gnss: also turn GNSS fusion off (EKF2_GPS_CTRL = 0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,19 +245,36 @@ def evaluate(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     return [*_ekf2_rows(params, ctx), *_link_rows(params, ctx)]
 
 
+def has_magnetometer(params: Mapping[str, Param]) -> bool | None:
+    """Whether a magnetometer gives EKF2 a north-aligned heading: SYS_HAS_MAG counts them
+    (newer PX4; 0 / 1 before) and EKF2_MAG_TYPE is not None (5); None when neither is there."""
+    mag_type = _int_value(params, "EKF2_MAG_TYPE", 0, 6)
+    count = _int_value(params, "SYS_HAS_MAG", 0, 4)
+    if mag_type == MAG_TYPE_NONE or count == 0:
+        return False
+    if mag_type is None and count is None:
+        return None
+    return True
+
+
 def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     odometry = ctx.output in ("odometry", "both")
     vpe = ctx.output in ("vision_position_estimate", "both")
     hgt_ref = _int_value(params, "EKF2_HGT_REF", 0, 3)
     ev_ctrl = _int_value(params, "EKF2_EV_CTRL", 0, 15)
     rng_ctrl = _int_value(params, "EKF2_RNG_CTRL", 0, 2)
+    mag = has_magnetometer(params)
+    inst = _companion_instance(params, ctx)
+    mode = _int_value(params, f"MAV_{inst}_MODE", 0, 13) if inst is not None else None
+    timesync = None if mode is None else mode in TIMESYNC_MODES
     message = {"odometry": "ODOMETRY", "both": "both messages"}.get(
         ctx.output, "VISION_POSITION_ESTIMATE"
     )
 
     def ev_ctrl_judge(v: int) -> Judgement:
         required = EV_HPOS | (EV_VPOS if hgt_ref == 3 else 0)
-        want = (EV_HPOS | EV_VPOS | EV_YAW) | (EV_VEL if odometry else 0)
+        # yaw only without a magnetometer: our heading is EKF2's own at start-up plus VO drift
+        want = EV_HPOS | EV_VPOS | (EV_VEL if odometry else 0) | (EV_YAW if mag is False else 0)
         need = f"{want} ({ev_bits(want)})"
         if v & required != required:
             missing = ev_words(required & ~v)
@@ -257,18 +286,32 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
             notes = {
                 EV_VPOS: "height (our z is metric, from the rangefinders)",
                 EV_VEL: "velocity (ODOMETRY carries it; it steadies the position)",
-                EV_YAW: "yaw (without a magnetometer EKF2's heading comes from us)",
+                EV_YAW: "yaw (no magnetometer: EKF2's heading can only come from us)",
             }
             absent = [n for b, n in notes.items() if want & ~v & b]
             return Judgement(
                 Status.WARN, need, "horizontal position fused; not " + ", ".join(absent), v | want
             )
+        if v & EV_YAW and mag:
+            return Judgement(
+                Status.WARN,
+                need,
+                "bit 3 (yaw) with a magnetometer: our heading is not north-referenced (EKF2's "
+                "own at start-up plus VO drift), yet EKF2 fuses it instead of the magnetometer's "
+                "(with ODOMETRY in FRD it stops magnetometer and GNSS heading fusion); keep bit 3 "
+                "only where the magnetometer is unusable (indoors), with EKF2_MAG_TYPE = 5",
+            )
         return Judgement(Status.OK, need, f"EKF2 fuses our {ev_words(v)} ({message})")
 
     def hgt_ref_judge(v: int) -> Judgement:
-        need = "3 (vision)"
+        need = "3 (vision), over flat ground"
+        flat = (
+            "our height follows the rangefinders (height above ground): as the reference it "
+            "suits flat ground only, as PX4 says of range and vision height; over uneven "
+            "terrain keep baro (0) and fuse our height with EKF2_EV_CTRL bit 1"
+        )
         if v == 3:
-            return Judgement(Status.OK, need, "our metric height (range-aided VO) is the reference")
+            return Judgement(Status.OK, need, "our metric height (range-aided VO); " + flat)
         if v == 2:
             if rng_ctrl == 0:
                 return Judgement(
@@ -281,16 +324,25 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
             return Judgement(
                 Status.WARN,
                 need,
-                "baro drifts and sees rotor wash; our vision height is steadier",
+                "baro drifts and sees rotor wash; over flat ground our vision height is "
+                "steadier (over uneven terrain baro is the right reference)",
                 3,
             )
-        if v == 1 and ctx.gps_seen:
-            return Judgement(
-                Status.WARN, need, "GNSS height: metres of noise, fine only outdoors", 3
-            )
-        return Judgement(
-            Status.FAIL, need, "GNSS height reference without a GNSS receiver (none seen)", 3
-        )
+        if v == 1:
+            if ctx.gps_seen:
+                why = "GNSS height: metres of noise, fine only outdoors"
+            elif ctx.gps_seen is False:
+                why = (
+                    "GNSS height reference, but no GNSS receiver reported while watching: EKF2 "
+                    "falls back to another height source (baro)"
+                )
+            else:
+                why = (
+                    "GNSS height reference (a receiver was not watched for: --watch-s 0); "
+                    "without one EKF2 falls back to another height source (baro)"
+                )
+            return Judgement(Status.WARN, need, f"{why}; {flat}", 3)
+        return Judgement(Status.FAIL, need, "not a height source PX4 knows", 3)
 
     def qmin_judge(v: int) -> Judgement:
         if vpe:
@@ -320,21 +372,41 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
 
     def gps_judge(v: int) -> Judgement:
         if ctx.gps_seen is True:
-            return Judgement(Status.OK, "any", "GNSS present: EKF2 fuses vision relative to it")
-        if ctx.gps_seen is False and v != 0:
-            return Judgement(
-                Status.WARN,
-                "0 (no GNSS)",
-                "no GNSS receiver seen: 0 makes EKF2 stop waiting for one (vision alone)",
-                0,
-            )
-        return Judgement(Status.OK, "0 without GNSS", "GNSS fusion off, or present")
+            return Judgement(Status.OK, "any", "GNSS present: EKF2 fuses vision alongside it")
+        if v == 0:
+            return Judgement(Status.OK, "any", "GNSS fusion off")
+        if ctx.no_gnss:
+            return Judgement(Status.WARN, "0 (--no-gnss)", "GNSS fusion off, as asked", 0)
+        seen = (
+            "no GNSS receiver reported while watching"
+            if ctx.gps_seen is False
+            else "a GNSS receiver was not watched for"
+        )
+        return Judgement(
+            Status.INFO,
+            "any",
+            f"{seen}: with nothing to fuse the setting changes nothing now; 0 would keep a "
+            "receiver fitted later out of the solution (`configure --no-gnss` writes it)",
+        )
 
     def delay_judge(v: float) -> Judgement:
-        why = "we stamp at exposure and PX4 moves the stamp through TIMESYNC: a delay counts twice"
+        if timesync is False:
+            return Judgement(
+                Status.INFO,
+                "the link's latency",
+                "this link's MAVLink mode streams no TIMESYNC, so PX4 stamps our messages at "
+                "arrival: EKF2_EV_DELAY is then what compensates the latency (see MAV_n_MODE)",
+            )
+        need = "0 ms, with TIMESYNC working"
+        why = (
+            "we stamp at exposure and PX4 moves the stamp into its clock through TIMESYNC: a "
+            "delay on top counts the latency twice (while PX4's time sync works on this link: "
+            "`check` watches it; without it PX4 stamps at arrival and the measured latency "
+            "belongs here)"
+        )
         if v <= 5.0:
-            return Judgement(Status.OK, "0 ms", why)
-        return Judgement(Status.WARN if v <= 20.0 else Status.FAIL, "0 ms", why, 0.0)
+            return Judgement(Status.OK, need, why)
+        return Judgement(Status.WARN, need, why, 0.0)
 
     def noise_md_judge(v: int) -> Judgement:
         why = "0: EKF2 uses the covariance we send, the EKF2_EV*_NOISE values as floors"
@@ -373,7 +445,20 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
             return Judgement(Status.WARN, "3..10", f"{why}: lets outliers in", 5.0)
         return Judgement(Status.OK, "3..10", why)
 
-    rows = [
+    rows = []
+    if ctx.output == "both":
+        rows.append(
+            Row(
+                "service.output",
+                "both",
+                "odometry (or vision_position_estimate)",
+                "VISION_POSITION_ESTIMATE and ODOMETRY both land on vehicle_visual_odometry: "
+                "EKF2 gets one interleaved stream of NED and FRD samples (quality 0 and ours), "
+                "and drops whichever is not newer than the last; send one of them",
+                Status.WARN,
+            )
+        )
+    rows += [
         _int_row(params, "EKF2_EV_CTRL", 0, 15, ev_ctrl_judge),
         _int_row(params, "EKF2_HGT_REF", 0, 3, hgt_ref_judge, HGT_REF),
         _float_row(params, "EKF2_EV_DELAY", "ms", delay_judge),
@@ -388,10 +473,9 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     if vpe:
 
         def mag_judge(v: int) -> Judgement:
-            no_mag = v == 5 or _int_value(params, "SYS_HAS_MAG", 0, 1) == 0
             yaw = ev_ctrl is not None and bool(ev_ctrl & EV_YAW)
             why = "VISION_POSITION_ESTIMATE is NED: EKF2 fuses it only with a north-aligned heading"
-            if no_mag and not yaw:
+            if mag is False and not yaw:
                 return Judgement(
                     Status.FAIL,
                     "a magnetometer, or EV yaw",
@@ -403,27 +487,58 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     return rows
 
 
-def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
-    """The MAVLink instance on the companion's port: enabled there, Onboard, same rate/ports."""
+def _uart_order(params: Mapping[str, Param]) -> dict[str, int]:
+    """Firmware after PX4 1.16: SER_<tag>_PROT of each port, in PX4's port order."""
+    prots: dict[str, int] = {}
+    for name in params:
+        m = re.fullmatch(r"SER_(\w+)_PROT", name)
+        value = _int_value(params, name, 0, 1000) if m else None
+        if m and value is not None:
+            prots[m.group(1)] = value
+    rank = {t: i for i, t in enumerate(PORT_TAGS)}
+    return dict(sorted(prots.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
+
+
+def _has_mav_config(params: Mapping[str, Param]) -> bool:
+    return any(f"MAV_{i}_CONFIG" in params for i in range(3))
+
+
+def _companion_instance(params: Mapping[str, Param], ctx: LinkContext) -> int | None:
+    """The MAVLink instance that runs on the companion's port, or None (none runs there)."""
+    if _has_mav_config(params):
+        code = PORT_CODES[ctx.fc_port]
+        found = [i for i in range(3) if _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) == code]
+        return found[0] if found else None
+    uarts = [t for t, v in _uart_order(params).items() if v == 1]
+    if ctx.fc_port == "ETHERNET":
+        on = _int_value(params, "MAV_ETH_EN", 0, 1) == 1
+        return len(uarts) if on and len(uarts) < 3 else None
+    tag = "TEL" + ctx.fc_port[-1]
+    return uarts.index(tag) if tag in uarts and uarts.index(tag) < 3 else None
+
+
+def _port_rows(params: Mapping[str, Param], ctx: LinkContext) -> tuple[int | None, list[Row]]:
+    """The instance on the companion's port and its row(s): MAV_n_CONFIG (PX4 up to 1.16), or
+    SER_<port>_PROT / MAV_ETH_EN (after 1.16, where MAVLink instances are numbered in port
+    order, Ethernet's after the UARTs')."""
     code = PORT_CODES[ctx.fc_port]
-    configs = {i: _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) for i in range(3)}
-    found = [i for i, c in configs.items() if c == code]
-    rows: list[Row] = []
-    if found:
-        inst = found[0]
-        rows.append(
-            Row(
-                f"MAV_{inst}_CONFIG",
-                _labelled(code, SERIAL_PORT),
-                _labelled(code, SERIAL_PORT),
-                f"MAVLink instance {inst} runs on {ctx.fc_port}, where the companion is wired",
-                Status.OK,
-            )
-        )
-    else:
+    if _has_mav_config(params):
+        configs = {i: _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) for i in range(3)}
+        found = [i for i, c in configs.items() if c == code]
+        if found:
+            inst = found[0]
+            return inst, [
+                Row(
+                    f"MAV_{inst}_CONFIG",
+                    _labelled(code, SERIAL_PORT),
+                    _labelled(code, SERIAL_PORT),
+                    f"MAVLink instance {inst} runs on {ctx.fc_port}, where the companion is wired",
+                    Status.OK,
+                )
+            ]
         free = [i for i in (1, 2, 0) if configs.get(i) == 0]
         if not free:
-            return [
+            return None, [
                 Row(
                     "MAV_n_CONFIG",
                     ", ".join(f"{i}: {configs[i]}" for i in range(3)),
@@ -435,7 +550,7 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
         inst = free[0]
         name = f"MAV_{inst}_CONFIG"
         current = configs.get(inst)
-        rows.append(
+        return inst, [
             Row(
                 name,
                 _labelled(current, SERIAL_PORT) if current is not None else "missing",
@@ -445,18 +560,145 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
                 Status.FAIL,
                 (Target(name, code, True, True),),
             )
+        ]
+    uarts = [t for t, v in _uart_order(params).items() if v == 1]
+    if ctx.fc_port == "ETHERNET":
+        name = "MAV_ETH_EN"
+        on = _int_value(params, name, 0, 1)
+        inst = len(uarts)
+        if on is None or inst > 2:
+            why = (
+                "this firmware has neither MAV_n_CONFIG nor MAV_ETH_EN: no MAVLink on Ethernet"
+                if on is None
+                else f"all three MAVLink instances run on UARTs ({', '.join(uarts)})"
+            )
+            return None, [Row(name, str(on), "1 (on)", why, Status.FAIL)]
+        why = (
+            f"MAVLink on Ethernet runs as instance {inst}, after the {inst} MAVLink UART "
+            "port(s) (PX4 after 1.16: MAV_ETH_EN replaced MAV_n_CONFIG = 1000)"
         )
+        if on == 1:
+            return inst, [Row(name, "1 (on)", "1 (on)", why, Status.OK)]
+        return inst, [
+            Row(name, "0 (off)", "1 (on)", why, Status.FAIL, (Target(name, 1, True, True),))
+        ]
+    tag = "TEL" + ctx.fc_port[-1]
+    name = f"SER_{tag}_PROT"
+    prot = _uart_order(params).get(tag)
+    if prot is None:
+        why = "this firmware has neither MAV_n_CONFIG nor SER_<port>_PROT for this port"
+        return None, [Row(name, "missing", "1 (MAVLink)", why, Status.FAIL)]
+    rank = {t: i for i, t in enumerate(PORT_TAGS)}
+    after = sorted({*uarts, tag}, key=lambda t: (rank.get(t, len(rank)), t))
+    inst = after.index(tag)
+    if inst > 2:
+        why = f"MAVLink already runs on three ports before {tag} ({', '.join(uarts)})"
+        return None, [Row(name, _labelled(prot, {1: "MAVLink"}), "1 (MAVLink)", why, Status.FAIL)]
+    why = f"MAVLink instance {inst} on {ctx.fc_port} (PX4 after 1.16 numbers them in port order)"
+    if prot == 1:
+        return inst, [Row(name, "1 (MAVLink)", "1 (MAVLink)", why, Status.OK)]
+    return inst, [
+        Row(
+            name,
+            str(prot),
+            "1 (MAVLink)",
+            f"{ctx.fc_port} runs another protocol; {why}",
+            Status.FAIL,
+            (Target(name, 1, True, True),),
+        )
+    ]
+
+
+def _partner_row(params: Mapping[str, Param], ctx: LinkContext, inst: int, mode: int | None) -> Row:
+    """Who speaks first on the companion's UDP link. PX4 on a flight controller (NuttX) sends
+    on a UDP instance only to the address of the first packet it receives (its partner, kept
+    until it reboots); before that it broadcasts, on MAV_n_REMOTE_PRT, only with
+    MAV_n_BROADCAST = 1 and never in Onboard mode (mavlink_main.cpp). PX4 SITL (POSIX) sends
+    to 127.0.0.1:MAV_n_REMOTE_PRT from the start, as the SITL stub does."""
+    name = f"MAV_{inst}_BROADCAST"
+    b = _int_value(params, name, 0, 2)
+    value = _labelled(b, BROADCAST) if b is not None else "missing"
+    udp_prt = _int_value(params, f"MAV_{inst}_UDP_PRT", 1, 65535)
+    udpout = f"udpout:<autopilot IP>:{udp_prt if udp_prt is not None else '<MAV_n_UDP_PRT>'}"
+    if ctx.link_host.startswith(LOOPBACK_HOSTS):
+        return Row(
+            name,
+            value,
+            "any (same host)",
+            "the service and PX4 share a host (SITL): PX4's POSIX build sends to "
+            f"127.0.0.1:MAV_{inst}_REMOTE_PRT from the start, so either side may speak first",
+            Status.OK,
+        )
+    if ctx.link_kind == "udpout":
+        return Row(
+            name,
+            value,
+            "any (the service speaks first)",
+            "the service sends first and PX4 takes it as its partner (address and port) until "
+            "it reboots: the service sends from an ephemeral port, so after a restart of the "
+            "service PX4 streams to the old one (no ATTITUDE, DISTANCE_SENSOR, TIMESYNC): "
+            "reboot the autopilot after restarting the service",
+            Status.WARN,
+        )
+    broadcasts = b == 1 and mode is not None and mode != 2
+    if broadcasts and ctx.link_host in ("0.0.0.0", ""):
+        return Row(
+            name,
+            value,
+            "1 (always), not in Onboard mode",
+            f"PX4 broadcasts on MAV_{inst}_REMOTE_PRT until a partner speaks; the service "
+            f"listens on {ctx.link_host}:{ctx.link_port}, answers, and becomes the partner",
+            Status.OK,
+        )
+    target: tuple[Target, ...] = ()
+    if mode in (8, 11) and b == 0 and ctx.link_host in ("0.0.0.0", ""):
+        target = (Target(name, 1, True, needs_reboot(name)),)
+    return Row(
+        name,
+        value,
+        f"the service to send first ({udpout})",
+        "PX4 on the flight controller sends on this instance only to the address of the first "
+        "packet it receives, and broadcasts only with MAV_n_BROADCAST = 1 and never in "
+        f"Onboard mode: the listening service (udpin:{ctx.link_host}:{ctx.link_port}) and PX4 "
+        f"wait for each other. Make the service speak first: service.mavlink_url = {udpout}"
+        + (" (or broadcast: 1 here, the service on 0.0.0.0)" if target else ""),
+        Status.FAIL,
+        target,
+    )
+
+
+def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
+    """The MAVLink instance on the companion's port: enabled there, a mode that time-syncs,
+    the same rate, UDP ports and who speaks first."""
+    inst, rows = _port_rows(params, ctx)
+    if inst is None:
+        return rows
 
     def mode_judge(v: int) -> Judgement:
-        why = "Onboard: PX4 streams at companion rates and time-syncs this link"
+        need = "2 (Onboard)"
         if v == 2:
-            return Judgement(Status.OK, "2 (Onboard)", why)
+            why = "Onboard: companion-rate streams, and TIMESYNC at 10 Hz, so PX4 moves our "
+            why += "stamps into its clock"
+            return Judgement(Status.OK, need, why)
         if v == 8:
-            return Judgement(
-                Status.WARN, "2 (Onboard)", "External Vision mode streams less; " + why, 2
-            )
-        return Judgement(Status.FAIL, "2 (Onboard)", why, 2)
+            why = "External Vision: TIMESYNC at 10 Hz and the streams a VIO needs"
+            return Judgement(Status.OK, need, why)
+        if v == 11:
+            why = "Onboard Low Bandwidth: TIMESYNC at 10 Hz with fewer streams (right on a slow "
+            why += "serial link)"
+            return Judgement(Status.OK, need, why)
+        if v in TIMESYNC_MODES:
+            why = f"{MAV_MODE.get(v, v)} mode time-syncs, but streams for another peer"
+            return Judgement(Status.WARN, need, why, 2)
+        return Judgement(
+            Status.WARN,
+            need,
+            f"{MAV_MODE.get(v, v)} mode streams no TIMESYNC: PX4 still fuses our messages but "
+            "stamps them at arrival (latency not compensated), at ground-station stream rates",
+            2,
+        )
 
+    mode = _int_value(params, f"MAV_{inst}_MODE", 0, 13)
     rows.append(_int_row(params, f"MAV_{inst}_MODE", 0, 13, mode_judge, MAV_MODE))
     if ctx.fc_port == "ETHERNET":
         if ctx.link_kind in ("udpin", "udpout"):
@@ -469,6 +711,7 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
                 return Judgement(status, str(ctx.link_port), why, ctx.link_port)
 
             rows.append(_int_row(params, f"MAV_{inst}_{key}", 1, 65535, port_judge))
+            rows.append(_partner_row(params, ctx, inst, mode))
     else:
         tel = ctx.fc_port[-1]
         serial = ctx.link_kind == "serial"
@@ -476,6 +719,14 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
         def baud_judge(v: int) -> Judgement:
             want = ctx.link_port if serial else 921600
             why = "both ends of the wire at the same rate"
+            if v == 0:
+                return Judgement(
+                    Status.WARN,
+                    str(want),
+                    f"0 = Auto: PX4 chooses the rate; set the service's {want} so that both ends "
+                    "surely match",
+                    want,
+                )
             if serial and v != want:
                 return Judgement(Status.FAIL, str(want), f"{why}; the service uses {want}", want)
             if v < MIN_SERIAL_BAUD:
@@ -486,16 +737,17 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
                 )
             return Judgement(Status.OK, str(want), why)
 
-        rows.append(_int_row(params, f"SER_TEL{tel}_BAUD", 0, 3_000_000, baud_judge))
-    for i, c in configs.items():
+        rows.append(_int_row(params, f"SER_TEL{tel}_BAUD", 0, 3_000_000, baud_judge, {0: "Auto"}))
+    for i in range(3):
+        c = _int_value(params, f"MAV_{i}_CONFIG", 0, 1000)
         if i != inst and c:
-            mode = _int_value(params, f"MAV_{i}_MODE", 0, 13)
+            other = _int_value(params, f"MAV_{i}_MODE", 0, 13)
             rows.append(
                 Row(
                     f"MAV_{i}_CONFIG",
                     _labelled(c, SERIAL_PORT),
                     "-",
-                    f"another MAVLink link ({MAV_MODE.get(mode or 0, mode)} mode): not ours",
+                    f"another MAVLink link ({MAV_MODE.get(other or 0, other)} mode): not ours",
                     Status.INFO,
                 )
             )

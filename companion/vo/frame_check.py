@@ -10,8 +10,9 @@ vehicle stands still, with confidence. The checks work on a subsampled grey imag
 Verdicts (``FrameProblem``): ``OUT_OF_ORDER`` (time_us not after the last frame's), ``FROZEN``
 (the subsample is byte-identical to the previous frame's: sensor noise makes two real
 exposures differ), ``DARK`` / ``SATURATED`` (mean grey level below ``dark_level`` / above
-``bright_level`` with a spread as small as that margin), ``BLANK`` (grey-level standard deviation below ``min_contrast``: no texture,
-e.g. a lens against a surface), or None for a usable frame.
+``bright_level`` with a spread as small as that margin), ``BLANK`` (grey-level standard
+deviation below ``min_contrast``: no texture, e.g. a lens against a surface), or None for a
+usable frame.
 """
 
 from __future__ import annotations
