@@ -176,9 +176,7 @@ def test_a_wrong_key_is_refused_both_ways(tmp_path) -> None:
     ours = mavlink.MAVLink(None, srcSystem=1, srcComponent=197)
     Signing(KEY, None).apply(ours, mavlink.MAVLink(None))
     frame = ours.heartbeat_encode(18, 8, 0, 0, 4).pack(ours)
-    assert [m.get_type() for m in Peer(bytes(32), 1).mav.parse_buffer(frame) or []] == [
-        "BAD_DATA"
-    ]
+    assert [m.get_type() for m in Peer(bytes(32), 1).mav.parse_buffer(frame) or []] == ["BAD_DATA"]
 
 
 def test_the_timestamp_follows_a_peer_that_is_ahead(tmp_path) -> None:
