@@ -3,7 +3,8 @@
 URLs (pymavlink's spelling):
 - ``udpin:HOST:PORT``   listen on HOST:PORT; send to whoever spoke last (PX4 SITL's onboard
   instance sends to 14540: ``udpin:127.0.0.1:14540``);
-- ``udpout:HOST:PORT``  send to HOST:PORT from an ephemeral port, receive the answers there;
+- ``udpout:HOST:PORT``  send to HOST:PORT from an ephemeral port (or ``local_port``), receive
+  the answers there (the form for a real autopilot on Ethernet: PX4 answers whoever spoke);
 - ``tcp:HOST:PORT``     connect to a TCP server (reconnects with capped, jittered backoff);
 - ``serial:DEVICE:BAUD`` or a bare ``/dev/...`` path (baud 921600) through pyserial.
 
@@ -146,8 +147,12 @@ class MavlinkLink:
         component_id: int,
         on_message: OnMessage,
         signing: Signing | None = None,
+        local_port: int = 0,
     ) -> None:
+        """``local_port``: udpout sends from this port (0: an ephemeral one). PX4 keeps the
+        first sender's address until it reboots, so a fixed port survives our restarts."""
         self.url = LinkUrl.parse(url)
+        self.local_port = local_port
         self.on_message = on_message
         self.peer_system_id = system_id  # udpin answers the address this system spoke from
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
@@ -171,6 +176,8 @@ class MavlinkLink:
         u = self.url
         if u.kind in ("udpin", "udpout"):
             local = (u.host, u.port) if u.kind == "udpin" else None
+            if u.kind == "udpout" and self.local_port:
+                local = ("0.0.0.0", self.local_port)
             self._peer = (u.host, u.port) if u.kind == "udpout" else None
             transport, _ = await self._loop.create_datagram_endpoint(
                 lambda: _Udp(self), local_addr=local, remote_addr=None

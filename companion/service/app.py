@@ -101,6 +101,7 @@ class Service:
             o.component_id,
             self._on_message,
             Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
+            o.mavlink_local_port,
         )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt: MqttPublisher | None = (

@@ -49,6 +49,9 @@ class ServiceOptions:
     mavlink_url: str = opt(
         "udpin:127.0.0.1:14540", "autopilot link: udpin/udpout/tcp:HOST:PORT or serial:DEV:BAUD"
     )
+    mavlink_local_port: int = opt(
+        0, "udpout: send from this UDP port (0 = any; fixed survives our restarts)", ge=0, le=65535
+    )
     system_id: int = opt(1, "MAVLink system id (the autopilot's)", ge=1, le=255)
     component_id: int = opt(197, "our component id (197 = VISUAL_INERTIAL_ODOMETRY)", ge=1, le=255)
     camera_url: str = opt("sitl://127.0.0.1:5600", "camera: sitl://, folder:PATH, /dev/videoN, URL")
