@@ -308,3 +308,29 @@ def test_folder_source_replays_at_the_recorded_rate(tmp_path) -> None:
     fast = list(open_camera(f"folder:{path}?fast").frames())
     assert [f.seq for f in fast] == [f.seq for f in frames]
     np.testing.assert_array_equal(fast[3].image_bgr, frames[3].image_bgr)
+
+
+def test_udpout_sends_from_the_fixed_local_port() -> None:
+    """PX4 answers the first sender's address until it reboots: after a restart of the
+    service, the autopilot's stream must still reach us, so udpout can use a fixed port."""
+    import asyncio
+
+    from peers import free_port
+
+    from drivers.mavlink import MavlinkLink
+
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    autopilot.bind(("127.0.0.1", 0))
+    autopilot.settimeout(2.0)
+    local = free_port(socket.SOCK_DGRAM)
+    url = f"udpout:127.0.0.1:{autopilot.getsockname()[1]}"
+
+    async def once() -> tuple[str, int]:
+        async with MavlinkLink(url, 1, 197, lambda m, t: None, local_port=local) as link:
+            link.send(link.mav.heartbeat_encode(18, 8, 0, 0, 4))
+            _, addr = await asyncio.to_thread(autopilot.recvfrom, 4096)
+        return addr
+
+    first, second = asyncio.run(once()), asyncio.run(once())  # a restart in between
+    autopilot.close()
+    assert first[1] == second[1] == local
