@@ -433,6 +433,17 @@ def cmd_bench_attitude(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _exit_on_sigterm() -> None:
+    """SIGTERM ends the command through SystemExit, so that ``finally`` blocks run (the SITL
+    camera process and the soak's service are stopped, not orphaned on their ports)."""
+    import signal
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def cmd_bench_soak(args: argparse.Namespace) -> int:
     """The soak benchmark (sitl/soak.py): prints its figures, writes out/soak/soak.json."""
     import json
@@ -445,6 +456,7 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     _load(args)  # a bad config stops here
     print(f"machine: {machine_description()}", flush=True)
     print(f"soak: {args.minutes:g} min circle flight, service as its own process", flush=True)
+    _exit_on_sigterm()
     result = run_soak(args.minutes, args.out, str(args.config))
     print(json.dumps(result, indent=2, default=str))
     return EXIT_OK
@@ -748,6 +760,7 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
     )
     if args.prerender:
         print("rendering every camera frame before the flight (about a minute)...", flush=True)
+    _exit_on_sigterm()
     report = asyncio.run(stub.run(out))
     print(json.dumps(report, indent=2))
     print(f"report, received.csv and plot in {out}")

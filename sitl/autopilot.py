@@ -38,6 +38,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, from_dict, to_dict
+from companion.errors import SitlError
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.geometry import so3
 from companion.service.timesync import ClockSync, reply_for
@@ -469,6 +470,18 @@ class SimAutopilot:
                 self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
                 self.stats.reboots += 1
 
+    async def _watch_camera(self, camera: Any) -> None:
+        """The camera process failing (its port taken, a rendering error) ends the run with
+        an error: a flight without our camera, or with somebody else's stream on its port,
+        would be measured as if it were ours."""
+        while True:
+            await asyncio.sleep(0.2)
+            if camera.exitcode not in (None, 0):
+                raise SitlError(
+                    f"the SITL camera process failed (exit code {camera.exitcode}; its "
+                    f"traceback is above): is TCP port {self.opts.camera_port} taken?"
+                )
+
     async def run(self, out: Path | None = None) -> dict[str, Any]:
         """Fly the scenario (camera ready, warm-up, flight, linger) and return the report.
         MAVLink runs from the start (heartbeats, time sync); the sensors and the camera only
@@ -510,8 +523,11 @@ class SimAutopilot:
                     tg.create_task(self._fault_loop()),
                     *(tg.create_task(c, name=n) for n, c in self.px4.loops().items()),
                 ]
+                if self.opts.camera:
+                    tasks.append(tg.create_task(self._watch_camera(camera)))
                 # the world is built (and, with prerender, every frame rendered)
-                await asyncio.to_thread(ready.wait)
+                while not ready.is_set():
+                    await asyncio.sleep(0.05)
                 self.flight_start_ns = time.monotonic_ns() + int(self.opts.warmup_s * 1e9)
                 counters[2] = self.flight_start_ns
                 end_ns = self.flight_start_ns + int(
@@ -520,6 +536,11 @@ class SimAutopilot:
                 await asyncio.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
                 for t in tasks:
                     t.cancel()
+        except ExceptionGroup as group:  # a loop's own error (the camera died): say it plainly
+            mine = [e for e in group.exceptions if isinstance(e, SitlError)]
+            if mine:
+                raise mine[0] from None
+            raise
         finally:
             if self._transport is not None:
                 self._transport.close()

@@ -367,3 +367,21 @@ def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
     reports = [w for w in r["warnings"] if w.startswith("camera:")]
     assert len(reports) == 1 and "reopening" in reports[0]  # once per outage, not per attempt
     assert abs(r["t_first"] - time.monotonic_ns() // 1000) < 60e6  # our monotonic clock
+
+
+def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
+    """The camera port taken (a leftover run): the SITL must fail, not fly while somebody
+    else's stream is measured as its own."""
+    from companion.errors import SitlError
+    from sitl.autopilot import AutopilotOptions, SimAutopilot
+
+    with socket.create_server(("127.0.0.1", 0)) as blocker:
+        opts = AutopilotOptions(
+            listen_port=free_port(socket.SOCK_DGRAM),
+            companion_port=free_port(socket.SOCK_DGRAM),
+            camera_port=blocker.getsockname()[1],
+            gcs_listen_port=0,
+        )
+        stub = SimAutopilot(load_config("config/sitl.toml", {"sitl": {"seconds": 5.0}}), opts)
+        with pytest.raises(SitlError, match="camera process failed"):
+            asyncio.run(asyncio.wait_for(stub.run(), 60))
