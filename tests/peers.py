@@ -44,3 +44,35 @@ class Broker:
             self.proc.terminate()
             self.proc.wait(5)
             self.proc = None
+
+
+def sitl_flight(
+    tmp_path: Path, seconds: float, service: dict | None = None, **autopilot: object
+) -> tuple[object, object]:
+    """A config (config/sitl.toml, ``seconds`` of flight) and SITL autopilot options that put
+    the autopilot, the service and the camera on free loopback ports, with a prerendered
+    camera (the two cores are then the service's and the autopilot's, not the renderer's)
+    and the status socket in ``tmp_path``. ``service``: more [service] keys;
+    ``autopilot``: more AutopilotOptions fields."""
+    from companion.config import load_config
+    from sitl.autopilot import AutopilotOptions
+
+    udp_stub, udp_us, tcp_cam = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM), 0
+    tcp_cam = free_port()
+    opts = AutopilotOptions(
+        listen_port=udp_stub,
+        companion_port=udp_us,
+        camera_port=tcp_cam,
+        gcs_listen_port=0,
+        warmup_s=4.0,
+        prerender=True,
+        **autopilot,  # type: ignore[arg-type]
+    )
+    svc = {
+        "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
+        "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
+        "status_socket": str(tmp_path / "status.sock"),
+        **(service or {}),
+    }
+    cfg = load_config("config/sitl.toml", {"sitl": {"seconds": seconds}, "service": svc})
+    return cfg, opts

@@ -11,51 +11,23 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
 
 import numpy as np
 import pytest
+from peers import sitl_flight
 
-from companion.config import load_config
 from companion.geometry import so3
 from companion.service.app import Service
 from companion.service.status import read_status
-from sitl.autopilot import AutopilotOptions, SimAutopilot
+from sitl.autopilot import SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "60"))
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(2 * SECONDS + 120)
 def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
-    udp_stub, udp_us, tcp_cam = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM), 0
-    tcp_cam = free_port(socket.SOCK_STREAM)
-    # prerendered camera: the two cores are then the service's and the autopilot's, not the
-    # renderer's (the live-rendering demo drops a few camera frames on a loaded 2-core box)
-    opts = AutopilotOptions(
-        listen_port=udp_stub,
-        companion_port=udp_us,
-        camera_port=tcp_cam,
-        warmup_s=4.0,
-        prerender=True,
-    )
-    cfg = load_config(
-        "config/sitl.toml",
-        {
-            "sitl": {"seconds": SECONDS},
-            "service": {
-                "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
-                "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
-                "status_socket": str(tmp_path / "status.sock"),
-            },
-        },
-    )
+    cfg, opts = sitl_flight(tmp_path, SECONDS)
 
     async def both() -> tuple[dict, dict]:
         stub = SimAutopilot(cfg, opts)

@@ -17,17 +17,15 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import socket
 import time
 
 import aiomqtt
 import numpy as np
 import pytest
-from peers import MOSQUITTO, Broker, free_port
+from peers import MOSQUITTO, Broker, sitl_flight
 
-from companion.config import load_config
 from companion.service.app import Service
-from sitl.autopilot import AutopilotOptions, SimAutopilot
+from sitl.autopilot import SimAutopilot
 from sitl.faults import Fault
 
 SECONDS = 75.0
@@ -57,29 +55,15 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
     key_file = tmp_path / "mavlink.key"
     key_file.write_bytes(key)
     key_file.chmod(0o600)
-    udp_stub, udp_us = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-    tcp_cam = free_port()
-    opts = AutopilotOptions(
-        listen_port=udp_stub,
-        companion_port=udp_us,
-        camera_port=tcp_cam,
-        warmup_s=4.0,
-        prerender=True,
+    cfg, opts = sitl_flight(
+        tmp_path,
+        SECONDS,
+        service={
+            "signing": {"key_file": str(key_file)},
+            "mqtt": {"enabled": True, "port": broker.port, "keepalive_s": 2},
+        },
         faults=CAMERA_FAULTS + LINK_FAULTS,
         signing_key=key,
-    )
-    cfg = load_config(
-        "config/sitl.toml",
-        {
-            "sitl": {"seconds": SECONDS},
-            "service": {
-                "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
-                "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
-                "status_socket": str(tmp_path / "status.sock"),
-                "signing": {"key_file": str(key_file)},
-                "mqtt": {"enabled": True, "port": broker.port, "keepalive_s": 2},
-            },
-        },
     )
 
     async def fly() -> tuple[SimAutopilot, dict, dict, dict]:
