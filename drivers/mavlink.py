@@ -323,13 +323,16 @@ class MavlinkLink:
                     continue
             try:
                 data = self._serial.read(4096)
-            except (OSError, serial.SerialException):
+            except Exception:  # unplugged (OSError, SerialException), or closed under us
+                if self._closing:  # __aexit__ closed the port while we were reading
+                    return
                 self.stats.reconnects += 1
                 with contextlib.suppress(Exception):
                     self._serial.close()
                 continue
-            if data:
-                loop.call_soon_threadsafe(self._received, bytes(data))
+            if data and not self._closing:
+                with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+                    loop.call_soon_threadsafe(self._received, bytes(data))
 
 
 class _Udp(asyncio.DatagramProtocol):
