@@ -121,7 +121,7 @@ class Pipeline:
             return None
         return so3.quat_to_matrix(near.quat_wxyz)
 
-    def feed_frame(self, frame: CameraFrame) -> PoseEstimate | None:
+    def feed_frame(self, frame: CameraFrame, checked: bool = False) -> PoseEstimate | None:
         """Run the VO and the scale on a frame; the metric pose once tracking with a scale.
 
         The VO result stays in ``vo_output``, every method's scale in ``estimates`` and the
@@ -130,13 +130,15 @@ class Pipeline:
         A frame that the camera check rejects (frozen, dark, saturated, blank, out of order:
         ``frame_problem``) gives no pose and is not seen by the VO; when usable frames
         resume more than ``vo.max_gap_ms`` after the last one, the VO drops its map and
-        initialises anew, so the poses after a camera fault carry a new reset_counter."""
+        initialises anew, so the poses after a camera fault carry a new reset_counter.
+        ``checked``: the caller already ran a FrameCheck on every delivered frame (the
+        service does, in its camera reader), so it is not run again here."""
         self.scale_input = None
         self.tilt = None
         self.tilt_input = None
         self.last_scale_ms = 0.0
         self.last_attitude_ms = 0.0
-        self.frame_problem = self.frame_check.check(frame)
+        self.frame_problem = None if checked else self.frame_check.check(frame)
         if self.frame_problem is not None:
             self.vo_output = None
             return None

@@ -80,6 +80,24 @@ LOCAL_POSITION_PERIOD_US = 100_000  # vehicle_local_position at 10 Hz (the strea
 NAN3 = (math.nan, math.nan, math.nan)
 
 
+def _local_frame(
+    frame_id: int, xyz: tuple[float, float, float]
+) -> tuple[str, tuple[float, float, float]] | None:
+    """A vector in one of the MAVLink local frames as PX4's receiver takes it: ("ned", xyz)
+    for LOCAL_NED and LOCAL_ENU (axes swapped), ("frd", xyz) for LOCAL_FRD and LOCAL_FLU
+    (y and z negated); None for any other frame."""
+    x, y, z = xyz
+    if frame_id == MAV_FRAME_LOCAL_NED:
+        return "ned", xyz
+    if frame_id == MAV_FRAME_LOCAL_ENU:
+        return "ned", (y, x, -z)
+    if frame_id == MAV_FRAME_LOCAL_FRD:
+        return "frd", xyz
+    if frame_id == MAV_FRAME_LOCAL_FLU:
+        return "frd", (x, -y, -z)
+    return None
+
+
 def _finite(values: tuple[float, ...]) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -233,29 +251,17 @@ class EvFusion:
     def _odometry_fields(self, msg: Any, here_ns: int) -> dict[str, Any]:
         p = (float(msg.x), float(msg.y), float(msg.z))
         pose_frame, position = POSE_FRAME_UNKNOWN, NAN3
-        if _finite(p):
-            frame = int(msg.frame_id)
-            if frame == MAV_FRAME_LOCAL_NED:
-                pose_frame, position = POSE_FRAME_NED, p
-            elif frame == MAV_FRAME_LOCAL_ENU:
-                pose_frame, position = POSE_FRAME_NED, (p[1], p[0], -p[2])
-            elif frame == MAV_FRAME_LOCAL_FRD:
-                pose_frame, position = POSE_FRAME_FRD, p
-            elif frame == MAV_FRAME_LOCAL_FLU:
-                pose_frame, position = POSE_FRAME_FRD, (p[0], -p[1], -p[2])
+        if _finite(p) and (local := _local_frame(int(msg.frame_id), p)) is not None:
+            kind, position = local
+            pose_frame = POSE_FRAME_NED if kind == "ned" else POSE_FRAME_FRD
         q = tuple(float(v) for v in msg.q)
         v = (float(msg.vx), float(msg.vy), float(msg.vz))
         vel_frame, velocity = VELOCITY_FRAME_UNKNOWN, NAN3
         if _finite(v):
             child = int(msg.child_frame_id)
-            if child == MAV_FRAME_LOCAL_NED:
-                vel_frame, velocity = VELOCITY_FRAME_NED, v
-            elif child == MAV_FRAME_LOCAL_ENU:
-                vel_frame, velocity = VELOCITY_FRAME_NED, (v[1], v[0], -v[2])
-            elif child == MAV_FRAME_LOCAL_FRD:
-                vel_frame, velocity = VELOCITY_FRAME_FRD, v
-            elif child == MAV_FRAME_LOCAL_FLU:
-                vel_frame, velocity = VELOCITY_FRAME_FRD, (v[0], -v[1], -v[2])
+            if (local := _local_frame(child, v)) is not None:
+                kind, velocity = local
+                vel_frame = VELOCITY_FRAME_NED if kind == "ned" else VELOCITY_FRAME_FRD
             elif child in (MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, MAV_FRAME_BODY_FRD):
                 vel_frame, velocity = VELOCITY_FRAME_BODY_FRD, v
         return {

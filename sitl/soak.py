@@ -28,7 +28,7 @@ import numpy as np
 
 from companion.config import Config, load_config
 from sitl.autopilot import AutopilotOptions, SimAutopilot
-from sitl.trajectory import _polyline_xy
+from sitl.trajectory import pattern_length_m
 
 LAP_START_S = 8.0  # the loop starts this long into the flight (after the smoothed start)
 
@@ -45,8 +45,7 @@ class SoakPlan:
 def plan(cfg: Config, nominal_speed_m_s: float = 3.0) -> SoakPlan:
     """The circle speed closest to ``nominal_speed_m_s`` at which one lap is a whole number
     of camera frames."""
-    poly = _polyline_xy("circle", nominal_speed_m_s)
-    lap_m = float(np.sum(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
+    lap_m = pattern_length_m("circle", nominal_speed_m_s)
     rate = cfg.camera.rate_hz
     frames = round(lap_m / nominal_speed_m_s * rate)
     return SoakPlan(lap_m / (frames / rate), round(LAP_START_S * rate), frames)
@@ -90,10 +89,10 @@ def run_soak(
     async def fly() -> dict[str, Any]:
         task = asyncio.create_task(stub.run(out / "autopilot"))
         while not task.done():
-            mb = rss_mb(service.pid)
-            t_flight = stub.t_sim_of_mono(time.monotonic_ns())
-            if mb is not None and t_flight >= 0:
-                samples.append((t_flight, mb))
+            rss_mb_now = rss_mb(service.pid)
+            t_flight_s = stub.t_sim_of_mono(time.monotonic_ns())
+            if rss_mb_now is not None and t_flight_s >= 0:
+                samples.append((t_flight_s, rss_mb_now))
             await asyncio.wait({task}, timeout=sample_s)
         return await task
 
@@ -104,10 +103,10 @@ def run_soak(
         rc = service.wait(30)
         log.close()
     svc = json.loads((out / "service.json").read_text()) if (out / "service.json").exists() else {}
-    t_flight = np.array([s[0] for s in samples])
-    mb = np.array([s[1] for s in samples])
-    warm = mb[t_flight >= 120.0]
-    last = mb[t_flight >= t_flight[-1] - 600.0] if len(t_flight) else mb
+    times_s = np.array([s[0] for s in samples])
+    series_mb = np.array([s[1] for s in samples])
+    warm = series_mb[times_s >= 120.0]
+    last = series_mb[times_s >= times_s[-1] - 600.0] if len(times_s) else series_mb
     result: dict[str, Any] = {
         "minutes": minutes,
         "speed_m_s": p.speed_m_s,
@@ -115,7 +114,7 @@ def run_soak(
         "service_exit_code": rc,
         "rss_mb_after_warmup": float(warm[0]) if len(warm) else None,
         "rss_mb_max_last_10_min": float(last.max()) if len(last) else None,
-        "rss_mb_max": float(mb.max()) if len(mb) else None,
+        "rss_mb_max": float(series_mb.max()) if len(series_mb) else None,
         "autopilot": {k: v for k, v in report.items() if k != "faults"},
         "service": {k: svc.get(k) for k in (
             "frames_in", "frames_dropped", "frames_processed", "published", "not_published",
@@ -127,7 +126,7 @@ def run_soak(
         result["rss_growth_mb"] = result["rss_mb_max_last_10_min"] - result["rss_mb_after_warmup"]
     (out / "rss.csv").write_text(
         "t_flight_s,rss_mb\n"
-        + "".join(f"{t:.1f},{m:.1f}\n" for t, m in zip(t_flight, mb, strict=True))
+        + "".join(f"{t:.1f},{m:.1f}\n" for t, m in zip(times_s, series_mb, strict=True))
     )
     (out / "soak.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
     return result

@@ -81,6 +81,12 @@ def _polyline_xy(name: str, speed: float) -> F64:
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
 
 
+def pattern_length_m(name: str, speed_m_s: float = 3.0) -> float:
+    """Length [m] of one repetition of a trajectory's horizontal pattern (a lap)."""
+    poly = _polyline_xy(name, speed_m_s)
+    return float(np.sum(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
+
+
 def _walk(poly: F64, speed: float, times: F64) -> F64:
     """Position along a polyline flown at constant speed, repeated; (N, 2) at times (N,)."""
     if len(poly) == 1:

@@ -76,3 +76,18 @@ def sitl_flight(
     }
     cfg = load_config("config/sitl.toml", {"sitl": {"seconds": seconds}, "service": svc})
     return cfg, opts
+
+
+def service_config(tmp_path: Path, **service: object) -> object:
+    """The built-in config with a service that has no peers unless told: the autopilot link on
+    a free loopback UDP port, a camera URL where nothing listens (the camera loop keeps
+    retrying), the status socket in ``tmp_path``; ``service``: [service] keys to override."""
+    from companion.config import load_config
+
+    svc = {
+        "mavlink_url": f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+        "camera_url": f"sitl://127.0.0.1:{free_port()}",
+        "status_socket": str(tmp_path / "status.sock"),
+        **service,
+    }
+    return load_config(None, {"service": svc})

@@ -95,20 +95,13 @@ def test_the_service_reads_a_tfmini_wired_to_the_companion(tmp_path) -> None:
     import asyncio
     import dataclasses
 
-    from companion.config import load_config
+    from peers import service_config
+
     from companion.service.app import Service
 
     master, slave = os.openpty()
     tty.setraw(slave)
-    cfg = load_config(
-        overrides={
-            "service": {
-                "camera_url": "sitl://127.0.0.1:9",
-                "mavlink_url": "udpin:127.0.0.1:0",
-                "status_socket": str(tmp_path / "st.sock"),
-            }
-        }
-    )
+    cfg = service_config(tmp_path)
     rfs = list(cfg.rangefinders)
     rfs[1] = dataclasses.replace(rfs[1], serial=f"{os.ttyname(slave)}:115200")
     cfg = dataclasses.replace(cfg, rangefinders=tuple(rfs))

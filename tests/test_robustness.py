@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from peers import free_port
+from peers import free_port, service_config
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
@@ -102,16 +102,8 @@ def fuzz_packets(n: int, seed: int) -> list[bytes]:
 def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
     packets = fuzz_packets(100_000, seed=11)
     port = free_port(socket.SOCK_DGRAM)
-    cfg = load_config(
-        None,
-        {
-            "service": {
-                "mavlink_url": f"udpin:127.0.0.1:{port}",
-                "camera_url": f"sitl://127.0.0.1:{free_port()}",  # no camera: it keeps trying
-                "status_socket": str(tmp_path / "status.sock"),
-            }
-        },
-    )
+    # no camera (the camera loop keeps trying)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
     loop_errors: list[Any] = []
 
     async def main() -> tuple[dict, dict | None, bool, int]:
@@ -321,16 +313,7 @@ class MjpegCamera:
 def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
     cam = MjpegCamera()
     cam.start()
-    cfg = load_config(
-        None,
-        {
-            "service": {
-                "mavlink_url": f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
-                "camera_url": f"http://127.0.0.1:{cam.port}/stream.mjpg",
-                "status_socket": str(tmp_path / "status.sock"),
-            }
-        },
-    )
+    cfg = service_config(tmp_path, camera_url=f"http://127.0.0.1:{cam.port}/stream.mjpg")
 
     async def wait_frames(service: Service, n: int, timeout_s: float) -> bool:
         target = service.stats.frames_in + n

@@ -58,21 +58,14 @@ def test_abstract_socket_names() -> None:
 def test_watchdog_pings_stop_when_the_event_loop_is_stuck(tmp_path) -> None:
     """The service's watchdog loop, driven by a real loop: pings every half interval, and
     none while the loop is blocked (systemd would then restart the service)."""
-    from companion.config import load_config
+    from peers import service_config
+
     from companion.service.app import Service
 
     s, path = listener(tmp_path)
     s.setblocking(False)
     env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"}
-    cfg = load_config(
-        overrides={
-            "service": {
-                "camera_url": "sitl://127.0.0.1:9",
-                "mavlink_url": "udpin:127.0.0.1:0",
-                "status_socket": str(tmp_path / "st.sock"),
-            }
-        }
-    )
+    cfg = service_config(tmp_path)
     stamps: list[tuple[float, bytes]] = []
 
     async def run() -> None:

@@ -467,7 +467,7 @@ class Service:
             p.feed_attitude(a)
         for r in ranges:
             p.feed_range(r)
-        return p.feed_frame(frame)
+        return p.feed_frame(frame, checked=True)  # checked in the camera reader
 
     def _camera_problem(self, problem: FrameProblem | None, prev: FrameProblem | None) -> None:
         """A camera fault starts or ends (on the event loop): said once, not per frame."""
