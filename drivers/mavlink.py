@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import random
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +32,7 @@ from companion.errors import ConfigError
 from drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 
 OnMessage = Callable[[Any, int], None]
+UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
 MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
 
 
@@ -183,6 +185,10 @@ class MavlinkLink:
                 lambda: _Udp(self), local_addr=local, remote_addr=None
             )
             self._transport = transport
+            sock = transport.get_extra_info("socket")
+            if sock is not None:  # room for a burst while the loop is busy (capped by rmem_max)
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
         elif u.kind == "tcp":
             self._tasks.append(asyncio.create_task(self._tcp_loop(), name="mavlink-tcp"))
         else:

@@ -112,12 +112,16 @@ def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sock.bind(("127.0.0.1", 0))
             sent = 0
-            for k in range(0, len(packets), 100):  # bursts the loop can keep up with
+            for k in range(0, len(packets), 100):
                 for p in packets[k : k + 100]:
                     sock.sendto(p, ("127.0.0.1", port))
                     sent += len(p)
-                await asyncio.sleep(0.002)
-            await asyncio.sleep(1.0)
+                # paced by what the service has read (a loaded CI machine must not turn this
+                # into a test of the kernel's socket buffer): wait for the burst, up to 2 s
+                deadline = time.monotonic() + 2.0
+                while service.link.stats.rx_bytes < sent and time.monotonic() < deadline:
+                    await asyncio.sleep(0.001)
+            await asyncio.sleep(0.5)
             status = await asyncio.to_thread(read_status, tmp_path / "status.sock")
             # still answering: a real TIMESYNC request after the storm
             mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -149,7 +153,7 @@ def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
     print(link, summary["ranges_rejected"], summary["attitudes_in"])
     assert alive and not loop_errors
     assert link["handler_errors"] == 0
-    assert link["rx_bytes"] >= 0.95 * sent  # the storm was read, not lost in the socket
+    assert link["rx_bytes"] >= 0.99 * sent  # the storm was read, not lost in the socket
     assert link["rx_bad"] > 20_000 and link["rx_messages"] > 20_000
     assert status is not None and status["autopilot"]["rx_bad"] > 0
     assert status["autopilot"]["foreign_messages"] > 1000
