@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import inspect
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import aiomqtt
@@ -68,25 +69,32 @@ def test_status_pose_and_events_reach_a_subscriber(broker) -> None:
     assert late[0][2] is True
 
 
-def test_broker_down_never_blocks_and_oldest_are_dropped_then_resume(broker) -> None:
+def test_broker_down_never_blocks_and_oldest_are_dropped_then_resume(broker, monkeypatch) -> None:
     broker.stop()
 
-    async def run() -> tuple[MqttPublisher, float, list]:
+    async def run() -> tuple[MqttPublisher, list[str], list]:
         async with MqttPublisher(opts(broker.port, queue_size=50), 3) as pub:
-            t0 = time.perf_counter()
+            # publishing is a plain call that only queues: no socket is touched in it (a
+            # blocking connect would fail this); its cost is profiled, not timed here
+            calls: list[str] = []
+            real_connect, real_send = socket.socket.connect, socket.socket.send
+            monkeypatch.setattr(socket.socket, "connect", lambda *a: calls.append("connect"))
+            monkeypatch.setattr(socket.socket, "send", lambda *a: calls.append("send") or 0)
             for k in range(500):
                 pub.publish_pose({"k": k})
-            elapsed = time.perf_counter() - t0
+            monkeypatch.setattr(socket.socket, "connect", real_connect)
+            monkeypatch.setattr(socket.socket, "send", real_send)
+            touched = list(calls)
             await asyncio.sleep(1.0)
             assert not pub.stats.connected
             assert pub.queued == 50 and pub.stats.dropped == 450
             broker.start()  # back: the publisher reconnects by itself (backoff <= a few s)
             got = await collect(broker.port, "companion/3/pose", 1, timeout_s=15)
             await asyncio.sleep(0.5)
-            return pub, elapsed, got
+            return pub, touched, got
 
-    pub, elapsed, got = asyncio.run(run())
-    assert elapsed < 0.05  # 500 publishes without a broker cost nothing
+    pub, touched, got = asyncio.run(run())
+    assert not inspect.iscoroutinefunction(MqttPublisher.publish_pose) and touched == []
     assert pub.stats.connects >= 1 and pub.stats.published >= 1
     assert got[0][1]["k"] >= 450  # what survived the outage is the newest
 
