@@ -665,6 +665,11 @@ def format_status(st: dict[str, Any]) -> str:
             "camera",
             f"{cam['url']}  {fmt(cam['fps'], ' fps', 1)}  {cam['frames']} frames, "
             f"{cam['dropped']} dropped, last {fmt(cam['last_frame_age_s'], ' s ago', 2)}"
+            + (
+                f", stamped at {cam['stamps']}"
+                if cam.get("stamps") in ("grab", "v4l2 buffer")
+                else ""
+            )
             + (f"  NOW {cam['problem'].upper()} FRAMES" if cam.get("problem") else "")
             + "".join(f", {n} {k}" for k, n in (cam.get("rejected") or {}).items()),
         ),

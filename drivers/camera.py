@@ -3,8 +3,11 @@ folders (our dataset format and EuRoC) and the SITL loopback stream.
 
 Every source is iterated in a worker thread (``read()`` blocks) and yields CameraFrame with
 ``time_us`` in the companion's monotonic clock at exposure:
-- VideoCapture: the driver's timestamp when it is monotonic (V4L2 buffers are stamped with
-  CLOCK_MONOTONIC at the start of exposure), else the time ``grab()`` returned;
+- VideoCapture: with the V4L2 backend the buffer's timestamp (``CAP_PROP_POS_MSEC``; the
+  kernel stamps buffers with CLOCK_MONOTONIC, uvcvideo at the start of the frame) when it is
+  plausible (not in the future, at most 0.5 s before ``grab()`` returned), else the time
+  ``grab()`` returned (FFmpeg/GStreamer: their position is stream time, not our clock);
+  ``stamps`` says which one the last frame got;
 - folders: the recorded times, shifted so that the first frame is "now" (replayed at the
   recorded rate, or as fast as possible with ``realtime=False``);
 - the SITL stream: the time written by the simulator (same machine, same monotonic clock).
@@ -22,6 +25,8 @@ payload length (uint32), reserved (uint32), followed by the payload (height*widt
 from __future__ import annotations
 
 import contextlib
+import logging
+import math
 import socket
 import struct
 import time
@@ -37,6 +42,9 @@ FRAME_HEADER = struct.Struct("<4sIqHHIII")
 FRAME_MAGIC = b"CFRM"
 FORMAT_BGR8 = 0
 MAX_SIDE_PX = 8192  # a header claiming more is corrupt (never allocate from garbage)
+MAX_DRIVER_STAMP_AGE_US = 500_000  # a driver stamp older than this at grab() is not our clock
+
+log = logging.getLogger("companion.camera")
 
 
 def encode_frame(frame: CameraFrame) -> bytes:
@@ -58,6 +66,7 @@ class CameraSource:
 
     def __init__(self) -> None:
         self.closed = False
+        self.stamps = "source"  # where the last frame's time_us came from
 
     def frames(self) -> Iterator[CameraFrame]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -170,14 +179,23 @@ class VideoCaptureSource(CameraSource):
         cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, 2000)
         if not cap.isOpened():
             raise DatasetError(f"camera {self.spec!r}: cannot open")
+        v4l2 = cap.getBackendName() == "V4L2"
         seq = 0
         try:
             while not self.closed:
                 if not cap.grab():
                     return
-                # the time grab() returned: exposure + readout + transfer later than the
-                # exposure (a V4L2 buffer timestamp would be better; see docs/service.md)
-                t_us = time.monotonic_ns() // 1000
+                # grab() returns after exposure + readout + transfer: the V4L2 buffer's own
+                # stamp is closer to the exposure when the backend gives one
+                grab_us = time.monotonic_ns() // 1000
+                driver_us = None
+                if v4l2:
+                    driver_us = driver_stamp_us(cap.get(cv2.CAP_PROP_POS_MSEC), grab_us)
+                stamps = "grab" if driver_us is None else "v4l2 buffer"
+                if stamps != self.stamps:
+                    log.info("camera %r: frames stamped at %s", self.spec, stamps)
+                    self.stamps = stamps
+                t_us = grab_us if driver_us is None else driver_us
                 ok, img = cap.retrieve()
                 if not ok or img is None:
                     return
@@ -187,6 +205,20 @@ class VideoCaptureSource(CameraSource):
                 seq += 1
         finally:
             cap.release()
+
+
+def driver_stamp_us(driver_ms: float, grab_us: int) -> int | None:
+    """A frame's driver timestamp in our monotonic clock [us], or None when it cannot be.
+
+    driver_ms: ``CAP_PROP_POS_MSEC`` read after ``grab()`` (V4L2: the buffer's timestamp,
+    CLOCK_MONOTONIC; 0 before the first buffer); grab_us: our monotonic clock when ``grab()``
+    returned. Plausible = not after grab_us and at most MAX_DRIVER_STAMP_AGE_US before it (a
+    realtime-clock or stream-time stamp is off by years or by the uptime).
+    """
+    if not math.isfinite(driver_ms) or driver_ms <= 0:
+        return None
+    t_us = round(driver_ms * 1000.0)
+    return t_us if grab_us - MAX_DRIVER_STAMP_AGE_US <= t_us <= grab_us else None
 
 
 def open_camera(url: str, key: str = "service.camera_url") -> CameraSource:

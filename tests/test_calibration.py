@@ -348,3 +348,20 @@ def test_the_ranges_file_round_trips(laser_frames: list[LaserFrame], tmp_path: P
         assert np.array_equal(a.image_bgr, b.image_bgr)
         assert a.ranges_m.keys() == b.ranges_m.keys()
         assert all(math.isclose(a.ranges_m[k], b.ranges_m[k], abs_tol=6e-5) for k in a.ranges_m)
+
+
+def test_ranges_file_errors_name_the_file_line(tmp_path: Path) -> None:
+    from companion.calibration.files import read_ranges
+
+    path = tmp_path / "ranges.csv"
+    path.write_text(
+        "# readings of the laser check\nimage,sensor_id,range_m\n# first pose\n"
+        "a.png,0,1.50\n\na.png,1,1.52\n# second pose\nb.png,0,-1\n"
+    )
+    with pytest.raises(CalibrationError, match=r"ranges.csv: line 8: range_m must be > 0"):
+        read_ranges(path)
+    path.write_text("image,sensor_id,range_m\n# c\na.png,0,1.5\na.png,1,1.5,7\n")
+    with pytest.raises(CalibrationError, match=r"line 4: expected 3 values"):
+        read_ranges(path)
+    path.write_text("# c\nimage,sensor_id,range_m\n# c\na.png,0,1.5\nb.png,2,2.25\n")
+    assert read_ranges(path) == {"a.png": {0: 1.5}, "b.png": {2: 2.25}}

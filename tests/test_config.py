@@ -51,6 +51,10 @@ def test_shipped_config_files_load(name: str) -> None:
         ({"sitl": {"render": {"noise_sigma_dn": "x"}}}, "sitl.render.noise_sigma_dn"),
         ({"sitl": {"takeoff_landing": 1}}, "sitl.takeoff_landing: expected true or false"),
         (
+            {"service": {"frame_wait_ms": 150.0}},
+            "service.frame_wait_ms: must be < stale_frame_ms",
+        ),
+        (
             {"rangefinders": [{"sensor_id": 1, "min_m": 5.0, "max_m": 2.0}]},
             "rangefinders[0].max_m: must be > min_m",
         ),

@@ -334,3 +334,112 @@ def test_udpout_sends_from_the_fixed_local_port() -> None:
     first, second = asyncio.run(once()), asyncio.run(once())  # a restart in between
     autopilot.close()
     assert first[1] == second[1] == local
+
+
+def test_frames_wait_for_a_slow_step_but_not_for_a_slow_board(tmp_path) -> None:
+    """The pipeline takes the oldest frame that waited <= frame_wait_ms (60): a keyframe that
+    ran long costs latency, not a pose; frames that waited longer are skipped for newer ones
+    (counted as dropped), so a board slower than the camera keeps a bounded latency."""
+    from peers import service_config
+
+    from companion.service.app import Service, now_ns
+
+    service = Service(service_config(tmp_path))
+    image = np.zeros((4, 4, 3), np.uint8)
+
+    def queue(*ages_ms: float) -> None:
+        now_us = now_ns() // 1000
+        for k, age in enumerate(ages_ms):
+            service._frames.append(CameraFrame(now_us - int(age * 1e3), k, image))
+
+    def taken() -> list[int]:
+        seqs = []
+        while (frame := service._next_frame()) is not None:
+            seqs.append(frame.seq)
+        return seqs
+
+    queue(55.0, 22.0, 0.0)  # after a 60-ms keyframe: all three are still worth a pose
+    assert taken() == [0, 1, 2] and service.stats.frames_dropped == 0
+    queue(130.0, 97.0, 64.0, 31.0, 0.0)  # a stall: the ones too old to help are skipped
+    assert taken() == [3, 4] and service.stats.frames_dropped == 3
+    queue(500.0)  # the only frame is always taken (the publisher's stale rule decides)
+    assert taken() == [0] and service.stats.frames_dropped == 3
+
+
+class _FakeCapture:
+    """cv2.VideoCapture of a device that cannot exist here: a backend name and a
+    CAP_PROP_POS_MSEC that is either the V4L2 buffer stamp or a stream position."""
+
+    def __init__(self, backend: str, stamp_ms) -> None:
+        self.backend, self.stamp_ms, self.n = backend, stamp_ms, 0
+
+    def set(self, *_a) -> bool:
+        return True
+
+    def isOpened(self) -> bool:
+        return True
+
+    def getBackendName(self) -> str:
+        return self.backend
+
+    def grab(self) -> bool:
+        self.n += 1
+        return self.n <= 3
+
+    def get(self, prop: int) -> float:
+        import cv2
+
+        assert prop == cv2.CAP_PROP_POS_MSEC
+        return self.stamp_ms(self.n)
+
+    def retrieve(self):
+        return True, np.zeros((4, 6), np.uint8)
+
+    def release(self) -> None:
+        pass
+
+
+def test_v4l2_buffer_stamps_are_used_when_they_are_our_clock(monkeypatch) -> None:
+    import time
+
+    import cv2
+
+    from drivers.camera import MAX_DRIVER_STAMP_AGE_US, driver_stamp_us
+
+    now_us = 5_000_000_000
+    assert driver_stamp_us(now_us / 1e3 - 20.0, now_us) == now_us - 20_000
+    assert driver_stamp_us(0.0, now_us) is None  # before the first buffer
+    assert driver_stamp_us(float("nan"), now_us) is None
+    assert driver_stamp_us(now_us / 1e3 + 5.0, now_us) is None  # from the future
+    assert driver_stamp_us((now_us - MAX_DRIVER_STAMP_AGE_US) / 1e3 - 1, now_us) is None
+    assert driver_stamp_us(1.7e12, now_us) is None  # a realtime-clock stamp
+
+    def frames(backend: str, stamp_ms) -> tuple[list[CameraFrame], list[int], str]:
+        cap = _FakeCapture(backend, stamp_ms)
+        monkeypatch.setattr(cv2, "VideoCapture", lambda _spec: cap)
+        src = VideoCaptureSource(0)
+        grabbed = []
+        out = []
+        for f in src.frames():
+            out.append(f)
+            grabbed.append(time.monotonic_ns() // 1000)
+        return out, grabbed, src.stamps
+
+    # V4L2: the buffer was stamped 30 ms before grab() returned -> that stamp
+    exposure_us: list[int] = []
+
+    def v4l2_stamp(_n: int) -> float:
+        exposure_us.append(time.monotonic_ns() // 1000 - 30_000)
+        return exposure_us[-1] / 1e3
+
+    got, _, stamps = frames("V4L2", v4l2_stamp)
+    assert stamps == "v4l2 buffer" and len(got) == 3
+    assert [f.time_us for f in got] == exposure_us
+    assert [f.image_bgr.shape for f in got] == [(4, 6, 3)] * 3  # grey converted to BGR
+    # FFmpeg: POS_MSEC is the stream position -> the grab time, even if it looks plausible
+    got, after, stamps = frames("FFMPEG", lambda n: time.monotonic_ns() / 1e6 - 10.0)
+    assert stamps == "grab"
+    assert all(0 <= a - f.time_us < 50_000 for f, a in zip(got, after, strict=True))
+    # V4L2 with a realtime-clock stamp (an old kernel or driver) -> the grab time
+    got, _, stamps = frames("V4L2", lambda n: time.time() * 1e3)
+    assert stamps == "grab"

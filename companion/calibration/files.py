@@ -72,30 +72,32 @@ def read_ranges(path: Path) -> dict[str, dict[int, float]]:
         )
     out: dict[str, dict[int, float]] = {}
     with path.open(newline="") as fh:
-        rows = csv.reader(line for line in fh if not line.lstrip().startswith("#"))
-        header = next(rows, None)
+        # comment lines become empty rows, so that reader.line_num is the file's line number
+        rows = csv.reader("\n" if line.lstrip().startswith("#") else line for line in fh)
+        header = next((row for row in rows if any(c.strip() for c in row)), None)
         if header is None or tuple(h.strip() for h in header) != RANGES_HEADER:
             raise CalibrationError(
                 f"{path}: the first row must be {','.join(RANGES_HEADER)}, got {header}"
             )
-        for n, row in enumerate(rows, start=2):
+        for row in rows:
+            n = rows.line_num
             if not row or all(not c.strip() for c in row):
                 continue
             if len(row) != 3:
-                raise CalibrationError(f"{path}: data row {n}: expected 3 values, got {row}")
+                raise CalibrationError(f"{path}: line {n}: expected 3 values, got {row}")
             name, sid_text, range_text = (c.strip() for c in row)
             try:
                 sid, range_m = int(sid_text), float(range_text)
             except ValueError:
                 raise CalibrationError(
-                    f"{path}: data row {n}: sensor_id must be an integer and range_m a number, "
+                    f"{path}: line {n}: sensor_id must be an integer and range_m a number, "
                     f"got {row}"
                 ) from None
             if not math.isfinite(range_m) or range_m <= 0:
-                raise CalibrationError(f"{path}: data row {n}: range_m must be > 0, got {row}")
+                raise CalibrationError(f"{path}: line {n}: range_m must be > 0, got {row}")
             per_image = out.setdefault(name, {})
             if sid in per_image:
-                raise CalibrationError(f"{path}: data row {n}: second reading of {sid} for {name}")
+                raise CalibrationError(f"{path}: line {n}: second reading of {sid} for {name}")
             per_image[sid] = range_m
     if not out:
         raise CalibrationError(f"{path}: no readings")

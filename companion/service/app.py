@@ -5,8 +5,10 @@ Structure: ``Service`` is an async context manager owning one TaskGroup of named
 (heartbeat, timesync, message rates, camera, pipeline, stats). The Pipeline runs in a worker
 thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) so that MAVLink stays
 responsive: TIMESYNC requests are answered inside the receive callback. The camera is read in
-its own thread into a one-frame slot: the pipeline always takes the newest frame, and a frame
-overwritten before it was taken is counted as dropped. Ranges and attitudes are queued on the
+its own thread into a short queue: the pipeline takes the oldest frame that has waited at most
+``service.frame_wait_ms`` (so one slow keyframe costs latency, not a pose) and skips older
+ones for the newest (so a board that is too slow for the camera keeps a bounded latency);
+a skipped frame is counted as dropped. Ranges and attitudes are queued on the
 event loop and handed to the worker with the next frame, so the Pipeline is only ever touched
 from one thread. The service does no maths: conversions to and from the wire are in
 ``drivers.messages``.
@@ -42,6 +44,7 @@ from drivers import messages
 log = logging.getLogger("companion.service")
 
 MAX_CONSECUTIVE_PIPELINE_ERRORS = 30  # about a second of frames: then the service ends
+FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; frame_wait_ms rules)
 
 
 def now_ns() -> int:
@@ -112,8 +115,9 @@ class Service:
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
         self.sensors = {r.sensor_id: r for r in config.rangefinders}
-        self._slot: CameraFrame | None = None
-        self._slot_lock = threading.Lock()
+        # frames waiting for the pipeline (bounded: the wait rule keeps it at a few)
+        self._frames: deque[CameraFrame] = deque(maxlen=FRAME_QUEUE_MAX)
+        self._frames_lock = threading.Lock()
         self._frame_ready = asyncio.Event()
         # bounded: if the pipeline stalls, the oldest samples go first
         self._ranges: deque[RangeSample] = deque(maxlen=4096)
@@ -353,15 +357,15 @@ class Service:
                                 self._camera_problem, problem, self._frame_problem
                             )
                             self._frame_problem = problem
-                        with self._slot_lock:
+                        with self._frames_lock:
                             self.stats.frames_in += 1
                             self._frame_times_ns.append(now_ns())
                             if problem is not None:  # never reaches the pipeline: no pose
                                 self.stats.frames_rejected += 1
                                 continue
-                            if self._slot is not None:
-                                self.stats.frames_dropped += 1
-                            self._slot = frame
+                            if len(self._frames) == self._frames.maxlen:
+                                self.stats.frames_dropped += 1  # the oldest goes
+                            self._frames.append(frame)
                         loop.call_soon_threadsafe(self._frame_ready.set)
                 except Exception as e:  # a driver error: reported, the source is reopened
                     error = e
@@ -430,11 +434,10 @@ class Service:
     async def _pipeline_loop(self) -> None:
         failures = 0
         while not self._stop.is_set():
-            await self._frame_ready.wait()
-            self._frame_ready.clear()
-            with self._slot_lock:
-                frame, self._slot = self._slot, None
+            frame = self._next_frame()
             if frame is None:
+                await self._frame_ready.wait()
+                self._frame_ready.clear()
                 continue
             ranges, atts = list(self._ranges), list(self._attitudes)
             self._ranges.clear()
@@ -457,6 +460,17 @@ class Service:
             self.stats.frames_processed += 1
             self._publish(frame, pose)
             await asyncio.to_thread(self.pipeline.background_work)  # after the send
+
+    def _next_frame(self) -> CameraFrame | None:
+        """The oldest queued frame that waited at most frame_wait_ms; older ones are skipped
+        (counted as dropped) while a newer frame exists."""
+        limit_us = self.config.service.frame_wait_ms * 1e3
+        with self._frames_lock:
+            now_us = now_ns() / 1e3
+            while len(self._frames) > 1 and now_us - self._frames[0].time_us > limit_us:
+                self._frames.popleft()
+                self.stats.frames_dropped += 1
+            return self._frames.popleft() if self._frames else None
 
     def _process(
         self, frame: CameraFrame, ranges: list[RangeSample], atts: list[AttitudeSample]
@@ -589,6 +603,7 @@ class Service:
                 "fps": fps,
                 "frames": s.frames_in,
                 "dropped": s.frames_dropped,
+                "stamps": self.camera.stamps,
                 "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
                 "problem": self._frame_problem.value if self._frame_problem else None,
                 "rejected": {k: v for k, v in self.frame_check.counts.items() if v},

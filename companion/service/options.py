@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from companion.errors import ConfigError
 from companion.options import opt
 
 OutputName = Literal["vision_position_estimate", "odometry", "both"]
@@ -68,6 +69,11 @@ class ServiceOptions:
     stale_frame_ms: float = opt(
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0
     )
+    frame_wait_ms: float = opt(
+        60.0,
+        "a frame that waited longer than this for the pipeline is skipped for a newer one [ms]",
+        gt=0,
+    )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
     mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
     signing: SigningOptions = opt(SigningOptions(), "MAVLink 2 signing of the autopilot link")
@@ -76,3 +82,10 @@ class ServiceOptions:
         "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "
         "else $XDG_RUNTIME_DIR/companion.sock, else /tmp/companion-UID.sock)",
     )
+
+    def __post_init__(self) -> None:
+        if self.frame_wait_ms >= self.stale_frame_ms:
+            raise ConfigError(
+                f"frame_wait_ms: must be < stale_frame_ms ({self.stale_frame_ms}), "
+                f"got {self.frame_wait_ms}"
+            )
