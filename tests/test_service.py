@@ -337,8 +337,8 @@ def test_udpout_sends_from_the_fixed_local_port() -> None:
 
 
 def test_frames_wait_for_a_slow_step_but_not_for_a_slow_board(tmp_path) -> None:
-    """The pipeline takes the oldest frame that waited <= frame_wait_ms (60): a keyframe that
-    ran long costs latency, not a pose; frames that waited longer are skipped for newer ones
+    """The pipeline takes the oldest frame <= frame_wait_ms (60) old: a keyframe that
+    ran long costs latency, not a pose; older frames are skipped for newer ones
     (counted as dropped), so a board slower than the camera keeps a bounded latency."""
     from peers import service_config
 

@@ -5,10 +5,10 @@ Structure: ``Service`` is an async context manager owning one TaskGroup of named
 (heartbeat, timesync, message rates, camera, pipeline, stats). The Pipeline runs in a worker
 thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) so that MAVLink stays
 responsive: TIMESYNC requests are answered inside the receive callback. The camera is read in
-its own thread into a short queue: the pipeline takes the oldest frame that has waited at most
-``service.frame_wait_ms`` (so one slow keyframe costs latency, not a pose) and skips older
-ones for the newest (so a board that is too slow for the camera keeps a bounded latency);
-a skipped frame is counted as dropped. Ranges and attitudes are queued on the
+its own thread into a short queue: the pipeline takes the oldest frame not older than
+``service.frame_wait_ms`` since its exposure (so one slow keyframe costs latency, not a pose)
+and skips older ones for newer ones (so a board too slow for the camera keeps a bounded
+latency); a skipped frame is counted as dropped. Ranges and attitudes are queued on the
 event loop and handed to the worker with the next frame, so the Pipeline is only ever touched
 from one thread. The service does no maths: conversions to and from the wire are in
 ``drivers.messages``.
@@ -462,8 +462,8 @@ class Service:
             await asyncio.to_thread(self.pipeline.background_work)  # after the send
 
     def _next_frame(self) -> CameraFrame | None:
-        """The oldest queued frame that waited at most frame_wait_ms; older ones are skipped
-        (counted as dropped) while a newer frame exists."""
+        """The oldest queued frame at most frame_wait_ms old (since exposure); older ones are
+        skipped (counted as dropped) while a newer frame exists."""
         limit_us = self.config.service.frame_wait_ms * 1e3
         with self._frames_lock:
             now_us = now_ns() / 1e3

@@ -71,7 +71,7 @@ class ServiceOptions:
     )
     frame_wait_ms: float = opt(
         60.0,
-        "a frame that waited longer than this for the pipeline is skipped for a newer one [ms]",
+        "a queued frame older than this (since its exposure) is skipped for a newer one [ms]",
         gt=0,
     )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
