@@ -384,7 +384,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             for k, v in metrics.items()
         ]
         table = "\n".join(["| metric | value |", "|---|---|", *rows])
-        (out / "report.md").write_text(f"# VO on {ds.path.name}\n\n{table}\n")
+        (out / "report.md").write_text(f"# VO on {name}\n\n{table}\n")
         print(table)
     print(f"trajectories and metrics in {out}")
     return EXIT_OK

@@ -57,6 +57,21 @@ def test_eval_writes_trajectories_and_meets_accuracy(evaluated: Path) -> None:
     assert "ate_sim3_m" in (evaluated / "report.md").read_text()
 
 
+def test_eval_straight_from_the_simulator_agrees_with_the_recording(evaluated: Path) -> None:
+    """`companion eval --terrain ... --seed ...` (no dataset on disk) renders the flight the
+    fixture recorded: same frames, and the same accuracy up to what the recording's JPEG
+    compression changes (2.7 vs 2.9 cm; a ground truth one frame off would add ~10 cm)."""
+    out = evaluated.parent / "sim"
+    args = ["--terrain", "urban", "--trajectory", "figure8", "--seconds", "12", "--seed", "3"]
+    assert main(["eval", *args, "--out", str(out), "--no-progress"]) == 0
+    sim = json.loads((out / "metrics.json").read_text())
+    rec = json.loads((evaluated / "metrics.json").read_text())
+    assert sim["frames"] == rec["frames"] and sim["resets"] == rec["resets"] == 0
+    assert sim["tracking_ratio"] >= 0.98 and sim["ate_sim3_pct"] < 1.0
+    assert sim["ate_sim3_m"] == pytest.approx(rec["ate_sim3_m"], abs=0.008)
+    assert (out / "report.md").read_text().startswith("# VO on sitl-urban-figure8-12s-seed3")
+
+
 def test_ate_agrees_with_evo_ape(evaluated: Path) -> None:
     evo_ape = Path(sys.executable).parent / "evo_ape"
     assert evo_ape.exists(), "evo (the eval extra) must be installed: make installs it"
