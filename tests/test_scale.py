@@ -14,6 +14,7 @@ from companion.scale.fusion import fuse
 from companion.scale.kalman import ScaleKalman
 from companion.scale.laser import RangeHistory, laser_point_cam
 from companion.scale.methods import (
+    MMSC,
     B7WindowML,
     B8PerFrame,
     B9Plane,
@@ -61,6 +62,75 @@ def test_msc_recovers_a_known_scale_with_noiseless_ranges() -> None:
     empty = VoFeatures(np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
     assert msc.measure(0, empty, T_cam_vo, CAM, np.array([0, 0, 5.0]), 0.01, 12, 0.5) is None
     assert msc.measure(0, feats, T_cam_vo, CAM, np.array([50.0, 0, 5.0]), 0.01, 12, 0.5) is None
+
+
+def _scene_features(depth_of_ray: object, T_cam_vo: np.ndarray, scale: float) -> VoFeatures:
+    """Map points on a 16 px pixel grid (no jitter) whose metric depth (camera z) is
+    ``depth_of_ray(rays)``, in VO units."""
+    u, v = np.meshgrid(np.arange(8, 632, 16.0), np.arange(8, 472, 16.0))
+    pix = np.column_stack([u.ravel(), v.ravel()])
+    rays = CAM.pixels_to_rays(pix)
+    z = depth_of_ray(rays)  # type: ignore[operator]
+    P_cam = rays * (z / rays[:, 2])[:, None]
+    n = len(pix)
+    X_vo = se3.transform(se3.inverse(T_cam_vo), P_cam / scale)
+    return VoFeatures(pix, np.arange(n, dtype=np.int64), X_vo, np.full(n, 0.001))
+
+
+def _laser_at(pixel: tuple[float, float], depth_m: float) -> np.ndarray:
+    ray = CAM.pixels_to_rays(np.array([pixel]))[0]
+    return np.asarray(ray * depth_m / ray[2])
+
+
+def test_msc_refuses_a_match_across_a_roof_edge_but_not_on_a_slope() -> None:
+    """A roof 2 m above the ground (12 m below the camera) covers the image left of u = 316;
+    the beam hits the ground at (318, 236), whose nearest map point (312, 232) is on the
+    roof: the plain match is off by the step (+20 %), the depth-step check refuses it. On a
+    plane inclined 15 deg and on a plane ground the check lets the match through."""
+    opts = ScaleOptions()
+    assert opts.edge_depth_rel > 0  # on by default
+    s_true = 3.0
+    T_cam_vo = se3.make(np.eye(3), [0.2, 0.1, -0.3])
+    roof_u = CAM.pixels_to_rays(np.array([[316.0, 240.0]]))[0, 0]
+
+    def roof(rays: np.ndarray) -> np.ndarray:
+        return np.where(rays[:, 0] < roof_u, 10.0, 12.0)
+
+    feats = _scene_features(roof, T_cam_vo, s_true)
+    laser = _laser_at((318.0, 236.0), 12.0)
+    args = (feats, T_cam_vo, CAM, laser, 0.01, opts.patch_half_px, opts.slope_factor)
+    plain = msc.measure(0, *args)
+    assert plain is not None and plain.scale / s_true - 1 > 0.15  # 12 m / 10 m
+    uv = msc.laser_pixel(CAM, laser)
+    assert uv is not None
+    assert msc.spans_depth_step(feats, T_cam_vo, uv, opts.edge_radius_px, opts.edge_depth_rel)
+    assert msc.measure(0, *args, opts.edge_radius_px, opts.edge_depth_rel) is None
+    # off (0) means no check
+    assert msc.measure(0, *args, opts.edge_radius_px, 0.0) is not None
+
+    tan15 = np.tan(np.radians(15.0))
+    for name, depth in {
+        "slope 15 deg": lambda r: 8.0 / (1.0 - r[:, 0] * tan15),
+        "level": lambda r: np.full(len(r), 8.0),
+    }.items():
+        feats = _scene_features(depth, T_cam_vo, s_true)
+        for pixel in [(318.0, 236.0), (100.0, 60.0), (600.0, 420.0)]:
+            ray = CAM.pixels_to_rays(np.array([pixel]))
+            laser = _laser_at(pixel, float(depth(ray)[0]))
+            m = msc.measure(
+                0,
+                feats,
+                T_cam_vo,
+                CAM,
+                laser,
+                0.01,
+                opts.patch_half_px,
+                opts.slope_factor,
+                opts.edge_radius_px,
+                opts.edge_depth_rel,
+            )
+            assert m is not None, (name, pixel)
+            assert abs(m.scale / s_true - 1) < 0.03, (name, pixel, m.scale)
 
 
 def test_kalman_converges_and_rejects_a_10x_outlier() -> None:
@@ -142,6 +212,38 @@ def test_b8_and_b9_reproduce_their_formulas() -> None:
     b9 = B9Plane("B9 plane", CAM, opts)
     b9.update(_inp(0, T, feats, p_cam))
     assert np.isclose(b9.scale, 10.0 / 2.0)  # the ray meets the plane z = 2 at distance 2
+
+
+def test_m_msc_does_not_take_a_lone_match_at_a_keyframe() -> None:
+    """M-MSC updates at a keyframe only when >= mmsc_min_sensors matches agree: a single
+    sensor reading 37 % long (a bad map point, a beam past an edge) is not taken; two
+    agreeing sensors move it; with mmsc_min_sensors = 1 the lone match is taken (the thesis'
+    literal fusion)."""
+    s_true = 3.0
+    T_cam_vo = se3.make(np.eye(3), [0.2, 0.1, -0.3])
+    feats = _scene_features(lambda r: np.full(len(r), 8.0), T_cam_vo, s_true)
+    pixels = {0: (200.0, 120.0), 1: (440.0, 120.0), 2: (200.0, 360.0), 3: (440.0, 360.0)}
+
+    def keyframe(time_us: int, factors: dict[int, float]) -> ScaleInput:
+        lasers = {}
+        for sid, f in factors.items():
+            p_cam = _laser_at(pixels[sid], 8.0 * f)
+            lasers[sid] = (float(np.linalg.norm(p_cam)), p_cam, 0.01)
+        vo = VoOutput(time_us, VoState.TRACKING, True, se3.inverse(T_cam_vo), feats)
+        return ScaleInput(time_us, vo, T_cam_vo, lasers, 0)
+
+    results = {}
+    for min_sensors in (2, 1):
+        mmsc = MMSC("M-MSC", CAM, ScaleOptions(mmsc_min_sensors=min_sensors))
+        first = mmsc.step(keyframe(0, {0: 1.0, 1: 1.0, 2: 1.0, 3: 1.0}))
+        assert first is not None and abs(first.scale / s_true - 1) < 0.01 and first.n_used == 4
+        lone = mmsc.step(keyframe(100_000, {2: 1.37}))
+        assert lone is not None
+        two = mmsc.step(keyframe(200_000, {0: 1.02, 1: 1.02}))
+        assert two is not None and abs(two.scale / (1.02 * s_true) - 1) < 0.01
+        results[min_sensors] = lone.scale / s_true
+    assert abs(results[2] - 1) < 0.01  # held
+    assert abs(results[1] - 1.37) < 0.02  # taken
 
 
 def test_b7_window_ml_closed_form() -> None:

@@ -124,6 +124,8 @@ class Method:
             sig,
             self.opts.patch_half_px,
             self.opts.slope_factor,
+            self.opts.edge_radius_px,
+            self.opts.edge_depth_rel,
         )
         history = self.match_history.setdefault(sensor_id, deque(maxlen=MATCH_WINDOW))
         history.append(m is not None)
@@ -198,8 +200,9 @@ def _fused(method: Method, inp: ScaleInput, max_sensors: int) -> tuple[float, fl
 @dataclass
 class MMSC(Method):
     """The thesis' M-MSC: at each keyframe, MSC on every sensor fused by robust maximum
-    likelihood (no Kalman filter), held until the next keyframe. ``max_sensors`` limits it to
-    the first k sensors (the number-of-sensors study)."""
+    likelihood (no Kalman filter), held until the next keyframe; a keyframe where fewer than
+    ``opts.mmsc_min_sensors`` matches survive the fusion's outlier test keeps the held value.
+    ``max_sensors`` limits it to the first k sensors (the number-of-sensors study)."""
 
     max_sensors: int = 0
 
@@ -207,7 +210,10 @@ class MMSC(Method):
         if not inp.vo.is_keyframe:
             return
         z = _fused(self, inp, self.max_sensors)
-        if z is not None:
+        # a lone match has no other sensor to be checked against (a bad map point or a beam
+        # past an edge passes the fusion unseen): wait for agreeing sensors
+        need = min(self.opts.mmsc_min_sensors, max(len(self.match_history), 1))
+        if z is not None and z[2] >= need:
             self.scale, self.sigma, self.n_used = z
 
 

@@ -21,6 +21,21 @@ class ScaleOptions:
         12.0, "half side of the search patch around the laser pixel [px]", gt=0
     )
     slope_factor: float = opt(0.5, "relative depth change per normalised pixel offset", ge=0)
+    edge_radius_px: float = opt(
+        36.0, "depth-step check: map points within this distance of the laser pixel [px]", gt=0
+    )
+    edge_depth_rel: float = opt(
+        0.1,
+        "refuse a match when those points' depths span more than this fraction of their "
+        "median (the beam may be on the other side of a building edge); 0 = no check",
+        ge=0,
+    )
+    mmsc_min_sensors: int = opt(
+        2,
+        "M-MSC: a keyframe updates the scale only when at least this many sensors' matches "
+        "agree (capped at the number of sensors seen); 1 = any single match",
+        ge=1,
+    )
     max_range_gap_us: int = opt(60_000, "widest gap between two range samples to interpolate", gt=0)
     max_range_age_us: int = opt(40_000, "a range sample older than this is stale", gt=0)
     random_walk_per_s: float = opt(
