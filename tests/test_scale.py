@@ -3,6 +3,8 @@ inputs, time alignment of ranges, and no position jump when the scale changes.""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -27,16 +29,28 @@ from companion.types import RangeSample, VoFeatures, VoOutput, VoState
 CAM = CameraModel(640, 480, 460.0, 460.0, 319.5, 239.5, -0.12, 0.05, 0.0005, -0.0003, 0.0)
 
 
-def ground_features(T_cam_vo: np.ndarray, scale: float, rng: np.random.Generator) -> VoFeatures:
-    """Map points of a flat ground 5 m below a level camera, in VO units (metres / scale), at
-    jittered pixels about 16 px apart."""
+def scene_features(
+    depth_of_ray: Callable[[np.ndarray], np.ndarray],
+    T_cam_vo: np.ndarray,
+    scale: float,
+    rng: np.random.Generator | None = None,
+) -> VoFeatures:
+    """Map points on a 16 px pixel grid (jittered by up to 4 px when ``rng`` is given) whose
+    metric depth (camera z) is ``depth_of_ray(rays (N, 3))``, in VO units (metres / scale)."""
     u, v = np.meshgrid(np.arange(8, 632, 16.0), np.arange(8, 472, 16.0))
-    pix = np.column_stack([u.ravel(), v.ravel()]) + rng.uniform(-4, 4, (u.size, 2))
+    pix = np.column_stack([u.ravel(), v.ravel()])
+    if rng is not None:
+        pix = pix + rng.uniform(-4, 4, (u.size, 2))
     n = len(pix)
     rays = CAM.pixels_to_rays(pix)
-    P_cam = rays * (5.0 / rays[:, 2:3])  # metric points on the plane z_cam = 5
+    P_cam = rays * (depth_of_ray(rays) / rays[:, 2])[:, None]
     X_vo = se3.transform(se3.inverse(T_cam_vo), P_cam / scale)
     return VoFeatures(pix, np.arange(n, dtype=np.int64), X_vo, np.full(n, 0.001))
+
+
+def ground_features(T_cam_vo: np.ndarray, scale: float, rng: np.random.Generator) -> VoFeatures:
+    """Map points of a flat ground 5 m below a level camera, at jittered pixels."""
+    return scene_features(lambda r: np.full(len(r), 5.0), T_cam_vo, scale, rng)
 
 
 def test_msc_recovers_a_known_scale_with_noiseless_ranges() -> None:
@@ -64,19 +78,6 @@ def test_msc_recovers_a_known_scale_with_noiseless_ranges() -> None:
     assert msc.measure(0, feats, T_cam_vo, CAM, np.array([50.0, 0, 5.0]), 0.01, 12, 0.5) is None
 
 
-def _scene_features(depth_of_ray: object, T_cam_vo: np.ndarray, scale: float) -> VoFeatures:
-    """Map points on a 16 px pixel grid (no jitter) whose metric depth (camera z) is
-    ``depth_of_ray(rays)``, in VO units."""
-    u, v = np.meshgrid(np.arange(8, 632, 16.0), np.arange(8, 472, 16.0))
-    pix = np.column_stack([u.ravel(), v.ravel()])
-    rays = CAM.pixels_to_rays(pix)
-    z = depth_of_ray(rays)  # type: ignore[operator]
-    P_cam = rays * (z / rays[:, 2])[:, None]
-    n = len(pix)
-    X_vo = se3.transform(se3.inverse(T_cam_vo), P_cam / scale)
-    return VoFeatures(pix, np.arange(n, dtype=np.int64), X_vo, np.full(n, 0.001))
-
-
 def _laser_at(pixel: tuple[float, float], depth_m: float) -> np.ndarray:
     ray = CAM.pixels_to_rays(np.array([pixel]))[0]
     return np.asarray(ray * depth_m / ray[2])
@@ -96,7 +97,7 @@ def test_msc_refuses_a_match_across_a_roof_edge_but_not_on_a_slope() -> None:
     def roof(rays: np.ndarray) -> np.ndarray:
         return np.where(rays[:, 0] < roof_u, 10.0, 12.0)
 
-    feats = _scene_features(roof, T_cam_vo, s_true)
+    feats = scene_features(roof, T_cam_vo, s_true)
     laser = _laser_at((318.0, 236.0), 12.0)
     args = (feats, T_cam_vo, CAM, laser, 0.01, opts.patch_half_px, opts.slope_factor)
     plain = msc.measure(0, *args)
@@ -113,7 +114,7 @@ def test_msc_refuses_a_match_across_a_roof_edge_but_not_on_a_slope() -> None:
         "slope 15 deg": lambda r: 8.0 / (1.0 - r[:, 0] * tan15),
         "level": lambda r: np.full(len(r), 8.0),
     }.items():
-        feats = _scene_features(depth, T_cam_vo, s_true)
+        feats = scene_features(depth, T_cam_vo, s_true)
         for pixel in [(318.0, 236.0), (100.0, 60.0), (600.0, 420.0)]:
             ray = CAM.pixels_to_rays(np.array([pixel]))
             laser = _laser_at(pixel, float(depth(ray)[0]))
@@ -221,7 +222,7 @@ def test_m_msc_does_not_take_a_lone_match_at_a_keyframe() -> None:
     literal fusion)."""
     s_true = 3.0
     T_cam_vo = se3.make(np.eye(3), [0.2, 0.1, -0.3])
-    feats = _scene_features(lambda r: np.full(len(r), 8.0), T_cam_vo, s_true)
+    feats = scene_features(lambda r: np.full(len(r), 8.0), T_cam_vo, s_true)
     pixels = {0: (200.0, 120.0), 1: (440.0, 120.0), 2: (200.0, 360.0), 3: (440.0, 360.0)}
 
     def keyframe(time_us: int, factors: dict[int, float]) -> ScaleInput:
