@@ -45,9 +45,15 @@ def _load(args: argparse.Namespace) -> Config:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """Print every option with its value and help."""
+    """Print every option with its value and help, after the checks `run` makes before it
+    starts (files, URLs, the status socket path): a file that passes here starts there."""
+    from companion.service import preflight
+
     cfg = _load(args)
+    warnings = preflight.check(cfg)
     print("\n".join(describe(cfg)))
+    for text in warnings:
+        print(f"companion: warning: {text}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -574,6 +580,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     import signal
 
     from companion.config import describe
+    from companion.redact import redact_url
     from companion.service.app import Service
 
     logging.basicConfig(
@@ -584,7 +591,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     for line in describe(cfg):
         log.debug("config %s", line)
     s = cfg.service
-    log.info("link %s, camera %s, output %s", s.mavlink_url, s.camera_url, s.output)
+    log.info("link %s, camera %s, output %s", s.mavlink_url, redact_url(s.camera_url), s.output)
+    report = args.report or s.report_path
 
     async def serve() -> dict[str, Any]:
         service = Service(cfg)  # a bad URL raises ConfigError here, before anything starts
@@ -594,8 +602,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         async with service:
             await service.run(args.duration)
         summary = service.summary()
-        if args.report:
-            service.write_report(Path(args.report))
+        if report:
+            try:
+                service.write_report(Path(report))
+            except OSError as e:  # a full disk: the run itself went fine
+                log.warning("exit report not written to %s: %s", report, e)
         return summary
 
     summary = asyncio.run(serve())

@@ -28,6 +28,7 @@ from companion.errors import ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
+from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
 from companion.service.options import ServiceOptions
 from companion.types import F64, RangeSensorSpec
@@ -252,6 +253,15 @@ class Config:
 T = TypeVar("T")
 
 
+def _short(value: Any, limit: int = 60) -> str:
+    """repr(value), cut to ``limit`` characters (a 400-digit number is not worth printing)."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int beyond Python's printable digits
+        return "a number too long to print"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
@@ -285,11 +295,15 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+            raise ConfigError(f"{key}: expected an integer, got {_short(value)}")
+        if abs(value) >= 2**63:
+            raise ConfigError(f"{key}: integer out of range, got {_short(value)}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
+            raise ConfigError(f"{key}: expected a number, got {_short(value)}")
+        if isinstance(value, int) and abs(value) >= 2**63:
+            raise ConfigError(f"{key}: number out of range, got {_short(value)}")
         if not math.isfinite(value):
             raise ConfigError(f"{key}: must be finite, got {value!r}")
         return float(value)
@@ -346,16 +360,37 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)
-        try:
-            with p.open("rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise ConfigError(f"config file not found: {p}") from None
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"{p}: not valid TOML: {e}") from None
+        data = read_toml(p)
     if overrides:
         data = merge(data, overrides)
     return from_dict(Config, data)
+
+
+MAX_CONFIG_BYTES = 1 << 20  # a config is a few kB; more is not a config
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """The TOML table in ``path``; ConfigError naming the file for anything that is not a
+    readable UTF-8 TOML file (missing, a directory, unreadable, too big, bad bytes)."""
+    try:
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a config file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror or e}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes: not a config file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}): {e.reason}") from None
+    try:
+        return tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, ValueError) as e:  # ValueError: an int too long to read
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
 
 
 def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -390,6 +425,9 @@ def describe(obj: Any, prefix: str = "") -> list[str]:
             for i, item in enumerate(value):
                 lines.extend(describe(item, f"{key}[{i}]."))
         else:
-            shown = "'***'" if f.metadata.get("secret") and value else repr(to_dict(value))
+            if f.metadata.get("secret") and value:
+                shown = "'***'"
+            else:  # credentials inside a URL (rtsp://user:pass@...) never reach a log
+                shown = redact_url(repr(to_dict(value)))
             lines.append(f"{key} = {shown}  # {f.metadata.get('help', '')}")
     return lines

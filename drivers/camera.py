@@ -221,6 +221,39 @@ def driver_stamp_us(driver_ms: float, grab_us: int) -> int | None:
     return t_us if grab_us - MAX_DRIVER_STAMP_AGE_US <= t_us <= grab_us else None
 
 
+NETWORK_SCHEMES = ("rtsp", "rtsps", "rtmp", "http", "https", "udp", "tcp", "rtp", "srt", "file")
+
+
+def check_camera_url(url: str, key: str = "service.camera_url") -> str | None:
+    """Check a camera URL without opening it: ConfigError naming ``key`` when it cannot work;
+    a warning text when it may work later (a device that is not plugged in yet), else None."""
+    if not url:
+        raise ConfigError(f"{key}: empty")
+    if url.startswith(("sitl://", "folder:")) or url.isdigit():
+        return None  # open_camera() checks these forms fully
+    scheme, sep, _ = url.partition("://")
+    if sep:
+        if scheme.lower() not in NETWORK_SCHEMES:
+            raise ConfigError(
+                f"{key}: unknown URL scheme {scheme!r} (known: sitl, folder:, "
+                f"{', '.join(NETWORK_SCHEMES)}, a /dev/video device or a GStreamer pipeline)"
+            )
+        return None
+    if "!" in url:  # a GStreamer pipeline (it must end in appsink)
+        if "appsink" not in url:
+            raise ConfigError(f"{key}: a GStreamer pipeline must end in appsink: {url!r}")
+        return None
+    path = Path(url)
+    if url.startswith("/dev/"):
+        return None if path.exists() else f"{key}: {url} does not exist (yet): waiting for it"
+    if not path.is_file():
+        raise ConfigError(
+            f"{key}: {url!r} is neither a file, a device, a URL (scheme://...) nor a "
+            "GStreamer pipeline"
+        )
+    return None
+
+
 def open_camera(url: str, key: str = "service.camera_url") -> CameraSource:
     """The source for a config URL (see the module docstring); ConfigError naming ``key``."""
     if url.startswith("sitl://"):

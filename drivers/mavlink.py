@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import random
 import socket
 import threading
@@ -31,9 +32,13 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion.errors import ConfigError
 from drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 
+log = logging.getLogger("companion.mavlink")
+
 OnMessage = Callable[[Any, int], None]
 UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
 MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
+PEER_SILENCE_S = 2.0  # udpin: the autopilot may move to a new address after this much silence
+MAV_AUTOPILOT_INVALID = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,15 +75,74 @@ class LinkStats:
     tx_dropped: int = 0  # nothing to send to yet, or the transport failed
     reconnects: int = 0
     handler_errors: int = 0  # exceptions raised by on_message (a bug, but the link lives)
+    rx_skipped: int = 0  # whole frames of message ids nobody here reads: never parsed
+    rx_foreign: int = 0  # whole frames of another system id: never parsed
+    rx_other_address: int = 0  # datagrams from an address that is not the autopilot's: dropped
+    peer_changes: int = 0  # udpin: the autopilot's address changed (after its silence)
+    last_error: str = ""  # why the transport is down (serial: cannot open; tcp: refused)
+
+
+def frame_spans(data: bytes) -> list[tuple[int, int, int, int]] | None:
+    """``(start, end, system_id, message_id)`` of each frame when ``data`` is exactly a run of
+    whole MAVLink 1/2 frames (by their headers; nothing is checked), else None. A few
+    microseconds per datagram: the cheap first look before pymavlink's parser."""
+    out = []
+    i, n = 0, len(data)
+    while i < n:
+        magic = data[i]
+        if magic == 0xFD:  # v2: magic len incompat compat seq sys comp id(3) payload crc(2) [sig]
+            if n - i < 12:
+                return None
+            end = i + 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
+            sysid, msgid = data[i + 5], data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
+        elif magic == 0xFE:  # v1: magic len seq sys comp id payload crc(2)
+            if n - i < 8:
+                return None
+            end = i + 8 + data[i + 1]
+            sysid, msgid = data[i + 3], data[i + 5]
+        else:
+            return None
+        if end > n:
+            return None
+        out.append((i, end, sysid, msgid))
+        i = end
+    return out
 
 
 class Parser:
     """Bytes -> MAVLink messages (robust: bad frames are counted and skipped). With a signing
-    state (``drivers.signing``), frames are checked against it; refused ones are bad data."""
+    state (``drivers.signing``), frames are checked against it; refused ones are bad data.
 
-    def __init__(self, signing_state: Any = None) -> None:
+    ``wanted`` (message ids) and ``system_id``: on datagrams made of whole frames, the frames
+    of other message ids or other systems are skipped by their header alone (counted, never
+    CRC-checked or unpacked): a link that reads five message types does not pay for the
+    autopilot's other streams, nor for a flood of frames it would throw away."""
+
+    def __init__(
+        self,
+        signing_state: Any = None,
+        wanted: frozenset[int] | None = None,
+        system_id: int | None = None,
+    ) -> None:
         self.signing_state = signing_state
+        self.wanted = wanted
+        self.system_id = system_id
         self.mav = self._new()
+
+    def _prefilter(self, data: bytes, stats: LinkStats) -> bytes:
+        """The frames of ``data`` worth parsing (all of it unless it is whole frames)."""
+        spans = frame_spans(data)
+        if spans is None:
+            return data  # garbage or a partial frame: pymavlink's robust parser decides
+        keep = []
+        for start, end, sysid, msgid in spans:
+            if self.system_id is not None and sysid != self.system_id:
+                stats.rx_foreign += 1
+            elif self.wanted is not None and msgid not in self.wanted:
+                stats.rx_skipped += 1
+            else:
+                keep.append(data[start:end])
+        return data if len(keep) == len(spans) else b"".join(keep)
 
     def _new(self) -> Any:
         mav = VerifyingMAVLink(None)
@@ -109,6 +173,10 @@ class Parser:
         than pymavlink's own parsing)."""
         out: list[Any] = []
         resyncs = 0
+        if datagram and (self.wanted is not None or self.system_id is not None):
+            data = self._prefilter(data, stats)
+            if not data:
+                return out
         try:
             msg = self.mav.parse_char(data)
             while msg is not None:
@@ -150,27 +218,32 @@ class MavlinkLink:
         on_message: OnMessage,
         signing: Signing | None = None,
         local_port: int = 0,
+        wanted: frozenset[int] | None = None,
     ) -> None:
         """``local_port``: udpout sends from this port (0: an ephemeral one). PX4 keeps the
-        first sender's address until it reboots, so a fixed port survives our restarts."""
+        first sender's address until it reboots, so a fixed port survives our restarts.
+        ``wanted``: the message ids ``on_message`` reads (None: all); with it, frames of
+        other ids and other systems are skipped unparsed (see :class:`Parser`)."""
         self.url = LinkUrl.parse(url)
         self.local_port = local_port
         self.on_message = on_message
         self.peer_system_id = system_id  # udpin answers the address this system spoke from
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self.stats = LinkStats()
-        self._parser = Parser()
+        self._parser = Parser(None, wanted, system_id if wanted is not None else None)
         self.signing = signing
         if signing is not None:  # one signing state for what we send and what we parse
             signing.apply(self.mav, self._parser.mav)
             self._parser.signing_state = self.mav.signing
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: tuple[str, int] | None = None
+        self._peer_heard_ns = 0  # udpin: when the autopilot's address last sent us anything
         self._writer: asyncio.StreamWriter | None = None
         self._serial: Any = None
         self._tasks: list[asyncio.Task[None]] = []
         self._closing = False
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._errors_logged: dict[tuple[str, str], float] = {}
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> MavlinkLink:
@@ -180,7 +253,15 @@ class MavlinkLink:
             local = (u.host, u.port) if u.kind == "udpin" else None
             if u.kind == "udpout" and self.local_port:
                 local = ("0.0.0.0", self.local_port)
-            self._peer = (u.host, u.port) if u.kind == "udpout" else None
+            self._peer = None
+            if u.kind == "udpout":  # its numeric address: replies are matched against it
+                try:
+                    infos = await self._loop.getaddrinfo(u.host, u.port, type=socket.SOCK_DGRAM)
+                except OSError as e:
+                    raise ConfigError(
+                        f"service.mavlink_url: cannot resolve {u.host}: {e}"
+                    ) from None
+                self._peer = (str(infos[0][4][0]), int(infos[0][4][1]))
             transport, _ = await self._loop.create_datagram_endpoint(
                 lambda: _Udp(self), local_addr=local, remote_addr=None
             )
@@ -234,17 +315,57 @@ class MavlinkLink:
     ) -> None:
         self.stats.rx_bytes += len(data)
         now = time.monotonic_ns()
+        moving = False  # udpin: a datagram from a new address while the autopilot is silent
+        if addr is not None and self._peer is not None and addr != self._peer:
+            silent_s = (now - self._peer_heard_ns) * 1e-9
+            if self.url.kind == "udpout" or silent_s < PEER_SILENCE_S:
+                self.stats.rx_other_address += 1  # a spoofer or a flood: not even parsed
+                return
+            moving = True
         for msg in self._parser.feed(data, self.stats, datagram):
-            if (
+            if moving:
+                if not self._is_autopilot_heartbeat(msg):
+                    continue  # only the autopilot's own heartbeat may move the address
+                assert addr is not None
+                self._peer, moving = addr, False
+                self.stats.peer_changes += 1
+            elif (
                 addr is not None
+                and self._peer is None
                 and self.authentic(msg)
-                and (self._peer is None or msg.get_srcSystem() == self.peer_system_id)
+                and msg.get_srcSystem() == self.peer_system_id
             ):
-                self._peer = addr  # udpin: the autopilot's address (it may change port)
+                self._peer = addr  # udpin: the autopilot's address, learned once
+            if addr is not None and addr == self._peer:
+                self._peer_heard_ns = now
             try:
                 self.on_message(msg, now)
-            except Exception:  # a handler bug must not take the link down: count it
+            except Exception as e:  # a handler bug must not take the link down: said, counted
                 self.stats.handler_errors += 1
+                self._log_limited("handler failed on", msg.get_type(), e, self.stats.handler_errors)
+
+    def _is_autopilot_heartbeat(self, msg: Any) -> bool:
+        """The autopilot's own HEARTBEAT (its system id, component 1, a real autopilot type),
+        authentic when the link is signed."""
+        return bool(
+            msg.get_type() == "HEARTBEAT"
+            and msg.get_srcSystem() == self.peer_system_id
+            and msg.get_srcComponent() == 1
+            and msg.autopilot != MAV_AUTOPILOT_INVALID
+            and self.authentic(msg)
+        )
+
+    def _log_limited(self, what: str, kind: str, e: Exception, count: int) -> None:
+        """The first error of each (what, message type) in full, then one line per 10 s."""
+        now = time.monotonic()
+        last = self._errors_logged.get((what, kind))
+        if last is None:
+            log.error("%s %s", what, kind, exc_info=e)
+        elif now - last >= 10.0:
+            log.error("%s %s again (%d errors so far): %r", what, kind, count, e)
+        else:
+            return
+        self._errors_logged[(what, kind)] = now
 
     def authentic(self, msg: Any) -> bool:
         """Whether ``msg`` may change state: always without signing; with signing, only when
@@ -260,8 +381,9 @@ class MavlinkLink:
             self.signing.tick()  # a signed frame from the peer moved it far forward: persist first
         try:
             buf = msg.pack(self.mav)
-        except Exception:
+        except Exception as e:  # a value out of its field's range: a bug upstream, said
             self.stats.tx_dropped += 1
+            self._log_limited("cannot pack", msg.get_type(), e, self.stats.tx_dropped)
             return False
         self.mav.seq = (self.mav.seq + 1) % 256  # pack() does not count: the peer's loss stats
         return self.send_bytes(buf)
@@ -289,11 +411,13 @@ class MavlinkLink:
         while not self._closing:
             try:
                 reader, writer = await asyncio.open_connection(self.url.host, self.url.port)
-            except OSError:
+            except OSError as e:
+                self.stats.last_error = f"cannot connect to {self.url.host}:{self.url.port}: {e}"
                 await asyncio.sleep(delay * random.uniform(0.5, 1.5))
                 delay = min(delay * 2, 10.0)
                 continue
             delay = 0.5
+            self.stats.last_error = ""
             self._writer = writer
             try:
                 while data := await reader.read(4096):
@@ -323,7 +447,9 @@ class MavlinkLink:
                 try:
                     self._serial = serial.Serial(self.url.host, self.url.port, timeout=0.1)
                     delay = 0.2
-                except (OSError, ValueError, serial.SerialException):
+                    self.stats.last_error = ""
+                except (OSError, ValueError, serial.SerialException) as e:
+                    self.stats.last_error = f"cannot open {self.url.host}: {e}"
                     time.sleep(delay * random.uniform(0.5, 1.5))
                     delay = min(delay * 2, 5.0)
                     continue
@@ -346,7 +472,7 @@ class _Udp(asyncio.DatagramProtocol):
         self.link = link
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.link._received(data, addr if self.link.url.kind == "udpin" else None, True)
+        self.link._received(data, (str(addr[0]), int(addr[1])), True)
 
     def error_received(self, exc: Exception) -> None:  # ICMP port unreachable etc.
         self.link.stats.tx_dropped += 1

@@ -22,6 +22,16 @@ from companion.types import AttitudeSample, PoseEstimate, RangeSample, SignalQua
 MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
 MAV_CMD_SET_MESSAGE_INTERVAL = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+# what the service reads from the autopilot (the link skips every other frame unparsed)
+SERVICE_INPUTS = frozenset(
+    {
+        mavlink.MAVLINK_MSG_ID_HEARTBEAT,
+        mavlink.MAVLINK_MSG_ID_TIMESYNC,
+        mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
+        MSG_ID_DISTANCE_SENSOR,
+        MSG_ID_ATTITUDE,
+    }
+)
 MAV_SENSOR_ROTATION_PITCH_270 = mavlink.MAV_SENSOR_ROTATION_PITCH_270  # downward
 MAV_FRAME_LOCAL_FRD = mavlink.MAV_FRAME_LOCAL_FRD
 MAV_FRAME_BODY_FRD = mavlink.MAV_FRAME_BODY_FRD

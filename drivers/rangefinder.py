@@ -117,6 +117,8 @@ class TfminiSerial:
         self.on_sample = on_sample
         self.parser = TfminiParser()
         self.reopens = 0
+        self.last_error = ""  # why the port is not open (empty while it is)
+        self.samples = 0  # samples handed to on_sample
         self._closing = False
         self.opened = threading.Event()  # set once the port is open (raw mode)
         self._thread: threading.Thread | None = None
@@ -143,14 +145,17 @@ class TfminiSerial:
                 try:
                     port = serial.Serial(self.device, self.baud, timeout=0.1)
                     delay = 0.2
+                    self.last_error = ""
                     self.opened.set()
-                except (OSError, serial.SerialException):
+                except (OSError, serial.SerialException) as e:
+                    self.last_error = f"cannot open {self.device}: {e}"
                     time.sleep(delay * random.uniform(0.5, 1.5))
                     delay = min(delay * 2, 5.0)
                     continue
             try:
                 data = port.read(256)
-            except (OSError, serial.SerialException):
+            except (OSError, serial.SerialException) as e:
+                self.last_error = f"{self.device} failed: {e}"
                 self.reopens += 1
                 with contextlib.suppress(Exception):
                     port.close()
@@ -160,6 +165,7 @@ class TfminiSerial:
                 continue
             now_us = time.monotonic_ns() // 1000
             for r in self.parser.feed(data):
+                self.samples += 1
                 self.on_sample(
                     to_sample(r, self.sensor_id, now_us - self._frame_us, self.min_m, self.max_m)
                 )

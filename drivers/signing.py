@@ -36,12 +36,16 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
 from companion.service.options import SigningOptions
+from drivers.files import atomic_write
 
 EPOCH_2015_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC, the signing timestamp's origin
 UNITS_PER_S = 100_000  # the timestamp counts 10 us units
 RESERVE_UNITS = 60 * UNITS_PER_S  # the persisted value runs this far ahead of the one used
 ALLOWED_UNSIGNED = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT})
 NEW_STREAM_WINDOW_UNITS = 60 * UNITS_PER_S  # a new stream may start this far behind us
+MAX_TIMESTAMP = 1 << 48  # the signing timestamp has 48 bits
+CLOCK_SET_UNITS = (1_704_067_200 - EPOCH_2015_S) * UNITS_PER_S  # 2024-01-01: a wall clock set
+MAX_AHEAD_UNITS = 366 * 86400 * UNITS_PER_S  # a stored value this far ahead of a set clock: bad
 
 log = logging.getLogger("companion.signing")
 
@@ -113,17 +117,40 @@ class TimestampStore:
         self.writes = 0
         self.write_errors = 0
 
-    def read(self) -> int:
-        """The stored value (0 when there is none or it is unreadable: a fresh board)."""
+    def read(self, now_s: float | None = None) -> int:
+        """The stored value (0 when there is none: a fresh board). ConfigError naming
+        ``service.signing.timestamp_file`` when it cannot be read or cannot be right: not a
+        number, negative, with no room left below 2**48, or (with a wall clock that is set)
+        more than ``MAX_AHEAD_UNITS`` ahead of it. Accepting such a value would make every
+        genuine signed frame look like a replay to the autopilot, so nothing would be sent."""
+        key = "service.signing.timestamp_file"
         try:
-            return max(0, int(self.path.read_text().strip()))
-        except (OSError, ValueError):
+            text = self.path.read_text(encoding="ascii").strip()
+        except FileNotFoundError:
             return 0
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"{key}: cannot read {self.path}: {e}") from None
+        if not text.isdigit() or len(text) > 20:
+            raise ConfigError(f"{key}: {self.path} does not hold a timestamp: {text[:40]!r}")
+        value = int(text)
+        if value >= MAX_TIMESTAMP - 2 * RESERVE_UNITS:
+            raise ConfigError(
+                f"{key}: {self.path} holds {value}, at or beyond the 48-bit limit of a signing "
+                f"timestamp ({MAX_TIMESTAMP}); a corrupt or forged file"
+            )
+        wall = wall_units(now_s)
+        if wall >= CLOCK_SET_UNITS and value > wall + MAX_AHEAD_UNITS:
+            days = (value - wall) / UNITS_PER_S / 86400
+            raise ConfigError(
+                f"{key}: {self.path} holds a timestamp {days:.0f} days ahead of the wall clock; "
+                "a corrupt or forged file (remove it only if the wall clock is right)"
+            )
+        return value
 
     def start(self, now_s: float | None = None) -> int:
         """The first timestamp to use: after everything used before, and not behind the wall
         clock. Persists the reserve ahead of it before it is used."""
-        first = max(wall_units(now_s), self.read() + 1)
+        first = max(wall_units(now_s), self.read(now_s) + 1)
         try:
             self._write(first + RESERVE_UNITS)
         except OSError as e:
@@ -144,21 +171,8 @@ class TimestampStore:
                 self.write_errors += 1
 
     def _write(self, value: int) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            os.write(fd, f"{value}\n".encode())
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, self.path)
-        with contextlib.suppress(OSError):  # the rename itself durable
-            dfd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
+        value = min(value, MAX_TIMESTAMP - 1)  # never past 48 bits
+        atomic_write(self.path, f"{value}\n".encode())
         self.persisted = value
         self.writes += 1
 

@@ -72,6 +72,7 @@ def sitl_flight(
         "mavlink_url": f"udpin:127.0.0.1:{udp_us}",
         "camera_url": f"sitl://127.0.0.1:{tcp_cam}",
         "status_socket": str(tmp_path / "status.sock"),
+        "state_dir": str(tmp_path / "state"),
         **(service or {}),
     }
     cfg = load_config("config/sitl.toml", {"sitl": {"seconds": seconds}, "service": svc})
@@ -88,6 +89,7 @@ def service_config(tmp_path: Path, **service: object) -> object:
         "mavlink_url": f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
         "camera_url": f"sitl://127.0.0.1:{free_port()}",
         "status_socket": str(tmp_path / "status.sock"),
+        "state_dir": str(tmp_path / "state"),
         **service,
     }
     return load_config(None, {"service": svc})

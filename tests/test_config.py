@@ -94,3 +94,56 @@ def test_cli_exits_2_on_bad_config(tmp_path: Path, capsys: pytest.CaptureFixture
 def test_cli_config_prints_options(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["config"]) == 0
     assert "sitl.terrain = 'hills'" in capsys.readouterr().out
+
+
+def _config_error(path: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    """`companion config --config path`: exit 2, one clear line, no traceback."""
+    assert main(["config", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.startswith("companion: config error: "), err
+    return err
+
+
+def test_unreadable_config_files_exit_2_naming_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "conf.d"
+    folder.mkdir()
+    assert "is a directory" in _config_error(folder, capsys)
+    not_a_dir = tmp_path / "plain"
+    not_a_dir.write_text("")
+    assert "cannot read" in _config_error(not_a_dir / "x.toml", capsys)
+    latin1 = tmp_path / "latin1.toml"
+    latin1.write_bytes(b'[sitl]\nterrain = "h\xe9ll"\n')
+    assert "not UTF-8" in _config_error(latin1, capsys)
+    huge = tmp_path / "huge.toml"
+    huge.write_text("[camera]\nwidth = " + "9" * 400 + "\n")
+    assert "camera.width: integer out of range" in _config_error(huge, capsys)
+    huger = tmp_path / "huger.toml"
+    huger.write_text("[camera]\nfx = " + "9" * 5000 + "\n")  # beyond Python's int parsing
+    assert "not valid TOML" in _config_error(huger, capsys)
+
+
+def test_config_validates_what_run_needs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`companion config` fails on what `companion run` would fail on, naming the key."""
+    sock = tmp_path / "status.sock"
+    cases = {
+        'signing = { key_file = "/nonexistent/key" }': "service.signing.key_file",
+        'mqtt = { enabled = true, tls = true, ca_file = "/nonexistent/ca.pem" }': (
+            "service.mqtt.ca_file"
+        ),
+        'camera_url = "bogus://camera"': "service.camera_url: unknown URL scheme",
+        'camera_url = "no-such-file.mp4"': "service.camera_url",
+        'camera_url = "sitl://nohost"': "service.camera_url",
+        'mavlink_url = "udp://x"': "service.mavlink_url",
+        f'status_socket = "{tmp_path / "plain"}"': "service.status_socket",
+    }
+    (tmp_path / "plain").write_text("not a socket\n")
+    for line, key in cases.items():
+        path = tmp_path / "c.toml"
+        extra = "" if "status_socket" in line else f'status_socket = "{sock}"\n'
+        path.write_text(f"[service]\n{extra}{line}\n")
+        assert key in _config_error(path, capsys), line
+    assert (tmp_path / "plain").read_text() == "not a socket\n"

@@ -82,9 +82,12 @@ def test_the_timestamp_never_goes_back(tmp_path) -> None:
     s2.keep_ahead(t + RESERVE_UNITS)
     assert s2.writes == writes + 1 and s2.read() == t + 2 * RESERVE_UNITS
     assert not list(store.path.parent.glob("*.tmp"))  # atomic: no temporary left behind
-    # an unreadable file is a fresh board: the wall clock
+    # a file that does not hold a timestamp is not taken for a fresh board (the wall clock
+    # may be behind what was used): a config error, the file left as it is
     store.path.write_text("garbage")
-    assert abs(TimestampStore(store.path).start(now_s) - wall_units(now_s)) <= 1
+    with pytest.raises(ConfigError, match="does not hold a timestamp"):
+        TimestampStore(store.path).start(now_s)
+    assert store.path.read_text() == "garbage"
 
 
 class Peer:
@@ -266,11 +269,12 @@ def test_an_unsigned_heartbeat_does_not_redirect_the_signed_link(tmp_path) -> No
             await asyncio.sleep(0.1)
             link.send(link.mav.heartbeat_encode(18, 8, 0, 0, 4))
             got = await asyncio.to_thread(autopilot.receive, 0.2)
-            return peer_before, link._peer, len(got)
+            return peer_before, link._peer, len(got), link.stats.rx_other_address
 
-    before, after, n_got = asyncio.run(main())
-    assert seen.count("HEARTBEAT") == 21  # visible...
-    assert after == before and n_got == 1  # ...but our output still goes to the autopilot
+    before, after, n_got, dropped = asyncio.run(main())
+    # the autopilot's address is kept while it talks: the other sender is not even parsed
+    assert seen.count("HEARTBEAT") == 1 and dropped == 20
+    assert after == before and n_got == 1  # our output still goes to the autopilot
 
 
 def test_an_unwritable_timestamp_file_is_a_config_error(tmp_path) -> None:
@@ -284,3 +288,45 @@ def test_an_unwritable_timestamp_file_is_a_config_error(tmp_path) -> None:
     store.path = blocker / "gone"
     store.keep_ahead(t + RESERVE_UNITS)
     assert store.write_errors == 1
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (str(2**48), "48-bit limit"),
+        (str(2**48 - 5), "48-bit limit"),  # no room left to count up
+        (str(wall_units() + 2 * 366 * 86400 * UNITS_PER_S), "days ahead of the wall clock"),
+        ("12abc", "does not hold a timestamp"),
+        ("-5", "does not hold a timestamp"),
+    ],
+)
+def test_an_impossible_stored_timestamp_stops_the_start(tmp_path, content, message) -> None:
+    """Accepted, such a value made every genuine signed frame a 'replay' to the autopilot."""
+    from companion.cli import main
+
+    path = tmp_path / "signing_timestamp"
+    path.write_text(content + "\n")
+    with pytest.raises(ConfigError, match=rf"service\.signing\.timestamp_file: .*{message}"):
+        TimestampStore(path).start()
+    key = write_key(tmp_path / "k", KEY)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        f'[service]\nstatus_socket = "{tmp_path / "s.sock"}"\n'
+        f'signing = {{ key_file = "{key}", timestamp_file = "{path}" }}\n'
+    )
+    assert main(["config", "--config", str(cfg)]) == 2  # the same check as `run`
+    assert path.read_text() == content + "\n"  # left for a person to look at
+
+
+def test_a_timestamp_ahead_of_an_unset_clock_is_fine_and_never_written_past_48_bits(
+    tmp_path,
+) -> None:
+    store = TimestampStore(tmp_path / "ts")
+    real_now = wall_units()
+    store.path.write_text(f"{real_now}\n")
+    board_1970 = 0.0  # a board without a real-time clock: the stored value is the truth
+    assert store.start(board_1970) == real_now + 1
+    store.keep_ahead(2**48 - 10)  # a genuine peer far ahead moved us to the edge
+    assert int(store.path.read_text()) == 2**48 - 1  # capped at 48 bits
+    with pytest.raises(ConfigError, match="48-bit limit"):  # and said at the next start
+        store.read(board_1970)

@@ -163,3 +163,134 @@ def test_default_socket_paths(monkeypatch) -> None:
     monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1000")
     assert str(status_path("")) == "/run/user/1000/companion.sock"
     assert str(status_path("/x/y.sock")) == "/x/y.sock"
+
+
+# ---------------------------------------------------------------- what is never removed
+
+
+def _start(path):
+    async def enter() -> None:
+        async with StatusServer(path, lambda: SAMPLE):
+            pass
+
+    asyncio.run(enter())
+
+
+def test_a_regular_file_at_the_socket_path_is_never_deleted(tmp_path) -> None:
+    victim = tmp_path / "passwd"
+    victim.write_text("root:x:0:0\n")
+    with pytest.raises(ConfigError, match=r"service\.status_socket: .* not a socket"):
+        _start(victim)
+    assert victim.read_text() == "root:x:0:0\n"
+
+
+def test_a_directory_or_a_symlink_at_the_socket_path_is_a_config_error(tmp_path) -> None:
+    folder = tmp_path / "dir"
+    folder.mkdir()
+    with pytest.raises(ConfigError, match=r"service\.status_socket: .* is a directory"):
+        _start(folder)
+    target = tmp_path / "target"
+    target.write_text("keep")
+    link = tmp_path / "link.sock"
+    link.symlink_to(target)
+    with pytest.raises(ConfigError, match=r"service\.status_socket: .* not a socket"):
+        _start(link)
+    assert link.is_symlink() and target.read_text() == "keep"
+
+
+def test_a_socket_of_another_user_is_never_deleted(tmp_path) -> None:
+    import socket
+
+    path = tmp_path / "theirs.sock"
+    s = socket.socket(socket.AF_UNIX)
+    s.bind(str(path))
+    s.close()
+    os.chown(path, 4242, 4242)  # the tests run as root (make test installs with apt-get)
+    with pytest.raises(ConfigError, match=r"owned by uid 4242"):
+        _start(path)
+    assert path.is_socket()
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [("a\x00b.sock", "NUL"), ("x" * 120 + ".sock", "longer than a Unix socket path")],
+)
+def test_impossible_socket_paths_are_config_errors(tmp_path, name, message) -> None:
+    with pytest.raises(ConfigError, match=rf"service\.status_socket: .*{message}"):
+        _start(tmp_path / name)
+
+
+# ---------------------------------------------------------------- what the client believes
+
+
+def fake_server(path, payload: bytes, repeat: int = 1):
+    """A Unix socket at path that answers every client with payload * repeat."""
+    import socket
+
+    srv = socket.socket(socket.AF_UNIX)
+    srv.bind(str(path))
+    srv.listen(4)
+    stop = threading.Event()
+
+    def serve() -> None:
+        srv.settimeout(0.1)
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                continue
+            with conn:
+                try:
+                    for _ in range(repeat):
+                        conn.sendall(payload)
+                except OSError:
+                    pass
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    return stop, srv, t
+
+
+@pytest.mark.parametrize(
+    ("payload", "repeat", "message"),
+    [
+        (b'{"hello": 1}\n', 1, "missing 'uptime_s'"),
+        (json.dumps({**SAMPLE, "vo": {"state": 3}}).encode(), 1, "'vo.state' has type int"),
+        (b"\xff\xfe not json", 1, "not JSON"),
+        (b"[1, 2, 3]", 1, "expected an object"),
+        (b"x" * 65536, 64, "longer than"),  # 4 MiB: more than any status
+    ],
+)
+def test_cli_status_refuses_what_is_not_a_status(tmp_path, capsys, payload, repeat, message):
+    path = tmp_path / "fake.sock"
+    stop, srv, t = fake_server(path, payload, repeat)
+    try:
+        rc = main(["status", "--socket", str(path)])
+    finally:
+        stop.set()
+        t.join(2)
+        srv.close()
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    assert message in err and "Traceback" not in err
+
+
+def test_a_socket_of_another_user_in_a_world_writable_folder_is_not_trusted(tmp_path) -> None:
+    from companion.service.status import StatusError
+
+    shared = tmp_path / "tmp"
+    shared.mkdir()
+    shared.chmod(0o1777)  # as /tmp
+    path = shared / "companion-0.sock"
+    stop, srv, t = fake_server(path, json.dumps(SAMPLE).encode())
+    try:
+        assert read_status(path) == SAMPLE  # ours: believed
+        os.chown(path, 4242, 4242)  # somebody else's, made before the service started
+        with pytest.raises(StatusError, match="not trusted"):
+            read_status(path)
+        shared.chmod(0o755)  # a folder only its owner writes to: the owner vouches for it
+        assert read_status(path) == SAMPLE
+    finally:
+        stop.set()
+        t.join(2)
+        srv.close()

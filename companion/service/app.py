@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import random
@@ -33,18 +34,25 @@ import numpy as np
 
 from companion.config import Config
 from companion.pipeline import Pipeline
+from companion.redact import redact_text, redact_url, url_secrets
+from companion.service import preflight
 from companion.service.mqtt import MqttPublisher
+from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer, status_path
 from companion.service.systemd import SdNotify
 from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import messages
+from drivers.files import atomic_write
 
 log = logging.getLogger("companion.service")
 
 MAX_CONSECUTIVE_PIPELINE_ERRORS = 30  # about a second of frames: then the service ends
 FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; frame_wait_ms rules)
+CAMERA_SILENT_S = 1.0  # no frame for this long (or 10 frame periods, if longer): said, shown
+AUTOPILOT_UNHEARD_S = 5.0  # no heartbeat this long after the start: said, with the link's error
+HEALTH_PERIOD_S = 0.5
 
 
 def now_ns() -> int:
@@ -92,6 +100,11 @@ class Service:
 
         self.config = config
         o = config.service
+        # everything the config needs from the machine, before anything starts (exit 2)
+        self.preflight_warnings = preflight.check(config)
+        self._secrets = [*url_secrets(o.camera_url), *url_secrets(o.mavlink_url), o.mqtt.password]
+        self.camera_url_shown = redact_url(o.camera_url)
+        self.resets = ResetCounter(state_dir(o.state_dir) / RESET_COUNTER_FILE)
         self.pipeline = Pipeline(config)
         self.sync = ClockSync()
         self.stats = ServiceStats()
@@ -105,6 +118,7 @@ class Service:
             self._on_message,
             Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
             o.mavlink_local_port,
+            wanted=messages.SERVICE_INPUTS,  # the rest is skipped unparsed (floods, streams)
         )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt: MqttPublisher | None = (
@@ -134,6 +148,9 @@ class Service:
         self._autopilot_lost = False
         self._sync_resets = 0
         self._attitude_rates = np.zeros(3)
+        self._camera_silent = False
+        self._stack: contextlib.AsyncExitStack | None = None
+        self._switch_interval_s: float | None = None
 
     def _tfmini(self, rf: Any) -> Any:
         """A rangefinder wired to the companion (drivers.rangefinder)."""
@@ -163,32 +180,43 @@ class Service:
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Service:
-        sys.setswitchinterval(0.0005)  # let the event loop in often while the worker computes
-        await self.status_server.__aenter__()  # first: a second instance stops here (exit 2)
+        """Enter the components in order through one AsyncExitStack: a failure part-way
+        (a second instance on the status socket, a port taken) closes what was entered."""
         self._loop = asyncio.get_running_loop()
-        for drv in self.tfminis:
-            drv.start()
-        await self.link.__aenter__()
-        if self.mqtt is not None:
-            await self.mqtt.__aenter__()
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
-        loops = {
-            "heartbeat": self._heartbeat_loop(),
-            "timesync": self._timesync_loop(),
-            "rates": self._rates_loop(),
-            "camera": self._camera_loop(),
-            "pipeline": self._pipeline_loop(),
-        }
-        if self.systemd.watchdog_s:
-            loops["watchdog"] = self._watchdog_loop()
-        if self.mqtt is not None:
-            loops["mqtt-status"] = self._mqtt_status_loop()
-            loops["mqtt-pose"] = self._mqtt_pose_loop()
-        for name, coro in loops.items():
-            self._tasks.append(self._tg.create_task(coro, name=name))
+        async with contextlib.AsyncExitStack() as stack:
+            # first: a second instance stops here (exit 2)
+            await stack.enter_async_context(self.status_server)
+            # let the event loop in often while the worker computes; restored on exit
+            self._switch_interval_s = sys.getswitchinterval()
+            stack.callback(sys.setswitchinterval, self._switch_interval_s)
+            sys.setswitchinterval(0.0005)
+            for drv in self.tfminis:
+                drv.start()
+                stack.callback(drv.close)
+            await stack.enter_async_context(self.link)
+            if self.mqtt is not None:
+                await stack.enter_async_context(self.mqtt)
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+            loops = {
+                "heartbeat": self._heartbeat_loop(),
+                "timesync": self._timesync_loop(),
+                "rates": self._rates_loop(),
+                "camera": self._camera_loop(),
+                "pipeline": self._pipeline_loop(),
+                "health": self._health_loop(),
+            }
+            if self.systemd.watchdog_s:
+                loops["watchdog"] = self._watchdog_loop()
+            if self.mqtt is not None:
+                loops["mqtt-status"] = self._mqtt_status_loop()
+                loops["mqtt-pose"] = self._mqtt_pose_loop()
+            for name, coro in loops.items():
+                self._tasks.append(self._tg.create_task(coro, name=name))
+            self._stack = stack.pop_all()
+        for text in self.preflight_warnings:
+            self._warn(text)
         o = self.config.service
-        self.systemd.ready(f"link {o.mavlink_url}, camera {o.camera_url}")
+        self.systemd.ready(f"link {o.mavlink_url}, camera {self.camera_url_shown}")
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
@@ -197,18 +225,11 @@ class Service:
         self._stop.set()
         self._frame_ready.set()
         self.camera.close()
-        try:
-            if self._tg is not None:
-                for task in self._tasks:
-                    task.cancel()
-                await self._tg.__aexit__(*exc)
-        finally:
-            for drv in self.tfminis:
-                drv.close()
-            if self.mqtt is not None:
-                await self.mqtt.__aexit__(*exc)
-            await self.link.__aexit__(*exc)
-            await self.status_server.__aexit__(*exc)
+        for task in self._tasks:
+            task.cancel()
+        if self._stack is not None:
+            stack, self._stack = self._stack, None
+            await stack.__aexit__(*exc)
 
     async def run(self, duration_s: float | None = None) -> None:
         """Serve until ``stop()`` or for duration_s seconds."""
@@ -222,7 +243,12 @@ class Service:
 
     # ------------------------------------------------------------------ MAVLink in
     def _on_message(self, msg: Any, rx_ns: int) -> None:
-        """Every received message, on the event loop, stamped at reception."""
+        """Every received message, on the event loop, stamped at reception. Messages of other
+        systems are counted and dropped first (a ground station's or another vehicle's
+        TIMESYNC requests are not ours to answer)."""
+        if msg.get_srcSystem() != self.config.service.system_id:
+            self.stats.foreign_messages += 1  # another vehicle or a ground station: not ours
+            return
         kind = msg.get_type()
         if kind == "TIMESYNC":
             reply = reply_for(msg.tc1, msg.ts1, now_ns())
@@ -232,9 +258,6 @@ class Service:
             elif msg.ts1 in self._timesync_sent:  # an answer to one of our own requests
                 self._timesync_sent.remove(msg.ts1)
                 self.sync.on_reply(msg.tc1, msg.ts1, rx_ns)
-            return
-        if msg.get_srcSystem() != self.config.service.system_id:
-            self.stats.foreign_messages += 1  # another vehicle or a ground station: not ours
             return
         if kind == "HEARTBEAT":
             if (
@@ -247,7 +270,10 @@ class Service:
             return
         if kind == "COMMAND_ACK":
             if (
-                msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL
+                msg.get_srcComponent() == 1  # the autopilot's, addressed to us (or to all)
+                and getattr(msg, "target_system", 0) in (0, self.link.mav.srcSystem)
+                and getattr(msg, "target_component", 0) in (0, self.link.mav.srcComponent)
+                and msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL
                 and msg.result == 0
                 and self._rate_pending is not None
             ):
@@ -401,7 +427,52 @@ class Service:
             self.systemd.watchdog()
             await self._sleep(self.systemd.watchdog_s / 2)
 
+    async def _health_loop(self) -> None:
+        """What an operator must hear about even when nothing raises: a camera that delivers
+        nothing (a killed stream, a stalled driver, nobody listening), an autopilot never heard
+        since the start (a wrong port or device), a serial rangefinder that cannot be opened."""
+        started = now_ns()
+        silent_after_s = max(CAMERA_SILENT_S, 10.0 / self.config.camera.rate_hz)
+        unheard_said = False
+        rf_said: dict[int, str] = {}
+        while not self._stop.is_set():
+            now = now_ns()
+            last = self._frame_times_ns[-1] if self._frame_times_ns else started
+            silent_s = (now - last) * 1e-9
+            if silent_s > silent_after_s and not self._camera_silent:
+                self._camera_silent = True
+                self._warn(
+                    f"camera: no frames for {silent_s:.1f} s from {self.camera_url_shown}; "
+                    "not publishing"
+                )
+            elif self._camera_silent and silent_s <= silent_after_s:
+                self._camera_silent = False
+                self._warn("camera: frames again")
+            if (
+                not unheard_said
+                and not self.stats.autopilot_heartbeat_ns
+                and (now - started) * 1e-9 > AUTOPILOT_UNHEARD_S
+            ):
+                unheard_said = True
+                why = self.link.stats.last_error
+                self._warn(
+                    f"autopilot: no heartbeat on {self.config.service.mavlink_url} for "
+                    f"{AUTOPILOT_UNHEARD_S:g} s" + (f" ({why})" if why else "")
+                )
+            for drv in self.tfminis:
+                err = drv.last_error
+                if err and rf_said.get(drv.sensor_id) != err:
+                    self._warn(f"rangefinder {drv.sensor_id}: {err}")
+                elif not err and drv.sensor_id in rf_said:
+                    self._warn(f"rangefinder {drv.sensor_id}: {drv.device} open")
+                if err:
+                    rf_said[drv.sensor_id] = err
+                else:
+                    rf_said.pop(drv.sensor_id, None)
+            await self._sleep(HEALTH_PERIOD_S)
+
     def _warn(self, text: str) -> None:
+        text = redact_text(text, self._secrets)  # a driver's error may quote the camera URL
         log.warning(text)
         self.stats.warnings.append(text)
         if self.mqtt is not None:
@@ -500,6 +571,8 @@ class Service:
         if age_ms > self.config.service.stale_frame_ms:  # too old to help the autopilot
             self.stats.stale += 1
             return
+        # the counter on the wire never repeats the last one an earlier run sent
+        pose = dataclasses.replace(pose, reset_counter=self.resets.wire(pose.reset_counter))
         o = self.config.service.output
         mav = self.link.mav
         sent = False
@@ -512,11 +585,11 @@ class Service:
                 sent |= self.link.send(odo)
         if sent:
             t = now_ns()
+            if self.stats.published and pose.reset_counter != self.stats.last_reset_counter:
+                self._warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
             self.stats.published += 1
             self.stats.publish_times_ns.append(t)
             self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
-            if pose.reset_counter != self.stats.last_reset_counter:
-                self._warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
             self.stats.last_reset_counter = pose.reset_counter
             self.stats.sent.append(pose)
             self._last_pose = pose
@@ -570,7 +643,8 @@ class Service:
         now = now_ns()
         s, p, o = self.stats, self.pipeline, self.config.service
         frames = list(self._frame_times_ns)
-        fps = (len(frames) - 1) / ((frames[-1] - frames[0]) * 1e-9) if len(frames) > 1 else 0.0
+        recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
+        fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
         pubs = [t for t in s.publish_times_ns if now - t < 5_000_000_000]
         out = p.vo_output
         est = p.estimates.get(p.method_name)
@@ -594,23 +668,28 @@ class Service:
                 "rx_messages": self.link.stats.rx_messages,
                 "rx_bad": self.link.stats.rx_bad,
                 "handler_errors": self.link.stats.handler_errors,
-                "foreign_messages": s.foreign_messages,
+                "foreign_messages": s.foreign_messages + self.link.stats.rx_foreign,
+                "other_address": self.link.stats.rx_other_address,
                 "attitudes_rejected": s.attitudes_rejected,
                 "signing": self.link.signing.counters() if self.link.signing else None,
             },
             "camera": {
-                "url": o.camera_url,
+                "url": self.camera_url_shown,
                 "fps": fps,
                 "frames": s.frames_in,
                 "dropped": s.frames_dropped,
                 "stamps": self.camera.stamps,
                 "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
-                "problem": self._frame_problem.value if self._frame_problem else None,
+                "problem": "no frames"
+                if self._camera_silent
+                else (self._frame_problem.value if self._frame_problem else None),
                 "rejected": {k: v for k, v in self.frame_check.counts.items() if v},
                 "gaps": p.gaps,
             },
             "vo": {
-                "state": out.state.name if out is not None else "INITIALIZING",
+                "state": "STALLED (no frames)"
+                if self._camera_silent
+                else (out.state.name if out is not None else "INITIALIZING"),
                 "features": int(len(out.features.pixels)) if out is not None else 0,
                 "keyframes": len(p.vo.keyframes),
                 "resets": p.vo.resets,
@@ -654,5 +733,6 @@ class Service:
         }
 
     def write_report(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.summary(), indent=2) + "\n")
+        """The exit summary as JSON, written atomically (a full disk leaves no torn file and
+        raises OSError for the caller to report)."""
+        atomic_write(path, (json.dumps(self.summary(), indent=2) + "\n").encode(), 0o644)

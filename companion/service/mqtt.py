@@ -23,6 +23,9 @@ from typing import Any
 from companion.service.options import MqttOptions
 
 MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
+STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" status to go out
+OFFLINE = b'{"state": "offline"}'
+
 
 log = logging.getLogger("companion.mqtt")
 
@@ -34,6 +37,7 @@ class MqttStats:
     dropped: int = 0  # oldest messages dropped because the queue was full
     connects: int = 0
     last_error: str = ""
+    errors: int = 0  # failed connections and lost ones
 
 
 class MqttPublisher:
@@ -49,6 +53,8 @@ class MqttPublisher:
         self._queue: deque[tuple[str, bytes, bool]] = deque(maxlen=opts.queue_size)
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._offline_sent = asyncio.Event()
 
     @property
     def queued(self) -> int:
@@ -59,10 +65,18 @@ class MqttPublisher:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+        """A clean stop says ``offline`` (retained) itself, as the broker's last will says it
+        for a crash; at most ``STOP_TIMEOUT_S`` is spent on it (a broker that is away)."""
+        if self._task is None:
+            return
+        self._stopping = True
+        self._wake.set()
+        if self.stats.connected:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._offline_sent.wait(), STOP_TIMEOUT_S)
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
 
     # ------------------------------------------------------------------ producers
     def _put(self, topic: str, payload: dict[str, Any], retain: bool) -> None:
@@ -93,13 +107,15 @@ class MqttPublisher:
             o.port,
             username=o.username or None,
             password=o.password or None,
-            will=aiomqtt.Will(self.topic_status, b'{"state": "offline"}', qos=1, retain=True),
+            will=aiomqtt.Will(self.topic_status, OFFLINE, qos=1, retain=True),
             keepalive=o.keepalive_s,
             tls_context=tls_context,
             timeout=5.0,
         )
 
     async def _run(self) -> None:
+        """Connect, drain, reconnect: every failure (the broker, TLS, a bad CA file, a bug) is
+        logged and retried with backoff; this task never dies silently."""
         import aiomqtt
 
         delay = 0.5
@@ -108,24 +124,49 @@ class MqttPublisher:
                 async with self._client() as client:
                     self.stats.connected = True
                     self.stats.connects += 1
+                    self.stats.last_error = ""
                     delay = 0.5
                     log.info("MQTT connected to %s:%d", self.opts.host, self.opts.port)
                     await client.publish(
                         self.topic_status, b'{"state": "online"}', qos=1, retain=True
                     )
                     while True:
-                        while self._queue:
+                        while self._queue:  # drained before "offline" on a stop too
                             topic, payload, retain = self._queue[0]
                             await client.publish(topic, payload, qos=0, retain=retain)
                             self._queue.popleft()  # only once it went out
                             self.stats.published += 1
+                        if self._stopping:
+                            await client.publish(self.topic_status, OFFLINE, qos=1, retain=True)
+                            self._offline_sent.set()
+                            return
                         self._wake.clear()
                         await self._wake.wait()
+            except asyncio.CancelledError:
+                raise
             except aiomqtt.MqttError as e:
-                self.stats.last_error = str(e)
+                self._failed(str(e) or type(e).__name__, delay)
+            except Exception as e:  # TLS set-up, a CA file gone, a bug: said, then retried
+                self._failed(f"{type(e).__name__}: {e}", delay)
             finally:
-                if self.stats.connected:
-                    log.warning("MQTT connection lost: %s", self.stats.last_error or "closed")
                 self.stats.connected = False
+            if self._stopping:
+                return
             await asyncio.sleep(delay * random.uniform(0.5, 1.5))
             delay = min(delay * 2, MAX_BACKOFF_S)
+
+    def _failed(self, why: str, delay: float) -> None:
+        """Log a failure: every one while connected, then once per distinct error (a broker
+        that stays away must not fill the journal every few seconds)."""
+        if self.stats.connected:
+            log.warning("MQTT connection lost: %s", why)
+        elif why != self.stats.last_error:
+            log.warning(
+                "MQTT: cannot connect to %s:%d: %s (retrying every %.0f s or less)",
+                self.opts.host,
+                self.opts.port,
+                why,
+                MAX_BACKOFF_S,
+            )
+        self.stats.last_error = why
+        self.stats.errors += 1

@@ -75,6 +75,11 @@ class ServiceOptions:
         gt=0,
     )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
+    state_dir: str = opt(
+        "",
+        "what survives a restart (the last reset_counter); empty: $STATE_DIRECTORY under "
+        "systemd, else $XDG_STATE_HOME/companion, else ~/.local/state/companion",
+    )
     mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
     signing: SigningOptions = opt(SigningOptions(), "MAVLink 2 signing of the autopilot link")
     status_socket: str = opt(

@@ -1,0 +1,169 @@
+"""The autopilot link against senders that are not the autopilot (issue 16): a spoofer on
+another UDP address, TIMESYNC requests of other systems, a forged COMMAND_ACK, and the cheap
+first look that skips what nobody reads. A real Service on loopback, real pymavlink peers."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from typing import Any
+
+from peers import free_port, service_config
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.service.app import Service
+from drivers import messages
+from drivers.mavlink import PEER_SILENCE_S, LinkStats, Parser, frame_spans
+
+
+class Sender:
+    """A pymavlink sender on its own UDP port, as system ``sysid`` component ``compid``."""
+
+    def __init__(self, port: int, sysid: int = 1, compid: int = 1) -> None:
+        self.mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.mav.robust_parsing = True
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.port = port
+        self.got: list[Any] = []
+
+    def send(self, msg: Any) -> None:
+        self.sock.sendto(msg.pack(self.mav), ("127.0.0.1", self.port))
+
+    def heartbeat(self) -> None:
+        self.send(self.mav.heartbeat_encode(2, 12, 0, 0, 4))  # QUADROTOR, PX4
+
+    def drain(self) -> list[Any]:
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except BlockingIOError:
+                return self.got
+            self.got += self.mav.parse_buffer(data) or []
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def kinds(msgs: list[Any], kind: str) -> list[Any]:
+    return [m for m in msgs if m.get_type() == kind]
+
+
+def test_a_spoofer_on_another_address_gets_nothing_and_changes_nothing(tmp_path) -> None:
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+
+    async def main() -> dict[str, Any]:
+        async with Service(cfg) as service:
+            autopilot, spoofer = Sender(port), Sender(port)
+            gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+            autopilot.heartbeat()
+            await asyncio.sleep(0.2)
+            for k in range(30):  # the spoofer talks while the autopilot does
+                autopilot.heartbeat()
+                autopilot.send(autopilot.mav.timesync_encode(0, 10_000 + k))
+                spoofer.heartbeat()
+                spoofer.send(spoofer.mav.timesync_encode(0, 20_000 + k))
+                spoofer.send(spoofer.mav.attitude_encode(k, 0.1, 0.1, 0.0, 0.0, 0.0, 0.0))
+                spoofer.send(
+                    spoofer.mav.command_ack_encode(
+                        messages.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 0, 0, 1, 197
+                    )
+                )
+                # a ground station's request forwarded on the autopilot's own address
+                request = gcs.timesync_encode(0, 30_000 + k).pack(gcs)
+                autopilot.sock.sendto(request, ("127.0.0.1", port))
+                await asyncio.sleep(0.02)
+            await asyncio.sleep(1.2)  # a heartbeat and some time-sync requests of ours
+            out = {
+                "autopilot": autopilot.drain(),
+                "spoofer": spoofer.drain(),
+                "stats": service.stats,
+                "link": service.link.stats,
+                "peer": service.link._peer,
+                "autopilot_port": autopilot.sock.getsockname(),
+            }
+            autopilot.close()
+            spoofer.close()
+            return out
+
+    r = asyncio.run(main())
+    assert r["spoofer"] == []  # no heartbeat, no TIMESYNC reply, nothing
+    assert r["peer"] == r["autopilot_port"]
+    replies = {m.ts1 for m in kinds(r["autopilot"], "TIMESYNC") if m.tc1 != 0}
+    assert {10_000 + k for k in range(30)} <= replies  # every request of the autopilot...
+    assert not replies & {30_000 + k for k in range(30)}  # ...none of the ground station's
+    assert kinds(r["autopilot"], "HEARTBEAT")
+    assert r["stats"].attitudes_in == 0  # the spoofed ATTITUDE never reached the pipeline
+    assert r["stats"].rates_acknowledged == set()  # nor did the forged COMMAND_ACK
+    assert r["link"].rx_other_address >= 4 * 30
+    assert r["stats"].timesync_replies == 30
+
+
+def test_the_autopilot_moves_port_only_with_its_own_heartbeat_after_silence(tmp_path) -> None:
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+
+    async def main() -> list[Any]:
+        async with Service(cfg) as service:
+            link = service.link
+            old = Sender(port)
+            old.heartbeat()
+            await asyncio.sleep(0.2)
+            first = link._peer
+            new = Sender(port)
+            new.heartbeat()  # while the old address is fresh: ignored
+            await asyncio.sleep(0.2)
+            kept = link._peer
+            await asyncio.sleep(PEER_SILENCE_S + 0.3)  # the autopilot rebooted, say
+            new.send(new.mav.attitude_encode(1, 0.1, 0.1, 0, 0, 0, 0))  # not a heartbeat
+            gcs = mavlink.MAVLink(None, srcSystem=1, srcComponent=190)
+            new.sock.sendto(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs), ("127.0.0.1", port))
+            await asyncio.sleep(0.2)
+            still = link._peer
+            new.heartbeat()  # the autopilot's own
+            await asyncio.sleep(0.2)
+            moved = link._peer
+            result = [first, kept, still, moved, old.sock.getsockname(), new.sock.getsockname()]
+            result.append(link.stats.peer_changes)
+            old.close()
+            new.close()
+            return result
+
+    first, kept, still, moved, old_addr, new_addr, changes = asyncio.run(main())
+    assert first == kept == still == old_addr
+    assert moved == new_addr and changes == 1
+
+
+def test_frames_nobody_reads_are_skipped_by_their_header() -> None:
+    ap = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    other = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+    hb = ap.heartbeat_encode(2, 12, 0, 0, 4).pack(ap)
+    imu = ap.highres_imu_encode(1, *([0.0] * 13), 0).pack(ap)  # PX4 streams it at 50 Hz
+    foreign_att = other.attitude_encode(1, 0.1, 0.1, 0, 0, 0, 0).pack(other)
+    spans = frame_spans(hb + imu + foreign_att)
+    assert spans is not None and [s[3] for s in spans] == [0, 105, 30]
+    assert frame_spans(hb[:-1]) is None and frame_spans(b"\x00" + hb) is None
+
+    parser = Parser(None, messages.SERVICE_INPUTS, 1)
+    stats = LinkStats()
+    calls = 0
+    real = parser.mav.parse_char
+
+    def counting(data: bytes) -> Any:
+        nonlocal calls
+        calls += 1 if data else 0
+        return real(data)
+
+    parser.mav.parse_char = counting  # type: ignore[method-assign]
+    got = parser.feed(hb + imu + foreign_att, stats, datagram=True)
+    assert [m.get_type() for m in got] == ["HEARTBEAT"]
+    assert stats.rx_skipped == 1 and stats.rx_foreign == 1 and stats.rx_bad == 0
+    for _ in range(1000):  # a flood of frames nobody reads: pymavlink never sees them
+        assert parser.feed(imu, stats, datagram=True) == []
+        assert parser.feed(foreign_att, stats, datagram=True) == []
+    assert calls == 1 and stats.rx_skipped == 1001 and stats.rx_foreign == 1001
+    # garbage still goes to pymavlink's robust parser (counted as bad, never raised)
+    assert parser.feed(b"\x55" * 40 + hb[:5], stats, datagram=True) == []
+    assert stats.rx_bad >= 1
