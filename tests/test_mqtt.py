@@ -137,3 +137,39 @@ def test_the_password_is_never_in_the_startup_log() -> None:
     text = "\n".join(describe(cfg))
     assert "hunter2" not in text
     assert "service.mqtt.password = '***'" in text
+
+
+def test_a_clean_stop_says_offline_too(broker) -> None:
+    async def run() -> None:
+        async with MqttPublisher(opts(broker.port), 5) as pub:
+            pub.publish_status({"vo": "TRACKING"})
+            pub.publish_event("stopping")
+            for _ in range(100):
+                if pub.stats.published >= 2:
+                    break
+                await asyncio.sleep(0.05)
+
+    asyncio.run(run())
+    got = asyncio.run(collect(broker.port, "companion/5/status", 1, timeout_s=3))
+    assert got[0][1] == {"state": "offline"} and got[0][2] is True  # retained, after the stop
+
+
+def test_a_failing_connection_is_logged_and_retried_never_silent(tmp_path, caplog) -> None:
+    """A CA file that went away after the config check (or any other failure inside the
+    sender) used to end the task silently and the stop in a traceback."""
+    missing = tmp_path / "ca.pem"
+
+    async def run() -> MqttPublisher:
+        async with MqttPublisher(opts(1, tls=True, ca_file=str(missing)), 4) as pub:
+            for _ in range(100):
+                if pub.stats.errors >= 2:
+                    break
+                await asyncio.sleep(0.1)
+            assert pub._task is not None and not pub._task.done()  # alive, retrying
+        return pub
+
+    with caplog.at_level("WARNING", logger="companion.mqtt"):
+        pub = asyncio.run(run())  # and the stop raises nothing
+    assert pub.stats.errors >= 2 and "ca.pem" in pub.stats.last_error
+    said = [r.getMessage() for r in caplog.records if "cannot connect" in r.getMessage()]
+    assert len(said) == 1 and "ca.pem" in said[0]  # once per distinct error, not per retry

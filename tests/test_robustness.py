@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
+import json
 import os
 import socket
 import struct
@@ -372,3 +374,152 @@ def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
         stub = SimAutopilot(load_config("config/sitl.toml", {"sitl": {"seconds": 5.0}}), opts)
         with pytest.raises(SitlError, match="camera process failed"):
             asyncio.run(asyncio.wait_for(stub.run(), 60))
+
+
+# ------------------------------------------------------------------ issue 16, round 2
+
+
+def test_reset_counter_after_a_kill_never_repeats_the_last_one_sent(tmp_path) -> None:
+    """SIGKILL between two poses, then a restart: the first counter sent differs from the
+    last one of the killed run (EKF2 would fuse the new origin as a jump otherwise)."""
+    from companion.service.state import ResetCounter
+
+    path = tmp_path / "state" / "reset_counter"
+    script = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from companion.service.state import ResetCounter\n"
+        f"rc = ResetCounter(Path({str(path)!r}))\n"
+        "for k in range(int(sys.argv[1]) + 1):\n"
+        "    sent = rc.wire(k)\n"
+        "print(sent, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    last_sent = []
+    for resets in (21, 0, 0, 3):  # a run that re-initialised 21 times, then crashes at 0
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script, str(resets)], stdout=subprocess.PIPE, env=env
+        )
+        assert proc.stdout is not None
+        last_sent.append(int(proc.stdout.readline()))
+        proc.kill()  # SIGKILL: no clean-up of any kind
+        proc.wait()
+    assert last_sent[0] == 21
+    assert all(a != b for a, b in itertools.pairwise(last_sent)), last_sent
+    assert ResetCounter(path).wire(0) == (last_sent[-1] + 1) % 256
+
+
+def test_credentials_in_the_camera_url_are_never_shown(tmp_path, caplog) -> None:
+    from peers import MOSQUITTO, Broker
+
+    from companion.config import describe
+
+    if not os.path.exists(MOSQUITTO):
+        pytest.fail("mosquitto is not installed (make test installs it with apt-get)")
+    broker = Broker(tmp_path)
+    broker.start()
+    url = f"rtsp://pilot:hunter2secret@127.0.0.1:{free_port()}/live"
+    cfg = service_config(
+        tmp_path, camera_url=url, mqtt={"enabled": True, "port": broker.port, "keepalive_s": 2}
+    )
+    import aiomqtt
+
+    async def main() -> tuple[list[bytes], dict | None, dict]:
+        got: list[bytes] = []
+
+        async def listen() -> None:
+            async with aiomqtt.Client("127.0.0.1", broker.port) as sub:
+                await sub.subscribe("companion/#")
+                async for msg in sub.messages:
+                    got.append(bytes(msg.payload))  # type: ignore[arg-type]
+
+        listener = asyncio.create_task(listen())
+        async with Service(cfg) as service:
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not any(
+                "cannot open" in w for w in service.stats.warnings
+            ):
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(1.5)  # a status or two on MQTT
+            status = await asyncio.to_thread(read_status, tmp_path / "status.sock")
+            summary = service.summary()
+        listener.cancel()
+        return got, status, summary
+
+    try:
+        with caplog.at_level("DEBUG"):
+            got, status, summary = asyncio.run(main())
+    finally:
+        broker.stop()
+    shown = "\n".join(
+        [*(g.decode() for g in got), json.dumps(status), json.dumps(summary, default=str)]
+        + [r.getMessage() for r in caplog.records]
+        + describe(cfg)
+    )
+    assert "cannot open" in shown  # the driver's error quoting the URL did reach everything...
+    assert "rtsp://pilot:***@127.0.0.1" in shown
+    assert "hunter2secret" not in shown  # ...with the password masked everywhere
+    assert len(got) >= 2
+
+
+def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
+    """Frames, then the camera process is gone: a warning within seconds, fps 0 and the
+    problem in the status; a serial autopilot port and a TFmini port that do not exist are
+    said too (they used to be retried in silence)."""
+    from companion.types import CameraFrame
+    from drivers.camera import encode_frame
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    port = srv.getsockname()[1]
+
+    def camera() -> None:
+        conn, _ = srv.accept()
+        rng = np.random.default_rng(0)
+        for seq in range(60):  # 2 s at 30 fps, then killed (new pixels: not a frozen camera)
+            img = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
+            conn.sendall(encode_frame(CameraFrame(time.monotonic_ns() // 1000, seq, img)))
+            time.sleep(1 / 30)
+        conn.close()
+        srv.close()
+
+    threading.Thread(target=camera, daemon=True).start()
+    cfg = load_config(
+        None,
+        {
+            "service": {
+                "mavlink_url": f"serial:{tmp_path / 'ttyNOPE'}:921600",
+                "camera_url": f"sitl://127.0.0.1:{port}",
+                "status_socket": str(tmp_path / "status.sock"),
+                "state_dir": str(tmp_path / "state"),
+            },
+            "rangefinders": [{"sensor_id": 9, "serial": str(tmp_path / "ttyTF")}],
+        },
+    )
+
+    async def main() -> tuple[dict | None, dict | None, list[str]]:
+        async with Service(cfg) as service:
+            while service.stats.frames_in < 30:
+                await asyncio.sleep(0.05)
+            alive = await asyncio.to_thread(read_status, tmp_path / "status.sock")
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and not (
+                service._camera_silent
+                and service.stats.warnings
+                and any("autopilot: no heartbeat" in w for w in service.stats.warnings)
+            ):
+                await asyncio.sleep(0.1)
+            dead = await asyncio.to_thread(read_status, tmp_path / "status.sock")
+            return alive, dead, list(service.stats.warnings)
+
+    alive, dead, warnings = asyncio.run(main())
+    assert alive is not None and dead is not None
+    assert alive["camera"]["fps"] > 5 and alive["camera"]["problem"] is None
+    assert dead["camera"]["fps"] == 0.0 and dead["camera"]["problem"] == "no frames"
+    assert dead["vo"]["state"].startswith("STALLED")
+    text = "\n".join(warnings)
+    assert "camera: no frames for" in text
+    assert "autopilot: no heartbeat" in text and "ttyNOPE" in text
+    assert "rangefinder 9: cannot open" in text and "ttyTF" in text

@@ -101,7 +101,10 @@ class MqttPublisher:
         o = self.opts
         tls_context = None
         if o.tls:
-            tls_context = ssl.create_default_context(cafile=o.ca_file or None)
+            try:
+                tls_context = ssl.create_default_context(cafile=o.ca_file or None)
+            except (OSError, ssl.SSLError) as e:  # it went away after the config check
+                raise OSError(f"CA file {o.ca_file or '(system)'}: {e}") from e
         return aiomqtt.Client(
             o.host,
             o.port,
