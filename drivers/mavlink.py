@@ -37,7 +37,7 @@ log = logging.getLogger("companion.mavlink")
 OnMessage = Callable[[Any, int], None]
 UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
 MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
-PEER_SILENCE_S = 2.0  # udpin: the autopilot may move to a new address after this much silence
+PEER_SILENCE_S = 1.0  # udpin: the autopilot may move to a new address after this much silence
 MAV_AUTOPILOT_INVALID = 8
 
 
@@ -250,9 +250,7 @@ class MavlinkLink:
         self._loop = asyncio.get_running_loop()
         u = self.url
         if u.kind in ("udpin", "udpout"):
-            local = (u.host, u.port) if u.kind == "udpin" else None
-            if u.kind == "udpout" and self.local_port:
-                local = ("0.0.0.0", self.local_port)
+            local = (u.host, u.port)
             self._peer = None
             if u.kind == "udpout":  # its numeric address: replies are matched against it
                 try:
@@ -261,7 +259,10 @@ class MavlinkLink:
                     raise ConfigError(
                         f"service.mavlink_url: cannot resolve {u.host}: {e}"
                     ) from None
-                self._peer = (str(infos[0][4][0]), int(infos[0][4][1]))
+                family, peer = infos[0][0], infos[0][4]
+                self._peer = (str(peer[0]), int(peer[1]))
+                # from local_port (0: an ephemeral one) on every address of the peer's family
+                local = ("::" if family == socket.AF_INET6 else "0.0.0.0", self.local_port)
             transport, _ = await self._loop.create_datagram_endpoint(
                 lambda: _Udp(self), local_addr=local, remote_addr=None
             )

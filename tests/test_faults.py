@@ -8,8 +8,13 @@ schedule of faults, each in its own window, while the MQTT broker is down for a 
   with a new reset_counter;
 - autopilot link: 10 s of silence, a new UDP port, a reboot (its clock restarts at zero). The
   service asks for its message rates again and the time sync is back within 1 ms;
-- MQTT broker down from 5 s to 65 s: the output rate away from the faults stays >= 28 Hz with
-  the broker down and after it is back, and the retained status is fresh again.
+- MQTT broker down from 5 s to 65 s: the output rate away from the faults stays >= half the
+  camera rate with the broker down and after it is back (28 Hz on a quiet machine: a
+  benchmark, docs/BENCHMARKS.md), and the retained status is fresh again.
+
+Thresholds hold at any load (issue 16): the time sync is judged against the link's own round
+trip, and the new port is taken once the old one has been silent for PEER_SILENCE_S (a
+spoofer's address is never taken while the autopilot talks).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import pytest
 from peers import MOSQUITTO, Broker, sitl_flight
 
 from companion.service.app import Service
+from drivers.mavlink import PEER_SILENCE_S
 from sitl.autopilot import SimAutopilot
 from sitl.faults import Fault
 
@@ -134,10 +140,13 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
         assert m["reset_counter_after"] > m["reset_counter_before"], m
     silence, port, reboot = (faults[f.kind] for f in LINK_FAULTS)
     assert silence["rate_requests_after"] >= 1 and reboot["rate_requests_after"] >= 1
+    sync_bound_ms = 1.0 + 0.5 * report["timesync_rtt_ms_p99"]  # 1 ms on a quiet machine
     for m in (silence, port, reboot):
         assert m["resume_s"] is not None and m["resume_s"] <= 5.0, m
-        assert m["sync_error_ms_after"] is not None and m["sync_error_ms_after"] <= 1.0, m
-    assert port["resume_s"] <= 1.0  # the service answers the new port at once
+        assert m["sync_error_ms_after"] is not None, m
+        assert m["sync_error_ms_after"] <= sync_bound_ms, (m, sync_bound_ms)
+    # the new port is answered once the old one fell silent, on the autopilot's next heartbeat
+    assert port["resume_s"] <= PEER_SILENCE_S + 1.5
     assert report["reboots"] == 1
     # 4 sensors at 50 Hz: the readings are taken in again once the clocks agree
     assert extra["ranges"] >= 0.8 * 4 * 50 * 10, extra["ranges"]
@@ -146,7 +155,7 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
     t_pose = np.array([r.t_sim_s for r in rec])
     for lo, hi in CLEAN_WINDOWS_S:
         n = int(((t_pose >= lo) & (t_pose < hi)).sum())
-        assert n / (hi - lo) >= 28.0, (lo, hi, n)
+        assert n / (hi - lo) >= 0.5 * cfg.camera.rate_hz, (lo, hi, n)
     # telemetry resumed: a fresh retained status after the broker came back
     assert extra["mqtt"]["resumed_after_s"] <= 20.0
     assert extra["stats"]["published"] > extra["mqtt"]["published_down"]

@@ -184,18 +184,19 @@ def test_mavsdk_decodes_our_odometry_and_vision_position_estimate() -> None:
     received: list[str] = []
 
     async def scenario() -> tuple[Any, dict[str, Any], dict[str, Any]]:
-        # Our side exactly as in service: udpin, answering whoever spoke last. MAVSDK speaks
-        # first (udpout + its GCS heartbeats), so our link learns where to send.
+        # Our side as the service's udpout form (a udpin link only ever answers the
+        # autopilot, system 1; MAVSDK here is a ground station): MAVSDK listens, we speak
+        # first, and it answers with its heartbeats from the port we send to.
         async with MavlinkLink(
-            f"udpin:127.0.0.1:{port}", 1, 197, lambda msg, _t: received.append(msg.get_type())
+            f"udpout:127.0.0.1:{port}", 1, 197, lambda msg, _t: received.append(msg.get_type())
         ) as link:
             conf = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
             async with Mavsdk(conf) as gcs:
-                await gcs.add_any_connection(f"udpout://127.0.0.1:{port}")
+                await gcs.add_any_connection(f"udpin://127.0.0.1:{port}")
                 async with asyncio.timeout(10.0):
-                    while not link.connected:
-                        await asyncio.sleep(0.02)
-                assert "HEARTBEAT" in received
+                    while "HEARTBEAT" not in received:
+                        assert link.send(link.mav.heartbeat_encode(18, 8, 0, 0, 4))
+                        await asyncio.sleep(0.1)
 
                 odom = messages.odometry(link.mav, pose, rates)
                 vpe = messages.vision_position_estimate(link.mav, pose)
