@@ -1,0 +1,305 @@
+"""The figures and plots of a ``companion sitl px4`` flight (sitl/px4_flight.py).
+
+Sources: ``truth.csv`` (the bridge: SIH's true state, our clock), the ground station's
+LOCAL_POSITION_NED (PX4's own estimate, stamped on arrival), PX4's .ulg log (EKF2's
+``estimator_status_flags.cs_ev_pos``, ``estimator_aid_src_ev_pos`` innovations and test
+ratios, ``vehicle_visual_odometry`` = our estimate as PX4 received it, ``vehicle_land_detected``,
+``vehicle_status.failsafe``), PX4's console, the service's exit report and the bridge's stats.
+
+Definitions (docs/RESULTS.md, "PX4 in the loop"):
+- PX4's local frame is our vision frame once EKF2 reset to it (origin where our VO initialised,
+  in the air): its position is compared with the truth after one constant translation (the
+  median difference over the compared span), no rotation and no scale; when EKF2 resets its
+  position (our reset_counter changed), each stretch between resets gets its own translation.
+- compared span: from 2 s after the first EV position fusion (EKF2's reset to our frame) to
+  the disarm (before it PX4 has no horizontal position at all: Altitude mode, px4_flight.py).
+- ``ev_pos_fused_pct``: the share of the airborne time after the first fusion during which
+  EKF2's ``cs_ev_pos`` was set; ``airborne_before_fusion_s`` is the climb before it.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sitl.ulog import read_topics
+
+SETTLE_NS = 2e9  # compared from this long after the first EV fusion
+TOPICS = {
+    "estimator_status_flags",
+    "estimator_aid_src_ev_pos",
+    "vehicle_visual_odometry",
+    "vehicle_land_detected",
+    "vehicle_status",
+    "vehicle_local_position",
+}
+
+
+def _hold(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Zero-order hold of a step signal at times t (before the first sample: the first)."""
+    idx = np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(t_src) - 1)
+    return v_src[idx]
+
+
+def _p(a: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(a, q)) if len(a) else None
+
+
+def summarise(flight: Any, ok: bool) -> dict[str, Any]:
+    out: Path = flight.out
+    tel = flight.tel
+    s: dict[str, Any] = {
+        "mission": flight.o.mission,
+        "seed": flight.o.seed,
+        "completed": ok,
+        "px4_version": tel.version or None,
+        "armed_mode": getattr(flight, "armed_mode", None),
+        "configure_exit": getattr(flight, "configure_exit", None),
+        "notes": list(flight.notes),
+    }
+    # ---- PX4's log
+    ulg_files = sorted(glob.glob(str(out / "px4" / "log" / "*" / "*.ulg")))
+    ulog: dict[str, np.ndarray] = {}
+    if ulg_files:
+        shutil.copy(ulg_files[-1], out / "px4.ulg")
+        try:
+            ulog = read_topics(out / "px4.ulg", TOPICS)
+        except (ValueError, KeyError) as e:
+            s["notes"].append(f"px4.ulg unreadable: {e}")
+    # ---- PX4 clock -> ours: the smallest arrival delay of LOCAL_POSITION_NED
+    lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
+    offset_ns = float(np.min(lp[:, 0] - lp[:, 1] * 1e6)) if len(lp) else 0.0
+
+    def ours(t_us: np.ndarray) -> np.ndarray:
+        return np.asarray(t_us, dtype=np.float64) * 1e3 + offset_ns
+
+    # ---- failsafes: console, STATUSTEXT, vehicle_status
+    fs: list[str] = []
+    console = out / "px4-console.log"
+    if console.exists():
+        for line in console.read_text(errors="replace").splitlines():
+            if re.search(r"failsafe", line, re.I):
+                fs.append(line.strip())
+    for t, _, text in tel.texts:
+        if re.search(r"failsafe", text, re.I):
+            fs.append(f"STATUSTEXT {t:.1f} s: {text}")
+    if "vehicle_status" in ulog and np.any(ulog["vehicle_status"]["failsafe"]):
+        fs.append("vehicle_status.failsafe set in px4.ulg")
+    s["failsafes"] = fs
+    # ---- truth
+    truth_path = out / "truth.csv"
+    if not truth_path.exists() or len(lp) < 10:
+        s["landed"] = False
+        s["error"] = "no truth or no PX4 position: the flight did not run"
+        return s
+    tr = np.loadtxt(truth_path, delimiter=",", skiprows=1, ndmin=2)
+    t_tr, p_tr = tr[:, 0], tr[:, 1:4]
+    # ---- airborne span and fusion from the log (else the ground station's view)
+    phases = tel.phases
+    t_arm = phases.get("armed", 0.0) * 1e9
+    t_disarm = phases.get("disarmed", lp[-1, 0] * 1e-9) * 1e9
+    air_t0 = air_t1 = None
+    if "vehicle_land_detected" in ulog:
+        ld = ulog["vehicle_land_detected"]
+        t_ld = ours(ld["timestamp"])
+        landed = ld["landed"].astype(bool)
+        up = np.flatnonzero(~landed & (t_ld >= t_arm - 1e9))
+        if len(up):
+            air_t0 = t_ld[up[0]]
+            down = np.flatnonzero(landed & (t_ld > air_t0))
+            air_t1 = t_ld[down[0]] if len(down) else t_disarm
+    if air_t0 is None:
+        air_t0, air_t1 = t_arm, t_disarm
+    s["airborne_s"] = float((air_t1 - air_t0) * 1e-9)
+    fuse_src = "none"
+    t_f = f = None
+    if "estimator_status_flags" in ulog:
+        ef = ulog["estimator_status_flags"]
+        t_f, f = ours(ef["timestamp"]), ef["cs_ev_pos"].astype(bool)
+        fuse_src = "px4.ulg estimator_status_flags.cs_ev_pos"
+    elif tel.est:
+        est = np.array(tel.est, dtype=np.float64)
+        t_f, f = est[:, 0], (est[:, 1].astype(int) & 8) > 0
+        fuse_src = "ESTIMATOR_STATUS flags POS_HORIZ_REL (GCS link)"
+    s["ev_pos_fused_source"] = fuse_src
+    t_first = None
+    if t_f is not None and f is not None:
+        grid = np.arange(air_t0, air_t1, 10e6)  # 10 ms steps over the airborne time
+        fused = _hold(t_f, f, grid)
+        if fused.any():
+            k0 = int(np.argmax(fused))
+            t_first = grid[k0]
+            s["airborne_before_fusion_s"] = float((t_first - air_t0) * 1e-9)
+            s["ev_pos_fused_pct"] = float(100.0 * fused[k0:].mean())
+            s["ev_pos_fused_pct_whole_airborne"] = float(100.0 * fused.mean())
+        else:
+            s["ev_pos_fused_pct"] = 0.0
+    # ---- PX4's estimate against the truth
+    t_lp, p_lp = lp[:, 0], lp[:, 2:5]
+    np.savetxt(out / "px4_local_position.csv", lp, delimiter=",", fmt="%.6f",
+               header="t_ns,time_boot_ms,x_m,y_m,z_m", comments="")
+    # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
+    t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
+    s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
+    span = (t_lp >= t_cmp) & (t_lp <= t_disarm)
+    span &= (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
+    gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
+    est_p = p_lp[span]
+    # PX4 resets its position to ours when our reset_counter changes (a VO re-initialisation):
+    # each stretch between EKF2 position resets is compared after its own translation
+    seg = np.zeros(len(est_p), dtype=np.int64)
+    if "vehicle_local_position" in ulog:
+        vlp = ulog["vehicle_local_position"]
+        rc = vlp["xy_reset_counter"].astype(np.int64) * 256 + vlp["z_reset_counter"]
+        seg = _hold(ours(vlp["timestamp"]), rc, t_lp[span])
+    err = np.full_like(est_p, np.nan)
+    offset = np.zeros(3)
+    best = 0
+    for value in np.unique(seg):
+        k = seg == value
+        if k.sum() >= 10:
+            off = np.median(gt[k] - est_p[k], axis=0)
+            err[k] = est_p[k] + off - gt[k]
+            if k.sum() > best:
+                best, offset = int(k.sum()), off
+    s["px4_position_resets"] = int(len(np.unique(seg)) - 1)
+    err = err[np.all(np.isfinite(err), axis=1)]
+    h_err = np.linalg.norm(err[:, :2], axis=1)
+    v_err = np.abs(err[:, 2])
+    s["horizontal_error_m_p95"] = _p(h_err, 95)
+    s["vertical_error_m_p95"] = _p(v_err, 95)
+    s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
+    s["frame_offset_m"] = [float(v) for v in offset]
+    air = (t_tr >= air_t0) & (t_tr <= air_t1)
+    path = float(np.sum(np.linalg.norm(np.diff(p_tr[air], axis=0), axis=1))) if air.sum() > 1 else 0.0
+    s["path_m"] = path
+    s["horizontal_error_pct_of_path"] = (
+        100.0 * s["horizontal_error_m_p95"] / path if path and s["horizontal_error_m_p95"] else None
+    )
+    final = p_tr[-1]
+    s["landing_error_m"] = float(np.linalg.norm(final[:2]))
+    s["final_altitude_m"] = float(-final[2])
+    start_t = phases.get("mission " + flight.o.mission, phases.get("hover"))
+    if start_t is not None:
+        p_start = np.array([np.interp(start_t * 1e9, t_tr, p_tr[:, i]) for i in range(3)])
+        s["landing_error_from_mission_start_m"] = float(np.linalg.norm(final[:2] - p_start[:2]))
+    s["landed"] = bool(ok and not tel.armed and abs(final[2]) < 0.3)
+    # ---- camera, latency (the service's exit report; the bridge's stats)
+    rep = _json(out / "service-report.json")
+    br = _json(out / "bridge-stats.json")
+    s["camera_frames_sent"] = br.get("frames_sent")
+    s["camera_frames_dropped_by_bridge"] = br.get("frames_dropped")
+    s["camera_frames_dropped_by_service"] = _find(rep, "frames_dropped")
+    s["camera_frames_dropped"] = (br.get("frames_dropped") or 0) + (
+        _find(rep, "frames_dropped") or 0
+    )
+    s["render_ms_p50"] = br.get("render_ms_p50")
+    s["render_ms_p99"] = br.get("render_ms_p99")
+    s["truth_rate_hz"] = br.get("truth_rate_hz")
+    s["latency_ms_p50"] = _find(rep, "latency_ms_p50")
+    s["latency_ms_p99"] = _find(rep, "latency_ms_p99")
+    s["service_poses_sent"] = _find(rep, "published")
+    if "vehicle_visual_odometry" in ulog:
+        vo = ulog["vehicle_visual_odometry"]
+        lat = (vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3
+        s["px4_vision_age_ms_p50"] = _p(lat, 50)
+        s["px4_vision_age_ms_p99"] = _p(lat, 99)
+        s["px4_vision_messages"] = int(len(vo))
+        dur = (vo["timestamp"][-1] - vo["timestamp"][0]) * 1e-6 if len(vo) > 1 else 0
+        s["px4_vision_rate_hz"] = float((len(vo) - 1) / dur) if dur else None
+    try:
+        _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_first, air_t0, air_t1)
+    except Exception as e:  # plots are a by-product: never lose the summary for them
+        s["notes"].append(f"plot failed: {e!r}")
+    return s
+
+
+def _json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _find(d: Any, key: str) -> Any:
+    """The first value of ``key`` anywhere in a nested dict (the report's layout may change)."""
+    if isinstance(d, dict):
+        if key in d:
+            return d[key]
+        for v in d.values():
+            got = _find(v, key)
+            if got is not None:
+                return got
+    return None
+
+
+def _plot(out: Path, s: dict[str, Any], t_tr: np.ndarray, p_tr: np.ndarray, t_lp: np.ndarray,
+          p_lp: np.ndarray, offset: np.ndarray, ulog: dict[str, np.ndarray], ours: Any,
+          t_first: float | None, air_t0: float, air_t1: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t00 = air_t0
+    fig, ax = plt.subplots(2, 2, figsize=(13, 9))
+    a = ax[0, 0]
+    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (SIH)")
+    sel = t_lp >= (t_first if t_first is not None else air_t0)
+    a.plot(p_lp[sel, 1] + offset[1], p_lp[sel, 0] + offset[0], "b-", lw=0.9, label="PX4 EKF2")
+    if "vehicle_visual_odometry" in ulog:
+        vo = ulog["vehicle_visual_odometry"]
+        a.plot(vo["position"][:, 1] + offset[1], vo["position"][:, 0] + offset[0], "r.", ms=1,
+               label="ours (as PX4 received it)")
+    a.set_xlabel("east [m]")
+    a.set_ylabel("north [m]")
+    a.axis("equal")
+    a.legend(fontsize=8)
+    a.set_title(f"{s['mission']}: top (PX4 frame shifted by one translation)")
+    a = ax[0, 1]
+    a.plot((t_tr - t00) * 1e-9, -p_tr[:, 2], "k-", lw=1.6, label="truth")
+    a.plot((t_lp[sel] - t00) * 1e-9, -(p_lp[sel, 2] + offset[2]), "b-", lw=0.9, label="PX4 EKF2")
+    if "vehicle_visual_odometry" in ulog:
+        vo = ulog["vehicle_visual_odometry"]
+        a.plot((ours(vo["timestamp"]) - t00) * 1e-9, -(vo["position"][:, 2] + offset[2]), "r.",
+               ms=1, label="ours")
+    a.set_xlabel("time since take-off [s]")
+    a.set_ylabel("height above home [m]")
+    a.legend(fontsize=8)
+    a.set_title("side")
+    a = ax[1, 0]
+    if "estimator_aid_src_ev_pos" in ulog:
+        ev = ulog["estimator_aid_src_ev_pos"]
+        te = (ours(ev["timestamp"]) - t00) * 1e-9
+        a.plot(te, ev["innovation"][:, 0], "r-", lw=0.6, label="EV innovation north [m]")
+        a.plot(te, ev["innovation"][:, 1], "g-", lw=0.6, label="EV innovation east [m]")
+        a.plot(te, ev["test_ratio"][:, 0], "m:", lw=0.6, label="test ratio north")
+    if "estimator_status_flags" in ulog:
+        ef = ulog["estimator_status_flags"]
+        a.step((ours(ef["timestamp"]) - t00) * 1e-9, ef["cs_ev_pos"].astype(float) * 0.5, "k-",
+               where="post", lw=1.0, label="cs_ev_pos (0.5 = fused)")
+    a.axvspan(0, (air_t1 - t00) * 1e-9, color="0.9", zorder=0)
+    a.set_xlabel("time since take-off [s] (grey: airborne)")
+    a.legend(fontsize=7)
+    a.set_title("EKF2: EV position fusion")
+    a = ax[1, 1]
+    if "vehicle_visual_odometry" in ulog:
+        vo = ulog["vehicle_visual_odometry"]
+        lat = (vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3
+        a.plot((ours(vo["timestamp"]) - t00) * 1e-9, lat, "b.", ms=1)
+        a.set_ylabel("PX4 receipt - our exposure stamp [ms]")
+    a.set_xlabel("time since take-off [s]")
+    a.set_title(
+        f"latency: service exposure->send p50 {s.get('latency_ms_p50') or float('nan'):.1f} ms, "
+        f"p99 {s.get('latency_ms_p99') or float('nan'):.1f} ms"
+    )
+    fig.tight_layout()
+    fig.savefig(out / "flight.png", dpi=100)
+    plt.close(fig)
