@@ -591,3 +591,56 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     assert during >= 0.8 * before and during >= 0.5 * cfg.camera.rate_hz, (before, during)
     assert report["resets"] <= summary["vo_gaps"]
     assert summary["pipeline_errors"] == 0 and summary["link"]["handler_errors"] == 0
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 64 kB tmpfs filled to the last byte (mounting needs root: make test runs as root)."""
+    mnt = tmp_path / "full"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)])
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs to fill (needs root): the full-disk case is not run")
+    try:
+        (mnt / "report.json").write_text('{"old": true}\n')  # a report of an earlier run
+        with open(mnt / "filler", "wb", buffering=0) as fh, contextlib.suppress(OSError):
+            while True:
+                fh.write(b"\0" * 4096)
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)])
+
+
+def test_an_exit_report_on_a_full_disk_is_a_warning_and_leaves_no_torn_file(
+    tmp_path, full_disk
+) -> None:
+    conf = tmp_path / "c.toml"
+    conf.write_text(
+        "[service]\n"
+        f'mavlink_url = "udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"\n'
+        f'camera_url = "sitl://127.0.0.1:{free_port()}"\n'
+        f'status_socket = "{tmp_path / "s.sock"}"\n'
+        f'state_dir = "{tmp_path / "state"}"\n'
+    )
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "companion.cli",
+            "run",
+            "--config",
+            str(conf),
+            "--duration",
+            "1",
+            "--report",
+            str(full_disk / "report.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert r.returncode == 0, r.stderr
+    assert "exit report not written" in r.stderr and "Traceback" not in r.stderr
+    assert (full_disk / "report.json").read_text() == '{"old": true}\n'  # untouched
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "report.json"]
