@@ -75,7 +75,8 @@ def cmd_sitl_record(args: argparse.Namespace) -> int:
 
 def cmd_sitl_sheet(args: argparse.Namespace) -> int:
     """Write a PNG contact sheet of a dataset and print its path."""
-    from sitl.dataset import contact_sheet, open_dataset
+    from drivers.dataset import open_dataset
+    from sitl.dataset import contact_sheet
 
     path = contact_sheet(open_dataset(args.dataset), args.out)
     print(path)
@@ -120,13 +121,13 @@ def cmd_eval_scale(args: argparse.Namespace) -> int:
     from companion.config import STUDY_RANGEFINDERS
     from companion.offline import run_scale
     from companion.reporting import run_metrics, write_plots, write_tables
-    from sitl.dataset import write_tum
+    from drivers.dataset import write_tum
     from sitl.scenario import Scenario
 
     study = 6 if args.sensor_study else 0
     steps: Any
     if args.dataset is not None:  # a recorded SITL flight: its world is rebuilt from meta.toml
-        from sitl.dataset import dataset_steps, open_dataset
+        from drivers.dataset import dataset_steps, open_dataset
         from sitl.world import make_world
 
         ds = open_dataset(args.dataset)
@@ -344,7 +345,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     import numpy as np
 
     from companion.offline import run_vo, vo_metrics
-    from sitl.dataset import open_dataset, write_tum
+    from drivers.dataset import open_dataset, write_tum
 
     gt_poses: dict[int, Any] = {}
     gt_at: Callable[[int], Any]
@@ -525,7 +526,7 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
 
     cv2.setNumThreads(1)
     if args.dataset is not None:
-        from sitl.dataset import open_dataset
+        from drivers.dataset import open_dataset
 
         ds = open_dataset(args.dataset)
         cfg = ds.config or load_config(args.config)

@@ -138,7 +138,7 @@ class FolderSource(CameraSource):
 
     def __init__(self, path: Path, realtime: bool = True) -> None:
         super().__init__()
-        from sitl.dataset import open_dataset
+        from drivers.dataset import open_dataset
 
         self.dataset = open_dataset(path)
         self.realtime = realtime

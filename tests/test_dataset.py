@@ -13,7 +13,8 @@ from companion.cli import main
 from companion.config import load_config
 from companion.errors import DatasetError
 from companion.types import AttitudeSample, CameraFrame, RangeSample
-from sitl.dataset import contact_sheet, open_dataset, record
+from drivers.dataset import open_dataset
+from sitl.dataset import contact_sheet, record
 from sitl.trajectory import Trajectory
 
 SHORT = {"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 2.0, "seed": 4}}

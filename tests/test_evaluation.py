@@ -15,7 +15,8 @@ from companion.cli import main
 from companion.config import load_config
 from companion.evaluation.trajectory import ate_rmse, path_length, umeyama
 from companion.geometry import so3
-from sitl.dataset import read_tum, record
+from drivers.dataset import read_tum
+from sitl.dataset import record
 
 
 def test_umeyama_recovers_a_similarity_exactly() -> None:
