@@ -30,7 +30,7 @@ from companion.geometry.camera import CameraModel
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
-from companion.service.options import ServiceOptions
+from companion.service_options import ServiceOptions
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 

@@ -35,7 +35,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
-from companion.service.options import SigningOptions
+from companion.service_options import SigningOptions
 from drivers.files import atomic_write
 
 EPOCH_2015_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC, the signing timestamp's origin

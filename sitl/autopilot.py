@@ -41,11 +41,11 @@ from companion.config import Config, from_dict, to_dict
 from companion.errors import SitlError
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.geometry import so3
-from companion.service.timesync import ClockSync, reply_for
 from companion.types import CameraFrame
 from drivers.camera import encode_frame
 from drivers.mavlink import LinkStats, Parser
 from drivers.signing import Signing
+from drivers.timesync import ClockSync, reply_for
 from sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511

@@ -41,7 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from companion.service.timesync import ClockSync
+from drivers.timesync import ClockSync
 from sitl.px4_params import ParamStore
 
 EV_MAX_INTERVAL_US = 200_000  # EKF2 common.h: >= 5 Hz to start

@@ -18,7 +18,7 @@ from peers import MOSQUITTO, Broker
 
 from companion.config import describe, load_config
 from companion.service.mqtt import MqttPublisher
-from companion.service.options import MqttOptions
+from companion.service_options import MqttOptions
 
 
 @pytest.fixture
@@ -104,7 +104,7 @@ def test_last_will_says_offline_when_the_service_dies(broker, tmp_path) -> None:
     script.write_text(
         "import asyncio, sys\n"
         "from companion.service.mqtt import MqttPublisher\n"
-        "from companion.service.options import MqttOptions\n"
+        "from companion.service_options import MqttOptions\n"
         "async def main():\n"
         f"    async with MqttPublisher(MqttOptions(enabled=True, port={broker.port}), 9) as p:\n"
         "        p.publish_status({'vo': 'TRACKING'})\n"

@@ -33,10 +33,10 @@ from companion.px4.encoding import float32_bits_as_int32, int32_bits_as_float32
 from companion.px4.link import Px4Link
 from companion.px4.options import Px4Options
 from companion.px4.rules import Row, Status
-from companion.service.timesync import reply_for
 from companion.types import PoseEstimate
 from drivers import messages
 from drivers.mavlink import MavlinkLink
+from drivers.timesync import reply_for
 from sitl.autopilot import AutopilotOptions, SimAutopilot
 from sitl.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 

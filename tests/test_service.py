@@ -11,11 +11,11 @@ import pytest
 from companion.config import DEFAULT_RANGEFINDERS
 from companion.errors import ConfigError
 from companion.geometry import so3
-from companion.service.timesync import ClockSync, reply_for
 from companion.types import CameraFrame, PoseEstimate
 from drivers import messages
 from drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
 from drivers.mavlink import LinkStats, LinkUrl, Parser
+from drivers.timesync import ClockSync, reply_for
 
 
 class PeerClock:

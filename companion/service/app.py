@@ -40,11 +40,11 @@ from companion.service.mqtt import MqttPublisher
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer, status_path
 from companion.service.systemd import SdNotify
-from companion.service.timesync import ClockSync, reply_for
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import messages
 from drivers.files import atomic_write
+from drivers.timesync import ClockSync, reply_for
 
 log = logging.getLogger("companion.service")
 

@@ -20,7 +20,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from companion.service.options import MqttOptions
+from companion.service_options import MqttOptions
 
 MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
 STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" status to go out
