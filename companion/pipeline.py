@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -163,15 +164,15 @@ class Pipeline:
         inp = ScaleInput(frame.time_us, out, T_cam_vo, lasers, self.vo.resets)
         self.scale_input = inp
         # The camera's VO position is what the scale multiplies; the body sits a metric lever
-        # arm away from it (T_cam_body's translation is in metres, not VO units).
+        # arm away from it (see lever_m)
         c_vo = out.T_vo_cam[:3, 3]
-        lever_vo = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
+        lever_m = self.lever_m(out)
         for name, method in self.methods.items():
             est = method.step(inp)
             self.estimates[name] = est
             if est is not None:
                 cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
-                self.metric_positions[name] = cam_m + lever_vo
+                self.metric_positions[name] = cam_m + lever_m
         self.last_scale_ms = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
@@ -187,8 +188,8 @@ class Pipeline:
     def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:
         """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
         out = self.vo_output
-        T_vo_body = self.T_vo_body()
-        if self.attitude is None or out is None or T_vo_body is None:
+        R_vo_body = self.R_vo_body()
+        if self.attitude is None or out is None or R_vo_body is None:
             return None
         est = self.estimates.get(self.method_name)
         points = np.zeros((0, 3))
@@ -196,9 +197,8 @@ class Pipeline:
         if est is not None and est.scale > 0:
             f = out.features
             points = f.points_vo[f.point_ids >= 0] * est.scale
-            lever_m = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
-            position = out.T_vo_cam[:3, 3] * est.scale + lever_m
-        cloud = CloudView(T_vo_body[:3, :3], position, points)
+            position = out.T_vo_cam[:3, 3] * est.scale + self.lever_m(out)
+        cloud = CloudView(R_vo_body, position, points)
         self.tilt_input = (range_m, cloud)
         return self.attitude.step(
             time_us, range_m, cloud, self.vo.resets, self.attitude_at(time_us)
@@ -207,8 +207,8 @@ class Pipeline:
     def _pose(self, time_us: int) -> PoseEstimate | None:
         est = self.estimates.get(self.method_name)
         p = self.metric_positions.get(self.method_name)
-        T_vo_body = self.T_vo_body()
-        if est is None or p is None or T_vo_body is None:
+        R_vo_body = self.R_vo_body()
+        if est is None or p is None or R_vo_body is None:
             return None
         R_world_vo = so3.rot_z(self.vo.yaw_vo_rad)
         position = R_world_vo @ p
@@ -223,7 +223,6 @@ class Pipeline:
         cov[:3, :3] = np.eye(3) * sigma_p**2
         cov[3:5, 3:5] = np.eye(2) * VO_TILT_SIGMA_RAD**2
         cov[5, 5] = VO_YAW_SIGMA_RAD**2
-        R_vo_body = T_vo_body[:3, :3]
         fused = self.tilt.fused if self.tilt is not None else None
         if fused is not None and self.attitude is not None:
             R_vo_body = corrected_rotation(self.attitude.filter.tilt_error, R_vo_body)
@@ -254,12 +253,68 @@ class Pipeline:
         recent.append((time_us, reset_counter, position))
         return velocity
 
-    def T_vo_body(self) -> F64 | None:
-        """The body's orientation in the VO frame at the camera's VO position (the lever arm
-        camera -> body is metric and cannot be placed in unscaled VO units), or None."""
+    def R_vo_body(self) -> F64 | None:
+        """(3, 3) the body's orientation in the VO frame at the last frame, or None. (No
+        T_vo_body: the body sits a metric lever arm from the camera, which has no place in
+        unscaled VO units; the metric body position is the scaled camera position plus
+        :meth:`lever_m`.)"""
         out = self.vo_output
         if out is None or not np.all(np.isfinite(out.T_vo_cam)):
             return None
-        T: F64 = out.T_vo_cam @ self.T_cam_body
-        T[:3, 3] = out.T_vo_cam[:3, 3]
-        return T
+        R: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, :3]
+        return R
+
+    def lever_m(self, out: VoOutput) -> F64:
+        """(3,) camera -> body lever arm [m] in the VO frame's axes: R_vo_cam @ t_cam_body
+        (T_cam_body's translation is metric). The metric body position in the VO frame is
+        ``scale * t_vo_cam + lever_m``."""
+        lever: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
+        return lever
+
+    def status(self) -> PipelineStatus:
+        """An immutable snapshot of what the last frame left (for a status display on another
+        thread: it never reads the pipeline's own, mutating state)."""
+        out = self.vo_output
+        est = self.estimates.get(self.method_name)
+        fused = self.tilt.fused if self.tilt is not None else None
+        sigma_deg = None
+        if fused is not None:
+            sigma_deg = float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
+        return PipelineStatus(
+            vo_state=out.state.name if out is not None else "INITIALIZING",
+            features=int(len(out.features.pixels)) if out is not None else 0,
+            keyframes=len(self.vo.keyframes),
+            vo_resets=self.vo.resets,
+            gaps=self.gaps,
+            method=self.method_name,
+            scale=est.scale if est is not None else None,
+            scale_sigma=est.sigma if est is not None else None,
+            sensors_used=est.n_used if est is not None else 0,
+            match_rates=tuple(sorted(self.methods[self.method_name].match_rates().items())),
+            ranges_rejected=self.ranges.rejected,
+            roll_deg=float(np.degrees(fused.roll_rad)) if fused is not None else None,
+            pitch_deg=float(np.degrees(fused.pitch_rad)) if fused is not None else None,
+            tilt_sigma_deg=sigma_deg,
+            tilt_reasons=tuple(self.tilt.reasons) if self.tilt is not None else (),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class PipelineStatus:
+    """What a status display shows of the pipeline, frozen after a frame (Pipeline.status)."""
+
+    vo_state: str  # VoState name
+    features: int  # tracked features in the last frame
+    keyframes: int  # keyframes in the VO map
+    vo_resets: int  # VO re-initialisations so far
+    gaps: int  # resets forced by a gap without usable frames
+    method: str  # the published scale method
+    scale: float | None  # its scale (metres per VO unit), None before the first
+    scale_sigma: float | None
+    sensors_used: int  # sensors in its last update
+    match_rates: tuple[tuple[int, float], ...]  # (sensor id, share of frames with a match)
+    ranges_rejected: int  # range samples the pipeline refused
+    roll_deg: float | None  # fused roll/pitch from the distance sensors
+    pitch_deg: float | None
+    tilt_sigma_deg: float | None
+    tilt_reasons: tuple[str, ...]  # why a sensor was left out of the roll/pitch

@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import random
 import socket
 import threading
 import time
@@ -30,6 +29,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
+from drivers.backoff import Backoff
 from drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 
 log = logging.getLogger("companion.mavlink")
@@ -408,16 +408,15 @@ class MavlinkLink:
         return True
 
     async def _tcp_loop(self) -> None:
-        delay = 0.5
+        backoff = Backoff(0.5, 10.0)
         while not self._closing:
             try:
                 reader, writer = await asyncio.open_connection(self.url.host, self.url.port)
             except OSError as e:
                 self.stats.last_error = f"cannot connect to {self.url.host}:{self.url.port}: {e}"
-                await asyncio.sleep(delay * random.uniform(0.5, 1.5))
-                delay = min(delay * 2, 10.0)
+                await asyncio.sleep(backoff.next_s())
                 continue
-            delay = 0.5
+            backoff.reset()
             self.stats.last_error = ""
             self._writer = writer
             try:
@@ -429,7 +428,7 @@ class MavlinkLink:
                 self._writer = None
                 writer.close()
             self.stats.reconnects += 1
-            await asyncio.sleep(delay * random.uniform(0.5, 1.5))
+            await asyncio.sleep(backoff.next_s())
 
     def _open_serial(self) -> None:
         thread = threading.Thread(target=self._serial_reader, name="mavlink-serial", daemon=True)
@@ -442,17 +441,16 @@ class MavlinkLink:
 
         loop = self._loop
         assert loop is not None
-        delay = 0.2
+        backoff = Backoff(0.2, 5.0)
         while not self._closing:
             if self._serial is None or not self._serial.is_open:
                 try:
                     self._serial = serial.Serial(self.url.host, self.url.port, timeout=0.1)
-                    delay = 0.2
+                    backoff.reset()
                     self.stats.last_error = ""
                 except (OSError, ValueError, serial.SerialException) as e:
                     self.stats.last_error = f"cannot open {self.url.host}: {e}"
-                    time.sleep(delay * random.uniform(0.5, 1.5))
-                    delay = min(delay * 2, 5.0)
+                    time.sleep(backoff.next_s())
                     continue
             try:
                 data = self._serial.read(4096)

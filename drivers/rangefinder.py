@@ -15,13 +15,13 @@ frame costs at most itself.
 from __future__ import annotations
 
 import contextlib
-import random
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from companion.types import RangeSample
+from drivers.backoff import Backoff
 
 HEADER = b"\x59\x59"
 FRAME_LEN = 9
@@ -139,18 +139,17 @@ class TfminiSerial:
         import serial  # pyserial
 
         port = None
-        delay = 0.2
+        backoff = Backoff(0.2, 5.0)
         while not self._closing:
             if port is None:
                 try:
                     port = serial.Serial(self.device, self.baud, timeout=0.1)
-                    delay = 0.2
+                    backoff.reset()
                     self.last_error = ""
                     self.opened.set()
                 except (OSError, serial.SerialException) as e:
                     self.last_error = f"cannot open {self.device}: {e}"
-                    time.sleep(delay * random.uniform(0.5, 1.5))
-                    delay = min(delay * 2, 5.0)
+                    time.sleep(backoff.next_s())
                     continue
             try:
                 data = port.read(256)

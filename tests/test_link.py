@@ -167,3 +167,21 @@ def test_frames_nobody_reads_are_skipped_by_their_header() -> None:
     # garbage still goes to pymavlink's robust parser (counted as bad, never raised)
     assert parser.feed(b"\x55" * 40 + hb[:5], stats, datagram=True) == []
     assert stats.rx_bad >= 1
+
+
+def test_backoff_doubles_jitters_caps_and_resets() -> None:
+    import random
+
+    import pytest
+
+    from drivers.backoff import Backoff
+
+    b = Backoff(0.5, 4.0, random.Random(7))
+    waits = [b.next_s() for _ in range(8)]
+    nominal = [0.5, 1.0, 2.0, 4.0, 4.0, 4.0, 4.0, 4.0]
+    assert all(0.5 * n <= w < 1.5 * n for w, n in zip(waits, nominal, strict=True))
+    assert len({round(w / n, 6) for w, n in zip(waits, nominal, strict=True)}) == 8  # jittered
+    b.reset()
+    assert 0.25 <= b.next_s() < 0.75
+    with pytest.raises(ValueError):
+        Backoff(2.0, 1.0)

@@ -1,17 +1,29 @@
 """The companion service: camera + DISTANCE_SENSOR + ATTITUDE in, VISION_POSITION_ESTIMATE /
 ODOMETRY out (DESIGN.md section 6).
 
-Structure: ``Service`` is an async context manager owning one TaskGroup of named loops
-(heartbeat, timesync, message rates, camera, pipeline, stats). The Pipeline runs in a worker
-thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) so that MAVLink stays
-responsive: TIMESYNC requests are answered inside the receive callback. The camera is read in
-its own thread into a short queue: the pipeline takes the oldest frame not older than
-``service.frame_wait_ms`` since its exposure (so one slow keyframe costs latency, not a pose)
-and skips older ones for newer ones (so a board too slow for the camera keeps a bounded
-latency); a skipped frame is counted as dropped. Ranges and attitudes are queued on the
-event loop and handed to the worker with the next frame, so the Pipeline is only ever touched
-from one thread. The service does no maths: conversions to and from the wire are in
-``drivers.messages``.
+Structure: ``Service`` is an async context manager that enters its components (status socket,
+serial rangefinders, the autopilot link, MQTT, one TaskGroup of named loops: heartbeat,
+timesync, rates, camera, pipeline, health) through one AsyncExitStack, so a failure part-way
+closes what was already open. The camera is read in its own thread into a short queue: the
+pipeline takes the oldest frame not older than ``service.frame_wait_ms`` since its exposure
+(so one slow keyframe costs latency, not a pose) and skips older ones for newer ones (so a board
+too slow for the camera keeps a bounded latency); a skipped frame is counted as dropped. The
+service does no maths: conversions to and from the wire are in ``drivers.messages``.
+
+Threads, and the one rule for what crosses them:
+- the event loop owns everything but the Pipeline: the link (TIMESYNC requests are answered
+  inside the receive callback), ServiceStats, MQTT, the status socket;
+- the worker thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) owns the
+  Pipeline. Ranges and attitudes are queued on the loop and handed over with the next frame,
+  and after each frame the worker publishes ``pipeline_status``, a frozen snapshot
+  (``Pipeline.status()``): the status, MQTT and the exit summary read only that;
+- the camera reader thread writes the frame queue, the arrival times, its counters and the
+  frame check only under ``_frames_lock`` (the loop reads them under it too), and reports a
+  camera fault's start and end with ``call_soon_threadsafe``;
+- serial readers (TFmini, a serial autopilot link) hand their samples and bytes to the loop
+  with ``call_soon_threadsafe``.
+So another thread either holds ``_frames_lock``, goes through ``call_soon_threadsafe``, or
+replaces a frozen snapshot; nothing else is shared.
 """
 
 from __future__ import annotations
@@ -21,7 +33,6 @@ import contextlib
 import dataclasses
 import json
 import logging
-import random
 import sys
 import threading
 import time
@@ -43,6 +54,7 @@ from companion.service.systemd import SdNotify
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import messages
+from drivers.backoff import Backoff
 from drivers.files import atomic_write
 from drivers.timesync import ClockSync, reply_for
 
@@ -105,7 +117,10 @@ class Service:
         self._secrets = [*url_secrets(o.camera_url), *url_secrets(o.mavlink_url), o.mqtt.password]
         self.camera_url_shown = redact_url(o.camera_url)
         self.resets = ResetCounter(state_dir(o.state_dir) / RESET_COUNTER_FILE)
-        self.pipeline = Pipeline(config)
+        self.pipeline = Pipeline(config)  # touched by the worker thread only
+        # what the loop (status, MQTT, the exit summary) may read of it: a frozen snapshot the
+        # worker replaces after each frame (a reference swap, atomic in CPython)
+        self.pipeline_status = self.pipeline.status()
         self.sync = ClockSync()
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url)
@@ -363,13 +378,14 @@ class Service:
         exit). A finite source (a file, a folder) that ends stops the service; a live one that
         ends or fails is reopened with capped, jittered backoff."""
         loop = asyncio.get_running_loop()
-        delay, reported = 0.5, False
+        backoff, reported = Backoff(0.5, 5.0), False
         while not self._stop.is_set():
             done: asyncio.Future[BaseException | None] = loop.create_future()
             frames_before = self.stats.frames_in
 
             def reader(done: asyncio.Future[BaseException | None] = done) -> None:
                 error: BaseException | None = None
+                seen_problem = self._frame_problem
                 try:
                     for frame in self.camera.frames():
                         if self._stop.is_set():
@@ -377,13 +393,11 @@ class Service:
                         # every delivered frame is checked (a few us), not only the ones the
                         # pipeline gets to: a frozen frame must be compared with the frame
                         # before it, not with the last one processed
-                        problem = self.frame_check.check(frame)
-                        if problem != self._frame_problem:
-                            loop.call_soon_threadsafe(
-                                self._camera_problem, problem, self._frame_problem
-                            )
-                            self._frame_problem = problem
                         with self._frames_lock:
+                            problem = self.frame_check.check(frame)
+                            if problem != seen_problem:  # the loop owns _frame_problem
+                                loop.call_soon_threadsafe(self._camera_problem, problem)
+                                seen_problem = problem
                             self.stats.frames_in += 1
                             self._frame_times_ns.append(now_ns())
                             if problem is not None:  # never reaches the pipeline: no pose
@@ -412,13 +426,13 @@ class Service:
                 self.stop()
                 return
             if self.stats.frames_in > frames_before:  # it worked for a while: retry soon
-                delay, reported = 0.5, False
+                backoff.reset()
+                reported = False
             if not reported:  # once per outage, not once per attempt
                 why = f"failed: {error}" if error else "stream ended"
                 self._warn(f"camera: {why}; reopening until it is back")
                 reported = True
-            await self._sleep(delay * random.uniform(0.5, 1.5))
-            delay = min(delay * 2, 5.0)
+            await self._sleep(backoff.next_s())
 
     async def _watchdog_loop(self) -> None:
         """WATCHDOG=1 every half WatchdogSec, from the event loop: a stuck loop sends none."""
@@ -437,7 +451,8 @@ class Service:
         rf_said: dict[int, str] = {}
         while not self._stop.is_set():
             now = now_ns()
-            last = self._frame_times_ns[-1] if self._frame_times_ns else started
+            with self._frames_lock:
+                last = self._frame_times_ns[-1] if self._frame_times_ns else started
             silent_s = (now - last) * 1e-9
             if silent_s > silent_after_s and not self._camera_silent:
                 self._camera_silent = True
@@ -530,7 +545,7 @@ class Service:
             self.stats.process_ms.append((time.perf_counter() - t0) * 1e3)
             self.stats.frames_processed += 1
             self._publish(frame, pose)
-            await asyncio.to_thread(self.pipeline.background_work)  # after the send
+            await asyncio.to_thread(self._background)  # after the send
 
     def _next_frame(self) -> CameraFrame | None:
         """The oldest queued frame at most frame_wait_ms old (since exposure); older ones are
@@ -552,18 +567,25 @@ class Service:
             p.feed_attitude(a)
         for r in ranges:
             p.feed_range(r)
-        return p.feed_frame(frame, checked=True)  # checked in the camera reader
+        pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
+        self.pipeline_status = p.status()  # a new frozen snapshot: the loop reads only this
+        return pose
 
-    def _camera_problem(self, problem: FrameProblem | None, prev: FrameProblem | None) -> None:
+    def _background(self) -> None:
+        """Worker thread: the keyframe work the pose did not need, then a new snapshot."""
+        if self.pipeline.background_work():
+            self.pipeline_status = self.pipeline.status()
+
+    def _camera_problem(self, problem: FrameProblem | None) -> None:
         """A camera fault starts or ends (on the event loop): said once, not per frame."""
+        prev, self._frame_problem = self._frame_problem, problem
         if problem is not None:
             self._warn(f"camera: {problem.value} frames; not publishing")
         elif prev is not None:
             self._warn(f"camera: usable frames again (after {prev.value} ones)")
 
     def _publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
-        out = self.pipeline.vo_output
-        self._last_vo_state = out.state if out is not None else VoState.INITIALIZING
+        self._last_vo_state = VoState[self.pipeline_status.vo_state]
         if pose is None or not messages.is_finite_pose(pose):
             self.stats.not_published += 1
             return
@@ -606,7 +628,7 @@ class Service:
         proc = np.array(s.process_ms)
         times = np.array(s.publish_times_ns) * 1e-9
         rate = float((len(times) - 1) / (times[-1] - times[0])) if len(times) > 1 else 0.0
-        scale = self.pipeline.estimates.get(self.pipeline.method_name)
+        ps = self.pipeline_status
         return {
             "uptime_s": (now_ns() - s.started_ns) * 1e-9,
             "frames_in": s.frames_in,
@@ -630,10 +652,10 @@ class Service:
             "stale": s.stale,
             "pipeline_errors": s.pipeline_errors,
             "warnings": list(s.warnings),
-            "vo_resets": self.pipeline.vo.resets,
-            "vo_gaps": self.pipeline.gaps,  # resets forced by > vo.max_gap_ms without frames
+            "vo_resets": ps.vo_resets,
+            "vo_gaps": ps.gaps,  # resets forced by > vo.max_gap_ms without frames
             "reset_counter": s.last_reset_counter,
-            "scale": scale.scale if scale is not None else None,
+            "scale": ps.scale,
             "link": vars(self.link.stats),
             "signing": self.link.signing.counters() if self.link.signing else None,
         }
@@ -641,15 +663,14 @@ class Service:
     def status(self) -> dict[str, Any]:
         """What `companion status` shows (served as JSON on the status socket)."""
         now = now_ns()
-        s, p, o = self.stats, self.pipeline, self.config.service
-        frames = list(self._frame_times_ns)
+        s, p, o = self.stats, self.pipeline_status, self.config.service
+        with self._frames_lock:  # what the camera thread writes
+            frames = list(self._frame_times_ns)
+            frames_in, dropped = s.frames_in, s.frames_dropped
+            rejected = {k: v for k, v in self.frame_check.counts.items() if v}
         recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
         fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
         pubs = [t for t in s.publish_times_ns if now - t < 5_000_000_000]
-        out = p.vo_output
-        est = p.estimates.get(p.method_name)
-        tilt = p.tilt
-        fused = tilt.fused if tilt is not None else None
         lat = list(s.latency_ms)[-300:]
         return {
             "uptime_s": (now - s.started_ns) * 1e-9,
@@ -676,44 +697,38 @@ class Service:
             "camera": {
                 "url": self.camera_url_shown,
                 "fps": fps,
-                "frames": s.frames_in,
-                "dropped": s.frames_dropped,
+                "frames": frames_in,
+                "dropped": dropped,
                 "stamps": self.camera.stamps,
                 "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
                 "problem": "no frames"
                 if self._camera_silent
                 else (self._frame_problem.value if self._frame_problem else None),
-                "rejected": {k: v for k, v in self.frame_check.counts.items() if v},
+                "rejected": rejected,
                 "gaps": p.gaps,
             },
             "vo": {
-                "state": "STALLED (no frames)"
-                if self._camera_silent
-                else (out.state.name if out is not None else "INITIALIZING"),
-                "features": int(len(out.features.pixels)) if out is not None else 0,
-                "keyframes": len(p.vo.keyframes),
-                "resets": p.vo.resets,
+                "state": "STALLED (no frames)" if self._camera_silent else p.vo_state,
+                "features": p.features,
+                "keyframes": p.keyframes,
+                "resets": p.vo_resets,
             },
             "scale": {
-                "method": p.method_name,
-                "value": est.scale if est is not None else None,
-                "sigma": est.sigma if est is not None else None,
-                "sensors_used": est.n_used if est is not None else 0,
-                "match_rate": {
-                    str(k): v for k, v in p.methods[p.method_name].match_rates().items()
-                },
+                "method": p.method,
+                "value": p.scale,
+                "sigma": p.scale_sigma,
+                "sensors_used": p.sensors_used,
+                "match_rate": {str(k): v for k, v in p.match_rates},
                 "ranges_in": s.ranges_in,
-                "ranges_rejected": s.ranges_rejected + p.ranges.rejected,
+                "ranges_rejected": s.ranges_rejected + p.ranges_rejected,
                 "rejected_by": dict(s.ranges_rejected_by),
             },
             "attitude": {
-                "roll_deg": float(np.degrees(fused.roll_rad)) if fused else None,
-                "pitch_deg": float(np.degrees(fused.pitch_rad)) if fused else None,
-                "sigma_deg": float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
-                if fused
-                else None,
+                "roll_deg": p.roll_deg,
+                "pitch_deg": p.pitch_deg,
+                "sigma_deg": p.tilt_sigma_deg,
                 "compensation": self.config.attitude.compensate,
-                "reasons": list(tilt.reasons) if tilt is not None else [],
+                "reasons": list(p.tilt_reasons),
             },
             "output": {
                 "message": o.output,

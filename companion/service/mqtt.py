@@ -14,13 +14,13 @@ import asyncio
 import contextlib
 import json
 import logging
-import random
 import ssl
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 from companion.service_options import MqttOptions
+from drivers.backoff import Backoff
 
 MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
 STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" status to go out
@@ -121,14 +121,14 @@ class MqttPublisher:
         logged and retried with backoff; this task never dies silently."""
         import aiomqtt
 
-        delay = 0.5
+        backoff = Backoff(0.5, MAX_BACKOFF_S)
         while True:
             try:
                 async with self._client() as client:
                     self.stats.connected = True
                     self.stats.connects += 1
                     self.stats.last_error = ""
-                    delay = 0.5
+                    backoff.reset()
                     log.info("MQTT connected to %s:%d", self.opts.host, self.opts.port)
                     await client.publish(
                         self.topic_status, b'{"state": "online"}', qos=1, retain=True
@@ -148,17 +148,16 @@ class MqttPublisher:
             except asyncio.CancelledError:
                 raise
             except aiomqtt.MqttError as e:
-                self._failed(str(e) or type(e).__name__, delay)
+                self._failed(str(e) or type(e).__name__)
             except Exception as e:  # TLS set-up, a CA file gone, a bug: said, then retried
-                self._failed(f"{type(e).__name__}: {e}", delay)
+                self._failed(f"{type(e).__name__}: {e}")
             finally:
                 self.stats.connected = False
             if self._stopping:
                 return
-            await asyncio.sleep(delay * random.uniform(0.5, 1.5))
-            delay = min(delay * 2, MAX_BACKOFF_S)
+            await asyncio.sleep(backoff.next_s())
 
-    def _failed(self, why: str, delay: float) -> None:
+    def _failed(self, why: str) -> None:
         """Log a failure: every one while connected, then once per distinct error (a broker
         that stays away must not fill the journal every few seconds)."""
         if self.stats.connected:
