@@ -6,7 +6,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 OUT     ?= out
 
-.PHONY: all venv sysdeps demo test lint typecheck unit bench results results-attitude \
+.PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude \
 	results-dpose clean
 
 all: test
@@ -36,6 +36,11 @@ venv: $(STAMP)
 # take the CPU from the service during the flight (docs/BENCHMARKS.md has both figures).
 demo: venv
 	$(BIN)/companion demo --config config/sitl.toml --prerender --out $(OUT)/demo
+
+# the real PX4 (SIH) flies a 20 m square on our estimate, GPS off (docs/RESULTS.md, "PX4 in the
+# loop"); MISSION=lawnmower|hover, SEED=N; needs ../shared/px4-sitl or PX4_SITL (docs/install.md)
+demo-px4: venv
+	$(BIN)/companion sitl px4 --mission $(or $(MISSION),square) --seed $(or $(SEED),1) --out $(OUT)/px4-$(or $(MISSION),square)
 
 lint: venv
 	$(BIN)/ruff check companion drivers sitl tests

@@ -66,11 +66,11 @@ def ned_of(lat_e7: int, lon_e7: int, alt_mm: int, home: tuple[int, int, int]) ->
     cos_c = math.sin(lat0) * math.sin(lat) + math.cos(lat0) * math.cos(lat) * math.cos(lon - lon0)
     c = math.acos(max(-1.0, min(1.0, cos_c)))
     k = c / math.sin(c) if c > 1e-12 else 1.0
-    north = k * (math.cos(lat0) * math.sin(lat) - math.sin(lat0) * math.cos(lat) * math.cos(lon - lon0))
-    east = k * math.cos(lat) * math.sin(lon - lon0)
-    return np.array(
-        [north * EARTH_RADIUS_M, east * EARTH_RADIUS_M, -(alt_mm - home[2]) * 1e-3]
+    north = k * (
+        math.cos(lat0) * math.sin(lat) - math.sin(lat0) * math.cos(lat) * math.cos(lon - lon0)
     )
+    east = k * math.cos(lat) * math.sin(lon - lon0)
+    return np.array([north * EARTH_RADIUS_M, east * EARTH_RADIUS_M, -(alt_mm - home[2]) * 1e-3])
 
 
 def clipped_world(cfg: Config) -> World:
@@ -81,9 +81,7 @@ def clipped_world(cfg: Config) -> World:
     if w.h_max <= 0.0 and len(w.boxes) == 0:
         return w
     heights = np.minimum(w.heights, np.float32(0.0))
-    return World(
-        w.name, w.seed, w.size_m, heights, w.res_m, np.zeros((0, 6)), w.default_altitude_m
-    )
+    return World(w.name, w.seed, w.size_m, heights, w.res_m, np.zeros((0, 6)), w.default_altitude_m)
 
 
 @dataclass
@@ -374,9 +372,7 @@ class Bridge:
         self.truth.write_csv(self.out / "truth.csv")
         r = np.array(self.stats["render_ms"] or [np.nan])
         late = np.array(self.stats["release_late_ms"] or [np.nan])
-        stats = {
-            k: v for k, v in self.stats.items() if k not in ("render_ms", "release_late_ms")
-        }
+        stats = {k: v for k, v in self.stats.items() if k not in ("render_ms", "release_late_ms")}
         stats.update(
             {
                 "render_ms_p50": float(np.percentile(r, 50)),

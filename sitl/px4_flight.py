@@ -25,6 +25,7 @@ logged, the GCS telemetry and PX4's .ulg log (copied into the output folder).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -96,8 +97,6 @@ class FlightOptions:
     square_m: float = 20.0
     terrain: str | None = None  # default: the config's (hills)
     configure: bool = True  # run `companion px4 configure` before the service
-    init_altitude_m: float = 1.5  # climb this high on the stick, then start fusing ours
-    climb_m_s: float = 0.5  # the rest of the climb, on our estimate
     settle_s: float = 6.0  # the VO tracks this long in the air before EKF2 may fuse it
 
 
@@ -180,10 +179,22 @@ class Gcs:
                     p, v = self.setpoint
                     # type_mask: position + velocity, no acceleration, no yaw rate (3576 - yaw)
                     self.mav.set_position_target_local_ned_send(
-                        0, 1, 1, 1, 0b0000_1100_0000_0000 | 0b0001_1100_0000,
-                        float(p[0]), float(p[1]), float(p[2]),
-                        float(v[0]), float(v[1]), float(v[2]),
-                        0, 0, 0, 0, 0,
+                        0,
+                        1,
+                        1,
+                        1,
+                        0b0000_1100_0000_0000 | 0b0001_1100_0000,
+                        float(p[0]),
+                        float(p[1]),
+                        float(p[2]),
+                        float(v[0]),
+                        float(v[1]),
+                        float(v[2]),
+                        0,
+                        0,
+                        0,
+                        0,
+                        0,
                     )
                 self._last_manual = now
             if now >= end:
@@ -201,7 +212,9 @@ class Gcs:
         if kind == "LOCAL_POSITION_NED":
             self.tel.lpos.append((t, int(m.time_boot_ms), m.x, m.y, m.z))
         elif kind == "ESTIMATOR_STATUS":
-            self.tel.est.append((t, int(m.flags), m.pos_horiz_ratio, m.pos_vert_ratio, m.hagl_ratio))
+            self.tel.est.append(
+                (t, int(m.flags), m.pos_horiz_ratio, m.pos_vert_ratio, m.hagl_ratio)
+            )
         elif kind == "HEARTBEAT":
             self.tel.armed = bool(m.base_mode & 128)
             self.tel.custom_mode = int(m.custom_mode)
@@ -256,7 +269,9 @@ def mission_path(name: str, start: np.ndarray, side_m: float) -> list[np.ndarray
     return [start + np.array([n, e, 0.0]) for n, e in offs]
 
 
-def leg_setpoints(a: np.ndarray, b: np.ndarray, speed: float, accel: float = 1.0) -> list[tuple[float, np.ndarray, np.ndarray]]:
+def leg_setpoints(
+    a: np.ndarray, b: np.ndarray, speed: float, accel: float = 1.0
+) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """(t, position, velocity) along a straight leg with a trapezoidal speed profile."""
     d = float(np.linalg.norm(b - a))
     if d < 1e-6:
@@ -286,9 +301,11 @@ def _runtime_bin(px4: Path) -> Path | None:
     tarball = px4.parent / "px4-sitl-runtime.tar.gz"
     if not tarball.is_file():
         return None
-    key = subprocess.run(
-        ["cksum"], stdin=tarball.open("rb"), capture_output=True, check=True
-    ).stdout.split()[0].decode()
+    key = (
+        subprocess.run(["cksum"], stdin=tarball.open("rb"), capture_output=True, check=True)
+        .stdout.split()[0]
+        .decode()
+    )
     cache = os.environ.get("PX4_SITL_CACHE") or (
         Path(os.environ["XDG_CACHE_HOME"]) / "px4-sitl"
         if os.environ.get("XDG_CACHE_HOME")
@@ -331,7 +348,9 @@ class Flight:
         ok = False
         try:
             self.log(f"PX4 SITL {px4} instance {n}, work folder {work}")
-            self.procs.start("px4", [str(px4), str(n), str(work)], self.out / "px4-console.log", env=env)
+            self.procs.start(
+                "px4", [str(px4), str(n), str(work)], self.out / "px4-console.log", env=env
+            )
             self._wait_console("Startup script returned successfully", 60.0)
             self.gcs = Gcs(n, self.tel)
             self.gcs.pump(1.0)
@@ -343,7 +362,6 @@ class Flight:
             cfg_path = self._service_config_base()
             self._configure(cfg_path)
             self._start_bridge(cfg_path)
-            self._start_service()
             self._fly()
             ok = True
         except KeyboardInterrupt:
@@ -395,11 +413,24 @@ class Flight:
         if not self.o.configure:
             return
         url = f"udpin:127.0.0.1:{14540 + self.o.instance}"
-        argv = [*_companion(), "px4", "configure", "--config", str(cfg_path), "--url", url,
-                "--yes", "--no-gnss", "--timeout-s", "10"]
+        argv = [
+            *_companion(),
+            "px4",
+            "configure",
+            "--config",
+            str(cfg_path),
+            "--url",
+            url,
+            "--yes",
+            "--no-gnss",
+            "--timeout-s",
+            "10",
+        ]
         self.log("companion px4 configure " + " ".join(argv[4:]))
         try:
-            r = subprocess.run(argv, capture_output=True, text=True, timeout=60, start_new_session=True)
+            r = subprocess.run(
+                argv, capture_output=True, text=True, timeout=60, start_new_session=True
+            )
             text, code = r.stdout + r.stderr, r.returncode
         except subprocess.TimeoutExpired as e:
             text, code = str(e.stdout or "") + "\ntimed out after 60 s", -1
@@ -415,9 +446,19 @@ class Flight:
     def _start_bridge(self, cfg_path: Path) -> None:
         info = self.out / "bridge.json"
         info.unlink(missing_ok=True)
-        argv = [sys.executable, "-m", "sitl.px4_bridge", "--config", str(cfg_path),
-                "--instance", str(self.o.instance), "--camera-port", str(15600 + self.o.instance),
-                "--out", str(self.out)]
+        argv = [
+            sys.executable,
+            "-m",
+            "sitl.px4_bridge",
+            "--config",
+            str(cfg_path),
+            "--instance",
+            str(self.o.instance),
+            "--camera-port",
+            str(15600 + self.o.instance),
+            "--out",
+            str(self.out),
+        ]
         self.procs.start("bridge", argv, self.out / "bridge.log", cwd=REPO)
         end = time.monotonic() + 120
         while not info.exists():
@@ -437,9 +478,22 @@ class Flight:
         n = self.o.instance
         if bin_dir is not None:
             r = subprocess.run(
-                [str(bin_dir / "px4-mavlink"), "--instance", str(n), "stream", "-u",
-                 str(19450 + n), "-s", "HIL_STATE_QUATERNION", "-r", "50"],
-                cwd=self.out / "px4", capture_output=True, text=True, timeout=20,
+                [
+                    str(bin_dir / "px4-mavlink"),
+                    "--instance",
+                    str(n),
+                    "stream",
+                    "-u",
+                    str(19450 + n),
+                    "-s",
+                    "HIL_STATE_QUATERNION",
+                    "-r",
+                    "50",
+                ],
+                cwd=self.out / "px4",
+                capture_output=True,
+                text=True,
+                timeout=20,
             )
             self.log(f"px4-mavlink stream HIL_STATE_QUATERNION 50 Hz: exit {r.returncode}")
         else:
@@ -491,17 +545,20 @@ class Flight:
             g.pump(1.0)
         self._phase("armed")
         self.armed_mode = "ALTCTL"
-        g.sticks = (0, 0, 700, 0)
+        g.sticks = (0, 0, 800, 0)
         self._until(
             "climb on the stick",
-            lambda: (p := g.position()) is not None and -p[2] >= o.init_altitude_m,
+            lambda: (p := g.position()) is not None and -p[2] >= o.altitude_m - 0.2,
             40,
         )
         g.sticks = (0, 0, 500, 0)
-        self._phase("at the initialisation height")
-        # our estimate is fused only once the VO has tracked with a scale for a while in the
-        # air: EKF2_EV_CTRL was 0 since arming, 11 now (EKF2 resets its position and height to
+        self._phase("at the altitude (PX4's baro height)")
+        g.pump(2.0)
+        # the companion starts in the air (our VO cannot initialise on the ground yet), and
+        # its estimate is fused only once the VO has tracked with a scale for a while:
+        # EKF2_EV_CTRL was 0 since arming, 11 then (EKF2 resets its position and height to
         # ours); the vehicle drifts meanwhile (Altitude mode has no horizontal position)
+        self._start_service()
         self._until("the service tracking with a scale", self._tracking_for(o.settle_s), 90)
         self._phase("service tracking")
         self._set_param_int("EKF2_EV_CTRL", 11)
@@ -516,11 +573,7 @@ class Flight:
         g.pump(1.0)
         g.set_mode(MODE_OFFBOARD)
         self._until("Offboard mode", lambda: g.main_mode() == MODE_OFFBOARD, 10)
-        # climb the rest of the way on our estimate
-        self._phase("climb in Offboard")
-        top = here + np.array([0.0, 0.0, -(o.altitude_m - o.init_altitude_m)])
-        self._follow([here, top], o.climb_m_s)
-        start = top
+        start = here
         self._phase(f"mission {o.mission}")
         if o.mission == "hover":
             g.pump(o.hover_s)
@@ -538,7 +591,7 @@ class Flight:
     def _follow(self, pts: list[np.ndarray], speed: float) -> None:
         """Offboard setpoints along the polyline (stop at each corner, 1 s to settle)."""
         g = self.gcs
-        for a, b in zip(pts[:-1], pts[1:], strict=True):
+        for a, b in itertools.pairwise(pts):
             t0 = time.monotonic()
             for t, p, v in leg_setpoints(a, b, speed):
                 g.pump(max(0.0, t0 + t - time.monotonic()))
@@ -642,7 +695,16 @@ def cli_main(args: Any) -> int:
         print(f"companion: {e}", file=sys.stderr)
         return 2
     summary = Flight(opts).run()
-    print(json.dumps({k: v for k, v in summary.items() if not isinstance(v, (list, dict)) or k == "failsafes"}, indent=2))
+    print(
+        json.dumps(
+            {
+                k: v
+                for k, v in summary.items()
+                if not isinstance(v, (list, dict)) or k == "failsafes"
+            },
+            indent=2,
+        )
+    )
     return 0 if summary.get("landed") and not summary.get("failsafes") else 1
 
 

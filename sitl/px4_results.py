@@ -142,8 +142,14 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             s["ev_pos_fused_pct"] = 0.0
     # ---- PX4's estimate against the truth
     t_lp, p_lp = lp[:, 0], lp[:, 2:5]
-    np.savetxt(out / "px4_local_position.csv", lp, delimiter=",", fmt="%.6f",
-               header="t_ns,time_boot_ms,x_m,y_m,z_m", comments="")
+    np.savetxt(
+        out / "px4_local_position.csv",
+        lp,
+        delimiter=",",
+        fmt="%.6f",
+        header="t_ns,time_boot_ms,x_m,y_m,z_m",
+        comments="",
+    )
     # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
@@ -177,7 +183,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
     s["frame_offset_m"] = [float(v) for v in offset]
     air = (t_tr >= air_t0) & (t_tr <= air_t1)
-    path = float(np.sum(np.linalg.norm(np.diff(p_tr[air], axis=0), axis=1))) if air.sum() > 1 else 0.0
+    path = (
+        float(np.sum(np.linalg.norm(np.diff(p_tr[air], axis=0), axis=1))) if air.sum() > 1 else 0.0
+    )
     s["path_m"] = path
     s["horizontal_error_pct_of_path"] = (
         100.0 * s["horizontal_error_m_p95"] / path if path and s["horizontal_error_m_p95"] else None
@@ -214,7 +222,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         dur = (vo["timestamp"][-1] - vo["timestamp"][0]) * 1e-6 if len(vo) > 1 else 0
         s["px4_vision_rate_hz"] = float((len(vo) - 1) / dur) if dur else None
     try:
-        _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_first, air_t0, air_t1)
+        _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
     except Exception as e:  # plots are a by-product: never lose the summary for them
         s["notes"].append(f"plot failed: {e!r}")
     return s
@@ -240,9 +248,20 @@ def _find(d: Any, key: str) -> Any:
     return None
 
 
-def _plot(out: Path, s: dict[str, Any], t_tr: np.ndarray, p_tr: np.ndarray, t_lp: np.ndarray,
-          p_lp: np.ndarray, offset: np.ndarray, ulog: dict[str, np.ndarray], ours: Any,
-          t_first: float | None, air_t0: float, air_t1: float) -> None:
+def _plot(
+    out: Path,
+    s: dict[str, Any],
+    t_tr: np.ndarray,
+    p_tr: np.ndarray,
+    t_lp: np.ndarray,
+    p_lp: np.ndarray,
+    offset: np.ndarray,
+    ulog: dict[str, np.ndarray],
+    ours: Any,
+    t_first: float | None,
+    air_t0: float,
+    air_t1: float,
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -256,8 +275,13 @@ def _plot(out: Path, s: dict[str, Any], t_tr: np.ndarray, p_tr: np.ndarray, t_lp
     a.plot(p_lp[sel, 1] + offset[1], p_lp[sel, 0] + offset[0], "b-", lw=0.9, label="PX4 EKF2")
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
-        a.plot(vo["position"][:, 1] + offset[1], vo["position"][:, 0] + offset[0], "r.", ms=1,
-               label="ours (as PX4 received it)")
+        a.plot(
+            vo["position"][:, 1] + offset[1],
+            vo["position"][:, 0] + offset[0],
+            "r.",
+            ms=1,
+            label="ours (as PX4 received it)",
+        )
     a.set_xlabel("east [m]")
     a.set_ylabel("north [m]")
     a.axis("equal")
@@ -268,8 +292,13 @@ def _plot(out: Path, s: dict[str, Any], t_tr: np.ndarray, p_tr: np.ndarray, t_lp
     a.plot((t_lp[sel] - t00) * 1e-9, -(p_lp[sel, 2] + offset[2]), "b-", lw=0.9, label="PX4 EKF2")
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
-        a.plot((ours(vo["timestamp"]) - t00) * 1e-9, -(vo["position"][:, 2] + offset[2]), "r.",
-               ms=1, label="ours")
+        a.plot(
+            (ours(vo["timestamp"]) - t00) * 1e-9,
+            -(vo["position"][:, 2] + offset[2]),
+            "r.",
+            ms=1,
+            label="ours",
+        )
     a.set_xlabel("time since take-off [s]")
     a.set_ylabel("height above home [m]")
     a.legend(fontsize=8)
@@ -283,8 +312,14 @@ def _plot(out: Path, s: dict[str, Any], t_tr: np.ndarray, p_tr: np.ndarray, t_lp
         a.plot(te, ev["test_ratio"][:, 0], "m:", lw=0.6, label="test ratio north")
     if "estimator_status_flags" in ulog:
         ef = ulog["estimator_status_flags"]
-        a.step((ours(ef["timestamp"]) - t00) * 1e-9, ef["cs_ev_pos"].astype(float) * 0.5, "k-",
-               where="post", lw=1.0, label="cs_ev_pos (0.5 = fused)")
+        a.step(
+            (ours(ef["timestamp"]) - t00) * 1e-9,
+            ef["cs_ev_pos"].astype(float) * 0.5,
+            "k-",
+            where="post",
+            lw=1.0,
+            label="cs_ev_pos (0.5 = fused)",
+        )
     a.axvspan(0, (air_t1 - t00) * 1e-9, color="0.9", zorder=0)
     a.set_xlabel("time since take-off [s] (grey: airborne)")
     a.legend(fontsize=7)
