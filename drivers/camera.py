@@ -30,6 +30,7 @@ import math
 import socket
 import struct
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -58,7 +59,7 @@ def encode_frame(frame: CameraFrame) -> bytes:
     return header + payload
 
 
-class CameraSource:
+class CameraSource(ABC):
     """Base: ``frames()`` yields CameraFrame until the source ends or ``close()``.
     ``finite``: a recording that ends for good (a file, a folder), not a live device."""
 
@@ -68,8 +69,9 @@ class CameraSource:
         self.closed = False
         self.stamps = "source"  # where the last frame's time_us came from
 
-    def frames(self) -> Iterator[CameraFrame]:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def frames(self) -> Iterator[CameraFrame]:
+        """The frames, stamped in our monotonic clock at exposure (blocking; a worker thread)."""
 
     def close(self) -> None:
         self.closed = True

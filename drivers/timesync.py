@@ -116,7 +116,3 @@ class ClockSync:
     def remote_to_local_us(self, remote_us: int, now_ns: int) -> int:
         """A timestamp of the peer's clock [us] in ours [us] (the offset as of now_ns)."""
         return int(round(remote_us + self.offset_at(now_ns) * 1e-3))
-
-    def local_to_remote_us(self, local_us: int, now_ns: int) -> int:
-        """A timestamp of our clock [us] in the peer's [us]."""
-        return int(round(local_us - self.offset_at(now_ns) * 1e-3))

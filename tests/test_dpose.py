@@ -159,3 +159,14 @@ def test_marks_are_detected_on_rendered_frames(world) -> None:
     clean = st.frame.image_bgr.copy()
     clean[redness(clean) > 40] = (90, 90, 90)
     assert len(detect_marks(clean)) == 0
+
+
+def test_the_shipped_beams_are_what_design_finds() -> None:
+    """DPOSE_BEAMS is design()'s output, written down: a change to the search or the margin
+    that no longer reproduces it must update both (the calibration and the docs cite it)."""
+    from companion.dpose.pattern import design
+
+    beams, margin = design()
+    assert beams == DPOSE_BEAMS
+    assert margin == pytest.approx(similarity_margin(ground_marks(DPOSE_BEAMS)))
+    assert margin > 0.4

@@ -104,20 +104,6 @@ def matrix_to_quat(R: ArrayLike) -> F64:
     return q_unit if q_unit[0] >= 0 else -q_unit
 
 
-def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> F64:
-    """Hamilton product q1 * q2 (rotation q2 applied first)."""
-    w1, x1, y1, z1 = np.asarray(q1_wxyz, dtype=np.float64)
-    w2, x2, y2, z2 = np.asarray(q2_wxyz, dtype=np.float64)
-    return np.array(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ]
-    )
-
-
 def quat_wxyz_to_xyzw(quat_wxyz: ArrayLike) -> F64:
     """Reorder (w, x, y, z) -> (x, y, z, w), as scipy's Rotation and the TUM format want."""
     q = np.asarray(quat_wxyz, dtype=np.float64)

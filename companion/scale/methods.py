@@ -18,6 +18,7 @@ depth; all restart when the VO re-initialises.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -35,7 +36,6 @@ from companion.types import ScaleEstimate, VoOutput
 F64 = NDArray[np.float64]
 
 MATCH_WINDOW = 300  # attempts kept per sensor for the match rate (10 s at 30 Hz)
-METHODS = ("MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane")
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,7 +68,7 @@ def initial_scale(inp: ScaleInput) -> float | None:
 
 
 @dataclass
-class Method:
+class Method(ABC):
     """Base: state handling common to every method."""
 
     name: str
@@ -106,11 +106,12 @@ class Method:
             return None
         return ScaleEstimate(inp.time_us, self.scale, self.sigma, self.name, self.n_used)
 
-    def update(self, inp: ScaleInput) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
+    @abstractmethod
+    def update(self, inp: ScaleInput) -> None:
+        """Fold one frame's measurements into ``scale``/``sigma`` (each method its own way)."""
 
-    def on_initial(self, inp: ScaleInput, s0: float) -> None:
-        """Hook: the initial scale was just set."""
+    def on_initial(self, inp: ScaleInput, s0: float) -> None:  # noqa: B027 - an optional hook
+        """Hook: the initial scale was just set (nothing to do unless a method needs it)."""
 
     def _msc(self, inp: ScaleInput, sensor_id: int) -> msc.MscMeasurement | None:
         rng, p_cam, sig = inp.lasers[sensor_id]
