@@ -38,7 +38,7 @@ OnMessage = Callable[[Any, int], None]
 UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
 MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
 PEER_SILENCE_S = 1.0  # udpin: the autopilot may move to a new address after this much silence
-MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_INVALID = mavlink.MAV_AUTOPILOT_INVALID  # 8: a ground station, a companion
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,6 +22,14 @@ from companion.types import AttitudeSample, PoseEstimate, RangeSample, SignalQua
 MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
 MAV_CMD_SET_MESSAGE_INTERVAL = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+# names for the numbers the service puts on the wire or compares with
+MAV_COMP_ID_AUTOPILOT1 = mavlink.MAV_COMP_ID_AUTOPILOT1  # 1: the autopilot's own component
+MAV_AUTOPILOT_INVALID = mavlink.MAV_AUTOPILOT_INVALID  # 8: not an autopilot (a GCS, us)
+MAV_TYPE_ONBOARD_CONTROLLER = mavlink.MAV_TYPE_ONBOARD_CONTROLLER  # 18: our HEARTBEAT's type
+MAV_STATE_STANDBY = mavlink.MAV_STATE_STANDBY  # 3: not tracking
+MAV_STATE_ACTIVE = mavlink.MAV_STATE_ACTIVE  # 4: tracking, poses going out
+MAV_RESULT_ACCEPTED = mavlink.MAV_RESULT_ACCEPTED  # 0
+
 # what the service reads from the autopilot (the link skips every other frame unparsed)
 SERVICE_INPUTS = frozenset(
     {

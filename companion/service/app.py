@@ -276,8 +276,8 @@ class Service:
             return
         if kind == "HEARTBEAT":
             if (
-                msg.get_srcComponent() == 1
-                and msg.autopilot != 8  # MAV_AUTOPILOT_INVALID
+                msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1
+                and msg.autopilot != messages.MAV_AUTOPILOT_INVALID
                 and self.link.authentic(msg)  # signing: an unsigned one proves nothing
             ):
                 self.stats.autopilot_heartbeat_ns = rx_ns
@@ -285,11 +285,12 @@ class Service:
             return
         if kind == "COMMAND_ACK":
             if (
-                msg.get_srcComponent() == 1  # the autopilot's, addressed to us (or to all)
+                # the autopilot's, addressed to us (or to all)
+                msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1
                 and getattr(msg, "target_system", 0) in (0, self.link.mav.srcSystem)
                 and getattr(msg, "target_component", 0) in (0, self.link.mav.srcComponent)
                 and msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL
-                and msg.result == 0
+                and msg.result == messages.MAV_RESULT_ACCEPTED
                 and self._rate_pending is not None
             ):
                 self.stats.rates_acknowledged.add(self._rate_pending)
@@ -306,7 +307,7 @@ class Service:
                 self.stats.ranges_in += 1
                 self._ranges.append(sample)
             return
-        if kind == "ATTITUDE" and msg.get_srcComponent() == 1:
+        if kind == "ATTITUDE" and msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1:
             att = messages.attitude_from_message(msg, self._fc_to_us(msg))
             if att is None:
                 self.stats.attitudes_rejected += 1
@@ -326,8 +327,17 @@ class Service:
     async def _heartbeat_loop(self) -> None:
         mav = self.link.mav
         while not self._stop.is_set():
-            state = 4 if self._last_vo_state == VoState.TRACKING else 3  # ACTIVE / STANDBY
-            self.link.send(mav.heartbeat_encode(18, 8, 0, 0, state))  # ONBOARD_CONTROLLER
+            tracking = self._last_vo_state == VoState.TRACKING
+            state = messages.MAV_STATE_ACTIVE if tracking else messages.MAV_STATE_STANDBY
+            self.link.send(
+                mav.heartbeat_encode(
+                    messages.MAV_TYPE_ONBOARD_CONTROLLER,
+                    messages.MAV_AUTOPILOT_INVALID,
+                    0,
+                    0,
+                    state,
+                )
+            )
             await self._sleep(1.0)
 
     async def _timesync_loop(self) -> None:
