@@ -157,6 +157,7 @@ class Gcs:
             f"udpout:127.0.0.1:{18570 + instance}", source_system=255, source_component=190
         )
         self.mav = self.conn.mav
+        self.sysid = instance + 1  # PX4 SITL: MAV_SYS_ID = 1 + instance
         self.tel = tel
         self.sticks = (0, 0, 500, 0)  # x pitch, y roll, z throttle (500 = hold), r yaw
         self.setpoint: tuple[np.ndarray, np.ndarray] | None = None  # NED position, velocity
@@ -174,13 +175,13 @@ class Gcs:
                 self._last_hb = now
             if now - self._last_manual > 0.05:
                 x, y, z, r = self.sticks
-                self.mav.manual_control_send(1, x, y, z, r, 0)
+                self.mav.manual_control_send(self.sysid, x, y, z, r, 0)
                 if self.setpoint is not None:
                     p, v = self.setpoint
                     # type_mask: position + velocity, no acceleration, no yaw rate (3576 - yaw)
                     self.mav.set_position_target_local_ned_send(
                         0,
-                        1,
+                        self.sysid,
                         1,
                         1,
                         0b0000_1100_0000_0000 | 0b0001_1100_0000,
@@ -207,7 +208,7 @@ class Gcs:
     def _on(self, m: Any) -> None:
         kind = m.get_type()
         t = time.monotonic_ns()
-        if m.get_srcSystem() != 1 or m.get_srcComponent() != 1:
+        if m.get_srcSystem() != self.sysid or m.get_srcComponent() != 1:
             return
         if kind == "LOCAL_POSITION_NED":
             self.tel.lpos.append((t, int(m.time_boot_ms), m.x, m.y, m.z))
@@ -232,7 +233,7 @@ class Gcs:
 
     def command(self, cmd: int, *params: float) -> None:
         p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
-        self.mav.command_long_send(1, 1, cmd, 0, *p)
+        self.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
 
     def set_mode(self, main: int, sub: int = 0) -> None:
         self.command(176, 1, main, sub)  # MAV_CMD_DO_SET_MODE, custom
@@ -402,6 +403,7 @@ class Flight:
         cfg = load_config(self.o.config, over)
         d = to_dict(cfg)
         d["service"]["mavlink_url"] = f"udpin:127.0.0.1:{14540 + self.o.instance}"
+        d["service"]["system_id"] = 1 + self.o.instance  # PX4 SITL's MAV_SYS_ID
         d["service"]["camera_url"] = f"sitl://127.0.0.1:{15600 + self.o.instance}"
         d["service"]["status_socket"] = str(self.out / "status.sock")
         d["service"]["report_path"] = str(self.out / "service-report.json")
@@ -603,7 +605,7 @@ class Flight:
         """PARAM_SET of an INT32 (its bits in the float field, as PX4 expects), confirmed."""
         as_float = struct.unpack("<f", struct.pack("<i", value))[0]
         for _ in range(10):
-            self.gcs.mav.param_set_send(1, 1, name.encode(), as_float, 6)
+            self.gcs.mav.param_set_send(self.gcs.sysid, 1, name.encode(), as_float, 6)
             self.gcs.pump(0.3)
             got = self.gcs.params.get(name)
             if got is not None and struct.unpack("<i", struct.pack("<f", got))[0] == value:
