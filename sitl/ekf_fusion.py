@@ -25,11 +25,16 @@ Two stages, as in PX4 (DESIGN.md section 6; PX4's ``mavlink_receiver.cpp`` and E
    sample reached the horizon for 400 ms ("vision data stopped"). Per part:
    horizontal position needs ``EKF2_EV_CTRL`` bit 0 and a finite position, in an NED frame only
    once the heading is north-aligned (a magnetometer, or EV yaw in NED), in an FRD frame at any
-   heading; height bit 1; velocity bit 2 and a known velocity frame; yaw bit 3.
+   heading; height bit 1; velocity bit 2 and a known velocity frame; yaw bit 3. EV yaw replaces
+   the magnetometer's heading; in NED it aligns EKF2's heading, in FRD it never does (the
+   heading stays unaligned and PX4 refuses to arm), as the real PX4 SITL (main, 2026-03) shows.
+   PX4's time sync converts our stamps only after ``timesync_window`` answers (PX4: ~500,
+   about 50 s; 0 here by default so that fast tests need not wait), arrival time before that.
 
 What is not emulated: innovations and their gates (``EKF2_EVP_GATE``: every sample that reaches
 the filter is accepted), the estimator states themselves (the local position published is the
-simulator's truth), GPS, optical flow and in-flight resets. Runtime parameter changes act at
+simulator's truth), GNSS (so GNSS and vision fighting is a case for the real PX4 only), optical
+flow and in-flight resets. Runtime parameter changes act at
 once (PX4 applies EKF2_HGT_REF / EKF2_DELAY_MAX at the next boot).
 """
 
@@ -174,6 +179,10 @@ class EvFusion:
             "ev_vel": False,
             "ev_yaw": False,
         }
+        self.ev_yaw_frame = POSE_FRAME_UNKNOWN  # the frame of the last sample with our yaw
+        # PX4's time sync converts our stamps only after this many TIMESYNC answers (PX4:
+        # ~500, ~50 s at 10 Hz); 0: as soon as the stub's own filter has converged (fast tests)
+        self.timesync_window = 0
         self.last_aiding_us = 0  # last horizontal aiding (EV position or velocity)
         self.control_status_changes = 0
         self.fusion_starts = 0
@@ -209,7 +218,7 @@ class EvFusion:
     def sync_stamp_us(self, time_usec: int, here_ns: int) -> int:
         """PX4's Timesync::sync_stamp: the remote time in our clock once converged, else now."""
         sync = self.sync_of()
-        if sync.converged:
+        if sync.converged and sync.samples >= self.timesync_window:
             return sync.remote_to_local_us(int(time_usec), here_ns)
         return here_ns // 1000
 
@@ -338,10 +347,10 @@ class EvFusion:
     def step(self, now_us: int) -> None:
         """One EKF2 update at the autopilot time ``now_us``."""
         horizon = now_us - int(self._p("EKF2_DELAY_MAX") * 1000)
-        if self.mag_heading():
-            self._set("yaw_align", True)
-        elif not self.flags["ev_yaw"]:
-            self._set("yaw_align", False)
+        # the heading: the magnetometer's unless our yaw replaced it; our yaw aligns it only
+        # in NED (ODOMETRY in LOCAL_FRD with EV yaw: never aligned, as PX4 SITL showed)
+        ev_yaw_ned = self.flags["ev_yaw"] and self.ev_yaw_frame == POSE_FRAME_NED
+        self._set("yaw_align", (self.mag_heading() and not self.flags["ev_yaw"]) or ev_yaw_ned)
         sample = self._pop_first_older_than(horizon)
         any_active = any(self.flags[f] for f in ("ev_pos", "ev_hgt", "ev_vel", "ev_yaw"))
         if sample is not None:
@@ -374,8 +383,9 @@ class EvFusion:
         # yaw (ev_yaw_control): EV heading replaces the magnetometer; in NED it also aligns
         yaw_ok = bool(ctrl & EV_CTRL_YAW) and _finite(s.q) and s.pose_frame != POSE_FRAME_UNKNOWN
         self._part("ev_yaw", yaw_ok, starting)
-        if self.flags["ev_yaw"]:
-            self._set("yaw_align", True)  # the EV heading becomes the EKF's
+        self.ev_yaw_frame = s.pose_frame
+        if self.flags["ev_yaw"]:  # the EV heading becomes the EKF's: aligned only in NED
+            self._set("yaw_align", s.pose_frame == POSE_FRAME_NED)
         # horizontal position (ev_pos_control)
         pos_ok = bool(ctrl & EV_CTRL_HPOS) and _finite(s.position[:2])
         if s.pose_frame == POSE_FRAME_NED:

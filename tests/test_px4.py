@@ -202,11 +202,12 @@ def test_parameters_through_mavsdk_and_float_encoded_ints(tmp_path: Path) -> Non
                     assert p.is_int == (store.type_of(name) == MAV_PARAM_TYPE_INT32), name
                     assert p.value == pytest.approx(store.get(name), rel=1e-6), name
 
-            # PX4 v1.14's default (the stub's) EKF2_EV_CTRL = 15 fuses us, yaw included,
-            # which fights the magnetometer: a warning, nothing written for it
+            # PX4 v1.14's default (the stub's) EKF2_EV_CTRL = 15 fuses our ODOMETRY yaw, which
+            # never aligns EKF2's heading (the real PX4 refuses to arm): 7 is written instead
             v114 = {r.name: r for r in evaluate(params, LinkContext("odometry"))}
             ev = v114["EKF2_EV_CTRL"]
-            assert ev.status is Status.WARN and "magnetometer" in ev.why and not ev.targets
+            assert ev.status is Status.FAIL and "never aligns" in ev.why
+            assert ev.targets[0].value == 7
             # PX4 v1.16's default, 0: EKF2 is not told to use vision at all
             set_params(s.stub, {"EKF2_EV_CTRL": 0})
             fresh = await run_check(s.cfg, s.options(watch_s=0))
@@ -410,7 +411,8 @@ def test_fusion_reported_only_when_our_output_meets_the_rules(tmp_path: Path, ca
     if case == "future_timestamps_fused_late":
         assert any("fused late by" in w for w in v.warnings), text
     if case == "vpe_without_north_heading":
-        assert row(report, "EKF2_MAG_TYPE").status is Status.FAIL
+        ev = row(report, "EKF2_EV_CTRL")
+        assert ev.status is Status.FAIL and ev.targets[0].value == 11, ev
 
 
 # ---------------------------------------------------------------------------------------------
@@ -547,13 +549,29 @@ def test_ev_ctrl_bits_as_ekf2_reads_them() -> None:
     position_only = _rows({**base, "EKF2_EV_CTRL": 1}, ctx)["EKF2_EV_CTRL"]
     assert position_only.status is Status.WARN and position_only.targets[0].value == 7
     assert _rows({**base, "EKF2_EV_CTRL": 7}, ctx)["EKF2_EV_CTRL"].status is Status.OK
-    # yaw: wanted without a magnetometer (SYS_HAS_MAG counts them), a warning with one
+    # yaw, as the real PX4 showed it (docs/decisions.md): ODOMETRY (LOCAL_FRD) with bit 3
+    # never aligns EKF2's heading, with a magnetometer or without: FAIL, 7 written instead
     with_yaw = _rows({**base, "EKF2_EV_CTRL": 15}, ctx)["EKF2_EV_CTRL"]
-    assert with_yaw.status is Status.WARN and not with_yaw.targets
-    two_mags = _rows({**base, "SYS_HAS_MAG": 2, "EKF2_EV_CTRL": 15}, ctx)["EKF2_EV_CTRL"]
-    assert two_mags.status is Status.WARN  # 2 is two magnetometers, not "none"
-    no_mag = _rows({**base, "SYS_HAS_MAG": 0, "EKF2_EV_CTRL": 7}, ctx)["EKF2_EV_CTRL"]
-    assert no_mag.status is Status.WARN and no_mag.targets[0].value == 15 and "yaw" in no_mag.why
+    assert with_yaw.status is Status.FAIL and with_yaw.targets[0].value == 7
+    two_mags = _rows({**base, "SYS_HAS_MAG": 2, "EKF2_EV_CTRL": 7}, ctx)
+    assert two_mags["EKF2_EV_CTRL"].status is Status.OK  # 2 is two magnetometers, not "none"
+    assert two_mags["EKF2_MAG_TYPE"].status is Status.OK
+    # ODOMETRY without a magnetometer: no heading alignment at all; the output is wrong
+    no_mag = _rows({**base, "SYS_HAS_MAG": 0, "EKF2_EV_CTRL": 7}, ctx)
+    assert no_mag["EKF2_EV_CTRL"].status is Status.OK
+    assert no_mag["service.output"].status is Status.FAIL
+    assert "vision_position_estimate" in no_mag["service.output"].need
+    assert no_mag["EKF2_MAG_TYPE"].status is Status.FAIL
+    # VISION_POSITION_ESTIMATE (NED): bit 3 needed without a magnetometer, either way with one
+    vpe = LinkContext("vision_position_estimate")
+    vpe_no_mag = _rows({**base, "EKF2_MAG_TYPE": 5, "EKF2_EV_CTRL": 3}, vpe)["EKF2_EV_CTRL"]
+    assert vpe_no_mag.status is Status.FAIL and vpe_no_mag.targets[0].value == 11
+    assert "never fused" in vpe_no_mag.why
+    assert _rows({**base, "EKF2_MAG_TYPE": 5, "EKF2_EV_CTRL": 11}, vpe)["EKF2_EV_CTRL"].status is (
+        Status.OK
+    )
+    for mask in (3, 11):
+        assert _rows({**base, "EKF2_EV_CTRL": mask}, vpe)["EKF2_EV_CTRL"].status is Status.OK
     # EKF2_HGT_REF = vision needs bit 1
     hgt = _rows({**base, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 1}, ctx)
     assert hgt["EKF2_EV_CTRL"].status is Status.FAIL and "height" in hgt["EKF2_EV_CTRL"].why

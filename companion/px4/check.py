@@ -23,7 +23,7 @@ from companion.px4.link import Px4Link, mavsdk_url
 from companion.px4.options import Px4Options
 from companion.px4.rules import LinkContext, Row, Status, evaluate
 from companion.px4.shell import parse_listener, parse_uorb_top
-from companion.service.status import read_status, status_path
+from companion.service.status import StatusError, read_status, status_path
 from drivers.mavlink import LinkUrl
 
 SHELL_TOPICS = (
@@ -32,6 +32,7 @@ SHELL_TOPICS = (
     "estimator_status_flags",
     "estimator_aid_src_ev_pos",
     "timesync_status",
+    "estimator_aid_src_gnss_pos",
 )
 
 
@@ -60,17 +61,29 @@ class CheckReport:
 
     @property
     def problems(self) -> int:
-        """FAIL rows, plus one when the estimate is not (known to be) fused."""
+        """FAIL rows, plus one when the estimate is not (known to be) fused, or is fused but
+        PX4 will not fly on it."""
         fails = sum(r.status is Status.FAIL for r in self.rows)
-        return fails + (1 if self.verdict is not None and self.verdict.fused is not True else 0)
+        return fails + (1 if self.verdict is not None and not self.verdict.ok else 0)
 
 
 def service_status(path: Path) -> dict[str, Any] | None:
     """The running service's status, or None (not running, or not answering sensibly)."""
     try:
         return read_status(path)
-    except (OSError, ValueError, json.JSONDecodeError):
+    except (OSError, ValueError, json.JSONDecodeError, StatusError):
         return None
+
+
+def service_answers(path: Path) -> bool:
+    """Something answers on the service's status socket (a status we may not trust counts:
+    whatever it is, it is running and may hold the service's link)."""
+    try:
+        return read_status(path) is not None
+    except StatusError:
+        return True
+    except (OSError, ValueError):
+        return False
 
 
 def resolve(cfg: Config, opts: Px4Options) -> Target:
@@ -92,7 +105,7 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
     )
     own = mavsdk_url(service_url, "service.mavlink_url")
     url = mavsdk_url(opts.url) if opts.url else own
-    if url == own and service_status(socket) is not None:
+    if url == own and service_answers(socket):
         raise ConfigError(
             f"--url: the running service holds {service_url} (its status is on {socket}); "
             "give check its own link to the autopilot: PX4 SITL's (and the stub's) ground-"
@@ -113,6 +126,7 @@ def shell_view(outputs: list[str] | None) -> ShellView | None:
         flags=f["estimator_status_flags"],
         aid_pos=f["estimator_aid_src_ev_pos"],
         timesync=f["timesync_status"],
+        aid_gnss=f["estimator_aid_src_gnss_pos"],
         rates_hz=parse_uorb_top(outputs[-1]),
     )
 
@@ -192,7 +206,11 @@ def format_check(report: CheckReport) -> str:
     if v is not None:
         out += ["", f"fusion (watched {r.watch_s:.1f} s): {v.headline}"]
         if v.reasons:
-            first = "most likely:" if v.fused is False else "because:    "
+            first = (
+                "most likely:"
+                if v.fused is False
+                else ("but:        " if v.fused else "because:    ")
+            )
             out.append(f"  {first} {v.reasons[0]}")
             out += [f"  also:        {x}" for x in v.reasons[1:]]
         out += [f"  warning:     {x}" for x in v.warnings]

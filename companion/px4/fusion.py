@@ -44,6 +44,7 @@ FUTURE_TOLERANCE_MS = 20.0  # stamps this far ahead of PX4's clock are jitter, n
 LPOS_EDGE_S = 2.0  # LOCAL_POSITION_NED comes at >= 1 Hz (PX4's Normal mode): gaps above this
 POS_HORIZ_REL = 8  # ESTIMATOR_STATUS_FLAGS
 POSE_FRAMES = {0: "UNKNOWN", 1: "NED", 2: "FRD"}
+GNSS_DISAGREE_M = 2.0  # GNSS position innovation beyond this, with vision fused: they disagree
 EKF2_BUFFER_MATCH_MS = 100.0  # RingBuffer::pop_first_older_than: time <= horizon < time + 100
 
 
@@ -56,6 +57,7 @@ class ShellView:
     flags: Fields | None = None  # listener estimator_status_flags
     aid_pos: Fields | None = None  # listener estimator_aid_src_ev_pos
     timesync: Fields | None = None  # listener timesync_status
+    aid_gnss: Fields | None = None  # listener estimator_aid_src_gnss_pos
     rates_hz: Mapping[str, float] | None = None  # uorb top -1
 
 
@@ -78,13 +80,21 @@ class Observations:
 @dataclass(frozen=True, slots=True)
 class Verdict:
     """fused: True / False / None (cannot tell); reasons: most likely first (for None: why
-    it cannot tell); warnings: what is wrong but does not stop fusion."""
+    it cannot tell; for True: why PX4 will not fly on it all the same, e.g. no heading
+    alignment, GNSS fighting us); warnings: what is wrong but does not stop fusion;
+    timesync_converged: PX4's time sync on our stamps (None: not seen)."""
 
     fused: bool | None
     headline: str
     reasons: tuple[str, ...]
     evidence: tuple[str, ...]
     warnings: tuple[str, ...]
+    timesync_converged: bool | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Fused, with nothing that keeps PX4 from flying on it."""
+        return self.fused is True and not self.reasons
 
 
 def _get(d: Mapping[str, Any] | None, *keys: str) -> Any:
@@ -179,8 +189,12 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
 
     sh = obs.shell
     fused: bool | None
+    blockers: list[str] = []
+    converged: bool | None = None
     if sh is not None:
         fused = _diagnose_shell(sh, params, ctx, svc, reasons, evidence, warnings, obs)
+        converged = timesync_converged(sh)
+        blockers = _blockers(sh, params, fused, reasons)
         if fused and not lpos_valid:
             warnings.append(
                 "EKF2 fuses vision but this link saw no valid local position "
@@ -204,15 +218,108 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
         # fused all the same: what would have been a reason is worth a look, not a verdict
         warnings[:0] = reasons
         reasons.clear()
-    if fused:
+    if fused is True and blockers:
+        reasons.extend(blockers)
+        headline = "FUSED, BUT PX4 WILL NOT FLY ON IT: EKF2 fuses our position, yet"
+    elif fused:
         headline = "FUSED: EKF2 fuses our estimate"
         if sh is None:
             headline += " (inferred: a valid local position all along, with no other aiding)"
     elif fused is None:
         headline = "UNKNOWN: cannot tell whether EKF2 fuses our estimate"
     else:
+        reasons[:0] = [b for b in blockers if b not in reasons]
         headline = "NOT FUSED: EKF2 does not fuse our estimate"
-    return Verdict(fused, headline, tuple(reasons), tuple(evidence), tuple(warnings))
+    return Verdict(fused, headline, tuple(reasons), tuple(evidence), tuple(warnings), converged)
+
+
+def timesync_converged(sh: ShellView) -> bool | None:
+    """Whether PX4's time sync converts our stamps: once its filter converged (~500 TIMESYNC
+    answers, ~50 s at 10 Hz) it moves our time_usec into its clock; before that it stamps each
+    sample with its arrival time, so ``timestamp_sample`` equals ``timestamp`` exactly (a
+    converted stamp has microseconds of its own). None: no fresh sample or no TIMESYNC."""
+    v = sh.visual
+    if not _fresh(v) or not _fresh(sh.timesync):
+        return None
+    t, ts = number(v, "timestamp"), number(v, "timestamp_sample")
+    before = number(v, "timestamp_sample_before_timestamp_us")
+    if t is not None and ts is not None and t > 0 and ts > 0:
+        return t != ts
+    return before != 0 if before is not None else None
+
+
+def _blockers(
+    sh: ShellView, params: Mapping[str, Param], fused: bool | None, reasons: list[str]
+) -> list[str]:
+    """What keeps PX4 from flying on our estimate although EKF2 may fuse it: no heading
+    alignment, or GNSS and vision disagreeing (both seen on PX4 SITL, main 2026-03)."""
+    out: list[str] = []
+    flags, v = sh.flags, sh.visual
+    if flags is None:
+        return out
+    frame = v.get("pose_frame") if v is not None else None
+    ev_ctrl = _raw_int(params, "EKF2_EV_CTRL") or 0
+    if fused and flag(flags, "cs_yaw_align") is False:
+        why = (
+            "its heading is not aligned (estimator_status_flags.cs_yaw_align false): PX4 "
+            "refuses to arm ('heading estimate not stable')"
+        )
+        if frame == 2 and flag(flags, "cs_ev_yaw"):
+            why += (
+                "; with ODOMETRY in LOCAL_FRD our yaw (EKF2_EV_CTRL bit 3) replaces the "
+                "magnetometer but never aligns the heading: clear bit 3"
+            )
+        elif frame == 2:
+            why += (
+                "; ODOMETRY in LOCAL_FRD leaves the alignment to the magnetometer, and none "
+                "is used: send VISION_POSITION_ESTIMATE with EKF2_EV_CTRL bit 3 (our heading)"
+            )
+        out.append(why)
+    gnss = any(flag(flags, k) for k in ("cs_gnss_pos", "cs_gnss_vel", "cs_gnss_fault"))
+    ev = any(flag(flags, k) for k in ("cs_ev_pos", "cs_ev_vel", "cs_ev_hgt"))
+    aid = sh.aid_gnss if _fresh(sh.aid_gnss) else None
+    innovation = aid.get("innovation") if aid is not None else None
+    ratio = aid.get("test_ratio") if aid is not None else None
+    innov_m = (
+        max(abs(x) for x in innovation[:2] if math.isfinite(x))
+        if isinstance(innovation, list) and any(math.isfinite(x) for x in innovation[:2])
+        else None
+    )
+    ratio_max = (
+        max(x for x in ratio[:2] if math.isfinite(x))
+        if isinstance(ratio, list) and any(math.isfinite(x) for x in ratio[:2])
+        else None
+    )
+    disagree = (
+        flag(flags, "cs_gnss_fault") is True
+        or flag(aid, "innovation_rejected") is True
+        or (ratio_max is not None and ratio_max > 1.0)
+        or (innov_m is not None and innov_m > GNSS_DISAGREE_M)
+    )
+    if gnss and ev and disagree:
+        seen = []
+        if innov_m is not None:
+            seen.append(f"GNSS position innovation {innov_m:.1f} m")
+        if ratio_max is not None:
+            seen.append(f"test ratio {ratio_max:.2g}")
+        if flag(aid, "innovation_rejected"):
+            seen.append("GNSS position rejected")
+        if flag(flags, "cs_gnss_fault"):
+            seen.append("cs_gnss_fault")
+        out.append(
+            "GNSS and vision fight: EKF2 fuses both and they disagree ("
+            + ", ".join(seen)
+            + "), so EKF2 rejects one or the other in turn and PX4 refuses to arm ('horizontal "
+            "position/velocity unstable'); where there is no usable GNSS turn it off "
+            "(EKF2_GPS_CTRL = 0: `companion px4 configure --no-gnss`), else our estimate is "
+            "off (frame, heading, scale or velocity)"
+            + (
+                " (EKF2_EV_CTRL bit 2 fuses our velocity, which has no bias estimate)"
+                if ev_ctrl & EV_VEL
+                else ""
+            )
+        )
+    return [b for b in out if b not in reasons]
 
 
 def _infer_without_shell(
@@ -393,12 +500,24 @@ def _diagnose_shell(
         )
     ts = sh.timesync
     ts_fresh = _fresh(ts)
+    converged = timesync_converged(sh)
     if ts is not None:
         rtt_us = number(ts, "round_trip_time")
+        state = {
+            True: "converged (our stamps converted)",
+            False: "NOT converged (PX4 stamps our samples at arrival)",
+            None: "convergence unknown",
+        }[converged]
         evidence.append(
-            f"PX4 time sync (timesync_status): round trip "
+            f"PX4 time sync (timesync_status): {state}, round trip "
             f"{_fmt(rtt_us / 1000 if rtt_us is not None else None, '.2f')} ms, last answer "
             f"{_fmt(number(ts, 'timestamp_age_s'), '.2f')} s ago"
+        )
+    if converged is False:
+        warnings.append(
+            "PX4's time sync has not converged yet: it stamps our samples with their arrival "
+            "time, so the latency is not compensated (PX4's filter needs ~500 TIMESYNC answers, "
+            "~50 s at 10 Hz, after PX4 or the service starts; check again then)"
         )
     aid = sh.aid_pos if _fresh(sh.aid_pos) else None
     if aid is not None:
@@ -434,6 +553,13 @@ def _diagnose_shell(
                     "(frame, scale, heading), or the covariance we send is too small"
                 )
     if not _fresh(v):
+        age = number(v, "timestamp_age_s")
+        if v is not None and age is not None and not _fresh(m):
+            reasons.append(
+                f"our estimate stopped: PX4 received it until {age:.1f} s ago and nothing "
+                "since (EKF2 stops vision fusion 400 ms after the last sample): the sender "
+                "stopped, or its link broke"
+            )
         if _fresh(m):
             reasons.append(
                 "wrong estimator_type: our ODOMETRY arrives as MAV_ESTIMATOR_TYPE_MOCAP, which "
@@ -466,8 +592,9 @@ def _diagnose_shell(
         reasons.append(
             "wrong frame for this vehicle: our position is NED (VISION_POSITION_ESTIMATE, or "
             "ODOMETRY in LOCAL_NED) and EKF2 has no north-aligned heading (no magnetometer, "
-            'no EV yaw): send ODOMETRY in LOCAL_FRD (service.output = "odometry"), which EKF2 '
-            "fuses at any heading, or enable EKF2_EV_CTRL bit 3 (yaw)"
+            "no EV yaw): enable EKF2_EV_CTRL bit 3, whose yaw aligns EKF2's heading in NED "
+            "(ODOMETRY in LOCAL_FRD would be fused, but EKF2's heading would still never "
+            "align and PX4 would not arm)"
         )
     qmin = _raw_int(params, "EKF2_EV_QMIN") or 0
     quality = number(v, "quality")

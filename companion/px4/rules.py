@@ -12,7 +12,14 @@ exposure and PX4 converts through TIMESYNC, so EKF2_EV_DELAY stays 0 where the l
 our covariance is real, so EKF2 should use it (EKF2_EV_NOISE_MD 0) with the noise parameters as
 floors. Defaults differ between versions (EKF2_EV_CTRL: 15 before PX4 1.16, 0 since); PX4
 after 1.16 configures ports with SER_<port>_PROT and MAV_ETH_EN instead of MAV_n_CONFIG, and
-the link rows follow whichever the firmware has.
+the link rows follow whichever the firmware has; where it has none of them (PX4 SITL, whose
+start-up script starts the MAVLink instances) there is nothing to set, and no version string is
+trusted for it (a build from an untagged commit reports v0.0.0).
+
+EKF2_EV_CTRL bit 3 (yaw), as the real PX4 (SITL, main 2026-03) showed it: VISION_POSITION_ESTIMATE
+needs it without a magnetometer (else EKF2's heading never aligns and NED is never fused) and may
+have it with one; ODOMETRY (LOCAL_FRD) must not have it (EKF2 then never aligns its heading and
+PX4 refuses to arm) and needs a magnetometer for the same reason.
 """
 
 from __future__ import annotations
@@ -272,34 +279,66 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     )
 
     def ev_ctrl_judge(v: int) -> Judgement:
+        # what PX4 itself showed (docs/decisions.md, "EV yaw"): VISION_POSITION_ESTIMATE is NED
+        # and is fused only once EKF2's heading is aligned: by the magnetometer, or by our yaw
+        # (bit 3); ODOMETRY in LOCAL_FRD is fused at any heading, but its yaw (bit 3) never
+        # aligns EKF2's heading and stops the magnetometer's: PX4 then refuses to arm
         required = EV_HPOS | (EV_VPOS if hgt_ref == 3 else 0)
-        # yaw only without a magnetometer: our heading is EKF2's own at start-up plus VO drift
-        want = EV_HPOS | EV_VPOS | (EV_VEL if odometry else 0) | (EV_YAW if mag is False else 0)
+        yaw_needed = vpe and not odometry and mag is False
+        want = EV_HPOS | EV_VPOS | (EV_VEL if odometry else 0) | (EV_YAW if yaw_needed else 0)
         need = f"{want} ({ev_bits(want)})"
         if v & required != required:
             missing = ev_words(required & ~v)
             why = f"EKF2 ignores our {missing}: bit 0 enables horizontal position fusion"
             if required & EV_VPOS:
                 why += ", bit 1 height (EKF2_HGT_REF = vision needs it)"
-            return Judgement(Status.FAIL, need, why, v | want)
+            keep = v & ~EV_YAW if odometry else v
+            return Judgement(Status.FAIL, need, why, keep | want)
+        if odometry and v & EV_YAW:
+            return Judgement(
+                Status.FAIL,
+                need,
+                "bit 3 (yaw) with ODOMETRY in LOCAL_FRD: EKF2 fuses our yaw instead of the "
+                "magnetometer's but never aligns its heading with it (cs_yaw_align stays "
+                "false), and PX4 refuses to arm ('heading estimate not stable'); as seen on PX4 "
+                "SITL (main, 2026-03), with a magnetometer and without",
+                (v & ~EV_YAW) | want,
+            )
+        if yaw_needed and not v & EV_YAW:
+            return Judgement(
+                Status.FAIL,
+                need,
+                "no magnetometer (SYS_HAS_MAG = 0 or EKF2_MAG_TYPE = 5): EKF2 has no "
+                "north-aligned heading unless it takes ours (bit 3), and it fuses "
+                "VISION_POSITION_ESTIMATE (NED) only with one: without bit 3 our position is "
+                "never fused",
+                v | want,
+            )
         if v & want != want:
             notes = {
                 EV_VPOS: "height (our z is metric, from the rangefinders)",
                 EV_VEL: "velocity (ODOMETRY carries it; it steadies the position)",
-                EV_YAW: "yaw (no magnetometer: EKF2's heading can only come from us)",
             }
             absent = [n for b, n in notes.items() if want & ~v & b]
             return Judgement(
                 Status.WARN, need, "horizontal position fused; not " + ", ".join(absent), v | want
             )
-        if v & EV_YAW and mag:
+        if vpe and v & EV_YAW and mag:
             return Judgement(
-                Status.WARN,
-                need,
-                "bit 3 (yaw) with a magnetometer: our heading is not north-referenced (EKF2's "
-                "own at start-up plus VO drift), yet EKF2 fuses it instead of the magnetometer's "
-                "(with ODOMETRY in FRD it stops magnetometer and GNSS heading fusion); keep bit 3 "
-                "only where the magnetometer is unusable (indoors), with EKF2_MAG_TYPE = 5",
+                Status.OK,
+                f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
+                f"EKF2 fuses our {ev_words(v)} ({message}); with bit 3 our heading replaces "
+                "the magnetometer's, which keeps EKF2's heading and our NED frame together "
+                "(both ours) where the magnetometer is disturbed; without it the magnetometer "
+                "gives north and our heading drift shows as position innovations",
+            )
+        if vpe and mag and not v & EV_YAW:
+            return Judgement(
+                Status.OK,
+                f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
+                f"EKF2 fuses our {ev_words(v)} ({message}); the magnetometer gives the "
+                "north-aligned heading VISION_POSITION_ESTIMATE needs (where it is disturbed, "
+                "indoors: bit 3 and EKF2_MAG_TYPE = 5)",
             )
         return Judgement(Status.OK, need, f"EKF2 fuses our {ev_words(v)} ({message})")
 
@@ -406,7 +445,13 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
         )
         if v <= 5.0:
             return Judgement(Status.OK, need, why)
-        return Judgement(Status.WARN, need, why, 0.0)
+        return Judgement(
+            Status.WARN,
+            need,
+            f"EKF2 takes each sample as {v:g} ms older than its stamp says, against the state "
+            f"of that earlier instant; {why}",
+            0.0,
+        )
 
     def noise_md_judge(v: int) -> Judgement:
         why = "0: EKF2 uses the covariance we send, the EKF2_EV*_NOISE values as floors"
@@ -470,20 +515,42 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
         _int_row(params, "EKF2_RNG_CTRL", 0, 2, rng_judge, RNG_CTRL),
         _int_row(params, "EKF2_GPS_CTRL", 0, 15, gps_judge),
     ]
-    if vpe:
 
-        def mag_judge(v: int) -> Judgement:
-            yaw = ev_ctrl is not None and bool(ev_ctrl & EV_YAW)
-            why = "VISION_POSITION_ESTIMATE is NED: EKF2 fuses it only with a north-aligned heading"
-            if mag is False and not yaw:
-                return Judgement(
-                    Status.FAIL,
-                    "a magnetometer, or EV yaw",
-                    f"{why}, and it has neither a magnetometer nor our yaw (EKF2_EV_CTRL bit 3)",
-                )
-            return Judgement(Status.OK, "a heading source", why)
+    def mag_judge(v: int) -> Judgement:
+        yaw = ev_ctrl is not None and bool(ev_ctrl & EV_YAW)
+        if odometry:
+            why = (
+                "ODOMETRY in LOCAL_FRD is fused at any heading, but only the magnetometer "
+                "aligns EKF2's heading then (our yaw does not): without it PX4 refuses to arm"
+            )
+            if mag is False:
+                return Judgement(Status.FAIL, "a magnetometer", why)
+            return Judgement(Status.OK, "a magnetometer", why)
+        why = "VISION_POSITION_ESTIMATE is NED: EKF2 fuses it only with a north-aligned heading"
+        if mag is False and not yaw:
+            return Judgement(
+                Status.INFO,
+                "a magnetometer, or EV yaw",
+                f"{why}, and it has neither a magnetometer nor our yaw: see EKF2_EV_CTRL",
+            )
+        if mag is False:
+            return Judgement(Status.OK, "a heading source", f"{why}: ours (EKF2_EV_CTRL bit 3)")
+        return Judgement(Status.OK, "a heading source", why)
 
-        rows.append(_int_row(params, "EKF2_MAG_TYPE", 0, 6, mag_judge, MAG_TYPE))
+    rows.append(_int_row(params, "EKF2_MAG_TYPE", 0, 6, mag_judge, MAG_TYPE))
+    if odometry and mag is False:
+        rows.insert(
+            0,
+            Row(
+                "service.output",
+                ctx.output,
+                "vision_position_estimate",
+                "no magnetometer: EKF2 fuses ODOMETRY (LOCAL_FRD) but never aligns its heading, "
+                "with or without our yaw, and PX4 refuses to arm; VISION_POSITION_ESTIMATE with "
+                "EKF2_EV_CTRL bit 3 gives EKF2 our heading (seen on PX4 SITL, main 2026-03)",
+                Status.FAIL,
+            ),
+        )
     return rows
 
 
@@ -503,8 +570,22 @@ def _has_mav_config(params: Mapping[str, Param]) -> bool:
     return any(f"MAV_{i}_CONFIG" in params for i in range(3))
 
 
+def _has_port_params(params: Mapping[str, Param]) -> bool:
+    """The firmware assigns MAVLink instances to ports by parameters (MAV_n_CONFIG, or
+    SER_<port>_PROT / MAV_ETH_EN after PX4 1.16). PX4 SITL has none of them: its start-up
+    script starts each instance (``mavlink start -u 14580 -m onboard -o 14540``), and its
+    MAV_n_* parameters are unused, so PX4 does not even list them over MAVLink."""
+    return (
+        _has_mav_config(params)
+        or "MAV_ETH_EN" in params
+        or any(re.fullmatch(r"SER_\w+_PROT", n) for n in params)
+    )
+
+
 def _companion_instance(params: Mapping[str, Param], ctx: LinkContext) -> int | None:
     """The MAVLink instance that runs on the companion's port, or None (none runs there)."""
+    if not _has_port_params(params):
+        return None
     if _has_mav_config(params):
         code = PORT_CODES[ctx.fc_port]
         found = [i for i in range(3) if _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) == code]
@@ -522,6 +603,19 @@ def _port_rows(params: Mapping[str, Param], ctx: LinkContext) -> tuple[int | Non
     SER_<port>_PROT / MAV_ETH_EN (after 1.16, where MAVLink instances are numbered in port
     order, Ethernet's after the UARTs')."""
     code = PORT_CODES[ctx.fc_port]
+    if not _has_port_params(params):
+        return None, [
+            Row(
+                "MAVLink ports",
+                "set by the start-up script",
+                "-",
+                "this firmware has no MAV_n_CONFIG, SER_<port>_PROT or MAV_ETH_EN (PX4 SITL: "
+                "its start-up script starts each MAVLink instance with its ports and mode), so "
+                "no parameter says which instance is the companion's; whether our messages "
+                "arrive and PX4 time-syncs is watched below",
+                Status.INFO,
+            )
+        ]
     if _has_mav_config(params):
         configs = {i: _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) for i in range(3)}
         found = [i for i, c in configs.items() if c == code]
