@@ -9,7 +9,9 @@ PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stan
 - World: our seeded terrain (sitl/world.py) with its heights clipped to <= 0 (the home level,
   h(0, 0) = 0): SIH's ground is flat at the home altitude, so the vehicle never flies into one
   of our hills and lands on our ground where it lands on SIH's. SIH's body origin rests on its
-  ground; ours rests ``gear_m`` above it (legs): the body is placed at truth NED - gear_m up.
+  ground; ours rests ``gear_m`` above it (legs): the body is placed at truth NED - gear_m up,
+  and never lower than that (SIH's vehicle sank below its start altitude at touch-down in some
+  flights of this build; our ground stays solid).
 - Camera: frame k is exposed at ``t0 + k / rate``; the bridge waits for the first truth sample
   after the exposure (<= 1/50 s at 50 Hz), interpolates the pose (linear position, slerp
   attitude), renders (sitl/render.py, live laser dots) and releases the frame on the SITL
@@ -165,7 +167,7 @@ class Bridge:
     """Truth in; camera stream and TFmini ptys out (see the module docstring)."""
 
     def __init__(
-        self, cfg: Config, instance: int, camera_port: int, out: Path, gear_m: float = 0.2
+        self, cfg: Config, instance: int, camera_port: int, out: Path, gear_m: float = 0.35
     ) -> None:
         self.cfg = cfg
         self.instance = instance
@@ -203,7 +205,10 @@ class Bridge:
         p, R = got
         T = np.eye(4)
         T[:3, :3] = R
+        # our ground is solid at the home level: SIH let the vehicle sink 0.1-3 m below its
+        # start altitude at touch-down in this build, our sensors see it resting on the ground
         T[:3, 3] = p + np.array([0.0, 0.0, -self.gear_m])
+        T[2, 3] = min(T[2, 3], -self.gear_m)
         return T
 
     # ------------------------------------------------------------------ threads
@@ -396,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--instance", type=int, default=0)
     ap.add_argument("--camera-port", type=int, required=True)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--gear-m", type=float, default=0.2)
+    ap.add_argument("--gear-m", type=float, default=0.35)
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
     args.out.mkdir(parents=True, exist_ok=True)

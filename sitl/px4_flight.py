@@ -62,6 +62,13 @@ BOOT_PARAMS = {
     "EKF2_EV_CTRL": "11",
     "EKF2_HGT_REF": "3",
     "EKF2_RNG_CTRL": "0",
+    # without GPS EKF2 takes the declination from this parameter (default 0): SIH's magnetic
+    # field at its home has 4.7 deg E (PX4's heading was 4.7 deg off the truth on the ground),
+    # a user sets their site's declination the same way
+    "EKF2_MAG_DECL": "4.7",
+    # the floor EKF2 puts under our position variance (default 0.1 m): ours is ~4 cm here (as
+    # its covariance says); with the floor PX4's position lagged ours more (docs/decisions.md)
+    "EKF2_EVP_NOISE": "0.03",
 }
 # PX4 custom modes (main mode << 16 | sub mode << 24)
 MODE_ALTCTL, MODE_POSCTL, MODE_AUTO, MODE_OFFBOARD = 2, 3, 4, 6

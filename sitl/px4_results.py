@@ -12,7 +12,11 @@ Definitions (docs/RESULTS.md, "PX4 in the loop"):
   median difference over the compared span), no rotation and no scale; when EKF2 resets its
   position (our reset_counter changed), each stretch between resets gets its own translation.
 - compared span: from 2 s after the first EV position fusion (EKF2's reset to our frame) to
-  the disarm (before it PX4 has no horizontal position at all: Altitude mode, px4_flight.py).
+  the touchdown (before it PX4 has no horizontal position at all: Altitude mode,
+  px4_flight.py; after it the camera is 0.28 m over the ground and PX4 disarms).
+- PX4's estimate: ``vehicle_local_position`` from the log at its ``timestamp_sample``, PX4's
+  clock mapped to ours by a line through the smallest LOCAL_POSITION_NED arrival delays (SIH's
+  clock drifts against ours); without a log, LOCAL_POSITION_NED stamped on arrival.
 - ``ev_pos_fused_pct``: the share of the airborne time after the first fusion during which
   EKF2's ``cs_ev_pos`` was set; ``airborne_before_fusion_s`` is the climb before it.
 """
@@ -74,10 +78,25 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             s["notes"].append(f"px4.ulg unreadable: {e}")
     # ---- PX4 clock -> ours: the smallest arrival delay of LOCAL_POSITION_NED
     lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
-    offset_ns = float(np.min(lp[:, 0] - lp[:, 1] * 1e6)) if len(lp) else 0.0
+    # SIH's lockstep clock drifts against ours (~1 ms/s seen): a line through the smallest
+    # arrival delay of every 2 s of LOCAL_POSITION_NED (arrival = PX4 time + delay >= 0)
+    clock = np.array([0.0, 1.0])
+    if len(lp) > 10:
+        bins = ((lp[:, 0] - lp[0, 0]) // 2e9).astype(int)
+        pts = [
+            lp[bins == b][np.argmin(lp[bins == b, 0] - lp[bins == b, 1] * 1e6)]
+            for b in np.unique(bins)
+        ]
+        env = np.array(pts)
+        if len(env) >= 3:
+            clock = np.polyfit(env[:, 1] * 1e6, env[:, 0], 1)[::-1]
+        else:
+            clock = np.array([float(np.min(lp[:, 0] - lp[:, 1] * 1e6)), 1.0])
+    s["px4_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
 
     def ours(t_us: np.ndarray) -> np.ndarray:
-        return np.asarray(t_us, dtype=np.float64) * 1e3 + offset_ns
+        """PX4 time [us] -> our monotonic clock [ns]."""
+        return clock[0] + clock[1] * np.asarray(t_us, dtype=np.float64) * 1e3
 
     # ---- failsafes: console, STATUSTEXT, vehicle_status
     fs: list[str] = []
@@ -142,6 +161,12 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             s["ev_pos_fused_pct"] = 0.0
     # ---- PX4's estimate against the truth
     t_lp, p_lp = lp[:, 0], lp[:, 2:5]
+    s["px4_position_source"] = "LOCAL_POSITION_NED on the GCS link, stamped on arrival"
+    if "vehicle_local_position" in ulog:  # the estimate at the time it refers to
+        vlp = ulog["vehicle_local_position"]
+        t_lp = ours(vlp["timestamp_sample"])
+        p_lp = np.column_stack([vlp["x"], vlp["y"], vlp["z"]]).astype(np.float64)
+        s["px4_position_source"] = "px4.ulg vehicle_local_position at timestamp_sample"
     np.savetxt(
         out / "px4_local_position.csv",
         lp,
@@ -153,7 +178,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
-    span = (t_lp >= t_cmp) & (t_lp <= t_disarm)
+    span = (t_lp >= t_cmp) & (t_lp <= air_t1)  # to the touchdown (PX4's land detector)
     span &= (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
     gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
     est_p = p_lp[span]
@@ -197,7 +222,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     if start_t is not None:
         p_start = np.array([np.interp(start_t * 1e9, t_tr, p_tr[:, i]) for i in range(3)])
         s["landing_error_from_mission_start_m"] = float(np.linalg.norm(final[:2] - p_start[:2]))
-    s["landed"] = bool(ok and not tel.armed and abs(final[2]) < 0.3)
+    # on the ground and disarmed (SIH's vehicle may rest below its start altitude: see
+    # px4_bridge.py), not moving
+    s["landed"] = bool(ok and not tel.armed and np.linalg.norm(tr[-1, 8:11]) < 0.1)
     # ---- camera, latency (the service's exit report; the bridge's stats)
     rep = _json(out / "service-report.json")
     br = _json(out / "bridge-stats.json")
