@@ -1,4 +1,8 @@
-"""Benchmarks (figures for docs/BENCHMARKS.md): measured, never asserted in unit tests."""
+"""Benchmarks (figures for docs/BENCHMARKS.md): measured, never asserted in unit tests.
+
+The simulator is not imported here: ``bench_render`` is given the factory of simulated flights
+(``companion.cli.sim.scenario``), the one place where the product reaches the simulator.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +10,11 @@ import os
 import platform
 import resource
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
+import cv2
 import numpy as np
 
 from companion.config import Config, TerrainName
@@ -39,16 +45,15 @@ def machine_description() -> str:
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
-def bench_render(cfg: Config, terrains: list[str], frames: int) -> dict[str, Any]:
-    """Render ``frames`` frames of a lawnmower flight on each terrain on one core.
+def bench_render(
+    cfg: Config, terrains: list[str], frames: int, scenario: Callable[[Config], Any]
+) -> dict[str, Any]:
+    """Render ``frames`` frames of a lawnmower flight on each terrain on one core; the flight
+    of a config is ``scenario(cfg)`` (its ``renderer.render_at`` and ``trajectory`` are used).
 
     The first frame (numba compilation, texture loading) is excluded. Motion blur off, live
     laser marks and noise on: the default dataset settings.
     """
-    import cv2
-
-    from sitl.scenario import Scenario
-
     cv2.setNumThreads(1)
     results: list[RenderBench] = []
     for terrain in terrains:
@@ -58,13 +63,13 @@ def bench_render(cfg: Config, terrains: list[str], frames: int) -> dict[str, Any
             trajectory="lawnmower",
             seconds=max(frames / cfg.camera.rate_hz + 1.0, 2.0),
         )
-        scenario = Scenario(replace(cfg, sitl=sitl))
-        scenario.renderer.render_at(scenario.trajectory, 0.0, 0)  # warm-up
+        flight = scenario(replace(cfg, sitl=sitl))
+        flight.renderer.render_at(flight.trajectory, 0.0, 0)  # warm-up
         times = []
         for seq in range(1, frames + 1):
             t_s = seq / cfg.camera.rate_hz
             t0 = time.perf_counter()
-            scenario.renderer.render_at(scenario.trajectory, t_s, seq)
+            flight.renderer.render_at(flight.trajectory, t_s, seq)
             times.append(time.perf_counter() - t0)
         ms = np.asarray(times) * 1e3
         med = float(np.median(ms))

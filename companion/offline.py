@@ -17,7 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config
-from companion.evaluation.trajectory import ate_rmse, path_length
+from companion.evaluation.scale import ScaleMetrics, methods_metrics
+from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Pipeline
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
@@ -49,6 +50,13 @@ class VoRun:
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
+
+    def metrics(self, gt_positions: F64) -> VoMetrics:
+        """The VO's accuracy against the true camera positions (F, 3) at the frame times."""
+        positions = np.array(self.T_vo_cam).reshape(-1, 4, 4)[:, :3, 3]
+        return vo_metrics(
+            self.time_us, self.tracking_mask(), self.segment, self.resets, positions, gt_positions
+        )
 
 
 def feed_step(pipe: Pipeline, step: Any) -> PoseEstimate | None:
@@ -106,52 +114,6 @@ def run_vo(
     return run
 
 
-@dataclass(frozen=True, slots=True)
-class VoMetrics:
-    """Accuracy of a VO run against ground truth (positions of the body)."""
-
-    frames: int
-    first_tracking_s: float
-    tracking_ratio: float  # of the frames after the first initialisation
-    resets: int
-    segment_frames: int  # frames of the longest tracked segment (the one evaluated)
-    path_m: float
-    ate_sim3_m: float
-    ate_sim3_pct: float
-    sim3_scale: float
-
-
-def vo_metrics(run: VoRun, gt_positions: F64) -> VoMetrics:
-    """Sim(3)-aligned ATE of the longest segment: the VO camera positions against the true
-    camera positions gt_positions (F, 3) at the frame times."""
-    tracking = run.tracking_mask()
-    n = len(tracking)
-    if not tracking.any():
-        return VoMetrics(
-            n, float("nan"), 0.0, run.resets, 0, 0.0, float("nan"), float("nan"), float("nan")
-        )
-    first = int(np.argmax(tracking))
-    t0 = run.time_us[0]
-    seg = np.array(run.segment)
-    best = max(set(seg[tracking].tolist()), key=lambda s: int(np.sum(tracking & (seg == s))))
-    sel = tracking & (seg == best)
-    est = np.array([T[:3, 3] for T, k in zip(run.T_vo_cam, sel, strict=True) if k])
-    gt = gt_positions[sel]
-    ate, align = ate_rmse(est, gt, "sim3")
-    length = path_length(gt)
-    return VoMetrics(
-        n,
-        (run.time_us[first] - t0) * 1e-6,
-        float(tracking[first:].mean()),
-        run.resets,
-        int(sel.sum()),
-        length,
-        ate,
-        100.0 * ate / length if length > 0 else float("nan"),
-        align.scale,
-    )
-
-
 @dataclass
 class ScaleRun:
     """Per-frame record of a run with every scale method (SITL ground truth included).
@@ -176,6 +138,20 @@ class ScaleRun:
     points_vo: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
+
+    def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
+        """The accuracy of every method of the run (companion.evaluation.scale)."""
+        return methods_metrics(
+            self.methods,
+            np.array(self.time_us) * 1e-6,
+            np.array(self.tracking),
+            self.yaw_vo_rad,
+            {n: np.array(v) for n, v in self.scale.items()},
+            np.array(self.gt_scale),
+            {n: np.array(v) for n, v in self.position.items()},
+            np.array(self.gt_position),
+            settle_s,
+        )
 
 
 def run_scale(

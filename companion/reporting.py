@@ -11,11 +11,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.evaluation.attitude import angle_errors, wrap_rad
-from companion.evaluation.scale import ScaleMetrics, scale_metrics
-from companion.evaluation.trajectory import umeyama
+from companion.evaluation.attitude import rmse_summary, wrap_rad
+from companion.evaluation.dpose import BandErrors, RandomPoseStudy, dpose_metrics, pose_errors
+from companion.evaluation.scale import ScaleMetrics
+from companion.evaluation.trajectory import poses_from_positions, umeyama
+from companion.evaluation.vo import VoMetrics
 from companion.geometry import so3
-from companion.offline import AttitudeRun, ScaleRun
+from companion.offline import AttitudeRun, DposeRun, ScaleRun
+from drivers.dataset import write_tum
 
 F64 = NDArray[np.float64]
 
@@ -38,24 +41,6 @@ METRIC_COLUMNS = [
     "final_error_m",
     "path_m",
 ]
-
-
-def run_metrics(run: ScaleRun, settle_s: float = 5.0) -> list[ScaleMetrics]:
-    """Metrics of every method of a run."""
-    t = np.array(run.time_us) * 1e-6
-    tracking = np.array(run.tracking)
-    if not tracking.any():
-        return []
-    init = float(t[np.argmax(tracking)])
-    R = so3.rot_z(run.yaw_vo_rad)
-    gt_s = np.array(run.gt_scale)
-    gt_p = np.array(run.gt_position)
-    return [
-        scale_metrics(
-            n, t, np.array(run.scale[n]), gt_s, np.array(run.position[n]), gt_p, R, init, settle_s
-        )
-        for n in run.methods
-    ]
 
 
 def write_tables(metrics: list[ScaleMetrics], out: Path, title: str) -> str:
@@ -81,6 +66,32 @@ def write_tables(metrics: list[ScaleMetrics], out: Path, title: str) -> str:
     return table
 
 
+def write_trajectories(run: ScaleRun, out: Path) -> None:
+    """The true and every method's body positions as TUM files (identity rotations), each
+    method's at the frames where it has an estimate."""
+    t = np.array(run.time_us) * 1e-6
+    write_tum(out / "groundtruth.tum", t, poses_from_positions(np.array(run.gt_position)))
+    for n in run.methods:
+        p = np.array(run.position[n])
+        ok = np.all(np.isfinite(p), axis=1)
+        write_tum(
+            out / f"{n.replace(' ', '_').replace('=', '')}.tum", t[ok], poses_from_positions(p[ok])
+        )
+
+
+def write_vo_report(m: VoMetrics, out: Path, name: str) -> str:
+    """metrics.json and report.md of a VO run in ``out``; returns the Markdown table."""
+    metrics = {k: getattr(m, k) for k in m.__slots__}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    rows = [
+        f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |"
+        for k, v in metrics.items()
+    ]
+    table = "\n".join(["| metric | value |", "|---|---|", *rows])
+    (out / "report.md").write_text(f"# VO on {name}\n\n{table}\n")
+    return table
+
+
 def _plt() -> Any:
     import matplotlib
 
@@ -102,9 +113,17 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     """scale.png, scale_error.png, trajectory.png, point_cloud.png (and sensors.png when the
     run has the number-of-sensors study); returns the paths."""
     plt = _plt()
+    paths = _scale_plots(plt, run, out)
+    paths.append(_trajectory_plot(plt, run, out, main))
+    cloud = _point_cloud_plot(plt, run, world, out, main)
+    study = _sensors_plot(plt, run, out)
+    return paths + [p for p in (cloud, study) if p is not None]
+
+
+def _scale_plots(plt: Any, run: ScaleRun, out: Path) -> list[Path]:
+    """scale.png (every method's scale and the truth) and scale_error.png (relative error)."""
     t = np.array(run.time_us) * 1e-6
     gt_s = np.array(run.gt_scale)
-    paths = []
     base = [n for n in run.methods if not n.startswith("M-MSC k=")]
     fig, ax = plt.subplots(figsize=(9, 4.5))
     ax.plot(t, gt_s, "k", lw=2, label="ground truth")
@@ -118,7 +137,7 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     ax.set_ylabel("scale [m per VO unit]")
     ax.legend(fontsize=8, ncol=3)
     ax.grid(alpha=0.3)
-    paths.append(_save(plt, fig, out / "scale.png"))
+    paths = [_save(plt, fig, out / "scale.png")]
 
     fig, ax = plt.subplots(figsize=(9, 4.5))
     for n in base:
@@ -130,7 +149,12 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     ax.legend(fontsize=8, ncol=3)
     ax.grid(alpha=0.3)
     paths.append(_save(plt, fig, out / "scale_error.png"))
+    return paths
 
+
+def _trajectory_plot(plt: Any, run: ScaleRun, out: Path, main: str) -> Path:
+    """trajectory.png: top view and height of the truth, the raw VO and two methods."""
+    t = np.array(run.time_us) * 1e-6
     gt_p = np.array(run.gt_position)
     fig, (top, side) = plt.subplots(1, 2, figsize=(12, 5))
     top.plot(gt_p[:, 1], gt_p[:, 0], "k", lw=2, label="ground truth")
@@ -159,65 +183,72 @@ def write_plots(run: ScaleRun, world: Any, out: Path, main: str = "M-MSCwK") -> 
     for a_ in (top, side):
         a_.grid(alpha=0.3)
         a_.legend(fontsize=8)
-    paths.append(_save(plt, fig, out / "trajectory.png"))
+    return _save(plt, fig, out / "trajectory.png")
 
-    if len(run.points_vo) and main in run.position:
-        p = np.array(run.position[main])
-        vo = np.array(run.vo_position)
-        ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vo), axis=1)
-        if run.points_frame >= 0 and ok[run.points_frame]:
-            # the map of one frame, scaled by the method's scale at that frame and placed
-            # around the true camera position of that frame with the VO frame's orientation
-            # (gravity-aligned, yaw = heading at init): the shape and scale of the local
-            # reconstruction, without the trajectory's drift
-            k = run.points_frame
-            scale = float(np.array(run.scale[main])[k])
-            R = so3.rot_z(run.yaw_vo_rad)
-            pts = np.array(run.gt_cam_position)[k] + scale * (run.points_vo - vo[k]) @ R.T
-            h_true = world.surface_height(pts[:, 0], pts[:, 1])
-            err = -pts[:, 2] - h_true
-            fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
-            pad = 4.0
-            xs = np.linspace(pts[:, 0].min() - pad, pts[:, 0].max() + pad, 120)
-            ys = np.linspace(pts[:, 1].min() - pad, pts[:, 1].max() + pad, 120)
-            X, Y = np.meshgrid(xs, ys)
-            H = world.surface_height(X.ravel(), Y.ravel()).reshape(X.shape)
-            cf = ax1.contourf(Y, X, H, 20, cmap="terrain")
-            fig.colorbar(cf, ax=ax1, label="true terrain height [m]")
-            ax1.scatter(
-                pts[:, 1],
-                pts[:, 0],
-                c=-pts[:, 2],
-                cmap="terrain",
-                edgecolors="k",
-                linewidths=0.3,
-                s=14,
-                vmin=H.min(),
-                vmax=H.max(),
-            )
-            ax1.set_xlabel("east [m]")
-            ax1.set_ylabel("north [m]")
-            ax1.set_title(f"scaled VO points ({main}) over the true terrain")
-            ax2.hist(100 * err, bins=40, color="tab:red")
-            ax2.set_xlabel("point height - true terrain height [cm]")
-            ax2.set_ylabel("points")
-            ax2.set_title(f"median |error| {100 * np.median(np.abs(err)):.1f} cm")
-            paths.append(_save(plt, fig, out / "point_cloud.png"))
 
+def _point_cloud_plot(plt: Any, run: ScaleRun, world: Any, out: Path, main: str) -> Path | None:
+    """point_cloud.png: the map of one frame, scaled by the method's scale at that frame and
+    placed around the true camera position of that frame with the VO frame's orientation
+    (gravity-aligned, yaw = heading at init): the shape and scale of the local
+    reconstruction, without the trajectory's drift. None if the run kept no map."""
+    if not len(run.points_vo) or main not in run.position:
+        return None
+    p = np.array(run.position[main])
+    vo = np.array(run.vo_position)
+    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vo), axis=1)
+    if run.points_frame < 0 or not ok[run.points_frame]:
+        return None
+    k = run.points_frame
+    scale = float(np.array(run.scale[main])[k])
+    R = so3.rot_z(run.yaw_vo_rad)
+    pts = np.array(run.gt_cam_position)[k] + scale * (run.points_vo - vo[k]) @ R.T
+    h_true = world.surface_height(pts[:, 0], pts[:, 1])
+    err = -pts[:, 2] - h_true
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+    pad = 4.0
+    xs = np.linspace(pts[:, 0].min() - pad, pts[:, 0].max() + pad, 120)
+    ys = np.linspace(pts[:, 1].min() - pad, pts[:, 1].max() + pad, 120)
+    X, Y = np.meshgrid(xs, ys)
+    H = world.surface_height(X.ravel(), Y.ravel()).reshape(X.shape)
+    cf = ax1.contourf(Y, X, H, 20, cmap="terrain")
+    fig.colorbar(cf, ax=ax1, label="true terrain height [m]")
+    ax1.scatter(
+        pts[:, 1],
+        pts[:, 0],
+        c=-pts[:, 2],
+        cmap="terrain",
+        edgecolors="k",
+        linewidths=0.3,
+        s=14,
+        vmin=H.min(),
+        vmax=H.max(),
+    )
+    ax1.set_xlabel("east [m]")
+    ax1.set_ylabel("north [m]")
+    ax1.set_title(f"scaled VO points ({main}) over the true terrain")
+    ax2.hist(100 * err, bins=40, color="tab:red")
+    ax2.set_xlabel("point height - true terrain height [cm]")
+    ax2.set_ylabel("points")
+    ax2.set_title(f"median |error| {100 * np.median(np.abs(err)):.1f} cm")
+    return _save(plt, fig, out / "point_cloud.png")
+
+
+def _sensors_plot(plt: Any, run: ScaleRun, out: Path) -> Path | None:
+    """sensors.png: M-MSC's scale error against the number of sensors (the sensor study)."""
     study = sorted(
         (n for n in run.methods if n.startswith("M-MSC k=")), key=lambda n: int(n.split("=")[1])
     )
-    if study:
-        metrics = {m.method: m for m in run_metrics(run)}
-        ks = [int(n.split("=")[1]) for n in study]
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.plot(ks, [metrics[n].scale_mean_abs_rel_pct for n in study], "o-", color="tab:red")
-        ax.set_xlabel("number of distance sensors")
-        ax.set_ylabel("mean abs. relative scale error [%]")
-        ax.set_title("M-MSC: scale error vs number of sensors")
-        ax.grid(alpha=0.3)
-        paths.append(_save(plt, fig, out / "sensors.png"))
-    return paths
+    if not study:
+        return None
+    metrics = {m.method: m for m in run.metrics()}
+    ks = [int(n.split("=")[1]) for n in study]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(ks, [metrics[n].scale_mean_abs_rel_pct for n in study], "o-", color="tab:red")
+    ax.set_xlabel("number of distance sensors")
+    ax.set_ylabel("mean abs. relative scale error [%]")
+    ax.set_title("M-MSC: scale error vs number of sensors")
+    ax.grid(alpha=0.3)
+    return _save(plt, fig, out / "sensors.png")
 
 
 def summary(dirs: list[Path]) -> str:
@@ -285,29 +316,13 @@ ATTITUDE_LABELS = {
 
 
 def attitude_metrics(run: AttitudeRun, settle_s: float = 5.0) -> list[dict[str, Any]]:
-    """One row per estimate: roll/pitch RMSE [deg] after settle_s, availability, and the
-    first / last minute RMSE of runs of two minutes or more."""
+    """One row per estimate: its name and label, then :func:`rmse_summary`."""
     t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
     truth = run.array("truth")
-    rows: list[dict[str, Any]] = []
-    for name, label in ATTITUDE_LABELS.items():
-        est = run.array(name)
-        e = angle_errors(est, truth, t >= settle_s)
-        row: dict[str, Any] = {
-            "estimate": name,
-            "label": label,
-            "roll_rmse_deg": e.roll_rmse_deg,
-            "pitch_rmse_deg": e.pitch_rmse_deg,
-            "rmse_deg": e.rmse_deg,
-            "available": e.available,
-        }
-        if t[-1] >= 120.0:
-            row["first_min_rmse_deg"] = angle_errors(
-                est, truth, (t >= settle_s) & (t < 60.0)
-            ).rmse_deg
-            row["last_min_rmse_deg"] = angle_errors(est, truth, t >= t[-1] - 60.0).rmse_deg
-        rows.append(row)
-    return rows
+    return [
+        {"estimate": name, "label": label, **rmse_summary(t, run.array(name), truth, settle_s)}
+        for name, label in ATTITUDE_LABELS.items()
+    ]
 
 
 def write_attitude(run: AttitudeRun, out: Path, title: str) -> str:
@@ -409,49 +424,29 @@ def write_attitude_study(
     return "\n".join(lines), _save(plt, fig, out / "attitude_study.png")
 
 
-def _pose_errors(est: F64, truth: F64) -> tuple[F64, F64]:
-    """Translation [m] and rotation [deg] errors (F,) of (F, 4, 4) poses; NaN where missing."""
-    t = np.linalg.norm(est[:, :3, 3] - truth[:, :3, 3], axis=1)
-    r = np.full(len(est), np.nan)
-    ok = np.all(np.isfinite(est[:, :3, :3]), axis=(1, 2))
-    for k in np.flatnonzero(ok):
-        r[k] = np.degrees(so3.angle_between(est[k, :3, :3], truth[k, :3, :3]))
-    return t, r
+DPOSE_LABELS = {"dpose": "d-Pose", "vo": "VO (M-MSCwK)"}
 
 
-def dpose_metrics(run: Any) -> list[dict[str, Any]]:
-    """MSE and RMSE of translation and orientation for d-Pose and the VO, over all frames
-    after arming and in height bands; availability."""
-    truth = np.array(run.truth)
-    h = np.array(run.height_m)
-    rows = []
-    for name in ("dpose", "vo"):
-        t_err, r_err = _pose_errors(np.array(getattr(run, name)), truth)
-        for band, sel in (
-            ("all", np.ones(len(h), dtype=bool)),
-            ("2-6 m", (h >= 2.0) & (h <= 6.0)),
-            ("6-8 m", (h > 6.0) & (h <= 8.0)),
-        ):
-            ok = sel & np.isfinite(t_err) & np.isfinite(r_err)
-            n = int(ok.sum())
-            rows.append(
-                {
-                    "estimate": "d-Pose" if name == "dpose" else "VO (M-MSCwK)",
-                    "heights": band,
-                    "frames": int(sel.sum()),
-                    "available": float(n / max(int(sel.sum()), 1)),
-                    "t_mse_m2": float(np.mean(t_err[ok] ** 2)) if n else float("nan"),
-                    "t_rmse_m": float(np.sqrt(np.mean(t_err[ok] ** 2))) if n else float("nan"),
-                    "r_mse_deg2": float(np.mean(r_err[ok] ** 2)) if n else float("nan"),
-                    "r_rmse_deg": float(np.sqrt(np.mean(r_err[ok] ** 2))) if n else float("nan"),
-                }
-            )
-    return rows
+def format_random_study(
+    n: int, distractors: int, st: RandomPoseStudy, bands: dict[str, BandErrors]
+) -> str:
+    """One line on a d-Pose random-pose study (``companion eval --dpose --random N``)."""
+    a, b = bands["2-6 m"], bands["6-8 m"]
+    return (
+        f"{n} random poses, {distractors} distractor dots: {st.visible} with "
+        f"all marks in view, {st.correct} correct vertex maps, {st.wrong} wrong, "
+        f"pose rate {100 * st.pose_rate:.2f} %, refused {dict(st.refused)}; "
+        f"2-6 m: translation RMSE {100 * a.t_rmse_m:.2f} cm, "
+        f"orientation RMSE {a.r_rmse_deg:.3f} deg; "
+        f"6-8 m: {100 * b.t_rmse_m:.2f} cm, {b.r_rmse_deg:.3f} deg"
+    )
 
 
-def write_dpose(run: Any, out: Path, title: str) -> str:
+def write_dpose(run: DposeRun, out: Path, title: str) -> str:
     """dpose_metrics.json, dpose.md and dpose.png in ``out``; returns the Markdown table."""
-    rows = dpose_metrics(run)
+    truth = np.array(run.truth)
+    estimates = {DPOSE_LABELS[n]: np.array(getattr(run, n)) for n in ("dpose", "vo")}
+    rows = dpose_metrics(truth, np.array(run.height_m), estimates)
     (out / "dpose_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
     lines = [
         "| estimate | heights | frames | available | translation MSE | translation RMSE "
@@ -471,12 +466,12 @@ def write_dpose(run: Any, out: Path, title: str) -> str:
     (out / "dpose.md").write_text(f"# {title}\n\n{table}\n\nNo pose because:\n{why}\n")
     plt = _plt()
     t = (np.array(run.time_us) - run.time_us[0]) * 1e-6
-    truth = np.array(run.truth)
     fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
     axes[0].plot(t, run.height_m, "k-")
     axes[0].set_ylabel("height above the marks [m]")
-    for name, colour, label in (("vo", "tab:blue", "VO (M-MSCwK)"), ("dpose", "tab:red", "d-Pose")):
-        t_err, r_err = _pose_errors(np.array(getattr(run, name)), truth)
+    for name, colour in (("vo", "tab:blue"), ("dpose", "tab:red")):
+        label = DPOSE_LABELS[name]
+        t_err, r_err = pose_errors(estimates[label], truth)
         axes[1].plot(t, t_err * 100, color=colour, lw=0.8, label=label)
         axes[2].plot(t, r_err, color=colour, lw=0.8, label=label)
     axes[1].set_ylabel("translation error [cm]")

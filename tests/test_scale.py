@@ -263,7 +263,6 @@ def test_b7_window_ml_closed_form() -> None:
 
 def test_pipeline_publishes_metric_poses_on_a_hills_flight() -> None:
     from companion.offline import run_scale
-    from companion.reporting import run_metrics
     from sitl.scenario import Scenario
 
     cfg = load_config(
@@ -273,7 +272,7 @@ def test_pipeline_publishes_metric_poses_on_a_hills_flight() -> None:
     )
     sc = Scenario(cfg)
     run = run_scale(cfg, sc.steps(), sc.world)
-    metrics = {m.method: m for m in run_metrics(run)}
+    metrics = {m.method: m for m in run.metrics()}
     for name in ("M-MSC", "M-MSCwK"):
         assert metrics[name].scale_mean_abs_rel_pct < 1.0
         assert metrics[name].ate_pct < 1.0

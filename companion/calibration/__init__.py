@@ -8,8 +8,11 @@
 - :mod:`companion.calibration.lasers`: checks the distance sensors' extrinsics against images
   with the lasers on: each red dot should land where the model projects the laser's hit point.
 - :mod:`companion.calibration.files`: image folders and the laser check's ``ranges.csv``.
-- :mod:`companion.calibration.cli`: the ``companion calibrate ...`` subcommands (reads through
-  ``files``, writes the reports).
+- :mod:`companion.calibration.figures`: the intrinsics summary, the corner coverage image and
+  the laser-check overlays that ``companion calibrate`` shows.
+
+The ``companion calibrate ...`` subcommands are :mod:`companion.cli.calibrate` (reads through
+``files``, writes the reports).
 
 The first three are pure (numpy / OpenCV, arrays in, frozen results out), like the other
 algorithm packages (DESIGN.md section 1).

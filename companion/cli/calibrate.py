@@ -16,43 +16,31 @@ walking their fields (``--max-offset-px``), so their defaults and help live in o
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import json
 import sys
-import typing
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import cv2
-import numpy as np
 
 from companion.calibration.board import _SPEC_HELP, BoardDetector, BoardSpec, board_image
+from companion.calibration.figures import coverage_image, intrinsics_summary, laser_overlay
 from companion.calibration.files import (
     list_images,
     read_image,
     read_laser_frames,
     write_laser_frames,
 )
-from companion.calibration.intrinsics import (
-    COVERAGE_GRID,
-    IntrinsicsOptions,
-    IntrinsicsResult,
-    calibrate_intrinsics,
-)
-from companion.calibration.lasers import (
-    LaserCheckOptions,
-    LaserCheckReport,
-    LaserFrame,
-    Verdict,
-    check_lasers,
-)
-from companion.config import from_dict, load_config
+from companion.calibration.intrinsics import IntrinsicsOptions, calibrate_intrinsics
+from companion.calibration.lasers import LaserCheckOptions, Verdict, check_lasers
+from companion.cli import sim
+from companion.cli.common import add_option_flags, options
+from companion.config import load_config
 from companion.errors import CalibrationError, NotEnoughViewsError
 
 EXIT_OK, EXIT_FLAGGED, EXIT_INPUT = 0, 1, 2
-T = TypeVar("T")
 Command = Callable[[argparse.Namespace], int]
 
 
@@ -71,29 +59,6 @@ def _input_errors(func: Command) -> Command:
             return EXIT_INPUT
 
     return run
-
-
-def _add_option_flags(p: argparse.ArgumentParser, cls: type[Any]) -> None:
-    """One flag per field of the options dataclass ``cls``, help and default from the field."""
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        flag = "--" + f.name.replace("_", "-")
-        text = f"{f.metadata.get('help', '')} (default {f.default})"
-        if hints[f.name] is bool:
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
-        else:
-            p.add_argument(flag, type=hints[f.name], default=None, metavar="N", help=text)
-
-
-def _options(args: argparse.Namespace, cls: type[T]) -> T:
-    """The options dataclass from the flags the user gave (bounds checked: ConfigError)."""
-    assert dataclasses.is_dataclass(cls)
-    given = {
-        f.name: getattr(args, f.name)
-        for f in dataclasses.fields(cls)
-        if getattr(args, f.name, None) is not None
-    }
-    return from_dict(cls, given)
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -121,61 +86,11 @@ def cmd_board(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ intrinsics
-def _coverage_image(result: IntrinsicsResult, views: list[Any]) -> Any:
-    """Every used corner over the image frame, one colour per view, empty cells shaded."""
-    c = result.camera
-    img = np.full((c.height, c.width, 3), 255, dtype=np.uint8)
-    gx, gy = COVERAGE_GRID
-    seen = np.zeros((gy, gx), dtype=bool)
-    for v in views:
-        p = v.image_points_px
-        i = np.clip(((p[:, 0] + 0.5) * gx / c.width).astype(int), 0, gx - 1)
-        j = np.clip(((p[:, 1] + 0.5) * gy / c.height).astype(int), 0, gy - 1)
-        seen[j, i] = True
-    for j in range(gy):
-        for i in range(gx):
-            if not seen[j, i]:
-                x0, y0 = i * c.width // gx, j * c.height // gy
-                x1, y1 = (i + 1) * c.width // gx, (j + 1) * c.height // gy
-                img[y0:y1, x0:x1] = (205, 205, 255)
-    for k in range(1, gx):
-        cv2.line(img, (k * c.width // gx, 0), (k * c.width // gx, c.height), (200, 200, 200))
-    for k in range(1, gy):
-        cv2.line(img, (0, k * c.height // gy), (c.width, k * c.height // gy), (200, 200, 200))
-    rng = np.random.default_rng(0)
-    for v in views:
-        colour = tuple(int(x) for x in rng.integers(0, 200, 3))
-        for u, w in v.image_points_px:
-            cv2.circle(img, (int(round(u)), int(round(w))), 2, colour, -1)
-    return img
-
-
-def _intrinsics_summary(r: IntrinsicsResult, found: int, total: int, spec: BoardSpec) -> str:
-    c, s = r.camera, r.std
-    e = r.view_rms_px
-    worst = sorted(zip(r.view_names, e, strict=True), key=lambda x: -x[1])[:3]
-    lines = [
-        f"board {spec.text()} found in {found} of {total} images; {len(r.view_names)} views "
-        f"used, {r.n_corners} corners",
-        f"fx {c.fx:9.3f} ± {s[0]:.3f}   fy {c.fy:9.3f} ± {s[1]:.3f}   [px]",
-        f"cx {c.cx:9.3f} ± {s[2]:.3f}   cy {c.cy:9.3f} ± {s[3]:.3f}   [px]",
-        "k1 k2 p1 p2 k3 "
-        + "  ".join(f"{v:+.5f} ± {sd:.5f}" for v, sd in zip(c.dist_coeffs, s[4:], strict=True)),
-        f"RMS {r.rms_px:.3f} px (views {e.min():.3f}-{e.max():.3f}; worst "
-        + ", ".join(f"{n} {v:.3f}" for n, v in worst)
-        + f"); coverage {100 * r.coverage:.0f} % of the image; "
-        f"tilts {r.tilt_deg.min():.0f}-{r.tilt_deg.max():.0f} deg",
-    ]
-    lines.extend(f"dropped {n}: RMS {v:.3f} px" for n, v in r.dropped)
-    lines.extend(f"warning: {w}" for w in r.warnings)
-    return "\n".join(lines)
-
-
 @_input_errors
 def cmd_intrinsics(args: argparse.Namespace) -> int:
     """Calibrate the camera from photographs of a board."""
     spec = BoardSpec.parse(args.board)
-    opts = _options(args, IntrinsicsOptions)
+    opts = options(args, IntrinsicsOptions)
     paths = list_images(args.images)
     detector = BoardDetector(spec)
     views = []
@@ -216,9 +131,9 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     _write_json(out / "intrinsics.json", report)
     used = {v.name for v in views} - {n for n, _ in result.dropped}
     cv2.imwrite(
-        str(out / "coverage.png"), _coverage_image(result, [v for v in views if v.name in used])
+        str(out / "coverage.png"), coverage_image(result, [v for v in views if v.name in used])
     )
-    print(_intrinsics_summary(result, len(views), len(paths), spec))
+    print(intrinsics_summary(result, len(views), len(paths), spec))
     print()
     print(result.camera_toml(), end="")
     print(f"\nwritten: {out / 'camera.toml'}, {out / 'intrinsics.json'}, {out / 'coverage.png'}")
@@ -226,31 +141,11 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ lasers
-def _overlay(frame: LaserFrame, report: LaserCheckReport) -> Any:
-    """The image with each sensor's predicted dot (green cross) and matched dot (yellow
-    circle), joined by a line, labelled with the sensor id."""
-    img = frame.image_bgr.copy()
-    for s in report.sensors:
-        for o in s.observations:
-            if o.image != frame.name:
-                continue
-            pu, pv = (int(round(x)) for x in o.predicted_px)
-            colour = (0, 200, 0) if s.verdict is Verdict.OK else (0, 140, 255)
-            cv2.drawMarker(img, (pu, pv), colour, cv2.MARKER_CROSS, 14, 1)
-            cv2.putText(img, str(s.sensor_id), (pu + 6, pv - 6), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.45, colour, 1, cv2.LINE_AA)  # fmt: skip
-            if o.found:
-                du, dv = (int(round(x)) for x in o.detected_px)
-                cv2.circle(img, (du, dv), 6, (0, 255, 255), 1, cv2.LINE_AA)
-                cv2.line(img, (pu, pv), (du, dv), (0, 255, 255), 1, cv2.LINE_AA)
-    return img
-
-
 @_input_errors
 def cmd_lasers(args: argparse.Namespace) -> int:
     """Check the rangefinder mounts against images with the laser dots visible."""
     cfg = load_config(args.config)
-    opts = _options(args, LaserCheckOptions)
+    opts = options(args, LaserCheckOptions)
     frames = read_laser_frames(args.images, args.ranges)
     h, w = frames[0].image_bgr.shape[:2]
     if (w, h) != (cfg.camera.width, cfg.camera.height):
@@ -269,7 +164,7 @@ def cmd_lasers(args: argparse.Namespace) -> int:
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     _write_json(out / "lasers.json", {"config": str(args.config), **report.report()})
     for f in frames:
-        cv2.imwrite(str(out / "overlays" / f"{Path(f.name).stem}.png"), _overlay(f, report))
+        cv2.imwrite(str(out / "overlays" / f"{Path(f.name).stem}.png"), laser_overlay(f, report))
     print(report.table())
     mounts = {rf.sensor_id: rf.mount for rf in cfg.rangefinders}
     for s in report.sensors:
@@ -288,12 +183,9 @@ def cmd_lasers(args: argparse.Namespace) -> int:
 @_input_errors
 def cmd_sim_board(args: argparse.Namespace) -> int:
     """Synthetic board photographs through the config's camera model (to try `intrinsics`)."""
-    from sitl.calibration import BoardRenderer, random_board_poses
-
     spec = BoardSpec.parse(args.board)
     camera = load_config(args.config).camera.model()
-    poses = random_board_poses(camera, spec, args.views, args.seed)
-    images = BoardRenderer(camera).render(spec, poses, args.seed)
+    images = sim.board_photos(camera, spec, args.views, args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     for k, img in enumerate(images):
         cv2.imwrite(str(args.out / f"board_{k:03d}.png"), img)
@@ -316,13 +208,8 @@ def _tilt(text: str) -> tuple[int, float]:
 @_input_errors
 def cmd_sim_lasers(args: argparse.Namespace) -> int:
     """Synthetic laser-check frames (images + ranges.csv) from the SITL renderer."""
-    from sitl.calibration import laser_check_frames, tilt_sensor
-
     cfg = load_config(args.config)
-    hardware = cfg.rangefinders
-    if args.tilt_sensor is not None:
-        hardware = tilt_sensor(hardware, *args.tilt_sensor)
-    frames = laser_check_frames(cfg, args.frames, args.seed, hardware)
+    frames = sim.laser_frames(cfg, args.frames, args.seed, args.tilt_sensor)
     path = write_laser_frames(args.out, frames)
     tilted = "" if args.tilt_sensor is None else f", sensor {args.tilt_sensor[0]} pitched by " \
         f"{args.tilt_sensor[1]:g} deg on the simulated vehicle"  # fmt: skip
@@ -346,7 +233,7 @@ def add_parser(sub: Any) -> None:
     p_in.add_argument("--images", type=Path, required=True, help="folder of board photographs")
     p_in.add_argument("--board", required=True, help=_SPEC_HELP)
     p_in.add_argument("--out", type=Path, help="report folder (default out/calibration/intrinsics)")
-    _add_option_flags(p_in, IntrinsicsOptions)
+    add_option_flags(p_in, IntrinsicsOptions)
     p_in.set_defaults(func=cmd_intrinsics)
 
     p_las = cal.add_parser(
@@ -360,7 +247,7 @@ def add_parser(sub: Any) -> None:
         "--ranges", type=Path, help="CSV image,sensor_id,range_m (default IMAGES/ranges.csv)"
     )
     p_las.add_argument("--out", type=Path, help="report folder (default out/calibration/lasers)")
-    _add_option_flags(p_las, LaserCheckOptions)
+    add_option_flags(p_las, LaserCheckOptions)
     p_las.set_defaults(func=cmd_lasers)
 
     p_sb = cal.add_parser("sim-board", help="synthetic board photographs (SITL camera model)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,3 +49,44 @@ def single_sample_bound_deg(sigma_m: float, spacing_m: float) -> float:
     sigma_m each: sigma sqrt(2) / L (small angles); also each axis of an equilateral triangle
     of side L over a level plane."""
     return float(np.degrees(sigma_m * np.sqrt(2.0) / spacing_m))
+
+
+def rmse_summary(
+    time_s: F64, est_rad: F64, truth_rad: F64, settle_s: float = 5.0
+) -> dict[str, float]:
+    """Roll, pitch and combined RMSE [deg] of one (F, 2) estimate after settle_s [s] (time_s
+    from the start), its availability, and for runs of two minutes or more the RMSE of the
+    first and the last minute."""
+    e = angle_errors(est_rad, truth_rad, time_s >= settle_s)
+    row = {
+        "roll_rmse_deg": e.roll_rmse_deg,
+        "pitch_rmse_deg": e.pitch_rmse_deg,
+        "rmse_deg": e.rmse_deg,
+        "available": e.available,
+    }
+    if time_s[-1] >= 120.0:
+        first = (time_s >= settle_s) & (time_s < 60.0)
+        row["first_min_rmse_deg"] = angle_errors(est_rad, truth_rad, first).rmse_deg
+        last = time_s >= time_s[-1] - 60.0
+        row["last_min_rmse_deg"] = angle_errors(est_rad, truth_rad, last).rmse_deg
+    return row
+
+
+# the studies of `companion eval --attitude --study`: sensor spacing [m], range noise sigma [m]
+SPACING_STUDY_M = tuple(np.round(np.arange(0.1, 1.01, 0.1), 2))
+SIGMA_STUDY_M = (0.0, 0.005, 0.01, 0.02, 0.05, 0.1)
+
+
+def range_tilt_rmse(
+    series: Mapping[str, F64],
+    truth_rad: F64,
+    mask: NDArray[np.bool_],
+    sigma_m: float,
+    spacing_m: float,
+) -> dict[str, float]:
+    """One point of a study: the RMSE [deg] of the range tilts ("ground", "gravity" of
+    ``series``, (F, 2) [rad]) over ``mask``, and the single-sample bound of sensors
+    spacing_m apart with noise sigma_m ("bound")."""
+    vals = {n: angle_errors(series[n], truth_rad, mask).rmse_deg for n in ("ground", "gravity")}
+    vals["bound"] = single_sample_bound_deg(sigma_m, spacing_m)
+    return vals

@@ -1,15 +1,18 @@
-"""d-Pose checks over random poses (synthetic projections, no rendering): how often the
-vertex map is wrong, how often a pose is given, and its accuracy by height."""
+"""d-Pose accuracy: pose errors by height band (of a flight, or of random poses), and checks
+over random poses (synthetic projections, no rendering): how often the vertex map is wrong,
+how often a pose is given, and its accuracy by height."""
 
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.dpose.solve import Priors, solve
+from companion.dpose.solve import Priors, reference_points, solve
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 
@@ -102,3 +105,89 @@ def random_pose_study(
         out.translation_err_m.append(float(np.linalg.norm(T_est[:3, 3] - body)))
         out.rotation_err_deg.append(np.degrees(so3.angle_between(T_est[:3, :3], R_pb)))
     return out
+
+
+def armed_pattern(T_body_rf: F64, height_m: float = 3.0) -> F64:
+    """The marks (4, 3) that lasers with extrinsics T_body_rf (4, 4, 4) paint when armed
+    height_m over level ground (pattern frame = the body at arming)."""
+    o, u = T_body_rf[:, :3, 3], T_body_rf[:, :3, 2]
+    return reference_points(o, u, (height_m - o[:, 2]) / u[:, 2])
+
+
+def pose_errors(est: F64, truth: F64) -> tuple[F64, F64]:
+    """Translation [m] and rotation [deg] errors (F,) of (F, 4, 4) poses; NaN where missing."""
+    t = np.linalg.norm(est[:, :3, 3] - truth[:, :3, 3], axis=1)
+    r = np.full(len(est), np.nan)
+    ok = np.all(np.isfinite(est[:, :3, :3]), axis=(1, 2))
+    for k in np.flatnonzero(ok):
+        r[k] = np.degrees(so3.angle_between(est[k, :3, :3], truth[k, :3, :3]))
+    return t, r
+
+
+def height_bands(height_m: F64) -> list[tuple[str, NDArray[np.bool_]]]:
+    """The height bands the errors are given in: all, 2-6 m and 6-8 m above the marks."""
+    h = height_m
+    return [
+        ("all", np.ones(len(h), dtype=bool)),
+        ("2-6 m", (h >= 2.0) & (h <= 6.0)),
+        ("6-8 m", (h > 6.0) & (h <= 8.0)),
+    ]
+
+
+@dataclass(frozen=True, slots=True)
+class BandErrors:
+    """MSE and RMSE of translation [m] and orientation [deg] over the frames of one band that
+    have an estimate (NaN if none); frames in the band and the share with an estimate."""
+
+    frames: int
+    available: float
+    t_mse_m2: float
+    t_rmse_m: float
+    r_mse_deg2: float
+    r_rmse_deg: float
+
+
+def band_errors(t_err: F64, r_err: F64, sel: NDArray[np.bool_]) -> BandErrors:
+    """:class:`BandErrors` of the errors (F,) (NaN = no estimate) over the frames ``sel``."""
+    ok = sel & np.isfinite(t_err) & np.isfinite(r_err)
+    n = int(ok.sum())
+    frames = int(sel.sum())
+    nan = float("nan")
+    return BandErrors(
+        frames,
+        float(n / max(frames, 1)),
+        float(np.mean(t_err[ok] ** 2)) if n else nan,
+        float(np.sqrt(np.mean(t_err[ok] ** 2))) if n else nan,
+        float(np.mean(r_err[ok] ** 2)) if n else nan,
+        float(np.sqrt(np.mean(r_err[ok] ** 2))) if n else nan,
+    )
+
+
+def dpose_metrics(truth: F64, height_m: F64, estimates: Mapping[str, F64]) -> list[dict[str, Any]]:
+    """One row per estimate (name -> (F, 4, 4) poses, NaN where missing) and height band:
+    MSE and RMSE of translation and orientation against ``truth`` (F, 4, 4), availability."""
+    rows = []
+    for name, poses in estimates.items():
+        t_err, r_err = pose_errors(poses, truth)
+        for band, sel in height_bands(height_m):
+            e = band_errors(t_err, r_err, sel)
+            rows.append(
+                {
+                    "estimate": name,
+                    "heights": band,
+                    "frames": e.frames,
+                    "available": e.available,
+                    "t_mse_m2": e.t_mse_m2,
+                    "t_rmse_m": e.t_rmse_m,
+                    "r_mse_deg2": e.r_mse_deg2,
+                    "r_rmse_deg": e.r_rmse_deg,
+                }
+            )
+    return rows
+
+
+def study_bands(study: RandomPoseStudy) -> dict[str, BandErrors]:
+    """The errors of a random-pose study's correct poses in the 2-6 m and 6-8 m bands."""
+    h = np.array(study.height_m)
+    te, re = np.array(study.translation_err_m), np.array(study.rotation_err_deg)
+    return {band: band_errors(te, re, sel) for band, sel in height_bands(h) if band != "all"}

@@ -8,12 +8,14 @@ error; the metric ATE aligns with SE(3) only (no scale: the point is metric scal
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.evaluation.trajectory import ate_rmse, path_length
+from companion.geometry import so3
 
 F64 = NDArray[np.float64]
 
@@ -78,3 +80,29 @@ def scale_metrics(
         final,
         length,
     )
+
+
+def methods_metrics(
+    methods: Sequence[str],
+    time_s: F64,
+    tracking: NDArray[np.bool_],
+    yaw_vo_rad: float,
+    scale: Mapping[str, F64],
+    scale_true: F64,
+    position_m: Mapping[str, F64],
+    gt_position_m: F64,
+    settle_s: float = 5.0,
+) -> list[ScaleMetrics]:
+    """:func:`scale_metrics` of every method of one run (empty if the VO never tracked): the
+    errors count from ``settle_s`` after the first tracked frame; the VO frame's yaw at
+    initialisation turns the methods' positions into the world."""
+    if not tracking.any():
+        return []
+    init = float(time_s[np.argmax(tracking)])
+    R = so3.rot_z(yaw_vo_rad)
+    return [
+        scale_metrics(
+            n, time_s, scale[n], scale_true, position_m[n], gt_position_m, R, init, settle_s
+        )
+        for n in methods
+    ]

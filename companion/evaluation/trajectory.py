@@ -67,3 +67,11 @@ def ate_rmse(est: F64, gt: F64, align: str = "se3") -> tuple[float, Alignment]:
 def path_length(positions: F64) -> float:
     """Length [m] of the polyline through positions (N, 3)."""
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+
+
+def poses_from_positions(positions: F64) -> F64:
+    """Poses (N, 4, 4) with the identity rotation at positions (N, 3) (for TUM files of
+    trajectories that have positions only)."""
+    poses: F64 = np.repeat(np.eye(4)[None], len(positions), axis=0)
+    poses[:, :3, 3] = positions
+    return poses

@@ -1,0 +1,186 @@
+"""``companion bench render | vo | attitude | dpose | soak``: the figures of docs/BENCHMARKS.md.
+
+Simulated flights come through ``companion.cli.sim``; the Pipeline is imported inside the
+commands, so that the other commands start without it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.bench import bench_render, format_render_report, machine_description
+from companion.cli import sim
+from companion.cli.common import (
+    EXIT_OK,
+    add_sitl_flags,
+    dpose_config,
+    exit_on_sigterm,
+    load,
+    progress,
+)
+from companion.cli.evaluate import vo_input
+from companion.errors import ConfigError
+from companion.geometry import so3
+
+
+def cmd_bench_render(args: argparse.Namespace) -> int:
+    """Benchmark SITL rendering (frames/s on one core)."""
+    report = bench_render(load(args), args.terrains, args.frames, sim.scenario)
+    print(format_render_report(report))
+    return EXIT_OK
+
+
+def cmd_bench_vo(args: argparse.Namespace) -> int:
+    """Benchmark the VO: per-frame time on one core (median, p99) and peak RSS."""
+    from companion.offline import run_vo
+
+    cv2.setNumThreads(1)
+    inp = vo_input(
+        args, lambda c: f"sitl {c.sitl.terrain}/{c.sitl.trajectory} {c.sitl.seconds:g} s"
+    )
+    name = str(args.dataset) if args.dataset is not None else inp.name
+    with progress(inp.total, "bench vo", not args.no_progress) as ticks:
+        run = run_vo(inp.cfg, inp.events, ticks, camera=inp.camera, T_body_cam=inp.T_body_cam)
+    ms = np.array(run.frame_ms)
+    kf = np.array(run.keyframe)
+    print(f"machine: {machine_description()}")
+    print(f"input: {name}, {len(ms)} frames, one core (cv2.setNumThreads(1))")
+    print(
+        f"frame time: median {np.median(ms):.2f} ms ({1000 / np.median(ms):.0f} fps), "
+        f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.1f} ms"
+    )
+    total_ms = np.array(run.total_ms)
+    print(
+        f"with the keyframe work after the pose: median {np.median(total_ms):.2f} ms, "
+        f"p99 {np.percentile(total_ms, 99):.2f} ms"
+    )
+    if kf.any():  # the keyframe flag is on the frame after the one that built it
+        built = np.roll(kf, -1)
+        print(f"keyframes: {int(kf.sum())}, work median {np.median(total_ms[built]):.2f} ms")
+    sc = np.array(run.scale_ms)[run.tracking_mask()]
+    if len(sc):
+        print(
+            f"scale ({inp.cfg.scale.method}, {len(inp.cfg.rangefinders)} sensors, within the "
+            f"frame time): median {np.median(sc):.3f} ms, p99 {np.percentile(sc, 99):.3f} ms"
+        )
+    print(f"tracking: {run.tracking_mask().mean():.3f} of frames, resets {run.resets}")
+    print(f"peak RSS: {run.peak_rss_mb:.0f} MB")
+    return EXIT_OK
+
+
+def cmd_bench_attitude(args: argparse.Namespace) -> int:
+    """Benchmark the roll/pitch step (range tilt, compensation, fusion) per frame, one core:
+    the frames of a SITL flight are recorded first, then the step alone is timed on them."""
+    from companion.attitude.estimator import RollPitch
+    from companion.offline import run_attitude
+
+    cv2.setNumThreads(1)
+    cfg = load(args)
+    flight = sim.scenario(cfg)
+    with progress(flight.n_frames, "bench attitude", not args.no_progress) as ticks:
+        run = run_attitude(cfg, flight.steps(), ticks, keep_frames=True)
+    specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
+    inputs = [
+        (time_us, ranges, cloud, segment)
+        for (time_us, cloud, segment, _, _), ranges in zip(run.frames, run.ranges_used, strict=True)
+    ]
+    est = RollPitch(specs, cfg.attitude)
+    ms = []
+    for time_us, ranges, cloud, segment in inputs:
+        t0 = time.perf_counter()
+        est.step(time_us, ranges, cloud, segment)
+        ms.append((time.perf_counter() - t0) * 1e3)
+    a = np.array(ms)
+    points = np.median([len(c.points_m) for _, _, c, _ in inputs])
+    print(f"machine: {machine_description()}")
+    s = cfg.sitl
+    print(
+        f"roll/pitch step on {s.terrain}/{s.trajectory} {s.seconds:g} s "
+        f"({len(a)} frames, {len(specs)} sensors, median {points:.0f} cloud points): "
+        f"median {np.median(a):.3f} ms, p99 {np.percentile(a, 99):.3f} ms, "
+        f"max {a.max():.3f} ms"
+    )
+    return EXIT_OK
+
+
+def cmd_bench_dpose(args: argparse.Namespace) -> int:
+    """Benchmark d-Pose per frame (detection, vertex map, pose) on one core: the frames of a
+    spiral flight over painted marks are rendered first, then only Dpose.step is timed."""
+    from companion.dpose.estimator import Dpose
+
+    cv2.setNumThreads(1)
+    cfg = dpose_config(args)
+    flight = sim.scenario(cfg)
+    specs = {r.sensor_id: r.spec() for r in cfg.rangefinders}
+    dpose = Dpose(cfg.camera.model(), cfg.camera.T_body_cam(), specs)
+    frames = []
+    for st in flight.steps(start=30):
+        R = st.T_world_body[:3, :3]
+        if not dpose.armed:
+            dpose.arm(flight.ranges.valid_at(st.frame.time_us), st.T_world_body, R)
+        R_ap = R @ so3.exp(np.radians(0.1) * np.ones(3))
+        frames.append((st.frame, R_ap, flight.ranges.valid_at(st.frame.time_us)))
+    ms, found = [], 0
+    for frame, R_ap, ranges in frames:
+        t0 = time.perf_counter()
+        res = dpose.step(frame.time_us, frame.image_bgr, R_ap, ranges)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        found += res is not None
+    a = np.array(ms)
+    print(f"machine: {machine_description()}")
+    print(
+        f"d-Pose step on {cfg.sitl.terrain}/spiral ({len(a)} frames, 640x480, one core): "
+        f"median {np.median(a):.2f} ms, p99 {np.percentile(a, 99):.2f} ms, max {a.max():.2f} ms; "
+        f"pose in {100 * found / len(a):.1f} % of frames"
+    )
+    return EXIT_OK
+
+
+def cmd_bench_soak(args: argparse.Namespace) -> int:
+    """The soak benchmark (sitl/soak.py): prints its figures, writes out/soak/soak.json."""
+    if args.minutes <= 0:
+        raise ConfigError(f"--minutes: must be > 0, got {args.minutes}")
+    load(args)  # a bad config stops here
+    print(f"machine: {machine_description()}", flush=True)
+    print(f"soak: {args.minutes:g} min circle flight, service as its own process", flush=True)
+    exit_on_sigterm()
+    result = sim.soak(args.minutes, args.out, str(args.config))
+    print(json.dumps(result, indent=2, default=str))
+    return EXIT_OK
+
+
+def add_bench(sub: Any) -> None:
+    """``companion bench render | vo | attitude | dpose | soak``."""
+    p_bench = sub.add_parser("bench", help="benchmarks")
+    bench_sub = p_bench.add_subparsers(dest="bench_command", required=True)
+    p_br = bench_sub.add_parser("render", help="SITL rendering speed on one core")
+    p_br.add_argument("--config", type=Path)
+    p_br.add_argument("--terrains", nargs="+", default=["flat", "hills", "urban", "slope"])
+    p_br.add_argument("--frames", type=int, default=300, help="frames per terrain")
+    p_br.set_defaults(func=cmd_bench_render)
+    p_bv = bench_sub.add_parser("vo", help="VO speed and memory on one core")
+    p_bv.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
+    add_sitl_flags(p_bv)
+    p_bv.add_argument("--no-progress", action="store_true")
+    p_bv.set_defaults(func=cmd_bench_vo)
+    p_ba = bench_sub.add_parser("attitude", help="roll/pitch cost per range update, one core")
+    add_sitl_flags(p_ba)
+    p_ba.add_argument("--no-progress", action="store_true")
+    p_ba.set_defaults(func=cmd_bench_attitude)
+    p_bd = bench_sub.add_parser("dpose", help="d-Pose cost per frame, one core")
+    add_sitl_flags(p_bd)
+    p_bd.set_defaults(func=cmd_bench_dpose)
+    p_bs = bench_sub.add_parser(
+        "soak", help="the service process against the SITL for a long flight: memory, drops"
+    )
+    p_bs.add_argument("--minutes", type=float, default=30.0, help="flight length [min]")
+    p_bs.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
+    p_bs.add_argument("--out", type=Path, default=Path("out/soak"))
+    p_bs.set_defaults(func=cmd_bench_soak)

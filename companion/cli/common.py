@@ -1,0 +1,146 @@
+"""What the command modules share: exit codes, the config with the SITL flags' overrides, the
+SITL flags themselves, run names, output folders, progress bars and option-dataclass flags."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import signal
+import sys
+import typing
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+from companion.config import Config, SitlConfig, dpose_rangefinders, from_dict, load_config
+
+EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_NOT_RUNNING = 3  # as `systemctl status` for a unit that is not active
+
+DPOSE_ARM_S = 1.0  # d-Pose runs: the marks are painted (and d-Pose armed) at this time [s]
+
+T = TypeVar("T")
+
+
+def sitl_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """CLI flags -> nested config overrides (only the flags the user gave)."""
+    sitl: dict[str, Any] = {}
+    for flag, key in (
+        ("terrain", "terrain"),
+        ("trajectory", "trajectory"),
+        ("seed", "seed"),
+        ("seconds", "seconds"),
+        ("altitude", "altitude_m"),
+        ("speed", "speed_m_s"),
+    ):
+        value = getattr(args, flag, None)
+        if value is not None:
+            sitl[key] = value
+    if getattr(args, "takeoff_landing", False):
+        sitl["takeoff_landing"] = True
+    if getattr(args, "laser_marks", None) is not None:
+        sitl["render"] = {"laser_marks": args.laser_marks}
+    return {"sitl": sitl} if sitl else {}
+
+
+def load(args: argparse.Namespace) -> Config:
+    """The config of ``--config`` (default: the built-in SITL one) with the SITL flags."""
+    return load_config(getattr(args, "config", None), sitl_overrides(args))
+
+
+def dpose_config(args: argparse.Namespace) -> Config:
+    """The SITL config of a d-Pose run: the four d-Pose lasers, marks painted at DPOSE_ARM_S,
+    the spiral flight unless another trajectory is asked for."""
+    overrides = sitl_overrides(args)
+    overrides.setdefault("sitl", {}).setdefault("trajectory", "spiral")
+    cfg = load_config(getattr(args, "config", None), overrides)
+    render = dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=DPOSE_ARM_S)
+    return dataclasses.replace(
+        cfg,
+        rangefinders=dpose_rangefinders(),
+        sitl=dataclasses.replace(cfg.sitl, render=render),
+    )
+
+
+def add_sitl_flags(p: argparse.ArgumentParser) -> None:
+    """The flags that choose a simulated flight (--terrain, --seconds, ...)."""
+    p.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
+    p.add_argument("--terrain", choices=["flat", "hills", "urban", "slope"])
+    p.add_argument("--trajectory", choices=["hover", "circle", "lawnmower", "figure8", "climb"])
+    p.add_argument("--seconds", type=float, help="flight duration [s]")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--altitude", type=float, help="height above ground [m] (0 = terrain default)")
+    p.add_argument("--speed", type=float, help="cruise speed [m/s]")
+    p.add_argument("--takeoff-landing", action="store_true", help="take off and land")
+    p.add_argument("--laser-marks", choices=["off", "live", "painted"])
+
+
+def run_name(s: SitlConfig) -> str:
+    """The name of a simulated flight, e.g. ``sitl-hills-lawnmower-60s-seed1``."""
+    return f"sitl-{s.terrain}-{s.trajectory}-{s.seconds:g}s-seed{s.seed}"
+
+
+def out_dir(args: argparse.Namespace, default: Path) -> Path:
+    """``--out`` or ``default``, created."""
+    out = Path(args.out) if args.out else default
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+@contextmanager
+def progress(total: int, desc: str, enabled: bool) -> Iterator[Iterator[None]]:
+    """A progress bar on stderr over ``total`` frames; yields the ticks to advance it."""
+    bar = tqdm(
+        total=total,
+        unit="frame",
+        desc=desc,
+        file=sys.stderr,
+        disable=not enabled,
+        dynamic_ncols=True,
+    )
+
+    def ticks() -> Iterator[None]:
+        while True:
+            bar.update(1)
+            yield None
+
+    try:
+        yield ticks()
+    finally:
+        bar.close()
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM ends the command through SystemExit, so that ``finally`` blocks run (the SITL
+    camera process and the soak's service are stopped, not orphaned on their ports)."""
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+def add_option_flags(p: argparse.ArgumentParser, cls: type[Any]) -> None:
+    """One flag per field of the options dataclass ``cls``, help and default from the field."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        flag = "--" + f.name.replace("_", "-")
+        text = f"{f.metadata.get('help', '')} (default {f.default})"
+        if hints[f.name] is bool:
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
+        else:
+            p.add_argument(flag, type=hints[f.name], default=None, metavar="N", help=text)
+
+
+def options(args: argparse.Namespace, cls: type[T]) -> T:
+    """The options dataclass from the flags the user gave (bounds checked: ConfigError)."""
+    assert dataclasses.is_dataclass(cls)
+    given = {
+        f.name: getattr(args, f.name)
+        for f in dataclasses.fields(cls)
+        if getattr(args, f.name, None) is not None
+    }
+    return from_dict(cls, given)

@@ -1,0 +1,306 @@
+"""``companion eval`` (the VO, every scale method, roll/pitch or d-Pose, on a dataset or a
+simulated flight) and ``companion report``: runs from ``companion.offline``, metrics from
+``companion.evaluation``, tables and plots from ``companion.reporting``, flights from ``.sim``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from companion.cli import sim
+from companion.cli.common import (
+    DPOSE_ARM_S,
+    EXIT_OK,
+    add_sitl_flags,
+    dpose_config,
+    load,
+    out_dir,
+    progress,
+    run_name,
+)
+from companion.config import STUDY_RANGEFINDERS, Config, load_config, triangle_rangefinders
+from companion.errors import CompanionError
+from drivers.dataset import dataset_steps, open_dataset, write_tum
+
+if TYPE_CHECKING:
+    from companion.cli.sim import Flight
+    from companion.offline import AttitudeRun
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
+    if args.dpose:
+        return eval_dpose(args)
+    if args.attitude:
+        return eval_attitude(args)
+    if args.methods == "all":
+        return eval_scale(args)
+    return eval_vo(args)
+
+
+# ------------------------------------------------------------------------------ VO
+@dataclasses.dataclass
+class VoInput:
+    """What a VO run reads: a dataset's or a simulated flight's events, and the truth."""
+
+    cfg: Config
+    name: str
+    total: int
+    events: Iterable[Any]
+    camera: Any = None  # a dataset's camera model and T_body_cam (None: the config's)
+    T_body_cam: Any = None
+    gt_at: Callable[[int], Any] | None = None  # true body pose at a time [us], if known
+
+
+def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput:
+    """The dataset folder of ``args.dataset`` or, without one, the simulated flight of the
+    SITL flags (named by ``name``)."""
+    if args.dataset is not None:
+        ds = open_dataset(args.dataset)
+        has_gt = len(ds.gt_times_us) > 0
+        return VoInput(
+            ds.config or load_config(args.config),
+            ds.path.name,
+            len(ds),
+            ds.events(),
+            ds.camera,
+            ds.T_body_cam,
+            ds.gt_pose_at if has_gt else None,
+        )
+    cfg = load(args)  # straight from the simulator, no dataset on disk
+    flight = sim.scenario(cfg)
+    gt_poses: dict[int, Any] = {}
+    events = sim.flight_events(flight, gt_poses)
+    return VoInput(cfg, name(cfg), flight.n_frames, events, gt_at=gt_poses.__getitem__)
+
+
+def eval_vo(args: argparse.Namespace) -> int:
+    """The VO alone: vo.tum, and with ground truth groundtruth.tum, metrics.json, report.md."""
+    from companion.offline import run_vo
+    from companion.reporting import write_vo_report
+
+    inp = vo_input(args, lambda cfg: run_name(cfg.sitl))
+    out = out_dir(args, Path("out") / "eval" / inp.name)
+    with progress(inp.total, f"eval {inp.name}", not args.no_progress) as ticks:
+        run = run_vo(inp.cfg, inp.events, ticks, camera=inp.camera, T_body_cam=inp.T_body_cam)
+    times = np.array(run.time_us)
+    track = run.tracking_mask()
+    T_est = np.array(run.T_vo_cam)
+    write_tum(out / "vo.tum", times[track] * 1e-6, T_est[track])
+    if inp.gt_at is not None:  # the camera's true trajectory, to compare with the VO's poses
+        T_body_cam = inp.cfg.camera.T_body_cam() if inp.T_body_cam is None else inp.T_body_cam
+        gt = np.array([inp.gt_at(int(t)) @ T_body_cam for t in times])
+        write_tum(out / "groundtruth.tum", times * 1e-6, gt)
+        print(write_vo_report(run.metrics(gt[:, :3, 3]), out, inp.name))
+    print(f"trajectories and metrics in {out}")
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ scale
+def eval_scale(args: argparse.Namespace) -> int:
+    """Every scale method on one SITL flight: tables, TUM trajectories and plots."""
+    from companion.offline import run_scale
+    from companion.reporting import write_plots, write_tables, write_trajectories
+
+    study = 6 if args.sensor_study else 0
+    cfg, name, world, steps, total = _scale_input(args, study)
+    out = out_dir(args, Path("out") / "eval" / name)
+    with progress(total, f"eval {name}", not args.no_progress) as ticks:
+        run = run_scale(cfg, steps, world, ticks, sensor_study=study)
+    table = write_tables(run.metrics(), out, f"Metric scale on {name}")
+    write_trajectories(run, out)
+    plots = write_plots(run, world, out)
+    print(table)
+    print(f"VO resets: {run.resets}")
+    print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))
+    return EXIT_OK
+
+
+def _scale_input(args: argparse.Namespace, study: int) -> tuple[Config, str, Any, Any, int]:
+    """(config, name, world, steps, frames) of a recorded SITL flight (its world rebuilt from
+    meta.toml) or of the simulated flight of the SITL flags."""
+    if args.dataset is not None:
+        ds = open_dataset(args.dataset)
+        if ds.sitl is None or ds.config is None or len(ds.gt_times_us) == 0:
+            raise CompanionError(
+                f"{ds.path}: --methods all needs a simulated recording (the ground-truth "
+                "scale ray casts its world)"
+            )
+        if study and len(ds.config.rangefinders) < study:
+            raise CompanionError("--sensor-study needs a recording with six distance sensors")
+        return ds.config, ds.path.name, sim.recorded_world(ds), dataset_steps(ds), len(ds)
+    cfg = load(args)
+    if study and len(cfg.rangefinders) < study:
+        cfg = dataclasses.replace(cfg, rangefinders=STUDY_RANGEFINDERS)
+    flight = sim.scenario(cfg)
+    return cfg, run_name(cfg.sitl), flight.world, flight.steps(), flight.n_frames
+
+
+# ------------------------------------------------------------------------------ roll/pitch
+def eval_attitude(args: argparse.Namespace) -> int:
+    """Roll/pitch on one SITL flight: RMSE table, plots and (--study) the spacing and noise
+    studies replayed over the same VO run."""
+    from companion.offline import run_attitude
+    from companion.reporting import write_attitude
+
+    if args.dataset is not None:
+        raise CompanionError("--attitude runs on the simulator (the truth is ray cast)")
+    cfg = load(args)
+    if args.spacing is not None:
+        cfg = dataclasses.replace(
+            cfg, rangefinders=triangle_rangefinders(args.spacing, args.range_sigma)
+        )
+    name = run_name(cfg.sitl)
+    out = out_dir(args, Path("out") / "eval" / f"{name}-attitude")
+    flight = sim.scenario(cfg)
+    with progress(flight.n_frames, f"attitude {name}", not args.no_progress) as ticks:
+        run = run_attitude(cfg, flight.steps(), ticks, keep_frames=args.study)
+    table = write_attitude(run, out, f"Roll/pitch on {name}")
+    ms = np.array([m for m in run.attitude_ms if m > 0])
+    print(table)
+    if len(ms):
+        print(f"roll/pitch cost: median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms")
+    if args.study:
+        _attitude_study(args, cfg, flight, run, out, name)
+    print(f"tables and plots in {out}")
+    return EXIT_OK
+
+
+def _attitude_study(
+    args: argparse.Namespace, cfg: Config, flight: Flight, run: AttitudeRun, out: Path, name: str
+) -> None:
+    """The range tilts' RMSE against sensor spacing and range noise, replayed over the VO
+    views of ``run`` with simulated sensors on a triangle."""
+    from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
+    from companion.offline import replay_attitude
+    from companion.reporting import write_attitude_study
+
+    frame_us = [f[0] for f in run.frames]
+    settle = (np.array(frame_us) - run.time_us[0]) * 1e-6 >= 5.0
+    truth = run.array("truth")[np.isin(run.time_us, frame_us)]
+
+    def point(spacing_m: float, sigma_m: float) -> dict[str, float]:
+        rfs = triangle_rangefinders(spacing_m, sigma_m)
+        ranges = sim.range_simulator(flight, rfs, cfg.sitl.seed)
+        specs = {rf.sensor_id: rf.spec() for rf in rfs}
+        # the published (fused) attitude does not use the ranges by default: the study is
+        # about the range tilts themselves
+        series = replay_attitude(run, specs, cfg.attitude, ranges.valid_at)
+        return range_tilt_rmse(series, truth, settle, sigma_m, spacing_m)
+
+    sigma0 = args.range_sigma
+    spacing0 = args.spacing or 0.5
+    study = {
+        "spacing": [(L, point(L, sigma0)) for L in SPACING_STUDY_M],
+        "sigma": [(sg, point(spacing0, sg)) for sg in SIGMA_STUDY_M],
+    }
+    text, png_path = write_attitude_study(study, out, f"Roll/pitch studies on {name}")
+    (out / "attitude_study.md").write_text(text + "\n")
+    print(text)
+    print(f"study plot: {png_path}")
+
+
+# ------------------------------------------------------------------------------ d-Pose
+def eval_dpose(args: argparse.Namespace) -> int:
+    """d-Pose on a SITL flight over its painted marks (spiral, 2-8 m, yaw over the full circle)
+    against the VO, or (--random N) over N random synthetic poses."""
+    from companion.offline import run_dpose
+    from companion.reporting import write_dpose
+
+    cfg = dpose_config(args)
+    if args.random:
+        return _dpose_random(cfg, args.random)
+    name = run_name(cfg.sitl)
+    out = out_dir(args, Path("out") / "eval" / f"{name}-dpose")
+    run = run_dpose(cfg, sim.scenario(cfg), DPOSE_ARM_S)
+    table = write_dpose(run, out, f"d-Pose on {name}")
+    ms = np.array(run.dpose_ms)
+    print(table)
+    print(
+        f"d-Pose cost per frame: median {np.median(ms):.2f} ms, p99 {np.percentile(ms, 99):.2f} ms"
+    )
+    print(f"tables and plot in {out}")
+    return EXIT_OK
+
+
+def _dpose_random(cfg: Config, n: int) -> int:
+    """d-Pose over n random synthetic poses above the marks painted from 3 m, without and with
+    two distractor dots."""
+    from companion.evaluation.dpose import armed_pattern, random_pose_study, study_bands
+    from companion.reporting import format_random_study
+
+    pattern = armed_pattern(np.stack([r.spec().T_body_rf for r in cfg.rangefinders]))
+    for distractors in (0, 2):
+        st = random_pose_study(
+            cfg.camera.model(),
+            cfg.camera.T_body_cam(),
+            pattern,
+            n,
+            seed=cfg.sitl.seed,
+            distractors=distractors,
+        )
+        print(format_random_study(n, distractors, st, study_bands(st)))
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ report
+def cmd_report(args: argparse.Namespace) -> int:
+    """Summarise `eval --methods all` folders (TERRAIN-TRAJECTORY-SEED) in Markdown."""
+    from companion.reporting import summary
+
+    text = summary([Path(d) for d in args.dirs])
+    if not text:
+        raise CompanionError("no TERRAIN-TRAJECTORY-SEED folders with scale_metrics.json")
+    print(text)
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ parsers
+def add_report(sub: Any) -> None:
+    """``companion report``."""
+    p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
+    p_rep.add_argument("dirs", nargs="+", type=Path)
+    p_rep.set_defaults(func=cmd_report)
+
+
+def add_eval(sub: Any) -> None:
+    """``companion eval``."""
+    p = sub.add_parser("eval", help="evaluate the pipeline on a dataset or a SITL flight")
+    p.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
+    add_sitl_flags(p)
+    p.add_argument("--out", type=Path, help="output folder (default out/eval/NAME)")
+    p.add_argument(
+        "--methods",
+        choices=["vo", "all"],
+        default="vo",
+        help="vo: the odometry alone; all: every scale method (SITL)",
+    )
+    p.add_argument(
+        "--sensor-study", action="store_true", help="with --methods all: M-MSC with 1..6 sensors"
+    )
+    p.add_argument(
+        "--attitude", action="store_true", help="roll/pitch from the distance sensors (SITL)"
+    )
+    p.add_argument(
+        "--spacing", type=float, help="--attitude: 3 sensors on a triangle of this side [m]"
+    )
+    p.add_argument(
+        "--range-sigma", type=float, default=0.01, help="--attitude: range noise sigma [m]"
+    )
+    p.add_argument(
+        "--study", action="store_true", help="--attitude: RMSE vs sensor spacing and range noise"
+    )
+    p.add_argument(
+        "--dpose", action="store_true", help="d-Pose over painted laser marks (SITL, spiral)"
+    )
+    p.add_argument(
+        "--random", type=int, default=0, help="--dpose: N random synthetic poses instead"
+    )
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_eval)

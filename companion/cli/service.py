@@ -1,0 +1,227 @@
+"""The service's commands: ``companion run | status | config``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, load
+from companion.config import Config, describe
+from companion.redact import redact_url
+from companion.service.status import read_status, status_path
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """Print every option with its value and help, after the checks `run` makes before it
+    starts (files, URLs, the status socket path): a file that passes here starts there."""
+    from companion.service import preflight
+
+    cfg = load(args)
+    warnings = preflight.check(cfg)
+    print("\n".join(describe(cfg)))
+    for text in warnings:
+        print(f"companion: warning: {text}", file=sys.stderr)
+    return EXIT_OK
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The service: camera + rangefinders + autopilot link -> pose messages, until SIGTERM /
+    SIGINT or --duration."""
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    log = logging.getLogger("companion")
+    cfg = load(args)
+    for line in describe(cfg):
+        log.debug("config %s", line)
+    s = cfg.service
+    log.info("link %s, camera %s, output %s", s.mavlink_url, redact_url(s.camera_url), s.output)
+    report = args.report or s.report_path
+    summary = asyncio.run(_serve(cfg, args.duration, report, log))
+    log.info(
+        "published %d poses (%.1f Hz), %d frames in, %d dropped, latency p50 %s ms",
+        summary["published"],
+        summary["publish_rate_hz"],
+        summary["frames_in"],
+        summary["frames_dropped"],
+        f"{summary['latency_ms_p50']:.1f}" if summary["latency_ms_p50"] is not None else "-",
+    )
+    return EXIT_OK
+
+
+async def _serve(
+    cfg: Config, duration: float | None, report: Path | str | None, log: logging.Logger
+) -> dict[str, Any]:
+    """Run the service until stopped; write the exit report; return its summary."""
+    from companion.service.app import Service
+
+    service = Service(cfg)  # a bad URL raises ConfigError here, before anything starts
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, service.stop)
+    async with service:
+        await service.run(duration)
+    summary = service.summary()
+    if report:
+        try:
+            service.write_report(Path(report))
+        except OSError as e:  # a full disk: the run itself went fine
+            log.warning("exit report not written to %s: %s", report, e)
+    return summary
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Show the running service's state (exit 3 when it is not running)."""
+    path = Path(args.socket) if args.socket else status_path(load(args).service.status_socket)
+    while True:
+        st = read_status(path)
+        if st is None:
+            print(f"companion is not running (no service on {path})")
+            return EXIT_NOT_RUNNING
+        text = json.dumps(st, indent=2) if args.json else format_status(st)
+        if args.watch:
+            print("\033[H\033[2J" + text, flush=True)
+            time.sleep(1.0)
+            continue
+        print(text)
+        return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ status table
+def _fmt(v: Any, unit: str = "", digits: int = 2) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}{unit}"
+    return f"{v}{unit}"
+
+
+def _mqtt_line(m: dict[str, Any]) -> str:
+    if not m.get("enabled"):
+        return "disabled"
+    state = "connected" if m.get("connected") else "NOT connected"
+    return f"{state}, {m.get('queued', 0)} queued, {m.get('dropped', 0)} dropped"
+
+
+def _signing_text(ap: dict[str, Any]) -> str:
+    sg = ap.get("signing")
+    if not sg:
+        return ", unsigned link"
+    return f", signed: {sg['good_signatures']} good, {sg['bad_signatures']} bad signatures, " + (
+        f"{sg['refused']} refused"
+    )
+
+
+def _autopilot_rows(ap: dict[str, Any]) -> list[tuple[str, str]]:
+    return [
+        (
+            "autopilot",
+            f"{ap['url']}  system {_fmt(ap['system_id'])}  heartbeat "
+            f"{_fmt(ap['heartbeat_age_s'], ' s ago', 1)}",
+        ),
+        (
+            "  time sync",
+            f"{'converged' if ap['timesync_converged'] else 'NOT converged'}  "
+            f"offset {_fmt(ap['timesync_offset_ms'], ' ms', 3)}  "
+            f"rtt {_fmt(ap['timesync_rtt_ms'], ' ms', 2)}",
+        ),
+        ("  messages", f"{ap['rx_messages']} in, {ap['rx_bad']} bad" + _signing_text(ap)),
+    ]
+
+
+def _camera_text(cam: dict[str, Any]) -> str:
+    return (
+        f"{cam['url']}  {_fmt(cam['fps'], ' fps', 1)}  {cam['frames']} frames, "
+        f"{cam['dropped']} dropped, last {_fmt(cam['last_frame_age_s'], ' s ago', 2)}"
+        + (f", stamped at {cam['stamps']}" if cam.get("stamps") in ("grab", "v4l2 buffer") else "")
+        + (f"  NOW {cam['problem'].upper()} FRAMES" if cam.get("problem") else "")
+        + "".join(f", {n} {k}" for k, n in (cam.get("rejected") or {}).items())
+    )
+
+
+def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
+    vo, sc, att, out = st["vo"], st["scale"], st["attitude"], st["output"]
+    matches = (sc.get("match_rate") or {}).items()
+    return [
+        (
+            "VO",
+            f"{vo['state']}  {vo['features']} features  {vo['keyframes']} keyframes  "
+            f"{vo['resets']} resets",
+        ),
+        (
+            "scale",
+            f"{sc['method']}  {_fmt(sc['value'], '', 4)} ± {_fmt(sc['sigma'], '', 4)}  "
+            f"{sc['sensors_used']} sensors  ranges {sc['ranges_in']} in, "
+            f"{sc['ranges_rejected']} rejected",
+        ),
+        ("  matches", "  ".join(f"sensor {k} {100 * v:.0f} %" for k, v in matches) or "-"),
+        (
+            "roll/pitch",
+            f"{_fmt(att['roll_deg'], '°')} / {_fmt(att['pitch_deg'], '°')}  "
+            f"± {_fmt(att['sigma_deg'], '°', 3)}  "
+            f"compensation {'on' if att['compensation'] else 'off'}",
+        ),
+        (
+            "output",
+            f"{out['message']}  {_fmt(out['rate_hz'], ' Hz', 1)}  {out['published']} sent  "
+            f"reset_counter {out['reset_counter']}  "
+            f"latency p50 {_fmt(out['latency_ms_p50'], ' ms', 1)}",
+        ),
+    ]
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """The status JSON as a readable table (plain text, aligned)."""
+    rows = [
+        ("uptime", _fmt(st["uptime_s"], " s", 0)),
+        *_autopilot_rows(st["autopilot"]),
+        ("camera", _camera_text(st["camera"])),
+        *_estimate_rows(st),
+        ("MQTT", _mqtt_line(st["mqtt"])),
+    ]
+    width = max(len(k) for k, _ in rows)
+    lines = [f"{k:<{width}}  {v}" for k, v in rows]
+    warnings = st.get("warnings") or []
+    lines.append(f"{'warnings':<{width}}  " + ("none" if not warnings else warnings[-1]))
+    lines.extend(f"{'':<{width}}  {w}" for w in warnings[-5:-1][::-1])
+    for r in st["attitude"].get("reasons", [])[:3]:
+        lines.append(f"{'':<{width}}  roll/pitch: {r}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ parsers
+def add_config(sub: Any) -> None:
+    """``companion config``."""
+    p_cfg = sub.add_parser("config", help="print the effective configuration")
+    p_cfg.add_argument("--config", type=Path)
+    p_cfg.set_defaults(func=cmd_config)
+
+
+def add_run(sub: Any) -> None:
+    """``companion run``."""
+    p_run = sub.add_parser("run", help="the service (camera + rangefinders -> autopilot)")
+    p_run.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
+    p_run.add_argument("--duration", type=float, help="stop after this many seconds")
+    p_run.add_argument("--report", type=Path, help="write a JSON summary here on exit")
+    p_run.add_argument("--terrain", help=argparse.SUPPRESS)
+    p_run.add_argument("--trajectory", help=argparse.SUPPRESS)
+    p_run.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
+    p_run.add_argument("--seed", type=int, help=argparse.SUPPRESS)
+    p_run.set_defaults(func=cmd_run)
+
+
+def add_status(sub: Any) -> None:
+    """``companion status``."""
+    p_status = sub.add_parser("status", help="the running service's state (exit 3 if none)")
+    p_status.add_argument("--config", type=Path, help="TOML config (for service.status_socket)")
+    p_status.add_argument("--socket", type=Path, help="status socket path")
+    p_status.add_argument("--json", action="store_true", help="JSON for machines")
+    p_status.add_argument("--watch", action="store_true", help="refresh every second")
+    p_status.set_defaults(func=cmd_status)
