@@ -1,6 +1,7 @@
 """``companion eval`` (the VO, every scale method, roll/pitch or d-Pose, on a dataset or a
 simulated flight) and ``companion report``: runs from ``companion.offline``, metrics from
-``companion.evaluation``, tables and plots from ``companion.reporting``, flights from ``.sim``.
+``companion.evaluation``, tables and plots from ``companion.reporting``, flights from ``.sim``
+(offline and reporting load the Pipeline: imported inside the commands, as in ``bench``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from companion.cli.common import (
 )
 from companion.config import STUDY_RANGEFINDERS, Config, load_config, triangle_rangefinders
 from companion.errors import CompanionError
+from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
+from companion.evaluation.dpose import armed_pattern, random_pose_study, study_bands
 from drivers.dataset import dataset_steps, open_dataset, write_tum
 
 if TYPE_CHECKING:
@@ -177,7 +180,6 @@ def _attitude_study(
 ) -> None:
     """The range tilts' RMSE against sensor spacing and range noise, replayed over the VO
     views of ``run`` with simulated sensors on a triangle."""
-    from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
     from companion.offline import replay_attitude
     from companion.reporting import write_attitude_study
 
@@ -232,7 +234,6 @@ def eval_dpose(args: argparse.Namespace) -> int:
 def _dpose_random(cfg: Config, n: int) -> int:
     """d-Pose over n random synthetic poses above the marks painted from 3 m, without and with
     two distractor dots."""
-    from companion.evaluation.dpose import armed_pattern, random_pose_study, study_bands
     from companion.reporting import format_random_study
 
     pattern = armed_pattern(np.stack([r.spec().T_body_rf for r in cfg.rangefinders]))
