@@ -13,10 +13,11 @@ PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stan
   and never lower than that (SIH's vehicle sank below its start altitude at touch-down in some
   flights of this build; our ground stays solid).
 - Camera: frame k is exposed at ``t0 + k / rate``; the bridge waits for the first truth sample
-  after the exposure (<= 1/50 s at 50 Hz), interpolates the pose (linear position, slerp
-  attitude), renders (sitl/render.py, live laser dots) and releases the frame on the SITL
-  camera stream (drivers/camera.py format, TCP) at exposure + readout. A frame that cannot be
-  released within one period of its due time is dropped and counted, as a camera drops it.
+  after the exposure (<= 10 ms at 100 Hz; after 12 ms it extrapolates the latest with its
+  velocity), interpolates the pose (linear position, slerp attitude), renders (sitl/render.py,
+  live laser dots) and releases the frame on the SITL camera stream (drivers/camera.py format,
+  TCP) at exposure + readout, or as soon as it is rendered. A frame that cannot be out within
+  60 ms of its exposure (the service's frame_wait_ms) is dropped and counted.
 - Distance sensors: one pseudo-terminal per configured sensor, TFmini frames (drivers/
   rangefinder.py) at the sensor's rate, ray cast at the current truth pose with the sensor's
   noise model: the service reads them as it reads TFminis on a UART (``rangefinders[i].serial``).
@@ -57,7 +58,10 @@ from sitl.world import World, make_world
 F64 = NDArray[np.float64]
 
 EARTH_RADIUS_M = 6371000.0  # PX4's CONSTANTS_RADIUS_OF_EARTH (map projection)
-TRUTH_WAIT_MAX_S = 0.06  # no truth sample after an exposure this long: extrapolate
+TRUTH_WAIT_MAX_S = 0.012  # no truth sample after an exposure this long: extrapolate (<= 2 mm)
+LATE_MAX_NS = (
+    60_000_000  # a frame not out 60 ms after its exposure is dropped (service.frame_wait_ms)
+)
 
 
 def ned_of(lat_e7: int, lon_e7: int, alt_mm: int, home: tuple[int, int, int]) -> F64:
@@ -302,8 +306,8 @@ class Bridge:
                 time.sleep(wait)
             if not self.truth.wait_after(expose_ns, TRUTH_WAIT_MAX_S):
                 self.stats["frames_extrapolated"] += 1
-            if time.monotonic_ns() > release_ns + period_ns:
-                self.stats["frames_dropped"] += 1
+            if time.monotonic_ns() > expose_ns + LATE_MAX_NS - 10_000_000:
+                self.stats["frames_dropped"] += 1  # behind: skip it, as a camera would
                 seq += 1
                 continue
             T = self.T_world_body(expose_ns)
@@ -315,7 +319,7 @@ class Bridge:
             img = self.renderer.render_pose(T @ self.T_body_cam, seq, marks).image_bgr
             self.stats["render_ms"].append((time.monotonic_ns() - r0) * 1e-6)
             now = time.monotonic_ns()
-            if now > release_ns + period_ns:
+            if now > expose_ns + LATE_MAX_NS:
                 self.stats["frames_dropped"] += 1
                 seq += 1
                 continue

@@ -170,6 +170,8 @@ class Gcs:
         self.setpoint: tuple[np.ndarray, np.ndarray] | None = None  # NED position, velocity
         self._last_manual = 0.0
         self.params: dict[str, float] = {}
+        self.range_m: tuple[float, float] | None = None  # PX4's own rangefinder: (time, m)
+        self.hold_range_m: float | None = None  # throttle stick holds this range (Altitude mode)
         self._last_hb = 0.0
         self.t0 = time.monotonic()
 
@@ -182,6 +184,10 @@ class Gcs:
                 self._last_hb = now
             if now - self._last_manual > 0.05:
                 x, y, z, r = self.sticks
+                rng, hold = self.range_m, self.hold_range_m
+                if hold is not None and rng is not None and now - rng[0] < 0.5:
+                    # a pilot watching the height: proportional on the throttle stick
+                    z = int(np.clip(500 + 200 * (hold - rng[1]), 300, 800))
                 self.mav.manual_control_send(self.sysid, x, y, z, r, 0)
                 if self.setpoint is not None:
                     p, v = self.setpoint
@@ -229,6 +235,9 @@ class Gcs:
             self.tel.heartbeat_ns = t
         elif kind == "EXTENDED_SYS_STATE":
             self.tel.landed_state = int(m.landed_state)
+        elif kind == "DISTANCE_SENSOR" and int(m.orientation) == 25:
+            if 0 < int(m.current_distance) < 65535:
+                self.range_m = (time.monotonic(), int(m.current_distance) * 0.01)
         elif kind == "PARAM_VALUE":
             self.params[str(m.param_id)] = float(m.param_value)
         elif kind == "STATUSTEXT":
@@ -363,7 +372,7 @@ class Flight:
             self.gcs = Gcs(n, self.tel)
             self.gcs.pump(1.0)
             # our ground station asks for what it plots (ESTIMATOR_STATUS 10 Hz, landed state)
-            for msg_id, hz in ((230, 10.0), (245, 5.0), (32, 50.0)):
+            for msg_id, hz in ((230, 10.0), (245, 5.0), (32, 50.0), (132, 20.0)):
                 self.gcs.command(511, msg_id, 1e6 / hz)
                 self.gcs.pump(0.1)
             self.gcs.command(512, 148)  # MAV_CMD_REQUEST_MESSAGE AUTOPILOT_VERSION
@@ -497,14 +506,14 @@ class Flight:
                     "-s",
                     "HIL_STATE_QUATERNION",
                     "-r",
-                    "50",
+                    "100",
                 ],
                 cwd=self.out / "px4",
                 capture_output=True,
                 text=True,
                 timeout=20,
             )
-            self.log(f"px4-mavlink stream HIL_STATE_QUATERNION 50 Hz: exit {r.returncode}")
+            self.log(f"px4-mavlink stream HIL_STATE_QUATERNION 100 Hz: exit {r.returncode}")
         else:
             self.notes.append("px4-mavlink not found: HIL_STATE_QUATERNION left at PX4's rate")
         self.log(f"bridge up: camera on {15600 + n}, TFmini ptys {ptys}")
@@ -554,14 +563,17 @@ class Flight:
             g.pump(1.0)
         self._phase("armed")
         self.armed_mode = "ALTCTL"
+        # the climb and the hold before our estimate is fused are flown on PX4's own downward
+        # rangefinder (SIH's, over its flat ground), as a pilot would watch the height: PX4's
+        # height without vision drifts by metres here (baro)
         g.sticks = (0, 0, 800, 0)
         self._until(
             "climb on the stick",
-            lambda: (p := g.position()) is not None and -p[2] >= o.altitude_m - 0.2,
+            lambda: g.range_m is not None and g.range_m[1] >= o.altitude_m - 0.3,
             40,
         )
-        g.sticks = (0, 0, 500, 0)
-        self._phase("at the altitude (PX4's baro height)")
+        g.hold_range_m = o.altitude_m
+        self._phase("at the altitude (PX4's rangefinder)")
         g.pump(2.0)
         # the companion starts in the air (our VO cannot initialise on the ground yet), and
         # its estimate is fused only once the VO has tracked with a scale for a while:
@@ -575,6 +587,8 @@ class Flight:
         self._phase("ev fused")
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
+        g.hold_range_m = None
+        g.sticks = (0, 0, 500, 0)
         g.pump(2.0)
         here = g.position()
         assert here is not None

@@ -12,8 +12,8 @@ Definitions (docs/RESULTS.md, "PX4 in the loop"):
   median difference over the compared span), no rotation and no scale; when EKF2 resets its
   position (our reset_counter changed), each stretch between resets gets its own translation.
 - compared span: from 2 s after the first EV position fusion (EKF2's reset to our frame) to
-  the touchdown (before it PX4 has no horizontal position at all: Altitude mode,
-  px4_flight.py; after it the camera is 0.28 m over the ground and PX4 disarms).
+  the touchdown (the truth back at the home level, or PX4's land detector if earlier; before
+  the fusion PX4 has no horizontal position at all: Altitude mode, px4_flight.py).
 - PX4's estimate: ``vehicle_local_position`` from the log at its ``timestamp_sample``, PX4's
   clock mapped to ours by a line through the smallest LOCAL_POSITION_NED arrival delays (SIH's
   clock drifts against ours); without a log, LOCAL_POSITION_NED stamped on arrival.
@@ -178,7 +178,12 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
-    span = (t_lp >= t_cmp) & (t_lp <= air_t1)  # to the touchdown (PX4's land detector)
+    # to the touchdown: the truth at the home level, or PX4's land detector if earlier (SIH's
+    # vehicle may sink below its start altitude before PX4 sees the landing: px4_bridge.py)
+    down = np.flatnonzero((t_tr > t_cmp) & (p_tr[:, 2] >= -0.02))
+    t_touch = min(air_t1, t_tr[down[0]]) if len(down) else air_t1
+    s["compared_s"] = float((t_touch - t_cmp) * 1e-9)
+    span = (t_lp >= t_cmp) & (t_lp <= t_touch)
     span &= (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
     gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
     est_p = p_lp[span]
