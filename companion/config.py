@@ -213,7 +213,7 @@ class SitlConfig:
     altitude_m: float = opt(
         0.0, "height above ground [m]; 0 = terrain default (6, urban 12)", ge=0, le=200
     )
-    speed_m_s: float = opt(3.0, "cruise speed [m/s]", gt=0, le=5)
+    speed_m_s: float = opt(3.0, "cruise speed [m/s] (multirotors cruise at 5-12)", gt=0, le=12)
     takeoff_landing: bool = opt(False, "start on the ground, take off, and land at the end")
     world_size_m: float = opt(160.0, "side of the square world [m]", ge=20, le=2000)
     height_resolution_m: float = opt(0.05, "height-map cell size [m]", gt=0, le=0.05)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.attitude import ground as ground_fit
 from companion.attitude.estimator import CloudView, RollPitch, TiltStep
 from companion.attitude.fusion import corrected_rotation
 from companion.config import Config
@@ -24,6 +25,7 @@ from companion.scale.methods import MetricTrajectory, ScaleInput, make_methods
 from companion.types import (
     AttitudeSample,
     CameraFrame,
+    GroundPlane,
     PoseEstimate,
     RangeSample,
     ScaleEstimate,
@@ -36,6 +38,8 @@ from companion.vo.odometry import VisualOdometry
 F64 = NDArray[np.float64]
 
 ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a frame
+MIN_GROUND_SIGMA_REL = 0.01  # a ground start's scale is trusted to 1 % at best (the plane fit)
+LANDED_HEIGHT_SIGMA_M = 0.02  # a configured landing-gear height: its uncertainty [m]
 VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [us]
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
@@ -148,7 +152,11 @@ class Pipeline:
             self.vo.lose()
             self.gaps += 1
         self._last_good_us = frame.time_us
-        self.vo_output = out = self.vo.process(frame, self.attitude_at(frame.time_us))
+        R_world_body = self.attitude_at(frame.time_us)
+        plane = None
+        if self.vo.state != VoState.TRACKING and self.config.vo.ground_init:
+            plane = self.ground_plane(frame.time_us, R_world_body)
+        self.vo_output = out = self.vo.process(frame, R_world_body, plane)
         if out.state != VoState.TRACKING:
             return None
         t0 = time.perf_counter()
@@ -161,7 +169,10 @@ class Pipeline:
                 continue
             spec = self.specs[sid]
             lasers[sid] = (d, laser_point_cam(spec, self.T_cam_body, d), spec.sigma_m(d))
-        inp = ScaleInput(frame.time_us, out, T_cam_vo, lasers, self.vo.resets)
+        prior = None
+        if self.vo.metric_sigma_rel is not None:  # a map started on the ground: unit = 1 m
+            prior = (1.0, max(self.vo.metric_sigma_rel, MIN_GROUND_SIGMA_REL))
+        inp = ScaleInput(frame.time_us, out, T_cam_vo, lasers, self.vo.resets, prior)
         self.scale_input = inp
         # The camera's VO position is what the scale multiplies; the body sits a metric lever
         # arm away from it (see lever_m)
@@ -178,6 +189,58 @@ class Pipeline:
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
         return self._pose(frame.time_us)
+
+    def ground_plane(self, time_us: int, R_world_body: F64 | None) -> GroundPlane | None:
+        """The ground under the camera in metres, or None (DESIGN.md section 4 reconstructs
+        the plane from three sensors for roll/pitch; here it starts the VO map).
+
+        From the readings of the last ``vo.ground_window_ms`` of each sensor (their median:
+        the vehicle is at rest on the ground), >= 3 sensors: the least-squares plane through
+        their hit points in the body frame, refused unless it fits them within
+        ``vo.ground_max_rms_m`` and the camera is within ``vo.ground_max_height_m`` of it.
+        Its distance sigma propagates each median's sigma (reading sigma / sqrt(n)) through
+        the fit. When >= 3 sensors read below their minimum instead (too close: on the
+        ground), the plane is level at ``vo.landed_camera_height_m`` under the autopilot's
+        attitude, if that height is configured."""
+        o = self.config.vo
+        t0 = time_us - int(o.ground_window_ms * 1e3)
+        ids, med, sig = [], [], []
+        for sid in sorted(self.specs):
+            d = self.ranges.window(sid, t0, time_us)
+            if len(d) >= 3:
+                ids.append(sid)
+                med.append(float(np.median(d)))
+                sig.append(self.specs[sid].sigma_m(med[-1]) * 1.25 / np.sqrt(len(d)))
+        if len(ids) >= 3:
+            T = np.stack([self.specs[s].T_body_rf for s in ids])
+            origins, beams = ground_fit.beams_body(T)
+            pts = ground_fit.ground_points_body(origins, beams, np.array(med))
+            (a, b, c), M = ground_fit.plane_fit(pts)
+            rms = float(np.sqrt(np.mean((pts[:, 2] - (a + b * pts[:, 0] + c * pts[:, 1])) ** 2)))
+            if rms > o.ground_max_rms_m or ground_fit.spread_m(pts) < 0.05:
+                return None
+            n_body = ground_fit.normal_of(b, c)
+            h_body = float(n_body @ np.array([0.0, 0.0, a]))  # the body origin's distance
+            sigma_a = float(np.sqrt(np.sum((M[0] * np.array(sig)) ** 2)))
+            return self._plane_in_camera(n_body, h_body, max(sigma_a, 1e-3), "ranges")
+        too_close = [s for s, t in self.ranges.too_close_us.items() if t >= t0]
+        if len(too_close) >= 3 and o.landed_camera_height_m > 0 and R_world_body is not None:
+            n_body = R_world_body.T @ np.array([0.0, 0.0, 1.0])  # level ground: gravity
+            h_cam = o.landed_camera_height_m
+            h_body = h_cam + float(n_body @ self.T_body_cam[:3, 3])
+            return self._plane_in_camera(n_body, h_body, LANDED_HEIGHT_SIGMA_M, "landed")
+        return None
+
+    def _plane_in_camera(
+        self, n_body: F64, h_body: float, sigma_m: float, source: str
+    ) -> GroundPlane | None:
+        """The plane n_body . p = h_body (body frame) seen from the camera, if near enough."""
+        R_body_cam, t_body_cam = self.T_body_cam[:3, :3], self.T_body_cam[:3, 3]
+        n_cam = R_body_cam.T @ n_body
+        d_cam = h_body - float(n_body @ t_body_cam)
+        if not 0.0 < d_cam <= self.config.vo.ground_max_height_m:
+            return None
+        return GroundPlane(np.asarray(n_cam, dtype=np.float64), d_cam, sigma_m, source)
 
     def background_work(self) -> bool:
         """Work that the last frame's pose did not need (building a keyframe: triangulation

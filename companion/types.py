@@ -175,3 +175,21 @@ class RangeSensorSpec:
     def sigma_m(self, range_m: float) -> float:
         """Standard deviation of a reading at ``range_m`` [m]."""
         return self.sigma_a_m + self.sigma_b * range_m
+
+
+@dataclass(frozen=True, slots=True)
+class GroundPlane:
+    """The ground under the camera, in metres, for a metric VO initialisation without
+    parallax (vehicle on the ground): points X (3,) of the camera frame on the plane satisfy
+    ``normal_cam @ X = distance_m``.
+
+    normal_cam: (3,) unit normal pointing away from the camera (towards the ground);
+    distance_m: the camera's distance to the plane [m] (> 0); sigma_m: its standard deviation
+    [m]; source: "ranges" (a plane fitted to >= 3 distance readings) or "landed" (the
+    configured landing-gear height under the autopilot's attitude: sensors below their minimum).
+    """
+
+    normal_cam: F64
+    distance_m: float
+    sigma_m: float
+    source: str

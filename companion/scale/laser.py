@@ -33,12 +33,17 @@ class RangeHistory:
         self._buf: dict[int, deque[tuple[int, float]]] = {}
         self._maxlen = maxlen
         self.rejected = 0
+        # per sensor: the last time it read below its minimum (on the ground, too close)
+        self.too_close_us: dict[int, int] = {}
 
     def add(self, sample: RangeSample) -> bool:
         """Keep a reading if valid (finite, inside its range, not flagged invalid) and newer
         than the sensor's last one; returns whether it was kept."""
         if not sample.is_valid:
             self.rejected += 1
+            d = sample.distance_m
+            if np.isfinite(d) and 0.0 <= d < sample.min_m:
+                self.too_close_us[sample.sensor_id] = sample.time_us
             return False
         buf = self._buf.setdefault(sample.sensor_id, deque(maxlen=self._maxlen))
         if buf and sample.time_us <= buf[-1][0]:
@@ -46,6 +51,11 @@ class RangeHistory:
             return False
         buf.append((sample.time_us, float(sample.distance_m)))
         return True
+
+    def window(self, sensor_id: int, t0_us: int, t1_us: int) -> F64:
+        """(K,) the sensor's valid readings [m] stamped in [t0_us, t1_us]."""
+        buf = self._buf.get(sensor_id, ())
+        return np.array([d for t, d in buf if t0_us <= t <= t1_us], dtype=np.float64)
 
     def sensors(self) -> list[int]:
         """Ids of the sensors seen so far."""

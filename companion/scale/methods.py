@@ -43,7 +43,9 @@ class ScaleInput:
     """What every method sees at a tracked frame.
 
     T_cam_vo (4, 4); lasers: sensor id -> (range [m], laser point in the camera frame (3,),
-    range sigma [m]), ordered by sensor id; segment: VO map index (changes on re-init).
+    range sigma [m]), ordered by sensor id; segment: VO map index (changes on re-init);
+    prior: the scale and its sigma when the VO map started metric (on the ground plane:
+    scale 1), else None (the first scale comes from the ranges, ``initial_scale``).
     """
 
     time_us: int
@@ -51,6 +53,7 @@ class ScaleInput:
     T_cam_vo: F64
     lasers: dict[int, tuple[float, F64, float]]
     segment: int
+    prior: tuple[float, float] | None = None  # (scale, sigma) known from the VO's start
 
 
 def initial_scale(inp: ScaleInput) -> float | None:
@@ -94,14 +97,13 @@ class Method(ABC):
         if inp.segment != self.segment:
             self.segment = inp.segment
             self.reset()
+        if self.scale is None and inp.prior is not None:
+            self._start(inp, *inp.prior)
         self.update(inp)
         if self.scale is None:
             s0 = initial_scale(inp)
             if s0 is not None:
-                self.scale = s0
-                self.sigma = self.opts.init_sigma_rel * s0
-                self.n_used = 0
-                self.on_initial(inp, s0)
+                self._start(inp, s0, self.opts.init_sigma_rel * s0)
         if self.scale is None:
             return None
         return ScaleEstimate(inp.time_us, self.scale, self.sigma, self.name, self.n_used)
@@ -110,7 +112,11 @@ class Method(ABC):
     def update(self, inp: ScaleInput) -> None:
         """Fold one frame's measurements into ``scale``/``sigma`` (each method its own way)."""
 
-    def on_initial(self, inp: ScaleInput, s0: float) -> None:  # noqa: B027 - an optional hook
+    def _start(self, inp: ScaleInput, s0: float, sigma0: float) -> None:
+        self.scale, self.sigma, self.n_used = s0, sigma0, 0
+        self.on_initial(inp, s0, sigma0)
+
+    def on_initial(self, inp: ScaleInput, s0: float, sigma0: float) -> None:  # noqa: B027
         """Hook: the initial scale was just set (nothing to do unless a method needs it)."""
 
     def _msc(self, inp: ScaleInput, sensor_id: int) -> msc.MscMeasurement | None:
@@ -156,10 +162,12 @@ class MSCwK(Method):
         super().reset()
         self.kf = ScaleKalman(self.opts.random_walk_per_s, self.opts.gate_chi2)
 
-    def on_initial(self, inp: ScaleInput, s0: float) -> None:
+    def on_initial(self, inp: ScaleInput, s0: float, sigma0: float) -> None:
+        if self.kf is None:
+            self.reset()
         assert self.kf is not None
         if not self.kf.initialized:
-            self.kf.initialize(inp.time_us, s0, self.opts.init_sigma_rel * s0)
+            self.kf.initialize(inp.time_us, s0, sigma0)
 
     def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
         if not inp.lasers:

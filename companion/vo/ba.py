@@ -9,6 +9,13 @@ Synthesis", 2000, sections 6 and 8; Hartley & Zisserman, appendix A6.3).
 Each observation involves one camera, so the camera block of the normal equations is block
 diagonal; eliminating the points (3x3 blocks) leaves a dense 6K x 6K system for the free
 cameras.
+
+Gravity prior (optional): the VO frame is gravity-aligned (its +z is down), so a camera's
+gravity direction is g = R_cam_vo e_z; where the autopilot's attitude gives it as g_meas, a
+residual w (g - g_meas) per free camera (3,) ties the window's roll and pitch to gravity. With
+the left perturbation R <- exp(phi) R, dg/dphi = -[g]x. Without it, the roll/pitch of a
+monocular map is only as good as the images make it: over a near-planar scene seen closely
+(a take-off) the rotation-translation ambiguity lets it drift by degrees.
 """
 
 from __future__ import annotations
@@ -102,11 +109,16 @@ def bundle_adjust(
     focal_px: float,
     huber_px: float = 2.0,
     iterations: int = 5,
+    gravity_cam: F64 | None = None,
+    gravity_weight: float = 0.0,
 ) -> BaResult:
     """Refine cameras and points; cameras with ``fixed_cams`` True stay put (gauge and scale:
     fix at least two cameras of a monocular window).
 
     obs_cam, obs_pt: (M,) indices into the cameras and points; obs_xy: (M, 2) observations.
+    gravity_cam: (K, 3) measured gravity direction in each camera frame (rows of NaN where
+    unknown); gravity_weight: its residual's weight (pixel units per unit vector: a pixel
+    sigma over the attitude's sigma in radians); 0 = no prior.
     """
     K = len(T_cam_vo)
     P = len(points_vo)
@@ -121,8 +133,22 @@ def bundle_adjust(
     fo = free_index[obs_cam]
     sel = fo >= 0
 
+    g_meas = np.zeros((0, 3))
+    g_free = np.zeros(0, dtype=np.int64)
+    if gravity_cam is not None and gravity_weight > 0:
+        known = np.all(np.isfinite(gravity_cam), axis=1) & ~fixed_cams
+        g_free = np.flatnonzero(known)
+        g_meas = gravity_cam[g_free]
+
+    def gravity_res(T_: F64) -> F64:
+        """(G, 3) weighted gravity residuals of the free cameras with a measurement."""
+        return np.asarray(gravity_weight * (T_[g_free, :3, 2] - g_meas), dtype=np.float64)
+
+    def total_cost(r_: F64, T_: F64) -> float:
+        return _robust_cost(r_, huber_px) + 0.5 * float(np.sum(gravity_res(T_) ** 2))
+
     r, p_c = residuals(T, X, obs_cam, obs_pt, obs_xy, focal_px)
-    cost0 = cost = _robust_cost(r, huber_px)
+    cost0 = cost = total_cost(r, T)
     lam = 1e-4
     done = 0
     for it in range(1, iterations + 1):
@@ -150,6 +176,13 @@ def bundle_adjust(
         gp = _accumulate(obs_pt, gp_o, P)
         Hcc = _accumulate(fo[sel], Hcc_o[sel], nf)
         bc0 = _accumulate(fo[sel], gc_o[sel], nf)
+        if len(g_free):  # J = w [0, -[g]x] on each free camera with a measurement
+            g = T[g_free, :3, 2]
+            Jg = np.zeros((len(g_free), 3, 6))
+            Jg[:, :, 3:] = -gravity_weight * _skew_batch(g)
+            rg = gravity_res(T)
+            Hcc[free_index[g_free]] += Jg.transpose(0, 2, 1) @ Jg
+            bc0[free_index[g_free]] -= (Jg.transpose(0, 2, 1) @ rg[:, :, None])[:, :, 0]
 
         while True:
             diag_p = np.einsum("pii->pi", Hpp)
@@ -188,7 +221,7 @@ def bundle_adjust(
             X_new = X + dX
             r_new, p_new = residuals(T_new, X_new, obs_cam, obs_pt, obs_xy, focal_px)
             valid = np.all(p_new[:, 2] > 1e-6)
-            cost_new = _robust_cost(r_new, huber_px) if valid else np.inf
+            cost_new = total_cost(r_new, T_new) if valid else np.inf
             if cost_new < cost:
                 T, X, r, p_c, cost = T_new, X_new, r_new, p_new, cost_new
                 lam = max(lam / 10, 1e-7)

@@ -12,7 +12,12 @@ Frames: the VO frame ``vo`` is gravity-aligned at initialisation from the attitu
 with yaw = the vehicle heading then, origin = first keyframe, unit = median scene depth at
 initialisation (DESIGN.md section 2). Poses are kept as T_cam_vo (world to camera).
 
-States (DESIGN.md section 3): INITIALIZING until the first two-view initialisation; TRACKING;
+Metric initialisation on the ground (issue 18): when the caller gives a ground plane in metres
+(the distance sensors' hits, the vehicle near the ground), the features of one frame are
+back-projected onto it: a map without parallax whose unit is the metre (``metric_sigma_rel``
+says how well). The two-view initialisation stays for starts in the air.
+
+States (DESIGN.md section 3): INITIALIZING until the first initialisation; TRACKING;
 LOST from the frame where tracking fails until a new initialisation succeeds (then ``resets``
 counts up and the VO frame starts anew). A failed frame never produces a pose.
 """
@@ -28,7 +33,7 @@ from numpy.typing import NDArray
 from companion.errors import GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from companion.types import CameraFrame, VoFeatures, VoOutput, VoState
+from companion.types import CameraFrame, GroundPlane, VoFeatures, VoOutput, VoState
 from companion.vo.ba import bundle_adjust
 from companion.vo.initializer import initialize
 from companion.vo.options import VoOptions
@@ -43,12 +48,14 @@ U8 = NDArray[np.uint8]
 
 @dataclass
 class Keyframe:
-    """A keyframe: its pose T_cam_vo (4, 4) and observations {point id: normalised xy (2,)}."""
+    """A keyframe: its pose T_cam_vo (4, 4), observations {point id: normalised xy (2,)} and
+    the gravity direction the autopilot's attitude gave at its time (for the BA's prior)."""
 
     kf_id: int
     time_us: int
     T_cam_vo: F64
     obs: dict[int, F64] = field(default_factory=dict)
+    gravity_cam: F64 | None = None  # (3,) gravity in the camera frame from the attitude
 
 
 @dataclass
@@ -117,7 +124,8 @@ class VisualOdometry:
         self._velocity_dt_us: int | None = None  # the interval _T_prev -> T_cam_vo spans
         self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self._frames_since_kf = 0
-        self._pending_keyframe: tuple[U8, int] | None = None  # (gray, time_us) to build
+        # (gray, time_us, R_world_body) of the frame whose keyframe is still to be built
+        self._pending_keyframe: tuple[U8, int, F64 | None] | None = None
         self._keyframe_added = False  # a keyframe was built since the last output
         self._ref_time_us = 0
         self._ref_frames = 0
@@ -125,6 +133,9 @@ class VisualOdometry:
         self.last_keyframe_time_us = -1
         self._ref_yaw_rad = 0.0
         self.yaw_vo_rad = 0.0
+        # the relative sigma of the VO unit in metres when the map started on a metric ground
+        # plane (None: a two-view start, arbitrary unit)
+        self.metric_sigma_rel: float | None = None
 
     # ------------------------------------------------------------------ helpers
     def _normalized(self, px: NDArray[np.floating]) -> F64:
@@ -187,6 +198,40 @@ class VisualOdometry:
         ok = (status.ravel() == 1) & self.camera.in_image(nxt, margin_px=2.0)
         self.tracks = self.tracks.select(ok)
         self.tracks.px = nxt[ok].astype(np.float32)
+        self._thin()
+
+    def _thin(self) -> None:
+        """Drop tracks that crowd another one (closer than half ``min_distance_px``): when the
+        scene recedes (a climb: the image contracts thirty-fold from the ground to 6 m) the
+        features converge on one small patch; the freed slots are filled with new, spread-out
+        features at the next keyframe. Tracks with a map point are kept first, then older."""
+        tr = self.tracks
+        n = len(tr)
+        if n < 2:
+            return
+        r2 = (0.5 * self.opts.min_distance_px) ** 2
+        d2 = np.sum((tr.px[:, None, :] - tr.px[None, :, :]) ** 2, axis=2)
+        close = d2 < r2
+        np.fill_diagonal(close, False)
+        if not close.any():
+            return
+        order = np.lexsort((np.arange(n), tr.pid < 0))  # with a point first, then older
+        keep = np.zeros(n, dtype=bool)
+        blocked = np.zeros(n, dtype=bool)
+        for i in order:
+            if not blocked[i]:
+                keep[i] = True
+                blocked |= close[i]
+        self.tracks = tr.select(keep)
+
+    def _coverage(self) -> float:
+        """Share of the cells of a 4 x 4 grid over the image that hold a tracked map point."""
+        px = self.tracks.px[self.tracks.pid >= 0]
+        if len(px) == 0:
+            return 0.0
+        gx = np.clip((px[:, 0] / self.camera.width * 4).astype(int), 0, 3)
+        gy = np.clip((px[:, 1] / self.camera.height * 4).astype(int), 0, 3)
+        return len(set(zip(gx.tolist(), gy.tolist(), strict=True))) / 16.0
 
     def _gravity_R_vo_body(self, R_world_body: F64 | None) -> F64:
         """Roll and pitch of the attitude with its yaw removed (the VO frame's orientation)."""
@@ -218,6 +263,56 @@ class VisualOdometry:
         self._ref_frames = 0
         self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
         self._ref_yaw_rad = 0.0 if R_world_body is None else so3.matrix_to_rpy(R_world_body)[2]
+
+    def _initialize_on_plane(
+        self, gray: U8, time_us: int, R_world_body: F64 | None, plane: GroundPlane
+    ) -> bool:
+        """A metric map from one frame: each feature's ray meets the ground plane at depth
+        z = distance / (normal . ray) (normalised ray (x, y, 1), camera frame); the VO frame
+        is gravity-aligned from the attitude with the camera at its origin, its unit the
+        metre. Rays within ~70 deg of the plane are left as candidates (grazing: a depth
+        error of the plane grows as 1 / cos)."""
+        if len(self.tracks) < self.opts.init_min_points:
+            self._restart_reference(gray, time_us, R_world_body)
+        else:  # the reference orientation of this frame, not of the frame the tracks began
+            self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
+            if R_world_body is not None:
+                self._ref_yaw_rad = so3.matrix_to_rpy(R_world_body)[2]
+        tr = self.tracks
+        xy = self._normalized(tr.px)
+        rays = np.column_stack([xy, np.ones(len(tr))])
+        cos = (rays @ plane.normal_cam) / np.linalg.norm(rays, axis=1)
+        good = cos > 0.35
+        if good.sum() < self.opts.init_min_points:
+            return False
+        depth = plane.distance_m / (rays @ plane.normal_cam)
+        T_vo_c0 = se3.make(self._ref_R_vo_cam, np.zeros(3))
+        T_c0_vo = se3.inverse(T_vo_c0)
+        pts_vo = se3.transform(T_vo_c0, rays * depth[:, None])
+        sigma_rel = plane.sigma_m / plane.distance_m
+        self.points.clear()
+        self.point_sigma.clear()
+        kf0 = Keyframe(self._next_kf, time_us, T_c0_vo)
+        self._next_kf += 1
+        pid = tr.pid.copy()
+        for i in np.flatnonzero(good):
+            p = self._next_pid
+            self._next_pid += 1
+            self.points[p] = pts_vo[i]
+            self.point_sigma[p] = float(depth[i] * sigma_rel)
+            kf0.obs[p] = xy[i].copy()
+            pid[i] = p
+        self.tracks = Tracks(tr.px, pid, np.full(len(tr), kf0.kf_id, np.int64), xy.copy())
+        self.keyframes = [kf0]
+        self.T_cam_vo = T_c0_vo
+        self._T_prev = T_c0_vo.copy()
+        self.yaw_vo_rad = self._ref_yaw_rad
+        self._frames_since_kf = 0
+        self.last_keyframe_time_us = time_us
+        self.metric_sigma_rel = sigma_rel
+        new_px = self._detect(gray, self.opts.max_features - len(self.tracks))
+        self.tracks = self.tracks.extend(new_px, kf0.kf_id, self._normalized(new_px))
+        return True
 
     def _try_initialize(self, gray: U8, time_us: int) -> bool:
         tr = self.tracks
@@ -265,6 +360,7 @@ class VisualOdometry:
         anchor = np.where(good, -1, kf0.kf_id)
         self.tracks = Tracks(tr.px, pid, anchor.astype(np.int64), tr.anchor_xy)
         self.keyframes = [kf0, kf1]
+        self.metric_sigma_rel = None  # the unit is the median depth, not a metre
         self.T_cam_vo = T_c1_vo
         self.yaw_vo_rad = self._ref_yaw_rad  # heading of the VO frame's x axis in the world
         self._T_prev = T_c1_vo.copy()
@@ -392,13 +488,28 @@ class VisualOdometry:
             return False  # hovering: a keyframe would add no parallax
         if n_pts < self.opts.kf_tracked_ratio * max(len(kf.obs), 1):
             return True
+        if self._coverage() < self.opts.kf_min_coverage:
+            return True  # the points huddle in part of the image (a climb, a turn)
         if len(self.tracks) < 0.5 * self.opts.max_features:
             return True
         return self._frames_since_kf >= self.opts.kf_max_frames
 
     # ------------------------------------------------------------------ keyframes
-    def _add_keyframe(self, gray: U8, time_us: int) -> None:
-        kf = Keyframe(self._next_kf, time_us, self.T_cam_vo.copy())
+    def _gravity_cam(self, R_world_body: F64 | None) -> F64 | None:
+        """(3,) gravity (down) in the camera frame from the attitude: R_cam_body R_body_world
+        e_z (the VO frame's yaw does not matter: gravity is its +z too)."""
+        if R_world_body is None:
+            return None
+        g: F64 = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
+        return g
+
+    def _add_keyframe(self, gray: U8, time_us: int, R_world_body: F64 | None = None) -> None:
+        kf = Keyframe(
+            self._next_kf,
+            time_us,
+            self.T_cam_vo.copy(),
+            gravity_cam=self._gravity_cam(R_world_body),
+        )
         self._next_kf += 1
         tr = self.tracks
         xy = self._normalized(tr.px)
@@ -469,6 +580,10 @@ class VisualOdometry:
         X = np.stack([self.points[p] for p in pids])
         fixed = np.zeros(len(window), dtype=bool)
         fixed[:2] = True
+        gravity = np.array(
+            [kf.gravity_cam if kf.gravity_cam is not None else np.full(3, np.nan) for kf in window]
+        )
+        sigma_rad = np.radians(self.opts.gravity_sigma_deg)
         res = bundle_adjust(
             T,
             X,
@@ -479,6 +594,8 @@ class VisualOdometry:
             self.focal_px,
             huber_px=self.opts.inlier_px,
             iterations=self.opts.ba_iterations,
+            gravity_cam=gravity,
+            gravity_weight=self.opts.pixel_sigma_px / sigma_rad if sigma_rad > 0 else 0.0,
         )
         for k, kf in enumerate(window):
             kf.T_cam_vo = res.T_cam_vo[k]
@@ -511,9 +628,16 @@ class VisualOdometry:
             tr.anchor_xy[lost] = xy
 
     # ------------------------------------------------------------------ entry point
-    def process(self, frame: CameraFrame, R_world_body: F64 | None = None) -> VoOutput:
+    def process(
+        self,
+        frame: CameraFrame,
+        R_world_body: F64 | None = None,
+        ground: GroundPlane | None = None,
+    ) -> VoOutput:
         """One frame in, one VoOutput out. ``R_world_body``: the attitude at the frame time
-        (used to gravity-align the VO frame at initialisation), or None."""
+        (used to gravity-align the VO frame at initialisation), or None. ``ground``: the
+        ground plane in metres when the caller knows it (the vehicle near the ground): while
+        not tracking, the map then starts on it at once, metric, without parallax."""
         self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
         self.n_frames += 1
         img = frame.image_bgr
@@ -524,7 +648,15 @@ class VisualOdometry:
         self._track(gray, guess_px)
         if self.state != VoState.TRACKING:
             self._ref_frames += 1
-            if len(self.tracks) < self.opts.init_min_points or (
+            if ground is not None and self._initialize_on_plane(
+                gray, frame.time_us, R_world_body, ground
+            ):
+                if self.ever_initialized:
+                    self.resets += 1
+                self.ever_initialized = True
+                self.state = VoState.TRACKING
+                is_kf = True
+            elif len(self.tracks) < self.opts.init_min_points or (
                 self._ref_frames > self.opts.init_max_frames
             ):
                 self._restart_reference(gray, frame.time_us, R_world_body)
@@ -544,7 +676,7 @@ class VisualOdometry:
             self._check_candidates()
             self._frames_since_kf += 1
             if self._need_keyframe():  # built after this frame's output (finish_pending)
-                self._pending_keyframe = (gray, frame.time_us)
+                self._pending_keyframe = (gray, frame.time_us, R_world_body)
         self._prev_gray = gray
         self._T_pred = None
         if self.state == VoState.TRACKING and self._prev_time_us is not None:

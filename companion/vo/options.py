@@ -25,8 +25,17 @@ class VoOptions:
         0.10, "new keyframe after this translation / median depth", gt=0, le=1
     )
     kf_tracked_ratio: float = opt(0.65, "new keyframe when fewer of the KF's points track", gt=0)
+    kf_min_coverage: float = opt(
+        0.5, "new keyframe when tracked points cover less of a 4 x 4 image grid", ge=0, le=1
+    )
     kf_max_frames: int = opt(20, "at most this many frames between keyframes (when moving)", ge=1)
     min_parallax_deg: float = opt(1.0, "minimum triangulation angle [deg]", gt=0)
+    gravity_sigma_deg: float = opt(
+        1.0,
+        "the autopilot's roll/pitch as a prior on the local BA's keyframes (sigma) [deg]; "
+        "0 = images only",
+        ge=0,
+    )
     window_keyframes: int = opt(6, "keyframes optimised by the local bundle adjustment", ge=2)
     max_keyframes: int = opt(10, "keyframes kept in the map (older ones dropped)", ge=2)
     ba_iterations: int = opt(4, "Levenberg-Marquardt iterations of the local BA", ge=0, le=50)
@@ -35,6 +44,24 @@ class VoOptions:
     )
     max_gap_ms: float = opt(
         250.0, "a longer gap between usable frames loses tracking (new VO map) [ms]", gt=0
+    )
+    ground_init: bool = opt(
+        True, "initialise metrically on the ground plane the distance sensors see (no parallax)"
+    )
+    ground_max_height_m: float = opt(
+        1.5, "ground initialisation only with the camera this close to the plane [m]", gt=0
+    )
+    ground_window_ms: float = opt(
+        500.0, "range readings averaged for the ground plane (the vehicle at rest) [ms]", gt=0
+    )
+    ground_max_rms_m: float = opt(
+        0.03, "the readings must fit one plane this well (rms height residual) [m]", gt=0
+    )
+    landed_camera_height_m: float = opt(
+        0.0,
+        "camera height above the ground on the landing gear [m], used when >= 3 sensors read "
+        "below their minimum (too close); 0 = unknown",
+        ge=0,
     )
     dark_level: float = opt(12.0, "a frame whose mean grey level is below this is dark", ge=0)
     bright_level: float = opt(243.0, "a frame whose mean grey level is above this is saturated")
