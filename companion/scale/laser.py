@@ -42,7 +42,9 @@ class RangeHistory:
         if not sample.is_valid:
             self.rejected += 1
             d = sample.distance_m
-            if np.isfinite(d) and 0.0 <= d < sample.min_m:
+            # below the minimum: reported under it, or at it and flagged invalid (a TFmini
+            # in its blind zone, PX4's and our simulator's DISTANCE_SENSOR)
+            if np.isfinite(d) and 0.0 <= d <= sample.min_m:
                 self.too_close_us[sample.sensor_id] = sample.time_us
             return False
         buf = self._buf.setdefault(sample.sensor_id, deque(maxlen=self._maxlen))

@@ -1,0 +1,131 @@
+"""The Pipeline from the ground up (issue 18) and its frozen status snapshot: seeded SITL
+flights that start on the ground, a metric map without parallax, a climb without a reset."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.config import load_config
+from companion.geometry import se3
+from companion.offline import feed_step
+from companion.pipeline import Pipeline, PipelineStatus
+from companion.types import VoState
+from sitl.scenario import Scenario
+
+
+def _ground_flight(seconds: float, terrain: str = "hills", **extra: object):
+    sitl = {"terrain": terrain, "trajectory": "hover", "seconds": seconds, "seed": 3}
+    sitl["takeoff_landing"] = True
+    over: dict = {"sitl": sitl, **extra}
+    cfg = load_config(None, over)
+    return cfg, Scenario(cfg)
+
+
+def test_the_map_starts_metric_on_the_ground_within_one_percent() -> None:
+    """At rest on the ground (no parallax at all), the first frames give a tracking VO whose
+    unit is the metre: its points' depths against the ray-cast truth agree to 1 %."""
+    cfg, sc = _ground_flight(6.0)
+    p = Pipeline(cfg)
+    first_pose_s = None
+    ratios = []
+    for k, st in enumerate(sc.steps()):
+        pose = feed_step(p, st)
+        p.background_work()
+        if pose is not None and first_pose_s is None:
+            first_pose_s = k / cfg.camera.rate_hz
+            assert (
+                np.allclose(pose.velocity_ned_m_s, 0.0, atol=0.05)
+                or np.isnan(pose.velocity_ned_m_s).all()
+            )
+        out = p.vo_output
+        if out is not None and out.state == VoState.TRACKING and k in (3, 20, 40):
+            f = out.features
+            has = f.point_ids >= 0
+            z_vo = se3.transform(se3.inverse(out.T_vo_cam), f.points_vo[has])[:, 2]
+            T_world_cam = st.T_world_body @ p.T_body_cam
+            rays = p.camera.pixels_to_rays(f.pixels[has])
+            hits = sc.world.raycast(
+                np.repeat(T_world_cam[None, :3, 3], len(rays), axis=0), rays @ T_world_cam[:3, :3].T
+            )
+            z_true = (rays * hits.t_m[:, None])[:, 2]
+            ratios.append(float(np.median(z_true / z_vo)))
+        if k >= 45:  # still on the ground (take-off starts at 3.5 s)
+            break
+    assert first_pose_s is not None and first_pose_s <= 0.2  # well within the 2 s asked
+    assert p.vo.resets == 0 and p.vo.metric_sigma_rel is not None
+    assert len(ratios) == 3 and all(abs(r - 1.0) <= 0.01 for r in ratios), ratios
+
+
+def test_no_reset_through_a_climb_to_six_metres_and_the_position_follows() -> None:
+    """Take-off from 0.25 m to 6 m (the scene's scale changes thirty-fold): tracking on every
+    frame, no VO reset, the published climb within 10 cm of the truth."""
+    cfg, sc = _ground_flight(30.0)  # on the ground 3.5 s, at 6 m from about 8 s
+    p = Pipeline(cfg)
+    est, gt, states = [], [], []
+    for k, st in enumerate(sc.steps()):
+        if k >= 10 * cfg.camera.rate_hz:
+            break
+        pose = feed_step(p, st)
+        p.background_work()
+        states.append(p.vo_output.state if p.vo_output is not None else None)
+        if pose is not None:
+            est.append(pose.position_ned_m)
+            gt.append(st.T_world_body[:3, 3].copy())
+    est_a, gt_a = np.array(est), np.array(gt)
+    climbed = gt_a[:, 2].max() - gt_a[:, 2].min()
+    err = np.linalg.norm((est_a - est_a[0]) - (gt_a - gt_a[0]), axis=1)
+    assert climbed > 5.0, climbed
+    assert p.vo.resets == 0
+    assert all(s == VoState.TRACKING for s in states[5:]), states.count(VoState.LOST)
+    assert len(est) >= len(states) - 3
+    assert err.max() <= 0.10, err.max()
+
+
+def test_sensors_below_their_minimum_start_on_the_landing_gear_height() -> None:
+    """Sensors that read less than their minimum on the ground (0.19 m < 0.3 m) are refused
+    as readings, not fatal; with the landing-gear height configured the map starts on it."""
+    rfs = [
+        {"sensor_id": i, "mount": {"xyz_m": xyz, "rpy_deg": [0.0, 0.0, 0.0]}, "min_m": 0.3}
+        for i, xyz in enumerate([[0.25, 0.1, 0.06], [-0.08, 0.27, 0.06], [-0.24, -0.12, 0.06]])
+    ]
+    cfg, sc = _ground_flight(2.0, terrain="flat", rangefinders=rfs)
+    p = Pipeline(cfg)
+    for k, st in enumerate(sc.steps()):
+        feed_step(p, st)
+        if k == 20:
+            break
+    assert p.vo.state != VoState.TRACKING  # no plane: waits for parallax (the default)
+    assert p.ranges.rejected > 0 and len(p.ranges.too_close_us) == 3
+    cfg2, sc2 = _ground_flight(
+        2.0, terrain="flat", rangefinders=rfs, vo={"landed_camera_height_m": 0.17}
+    )
+    p2 = Pipeline(cfg2)
+    tracking_at = None
+    for k, st in enumerate(sc2.steps()):
+        feed_step(p2, st)
+        if p2.vo.state == VoState.TRACKING and tracking_at is None:
+            tracking_at = k
+        if k == 20:
+            break
+    assert tracking_at is not None and tracking_at <= 10
+    R = p2.attitude_at(sc2.frame_time_us(20))
+    plane = p2.ground_plane(sc2.frame_time_us(20), R)
+    assert plane is not None and plane.source == "landed"
+    assert plane.distance_m == pytest.approx(0.17)
+
+
+def test_the_status_snapshot_is_frozen_and_follows_the_pipeline() -> None:
+    cfg, sc = _ground_flight(1.0)
+    p = Pipeline(cfg)
+    before = p.status()
+    assert isinstance(before, PipelineStatus) and before.vo_state == "INITIALIZING"
+    for k, st in enumerate(sc.steps()):
+        feed_step(p, st)
+        if k == 5:
+            break
+    after = p.status()
+    assert after.vo_state == "TRACKING" and after.keyframes >= 1 and after.scale == 1.0
+    assert before.vo_state == "INITIALIZING"  # an old snapshot never changes
+    with pytest.raises(AttributeError):
+        after.vo_state = "LOST"  # type: ignore[misc]
