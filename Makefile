@@ -45,6 +45,7 @@ demo-px4: venv
 lint: venv
 	$(BIN)/ruff check companion drivers sitl tests
 	$(BIN)/ruff format --check companion drivers sitl tests
+	$(BIN)/lint-imports --no-cache   # the one-way layers (pyproject.toml [tool.importlinter])
 
 typecheck: venv
 	$(BIN)/mypy

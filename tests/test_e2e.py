@@ -21,7 +21,7 @@ from peers import sitl_flight
 
 from companion.geometry import so3
 from companion.service.app import Service
-from companion.service.status import read_status
+from drivers.status import read_status
 from sitl.autopilot import SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "60"))

@@ -28,9 +28,9 @@ from companion.config import load_config
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
 from companion.service.app import Service
-from companion.service.status import read_status
 from companion.types import RangeSample
 from drivers.mavlink import MavlinkLink
+from drivers.status import read_status
 from sitl.scenario import Scenario
 
 

@@ -15,7 +15,7 @@ from typing import Any
 from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, load
 from companion.config import Config, describe
 from companion.redact import redact_url
-from companion.service.status import read_status, status_path
+from drivers.status import read_status, status_path
 
 
 def cmd_config(args: argparse.Namespace) -> int:

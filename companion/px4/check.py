@@ -23,8 +23,8 @@ from companion.px4.link import Px4Link, mavsdk_url
 from companion.px4.options import Px4Options
 from companion.px4.rules import LinkContext, Row, Status, evaluate
 from companion.px4.shell import parse_listener, parse_uorb_top
-from companion.service.status import StatusError, read_status, status_path
 from drivers.mavlink import LinkUrl
+from drivers.status import StatusError, read_status, status_path
 
 SHELL_TOPICS = (
     "vehicle_visual_odometry",

@@ -49,13 +49,14 @@ from companion.redact import redact_text, redact_url, url_secrets
 from companion.service import preflight
 from companion.service.mqtt import MqttPublisher
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
-from companion.service.status import StatusServer, status_path
+from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import messages
 from drivers.backoff import Backoff
 from drivers.files import atomic_write
+from drivers.status import status_path
 from drivers.timesync import ClockSync, reply_for
 
 log = logging.getLogger("companion.service")
