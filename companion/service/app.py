@@ -675,49 +675,12 @@ class Service:
         """What `companion status` shows (served as JSON on the status socket)."""
         now = now_ns()
         s, p, o = self.stats, self.pipeline_status, self.config.service
-        with self._frames_lock:  # what the camera thread writes
-            frames = list(self._frame_times_ns)
-            frames_in, dropped = s.frames_in, s.frames_dropped
-            rejected = {k: v for k, v in self.frame_check.counts.items() if v}
-        recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
-        fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
         pubs = [t for t in s.publish_times_ns if now - t < 5_000_000_000]
         lat = list(s.latency_ms)[-300:]
         return {
             "uptime_s": (now - s.started_ns) * 1e-9,
-            "autopilot": {
-                "url": o.mavlink_url,
-                "heartbeat_age_s": (now - s.autopilot_heartbeat_ns) * 1e-9
-                if s.autopilot_heartbeat_ns
-                else None,
-                "system_id": s.autopilot_system_id or None,
-                "timesync_converged": self.sync.converged,
-                "timesync_offset_ms": self.sync.offset_at(now) * 1e-6
-                if self.sync.converged
-                else None,
-                "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
-                "rates_acknowledged": sorted(s.rates_acknowledged),
-                "rx_messages": self.link.stats.rx_messages,
-                "rx_bad": self.link.stats.rx_bad,
-                "handler_errors": self.link.stats.handler_errors,
-                "foreign_messages": s.foreign_messages + self.link.stats.rx_foreign,
-                "other_address": self.link.stats.rx_other_address,
-                "attitudes_rejected": s.attitudes_rejected,
-                "signing": self.link.signing.counters() if self.link.signing else None,
-            },
-            "camera": {
-                "url": self.camera_url_shown,
-                "fps": fps,
-                "frames": frames_in,
-                "dropped": dropped,
-                "stamps": self.camera.stamps,
-                "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
-                "problem": "no frames"
-                if self._camera_silent
-                else (self._frame_problem.value if self._frame_problem else None),
-                "rejected": rejected,
-                "gaps": p.gaps,
-            },
+            "autopilot": self._autopilot_status(now),
+            "camera": self._camera_status(now),
             "vo": {
                 "state": "STALLED (no frames)" if self._camera_silent else p.vo_state,
                 "features": p.features,
@@ -756,6 +719,49 @@ class Service:
                 "published": self.mqtt.stats.published if self.mqtt else 0,
             },
             "warnings": list(s.warnings),
+        }
+
+    def _autopilot_status(self, now: int) -> dict[str, Any]:
+        """The status's autopilot section: heartbeat, time sync, message counts, signing."""
+        s, link = self.stats, self.link.stats
+        return {
+            "url": self.config.service.mavlink_url,
+            "heartbeat_age_s": (now - s.autopilot_heartbeat_ns) * 1e-9
+            if s.autopilot_heartbeat_ns
+            else None,
+            "system_id": s.autopilot_system_id or None,
+            "timesync_converged": self.sync.converged,
+            "timesync_offset_ms": self.sync.offset_at(now) * 1e-6 if self.sync.converged else None,
+            "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
+            "rates_acknowledged": sorted(s.rates_acknowledged),
+            "rx_messages": link.rx_messages,
+            "rx_bad": link.rx_bad,
+            "handler_errors": link.handler_errors,
+            "foreign_messages": s.foreign_messages + link.rx_foreign,
+            "other_address": link.rx_other_address,
+            "attitudes_rejected": s.attitudes_rejected,
+            "signing": self.link.signing.counters() if self.link.signing else None,
+        }
+
+    def _camera_status(self, now: int) -> dict[str, Any]:
+        """The status's camera section (read under the camera thread's lock)."""
+        with self._frames_lock:
+            frames = list(self._frame_times_ns)
+            frames_in, dropped = self.stats.frames_in, self.stats.frames_dropped
+            rejected = {k: v for k, v in self.frame_check.counts.items() if v}
+        recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
+        fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
+        problem = self._frame_problem.value if self._frame_problem else None
+        return {
+            "url": self.camera_url_shown,
+            "fps": fps,
+            "frames": frames_in,
+            "dropped": dropped,
+            "stamps": self.camera.stamps,
+            "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
+            "problem": "no frames" if self._camera_silent else problem,
+            "rejected": rejected,
+            "gaps": self.pipeline_status.gaps,
         }
 
     def write_report(self, path: Path) -> None:
