@@ -244,7 +244,7 @@ class Gcs:
             self.tel.texts.append((time.monotonic() - self.t0, int(m.severity), str(m.text)))
         elif kind == "AUTOPILOT_VERSION":
             v = int(m.flight_sw_version)
-            git = bytes(m.flight_custom_version).hex()[:10] if m.flight_custom_version else ""
+            git = bytes(m.flight_custom_version)[::-1].hex()[:10] if m.flight_custom_version else ""
             self.tel.version = f"v{v >> 24 & 255}.{v >> 16 & 255}.{v >> 8 & 255} ({git})"
 
     def command(self, cmd: int, *params: float) -> None:
