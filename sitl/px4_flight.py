@@ -5,17 +5,20 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
 1. PX4 SITL (``px4-sitl INSTANCE WORKDIR``) with GPS off and vision on at boot
    (SENS_EN_GPSSIM=0, SYS_HAS_GPS=0, EKF2_GPS_CTRL=0, EKF2_EV_CTRL=11, EKF2_HGT_REF=3) and
    EKF2_RNG_CTRL=0 (PX4's own simulated rangefinder measures SIH's flat ground; EKF2 does not
-   use it: our distance sensors go to the companion).
+   use it: our distance sensors go to the companion), EKF2_MAG_DECL=4.7, EKF2_EVP_NOISE=0.03
+   (docs/decisions.md, "PX4 SIH in the loop").
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
 3. The bridge (``python -m sitl.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
-4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port.
+4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port,
+   started once the vehicle is in the air (our VO cannot initialise on the ground yet).
 5. This process: the ground station (pymavlink on PX4's GCS port 18570+N): arms in Altitude
-   mode (our VO cannot initialise on the ground yet), climbs to 5 m on the stick, waits until
-   EKF2 fuses our position, switches to Position mode, flies the mission in Offboard mode
-   (position + velocity setpoints in PX4's local frame, which after EKF2's reset to vision is
-   our frame), comes back to where the mission started, lands (AUTO.LAND) and waits for the
-   disarm.
+   mode with EKF2_EV_CTRL=0, climbs to 5 m on the throttle stick watching PX4's own
+   rangefinder, starts the service, sets EKF2_EV_CTRL=11 once the service has tracked for 6 s,
+   waits until EKF2 fuses our position, switches to Position mode, flies the mission in
+   Offboard mode (position + velocity setpoints in PX4's local frame, which after EKF2's reset
+   to vision is our frame), comes back to where the mission started, lands (AUTO.LAND) and
+   waits for the disarm.
 
 Afterwards: ``summary.json``, ``flight.png`` (PX4's estimate, ours as PX4 received it, and the
 truth, top and side; EKF2's EV fusion flag and innovations; latency) from the truth the bridge
