@@ -24,6 +24,7 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 
 from companion.attitude.options import AttitudeOptions
+from companion.dpose.options import DposeOptions
 from companion.errors import ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
@@ -181,7 +182,7 @@ def dpose_rangefinders(sigma_m: float = 0.01) -> tuple[RangefinderConfig, ...]:
 
 
 TerrainName = Literal["flat", "hills", "urban", "slope"]
-TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb", "spiral"]
+TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad"]
 LaserMarkMode = Literal["off", "live", "painted"]
 
 
@@ -231,6 +232,7 @@ class Config:
     vo: VoOptions = opt(VoOptions(), "visual odometry")
     scale: ScaleOptions = opt(ScaleOptions(), "metric scale")
     attitude: AttitudeOptions = opt(AttitudeOptions(), "roll/pitch from the distance sensors")
+    dpose: DposeOptions = opt(DposeOptions(), "d-Pose in the published pose")
     service: ServiceOptions = opt(ServiceOptions(), "the service: links and output")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
 

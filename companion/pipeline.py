@@ -7,6 +7,7 @@ per stream; attitude and ranges are buffered and looked up at each frame's captu
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from companion.attitude import ground as ground_fit
 from companion.attitude.estimator import CloudView, RollPitch, TiltStep
 from companion.attitude.fusion import corrected_rotation
 from companion.config import Config
+from companion.dpose.estimator import Dpose
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.scale.laser import RangeHistory, laser_point_cam
@@ -90,6 +92,15 @@ class Pipeline:
         self.tilt: TiltStep | None = None  # the roll/pitch result of the last frame
         self.tilt_input: tuple[dict[int, float], CloudView] | None = None  # its input
         self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
+        # d-Pose in the published pose (issue 18): armed on the published pose, then each of
+        # its poses moves the published position (offset, added to the VO's) onto it
+        self.dpose: Dpose | None = None
+        if config.dpose.enabled and len(self.specs) == 4:
+            self.dpose = Dpose(self.camera, self.T_body_cam, self.specs)
+        self.dpose_offset_m = np.zeros(3)
+        self.dpose_resets = 0  # corrections applied at once (each a new reset_counter)
+        self.dpose_used = 0  # d-Pose poses that corrected the published position
+        self._first_pose_us: int | None = None
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -188,7 +199,50 @@ class Pipeline:
         t0 = time.perf_counter()
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
-        return self._pose(frame.time_us)
+        pose = self._pose(frame.time_us)
+        if pose is not None and self.dpose is not None:
+            pose = self._dpose_corrected(frame, pose, {s: v[0] for s, v in lasers.items()})
+        return pose
+
+    def _dpose_corrected(
+        self, frame: CameraFrame, pose: PoseEstimate, range_m: dict[int, float]
+    ) -> PoseEstimate:
+        """The published pose with d-Pose's correction (thesis abstract: the direct pose is
+        metric and drift-free). Armed ``dpose.arm_after_s`` after the first published pose,
+        with the four lasers' readings then (the marks are left where they hit) and the
+        published pose then as the pattern's place in the world. Afterwards every d-Pose
+        pose (marks in view, translation sigma <= ``dpose.max_sigma_m``) moves the offset
+        added to the VO's position towards d-Pose minus VO: by ``dpose.blend`` of the gap when
+        it is small, at once and with a new reset_counter when it exceeds ``dpose.reset_m``
+        (EKF2 re-anchors its vision frame instead of fusing a jump)."""
+        assert self.dpose is not None
+        o = self.config.dpose
+        R_ap = self.attitude_at(frame.time_us)
+        if self._first_pose_us is None:
+            self._first_pose_us = frame.time_us
+        if not self.dpose.armed:
+            waited = (frame.time_us - self._first_pose_us) * 1e-6 >= o.arm_after_s
+            if waited and R_ap is not None and len(range_m) == 4:
+                T_world_body = se3.from_quat(pose.quat_wxyz_ned_frd, pose.position_ned_m)
+                self.dpose.arm(range_m, T_world_body, R_ap)
+        else:
+            res = self.dpose.step(frame.time_us, frame.image_bgr, R_ap, range_m or None)
+            if res is not None and np.sqrt(np.max(np.diag(res.cov_6x6)[3:])) <= o.max_sigma_m:
+                target = res.T_world_body[:3, 3] - pose.position_ned_m
+                gap = target - self.dpose_offset_m
+                if float(np.linalg.norm(gap)) > o.reset_m:
+                    self.dpose_offset_m = target
+                    self.dpose_resets += 1
+                else:
+                    self.dpose_offset_m = self.dpose_offset_m + o.blend * gap
+                self.dpose_used += 1
+        if not self.dpose_resets and not np.any(self.dpose_offset_m):
+            return pose
+        return dataclasses.replace(
+            pose,
+            position_ned_m=pose.position_ned_m + self.dpose_offset_m,
+            reset_counter=pose.reset_counter + self.dpose_resets,
+        )
 
     def ground_plane(self, time_us: int, R_world_body: F64 | None) -> GroundPlane | None:
         """The ground under the camera in metres, or None (DESIGN.md section 4 reconstructs

@@ -26,7 +26,7 @@ from sitl.world import World
 
 F64 = NDArray[np.float64]
 
-TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral")
+TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad")
 GRAVITY_M_S2 = 9.80665
 LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
@@ -75,6 +75,8 @@ def _polyline_xy(name: str, speed: float) -> F64:
         return np.stack([14.0 * np.sin(a), 7.0 * np.sin(2 * a)], axis=1)
     if name == "climb":
         return np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 0.0]])
+    if name == "pad":  # out of the start's view and back, once, then over it (d-Pose return)
+        return np.array([[0.0, 0.0], [12.0, 0.0], [12.0, 12.0], [0.0, 12.0], [0.0, 0.0]])
     if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
@@ -87,14 +89,15 @@ def pattern_length_m(name: str, speed_m_s: float = 3.0) -> float:
     return float(np.sum(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
 
 
-def _walk(poly: F64, speed: float, times: F64) -> F64:
-    """Position along a polyline flown at constant speed, repeated; (N, 2) at times (N,)."""
+def _walk(poly: F64, speed: float, times: F64, repeat: bool = True) -> F64:
+    """Position along a polyline flown at constant speed, repeated (or once, then held at its
+    end); (N, 2) at times (N,)."""
     if len(poly) == 1:
         return np.repeat(poly, len(times), axis=0)
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
     s_knots = np.concatenate([[0.0], np.cumsum(seg)])
     total = s_knots[-1]
-    s = np.mod(speed * times, total)
+    s = np.mod(speed * times, total) if repeat else np.minimum(speed * times, total)
     return np.stack([np.interp(s, s_knots, poly[:, 0]), np.interp(s, s_knots, poly[:, 1])], axis=1)
 
 
@@ -131,7 +134,7 @@ class Trajectory:
         t_pattern1 = max(t_pattern0, self.seconds - dwell - t_up)
         tp = np.clip(tc, t_pattern0, t_pattern1) - t_pattern0
         poly = _polyline_xy(name, speed_m_s)
-        xy = _walk(poly, speed_m_s, tp)
+        xy = _walk(poly, speed_m_s, tp, repeat=name != "pad")
 
         # height above ground: cruise altitude, climb profile, take-off and landing ramps
         agl = np.full(t.shape, alt)

@@ -129,3 +129,58 @@ def test_the_status_snapshot_is_frozen_and_follows_the_pipeline() -> None:
     assert before.vo_state == "INITIALIZING"  # an old snapshot never changes
     with pytest.raises(AttributeError):
         after.vo_state = "LOST"  # type: ignore[misc]
+
+
+def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() -> None:
+    """Take off, hover at 3 m (d-Pose armed there, its four marks left on the ground), fly a
+    12 m square out of their view and back, hover: while the marks are in view again the
+    published position is d-Pose's (relative to the arming pose, within 3 cm), while the VO's
+    own position has drifted further; big corrections come with a new reset_counter."""
+    import dataclasses
+
+    from companion.config import dpose_rangefinders
+
+    cfg = load_config(
+        None,
+        {
+            "sitl": {"terrain": "hills", "trajectory": "pad", "seconds": 40.0, "seed": 1},
+            "dpose": {"enabled": True, "arm_after_s": 6.5},
+        },
+    )
+    cfg = dataclasses.replace(
+        cfg,
+        rangefinders=dpose_rangefinders(),
+        sitl=dataclasses.replace(
+            cfg.sitl,
+            takeoff_landing=True,
+            altitude_m=3.0,
+            render=dataclasses.replace(cfg.sitl.render, laser_marks="painted", painted_time_s=6.5),
+        ),
+    )
+    sc = Scenario(cfg)
+    p = Pipeline(cfg)
+    rows = []
+    for st in sc.steps():
+        used = p.dpose_used
+        pose = feed_step(p, st)
+        p.background_work()
+        if pose is not None:
+            vo_own = pose.position_ned_m - p.dpose_offset_m
+            rows.append((st.frame.time_us * 1e-6, pose, vo_own, st.T_world_body[:3, 3].copy()))
+            rows[-1] += (p.dpose_used > used,)
+    t = np.array([r[0] for r in rows])
+    pub = np.array([r[1].position_ned_m for r in rows])
+    own = np.array([r[2] for r in rows])
+    gt = np.array([r[3] for r in rows])
+    in_view = np.array([r[4] for r in rows]) & (t > 20.0)  # back over the pad
+    i = int(np.searchsorted(t, 6.5))  # the arming frame: the pattern's reference
+
+    def err(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm((x - x[i]) - (gt - gt[i]), axis=1)
+
+    assert p.dpose is not None and p.dpose.armed and in_view.sum() >= 60
+    e_pub, e_own = err(pub)[in_view], err(own)[in_view]
+    assert float(np.sqrt(np.mean(e_pub**2))) <= 0.03, e_pub
+    assert np.mean(e_pub) < np.mean(e_own)  # the drift the VO had is gone
+    resets = {r[1].reset_counter for r in rows}
+    assert 1 <= p.dpose_resets <= 5 and len(resets) == p.dpose_resets + 1
