@@ -426,6 +426,12 @@ class Flight:
         d["service"]["camera_url"] = f"sitl://127.0.0.1:{15600 + self.o.instance}"
         d["service"]["status_socket"] = str(self.out / "status.sock")
         d["service"]["report_path"] = str(self.out / "service-report.json")
+        # our TFminis are ids 1..n: PX4 SIH streams its own simulated rangefinder as
+        # DISTANCE_SENSOR id 0 on the onboard link, and the service takes an autopilot
+        # DISTANCE_SENSOR for any configured id, serial or not (it would be mixed into our
+        # sensor 0: SIH's flat ground, not our terrain)
+        for k, rf in enumerate(d["rangefinders"]):
+            rf["sensor_id"] = k + 1
         path = self.out / "service.toml"
         path.write_bytes(tomli_w.dumps(d).encode())
         return path
