@@ -30,6 +30,7 @@ import json
 import multiprocessing as mp
 import socket
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -129,9 +130,6 @@ def camera_process(
     scenario.step(0)  # compile the kernels before the flight
     first, n_loop = loop
 
-    def source(k: int) -> int:
-        return k if n_loop <= 0 or k < first + n_loop else first + (k - first) % n_loop
-
     images: list[Any] = []
     if prerender:
         n_distinct = min(scenario.n_frames, first + n_loop) if n_loop > 0 else scenario.n_frames
@@ -142,66 +140,119 @@ def camera_process(
         time.sleep(0.01)
     flight_start_ns = int(counters[2])
 
-    def listen() -> socket.socket:
-        srv = socket.create_server(("127.0.0.1", port), reuse_port=False)
-        srv.settimeout(0.2)
-        return srv
+    def render(seq: int) -> Any:
+        """Frame seq's image (a looped flight shows frames first .. first + n - 1 again)."""
+        src = seq if n_loop <= 0 or seq < first + n_loop else first + (seq - first) % n_loop
+        return images[src] if prerender else scenario.step(src).frame.image_bgr
 
-    server: socket.socket | None = listen()
-    client: socket.socket | None = None
-    period_ns = int(1e9 / cfg.camera.rate_hz)
+    _stream_frames(
+        scenario.n_frames,
+        cfg.camera.rate_hz,
+        render,
+        port,
+        flight_start_ns,
+        readout_ms,
+        counters,
+        faults,
+    )
+
+
+def _stream_frames(
+    n_frames: int,
+    rate_hz: float,
+    render: Callable[[int], Any],
+    port: int,
+    flight_start_ns: int,
+    readout_ms: float,
+    counters: Any,
+    faults: tuple[Fault, ...],
+) -> None:
+    """Serve frame seq at its exposure + readout to one client; a frame not ready or not
+    taken in time is dropped (counters[1]), a sent one counted (counters[0])."""
+    link = _CameraLink(port)
+    period_ns = int(1e9 / rate_hz)
     last_good: Any = None
-    for seq in range(scenario.n_frames):
+    for seq in range(n_frames):
         expose_ns = flight_start_ns + seq * period_ns
         release_ns = expose_ns + int(readout_ms * 1e6)
-        now_faults = active(faults, seq / cfg.camera.rate_hz) & CAMERA_KINDS
+        now_faults = active(faults, seq / rate_hz) & CAMERA_KINDS
         if "camera_unplug" in now_faults:  # gone from the bus: no stream, no connections
-            for sock in (client, server):
-                if sock is not None:
-                    sock.close()
-            client = server = None
+            link.close()
             counters[1] += 1
             continue
-        if server is None:
-            server = listen()
+        server = link.listen()
         if time.monotonic_ns() > release_ns + period_ns:
             counters[1] += 1  # behind: this frame is lost, as a camera would lose it
             continue
-        src = source(seq)
-        image = images[src] if prerender else scenario.step(src).frame.image_bgr
-        if "camera_freeze" in now_faults and last_good is not None:
-            image = last_good
-        elif "camera_black" in now_faults:
-            image = np.zeros_like(image)
-        elif "camera_saturated" in now_faults:
-            image = np.full_like(image, 255)
-        else:
-            last_good = image
-        frame = CameraFrame(expose_ns // 1000, seq, image)
-        payload = encode_frame(frame)
-        while client is None:
-            try:
-                client, _ = server.accept()
-                client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            except TimeoutError:
-                if time.monotonic_ns() > release_ns + period_ns:
-                    break
+        image, last_good = _faulted(render(seq), now_faults, last_good)
+        payload = encode_frame(CameraFrame(expose_ns // 1000, seq, image))
+        link.accept(server, release_ns + period_ns)
         wait = (release_ns - time.monotonic_ns()) * 1e-9
         if wait > 0:
             time.sleep(wait)
-        if client is None:
+        if link.client is None:
             counters[1] += 1
             continue
-        try:
-            client.sendall(payload)
+        if link.send(payload):
             counters[0] += 1
+    link.close()
+
+
+def _faulted(image: Any, now_faults: set[str], last_good: Any) -> tuple[Any, Any]:
+    """The image a faulty camera shows (frozen, black or saturated), and the last good one."""
+    if "camera_freeze" in now_faults and last_good is not None:
+        return last_good, last_good
+    if "camera_black" in now_faults:
+        return np.zeros_like(image), last_good
+    if "camera_saturated" in now_faults:
+        return np.full_like(image, 255), last_good
+    return image, image
+
+
+class _CameraLink:
+    """The camera's TCP end on 127.0.0.1: a listening socket and at most one client, both
+    closed while the camera is unplugged."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.server: socket.socket | None = None
+        self.client: socket.socket | None = None
+        self.listen()
+
+    def listen(self) -> socket.socket:
+        """The listening socket, opened again after an unplug."""
+        if self.server is None:
+            self.server = socket.create_server(("127.0.0.1", self.port), reuse_port=False)
+            self.server.settimeout(0.2)
+        return self.server
+
+    def accept(self, server: socket.socket, deadline_ns: int) -> None:
+        """Wait for a client, if there is none, until ``deadline_ns`` (monotonic)."""
+        while self.client is None:
+            try:
+                self.client, _ = server.accept()
+                self.client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except TimeoutError:
+                if time.monotonic_ns() > deadline_ns:
+                    break
+
+    def send(self, payload: bytes) -> bool:
+        """Send to the client; on an error it is closed (a new one may connect)."""
+        assert self.client is not None
+        try:
+            self.client.sendall(payload)
+            return True
         except OSError:
-            client.close()
-            client = None
-    if client is not None:
-        client.close()
-    if server is not None:
-        server.close()
+            self.client.close()
+            self.client = None
+            return False
+
+    def close(self) -> None:
+        """Close the client, then the listening socket."""
+        for sock in (self.client, self.server):
+            if sock is not None:
+                sock.close()
+        self.client = self.server = None
 
 
 class SimAutopilot:

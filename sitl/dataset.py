@@ -10,6 +10,7 @@ import csv
 import shutil
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -20,7 +21,22 @@ from companion.config import Config, to_dict
 from companion.errors import DatasetError
 from drivers.dataset import F64, FORMAT_NAME, FORMAT_VERSION, Dataset, write_tum
 
+if TYPE_CHECKING:
+    from sitl.scenario import Scenario, Step
+
 # ----------------------------------------------------------------------------- recording
+
+
+_RANGE_COLUMNS = [
+    "time_us",
+    "sensor_id",
+    "distance_m",
+    "min_m",
+    "max_m",
+    "signal_quality",
+    "true_distance_m",
+]
+_ATTITUDE_COLUMNS = ["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"]
 
 
 def record(
@@ -32,11 +48,19 @@ def record(
     progress: bool = True,
 ) -> Path:
     """Fly the SITL scenario of ``cfg.sitl`` and write a dataset folder; returns its path."""
-    from tqdm import tqdm
-
     from sitl.scenario import Scenario
 
-    out_dir = Path(out)
+    out_dir = _prepare_folder(Path(out), image_format, overwrite)
+    scenario = Scenario(cfg)
+    gt_times, gt_poses = _write_flight(scenario, out_dir, image_format, progress)
+    write_tum(out_dir / "groundtruth.txt", np.asarray(gt_times), np.asarray(gt_poses))
+    _write_calibration(cfg, out_dir)
+    _write_meta(cfg, scenario, out_dir)
+    return out_dir
+
+
+def _prepare_folder(out_dir: Path, image_format: str, overwrite: bool) -> Path:
+    """An empty dataset folder with its images/ (an existing one only with ``overwrite``)."""
     if out_dir.exists():
         if not overwrite and any(out_dir.iterdir()):
             raise DatasetError(f"{out_dir} exists and is not empty (use --overwrite)")
@@ -44,13 +68,20 @@ def record(
     if image_format not in ("jpg", "png"):
         raise DatasetError(f"image format must be jpg or png, got {image_format!r}")
     (out_dir / "images").mkdir(parents=True)
-    scenario = Scenario(cfg)
+    return out_dir
+
+
+def _write_flight(
+    scenario: Scenario, out_dir: Path, image_format: str, progress: bool
+) -> tuple[list[float], list[F64]]:
+    """Fly the scenario: frames.csv, ranges.csv, attitude.csv and the images; the truth back."""
+    from tqdm import tqdm
+
     enc = (
         [cv2.IMWRITE_JPEG_QUALITY, 95]
         if image_format == "jpg"
         else [cv2.IMWRITE_PNG_COMPRESSION, 1]
     )
-    n = scenario.n_frames
     gt_times: list[float] = []
     gt_poses: list[F64] = []
     with (
@@ -62,20 +93,10 @@ def record(
         w_ranges = csv.writer(f_ranges)
         w_att = csv.writer(f_att)
         w_frames.writerow(["time_us", "seq", "filename"])
-        w_ranges.writerow(
-            [
-                "time_us",
-                "sensor_id",
-                "distance_m",
-                "min_m",
-                "max_m",
-                "signal_quality",
-                "true_distance_m",
-            ]
-        )
-        w_att.writerow(["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"])
+        w_ranges.writerow(_RANGE_COLUMNS)
+        w_att.writerow(_ATTITUDE_COLUMNS)
         bar = tqdm(
-            total=n,
+            total=scenario.n_frames,
             unit="frame",
             desc=f"recording {out_dir.name}",
             file=sys.stderr,
@@ -83,29 +104,7 @@ def record(
             dynamic_ncols=True,
         )
         for step in scenario.steps():
-            for a in step.attitudes:
-                w_att.writerow(
-                    [
-                        a.time_us,
-                        *(f"{v:.12f}" for v in a.quat_wxyz),
-                        *(f"{v:.9f}" for v in a.rates_rad_s),
-                    ]
-                )
-            for r in step.ranges:
-                if r.sample is None:
-                    continue
-                s = r.sample
-                w_ranges.writerow(
-                    [
-                        s.time_us,
-                        s.sensor_id,
-                        f"{s.distance_m:.6f}",
-                        f"{s.min_m:.3f}",
-                        f"{s.max_m:.3f}",
-                        s.signal_quality,
-                        f"{r.true_distance_m:.6f}",
-                    ]
-                )
+            _write_sensors(step, w_att, w_ranges)
             name = f"images/{step.frame.seq:06d}.{image_format}"
             if not cv2.imwrite(str(out_dir / name), step.frame.image_bgr, enc):
                 raise DatasetError(f"cannot write {out_dir / name}")
@@ -114,7 +113,38 @@ def record(
             gt_poses.append(step.T_world_body)
             bar.update(1)
         bar.close()
-    write_tum(out_dir / "groundtruth.txt", np.asarray(gt_times), np.asarray(gt_poses))
+    return gt_times, gt_poses
+
+
+def _write_sensors(step: Step, w_att: Any, w_ranges: Any) -> None:
+    """One step's attitude samples and valid range readings (with their true distances)."""
+    for a in step.attitudes:
+        w_att.writerow(
+            [
+                a.time_us,
+                *(f"{v:.12f}" for v in a.quat_wxyz),
+                *(f"{v:.9f}" for v in a.rates_rad_s),
+            ]
+        )
+    for r in step.ranges:
+        if r.sample is None:
+            continue
+        s = r.sample
+        w_ranges.writerow(
+            [
+                s.time_us,
+                s.sensor_id,
+                f"{s.distance_m:.6f}",
+                f"{s.min_m:.3f}",
+                f"{s.max_m:.3f}",
+                s.signal_quality,
+                f"{r.true_distance_m:.6f}",
+            ]
+        )
+
+
+def _write_calibration(cfg: Config, out_dir: Path) -> None:
+    """calibration.toml: camera and rangefinders in our schema, and every mount as a matrix."""
     calib = {
         "camera": to_dict(cfg.camera),
         "rangefinders": to_dict(cfg.rangefinders),
@@ -131,16 +161,19 @@ def record(
         "# [matrices] repeats the mounts as 4x4 T_body_sensor (row-major) for other tools.\n"
         + tomli_w.dumps(calib)
     )
+
+
+def _write_meta(cfg: Config, scenario: Scenario, out_dir: Path) -> None:
+    """meta.toml: format and software versions, frames, path length and the SITL settings."""
     meta = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
         "software": __version__,
-        "frames": n,
+        "frames": scenario.n_frames,
         "path_length_m": scenario.trajectory.path_length_m(),
         "sitl": to_dict(cfg.sitl),
     }
     (out_dir / "meta.toml").write_text(tomli_w.dumps(meta))
-    return out_dir
 
 
 def contact_sheet(

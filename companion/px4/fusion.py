@@ -156,36 +156,10 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
     evidence: list[str] = []
     warnings: list[str] = []
     svc = obs.service
-    svc_rate = _get(svc, "output", "rate_hz")
-    svc_msg = _get(svc, "output", "message")
     _service_evidence(svc, evidence, warnings)
-
-    ev_ctrl = _raw_int(params, "EKF2_EV_CTRL")
-    if ev_ctrl is None:
-        reasons.append("EKF2_EV_CTRL is missing: this firmware predates PX4 1.14")
-    elif not ev_ctrl & EV_HPOS:
-        f = float_encoded_int(ev_ctrl, 0, 15)
-        how = f" (the bytes of the float {f:g}: written as a float)" if f is not None else ""
-        reasons.append(
-            f"EKF2_EV_CTRL = {ev_ctrl}{how} has bit 0 (horizontal position) clear as EKF2 "
-            "reads it: EKF2 ignores our position; `companion px4 configure` sets it"
-        )
-
+    _ev_ctrl_reasons(params, reasons)
     lpos_valid = obs.local_positions > 0 or bool((obs.estimator_flags or 0) & POS_HORIZ_REL)
-    flags_text = f"0x{obs.estimator_flags:03x}" if obs.estimator_flags is not None else "none"
-    evidence.append(
-        f"MAVLink: ESTIMATOR_STATUS flags {flags_text} "
-        f"(horizontal position {'valid' if lpos_valid else 'not valid'}), "
-        f"{obs.local_positions} LOCAL_POSITION_NED in {obs.watch_s:.1f} s"
-        + (
-            f" (first after {obs.lpos_first_s:.1f} s, last {obs.lpos_last_s:.1f} s, longest gap "
-            f"{_fmt(obs.lpos_max_gap_s, '.1f')} s)"
-            if obs.local_positions and obs.lpos_first_s is not None and obs.lpos_last_s is not None
-            else ""
-        )
-    )
-    for text in obs.statustexts[-3:]:
-        evidence.append(f"PX4 says: {text}")
+    _mavlink_evidence(obs, lpos_valid, evidence)
 
     sh = obs.shell
     fused: bool | None
@@ -202,7 +176,47 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
             )
     else:
         fused = _infer_without_shell(obs, params, svc, lpos_valid, reasons, evidence)
+    _rate_reason(fused, svc, reasons)
+    headline = _headline(fused, sh is None, blockers, reasons, warnings)
+    return Verdict(fused, headline, tuple(reasons), tuple(evidence), tuple(warnings), converged)
 
+
+def _ev_ctrl_reasons(params: Mapping[str, Param], reasons: list[str]) -> None:
+    """EKF2_EV_CTRL missing or without bit 0, as EKF2 reads it: our position is ignored."""
+    ev_ctrl = _raw_int(params, "EKF2_EV_CTRL")
+    if ev_ctrl is None:
+        reasons.append("EKF2_EV_CTRL is missing: this firmware predates PX4 1.14")
+    elif not ev_ctrl & EV_HPOS:
+        f = float_encoded_int(ev_ctrl, 0, 15)
+        how = f" (the bytes of the float {f:g}: written as a float)" if f is not None else ""
+        reasons.append(
+            f"EKF2_EV_CTRL = {ev_ctrl}{how} has bit 0 (horizontal position) clear as EKF2 "
+            "reads it: EKF2 ignores our position; `companion px4 configure` sets it"
+        )
+
+
+def _mavlink_evidence(obs: Observations, lpos_valid: bool, evidence: list[str]) -> None:
+    """What the MAVLink streams showed: EKF2's status flags, local positions, PX4's texts."""
+    flags_text = f"0x{obs.estimator_flags:03x}" if obs.estimator_flags is not None else "none"
+    evidence.append(
+        f"MAVLink: ESTIMATOR_STATUS flags {flags_text} "
+        f"(horizontal position {'valid' if lpos_valid else 'not valid'}), "
+        f"{obs.local_positions} LOCAL_POSITION_NED in {obs.watch_s:.1f} s"
+        + (
+            f" (first after {obs.lpos_first_s:.1f} s, last {obs.lpos_last_s:.1f} s, longest gap "
+            f"{_fmt(obs.lpos_max_gap_s, '.1f')} s)"
+            if obs.local_positions and obs.lpos_first_s is not None and obs.lpos_last_s is not None
+            else ""
+        )
+    )
+    for text in obs.statustexts[-3:]:
+        evidence.append(f"PX4 says: {text}")
+
+
+def _rate_reason(fused: bool | None, svc: Mapping[str, Any] | None, reasons: list[str]) -> None:
+    """Not fused, and the service publishes below EKF2's 5 Hz (unless a reason says so)."""
+    svc_rate = _get(svc, "output", "rate_hz")
+    svc_msg = _get(svc, "output", "message")
     if (
         fused is False
         and svc_rate is not None
@@ -212,6 +226,16 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
         reasons.append(
             f"the service publishes only {svc_rate:.1f} Hz of {svc_msg}: EKF2 needs >= 5 Hz"
         )
+
+
+def _headline(
+    fused: bool | None,
+    inferred: bool,
+    blockers: list[str],
+    reasons: list[str],
+    warnings: list[str],
+) -> str:
+    """The headline; reasons become warnings when EKF2 fuses us, blockers become reasons."""
     if fused is False and not reasons:
         reasons.append("EKF2 receives valid vision but has not started fusing it")
     if fused is True and reasons:
@@ -220,17 +244,16 @@ def diagnose(obs: Observations, params: Mapping[str, Param], ctx: LinkContext) -
         reasons.clear()
     if fused is True and blockers:
         reasons.extend(blockers)
-        headline = "FUSED, BUT PX4 WILL NOT FLY ON IT: EKF2 fuses our position, yet"
-    elif fused:
+        return "FUSED, BUT PX4 WILL NOT FLY ON IT: EKF2 fuses our position, yet"
+    if fused:
         headline = "FUSED: EKF2 fuses our estimate"
-        if sh is None:
+        if inferred:
             headline += " (inferred: a valid local position all along, with no other aiding)"
-    elif fused is None:
-        headline = "UNKNOWN: cannot tell whether EKF2 fuses our estimate"
-    else:
-        reasons[:0] = [b for b in blockers if b not in reasons]
-        headline = "NOT FUSED: EKF2 does not fuse our estimate"
-    return Verdict(fused, headline, tuple(reasons), tuple(evidence), tuple(warnings), converged)
+        return headline
+    if fused is None:
+        return "UNKNOWN: cannot tell whether EKF2 fuses our estimate"
+    reasons[:0] = [b for b in blockers if b not in reasons]
+    return "NOT FUSED: EKF2 does not fuse our estimate"
 
 
 def timesync_converged(sh: ShellView) -> bool | None:
@@ -462,27 +485,73 @@ def _diagnose_shell(
     """Diagnosis from PX4's own topics; whether EKF2 fuses our position (None: its flags did
     not come through, so it cannot tell)."""
     flags = sh.flags
-    fused: bool | None
-    parts = ("ev_pos", "ev_hgt", "ev_vel", "ev_yaw", "yaw_align")
+    fused = _flags_evidence(flags, reasons, evidence)
+    rates = sh.rates_hz or {}
+    rate: float | None = rates.get("vehicle_visual_odometry", 0.0) if rates else None
+    v, m = sh.visual, sh.mocap
+    age_ms = sample_age_ms(v)
+    _reception_evidence(v, m, rate, rates, age_ms, evidence)
+    ts_fresh = _fresh(sh.timesync)
+    _timesync_evidence(sh, evidence, warnings)
+    aid = sh.aid_pos if _fresh(sh.aid_pos) else None
+    _aid_evidence(aid, flags, evidence)
+    if fused and aid is not None and _rejected(aid):
+        fused = False
+        reasons.append(_rejection_reason(v, params))
+    if not _fresh(v):
+        _stopped_reasons(v, m, obs, svc, reasons)
+        return fused
+
+    assert v is not None
+    _sample_reasons(v, rate, flags, params, reasons, warnings)
+    _time_reasons(v, age_ms, rate, params, svc, ts_fresh, reasons, warnings)
+    ev_ctrl = _raw_int(params, "EKF2_EV_CTRL") or 0
+    if (
+        ev_ctrl & EV_VEL
+        and v.get("velocity_frame") == 0
+        and ctx.output != "vision_position_estimate"
+    ):
+        warnings.append(
+            "velocity fusion enabled but PX4 cannot use our velocity (velocity_frame UNKNOWN): "
+            "ODOMETRY child_frame_id must be MAV_FRAME_BODY_FRD (12)"
+        )
+    if not fused and not reasons and flag(aid, "innovation_rejected"):
+        reasons.append(
+            "EKF2 rejects our position at its innovation gate (EKF2_EVP_GATE): our estimate "
+            "disagrees with EKF2's (frame, scale), or the covariance we send is too small"
+        )
+    return fused
+
+
+def _flags_evidence(flags: Fields | None, reasons: list[str], evidence: list[str]) -> bool | None:
+    """EKF2's fusion flags (estimator_status_flags): cs_ev_pos says whether it fuses us."""
     if flags is None:
-        fused = None
         evidence.append("EKF2 (estimator_status_flags): no answer, or not in PX4's format")
         reasons.append(
             "PX4's shell answered, but not with EKF2's estimator_status_flags (never published, "
             "or output this check cannot read): EKF2's own fusion flags are unknown"
         )
-    else:
-        fused = flag(flags, "cs_ev_pos")
-        evidence.append(
-            "EKF2 (estimator_status_flags): "
-            + ", ".join(f"{p} {_on_off(flags, 'cs_' + p)}" for p in parts)
-        )
-        if fused is None:
-            reasons.append("estimator_status_flags has no readable cs_ev_pos: cannot tell")
-    rates = sh.rates_hz or {}
-    rate: float | None = rates.get("vehicle_visual_odometry", 0.0) if rates else None
-    v, m = sh.visual, sh.mocap
-    age_ms = sample_age_ms(v)
+        return None
+    parts = ("ev_pos", "ev_hgt", "ev_vel", "ev_yaw", "yaw_align")
+    fused = flag(flags, "cs_ev_pos")
+    evidence.append(
+        "EKF2 (estimator_status_flags): "
+        + ", ".join(f"{p} {_on_off(flags, 'cs_' + p)}" for p in parts)
+    )
+    if fused is None:
+        reasons.append("estimator_status_flags has no readable cs_ev_pos: cannot tell")
+    return fused
+
+
+def _reception_evidence(
+    v: Fields | None,
+    m: Fields | None,
+    rate: float | None,
+    rates: Mapping[str, float],
+    age_ms: float | None,
+    evidence: list[str],
+) -> None:
+    """What PX4 made of our messages: vehicle_visual_odometry, and vehicle_mocap_odometry."""
     if v is not None:
         quality = number(v, "quality")
         evidence.append(
@@ -498,8 +567,11 @@ def _diagnose_shell(
             f"vehicle_mocap_odometry: {_fmt(rates.get('vehicle_mocap_odometry'), '.1f')} Hz, "
             f"last {_fmt(number(m, 'timestamp_age_s'), '.2f')} s ago"
         )
+
+
+def _timesync_evidence(sh: ShellView, evidence: list[str], warnings: list[str]) -> None:
+    """PX4's time sync (timesync_status): converged, round trip; a warning until it converges."""
     ts = sh.timesync
-    ts_fresh = _fresh(ts)
     converged = timesync_converged(sh)
     if ts is not None:
         rtt_us = number(ts, "round_trip_time")
@@ -519,7 +591,10 @@ def _diagnose_shell(
             "time, so the latency is not compensated (PX4's filter needs ~500 TIMESYNC answers, "
             "~50 s at 10 Hz, after PX4 or the service starts; check again then)"
         )
-    aid = sh.aid_pos if _fresh(sh.aid_pos) else None
+
+
+def _aid_evidence(aid: Fields | None, flags: Fields | None, evidence: list[str]) -> None:
+    """EKF2's last vision position sample (estimator_aid_src_ev_pos), and dead reckoning."""
     if aid is not None:
         ratio = aid.get("test_ratio")
         evidence.append(
@@ -527,50 +602,71 @@ def _diagnose_shell(
             f"innovation rejected {_on_off(aid, 'innovation_rejected')}"
             + (f", test ratio {ratio}" if isinstance(ratio, list) else "")
         )
-
     if flags is not None and flag(flags, "cs_inertial_dead_reckoning"):
         evidence.append(
             "EKF2 is dead-reckoning: its local position stays valid for EKF2_NOAID_TOUT after "
             "the last aiding, without us"
         )
-    if fused and aid is not None:
-        aid_fused, rejected = flag(aid, "fused"), flag(aid, "innovation_rejected")
-        if aid_fused is False or (aid_fused is None and rejected is True):
-            fused = False
-            gate = _raw_float(params, "EKF2_EVP_GATE", 5.0)
-            qmin = _raw_int(params, "EKF2_EV_QMIN") or 0
-            quality = number(v, "quality")
-            if qmin > 0 and quality is not None and quality < qmin:
-                reasons.append(  # ev_pos_control marks a low-quality sample rejected
-                    f"active but not fused: our quality {quality:.0f} is below EKF2_EV_QMIN = "
-                    f"{qmin}, and EKF2 marks such samples rejected"
-                )
-            else:
-                reasons.append(
-                    f"active but rejected at EKF2_EVP_GATE ({gate:g} SD): EKF2's vision position "
-                    "fusion is on (cs_ev_pos) but its innovation test refuses our samples "
-                    "(estimator_aid_src_ev_pos: not fused): our estimate disagrees with EKF2's "
-                    "(frame, scale, heading), or the covariance we send is too small"
-                )
-    if not _fresh(v):
-        age = number(v, "timestamp_age_s")
-        if v is not None and age is not None and not _fresh(m):
-            reasons.append(
-                f"our estimate stopped: PX4 received it until {age:.1f} s ago and nothing "
-                "since (EKF2 stops vision fusion 400 ms after the last sample): the sender "
-                "stopped, or its link broke"
-            )
-        if _fresh(m):
-            reasons.append(
-                "wrong estimator_type: our ODOMETRY arrives as MAV_ESTIMATOR_TYPE_MOCAP, which "
-                "PX4 puts on vehicle_mocap_odometry and EKF2 never reads; send "
-                "MAV_ESTIMATOR_TYPE_VISION (2)"
-            )
-        else:
-            _no_vision_reasons(obs, svc, reasons)
-        return fused
 
-    assert v is not None
+
+def _rejected(aid: Fields) -> bool:
+    """EKF2's vision position fusion is on but did not fuse the last sample."""
+    aid_fused, rejected = flag(aid, "fused"), flag(aid, "innovation_rejected")
+    return aid_fused is False or (aid_fused is None and rejected is True)
+
+
+def _rejection_reason(v: Fields | None, params: Mapping[str, Param]) -> str:
+    """Why an active vision fusion refuses our samples: below EKF2_EV_QMIN, or the gate."""
+    gate = _raw_float(params, "EKF2_EVP_GATE", 5.0)
+    qmin = _raw_int(params, "EKF2_EV_QMIN") or 0
+    quality = number(v, "quality")
+    if qmin > 0 and quality is not None and quality < qmin:
+        return (  # ev_pos_control marks a low-quality sample rejected
+            f"active but not fused: our quality {quality:.0f} is below EKF2_EV_QMIN = "
+            f"{qmin}, and EKF2 marks such samples rejected"
+        )
+    return (
+        f"active but rejected at EKF2_EVP_GATE ({gate:g} SD): EKF2's vision position "
+        "fusion is on (cs_ev_pos) but its innovation test refuses our samples "
+        "(estimator_aid_src_ev_pos: not fused): our estimate disagrees with EKF2's "
+        "(frame, scale, heading), or the covariance we send is too small"
+    )
+
+
+def _stopped_reasons(
+    v: Fields | None,
+    m: Fields | None,
+    obs: Observations,
+    svc: Mapping[str, Any] | None,
+    reasons: list[str],
+) -> None:
+    """No fresh vehicle_visual_odometry: it stopped, went to the mocap topic, or never came."""
+    age = number(v, "timestamp_age_s")
+    if v is not None and age is not None and not _fresh(m):
+        reasons.append(
+            f"our estimate stopped: PX4 received it until {age:.1f} s ago and nothing "
+            "since (EKF2 stops vision fusion 400 ms after the last sample): the sender "
+            "stopped, or its link broke"
+        )
+    if _fresh(m):
+        reasons.append(
+            "wrong estimator_type: our ODOMETRY arrives as MAV_ESTIMATOR_TYPE_MOCAP, which "
+            "PX4 puts on vehicle_mocap_odometry and EKF2 never reads; send "
+            "MAV_ESTIMATOR_TYPE_VISION (2)"
+        )
+    else:
+        _no_vision_reasons(obs, svc, reasons)
+
+
+def _sample_reasons(
+    v: Fields,
+    rate: float | None,
+    flags: Fields | None,
+    params: Mapping[str, Param],
+    reasons: list[str],
+    warnings: list[str],
+) -> None:
+    """Our samples as PX4 holds them: rate (>= 5 Hz), a frame it can place, enough quality."""
     if rate is not None and rate < MIN_RATE_HZ:
         reasons.append(
             f"rate too low: PX4 receives our estimate at {rate:.1f} Hz; EKF2 starts vision "
@@ -602,23 +698,6 @@ def _diagnose_shell(
     if qmin > 0 and quality is not None and quality < qmin and not said:
         note = " (VISION_POSITION_ESTIMATE has no quality: PX4 uses 0)" if frame == 1 else ""
         reasons.append(f"quality {quality:.0f} below EKF2_EV_QMIN = {qmin}{note}")
-    _time_reasons(v, age_ms, rate, params, svc, ts_fresh, reasons, warnings)
-    ev_ctrl = _raw_int(params, "EKF2_EV_CTRL") or 0
-    if (
-        ev_ctrl & EV_VEL
-        and v.get("velocity_frame") == 0
-        and ctx.output != "vision_position_estimate"
-    ):
-        warnings.append(
-            "velocity fusion enabled but PX4 cannot use our velocity (velocity_frame UNKNOWN): "
-            "ODOMETRY child_frame_id must be MAV_FRAME_BODY_FRD (12)"
-        )
-    if not fused and not reasons and flag(aid, "innovation_rejected"):
-        reasons.append(
-            "EKF2 rejects our position at its innovation gate (EKF2_EVP_GATE): our estimate "
-            "disagrees with EKF2's (frame, scale), or the covariance we send is too small"
-        )
-    return fused
 
 
 def _time_reasons(

@@ -28,6 +28,7 @@ import enum
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 
 from companion.px4.encoding import float_encoded_int, int_encoded_float
 
@@ -264,234 +265,70 @@ def has_magnetometer(params: Mapping[str, Param]) -> bool | None:
     return True
 
 
-def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
-    odometry = ctx.output in ("odometry", "both")
-    vpe = ctx.output in ("vision_position_estimate", "both")
-    hgt_ref = _int_value(params, "EKF2_HGT_REF", 0, 3)
-    ev_ctrl = _int_value(params, "EKF2_EV_CTRL", 0, 15)
-    rng_ctrl = _int_value(params, "EKF2_RNG_CTRL", 0, 2)
-    mag = has_magnetometer(params)
+@dataclass(frozen=True, slots=True)
+class _Ekf2Facts:
+    """What the EKF2 rules weigh a value against: our output, the other EKF2 settings, the
+    magnetometer and whether the companion's link time-syncs."""
+
+    ctx: LinkContext
+    odometry: bool  # we send ODOMETRY (LOCAL_FRD)
+    vpe: bool  # we send VISION_POSITION_ESTIMATE (NED)
+    hgt_ref: int | None  # EKF2_HGT_REF
+    ev_ctrl: int | None  # EKF2_EV_CTRL
+    rng_ctrl: int | None  # EKF2_RNG_CTRL
+    mag: bool | None  # has_magnetometer
+    timesync: bool | None  # the companion's MAVLink mode streams TIMESYNC (None: unknown)
+    message: str  # our message(s), in words
+
+
+def _ekf2_facts(params: Mapping[str, Param], ctx: LinkContext) -> _Ekf2Facts:
+    """The settings the EKF2 rules depend on, read once."""
     inst = _companion_instance(params, ctx)
     mode = _int_value(params, f"MAV_{inst}_MODE", 0, 13) if inst is not None else None
-    timesync = None if mode is None else mode in TIMESYNC_MODES
-    message = {"odometry": "ODOMETRY", "both": "both messages"}.get(
-        ctx.output, "VISION_POSITION_ESTIMATE"
+    return _Ekf2Facts(
+        ctx=ctx,
+        odometry=ctx.output in ("odometry", "both"),
+        vpe=ctx.output in ("vision_position_estimate", "both"),
+        hgt_ref=_int_value(params, "EKF2_HGT_REF", 0, 3),
+        ev_ctrl=_int_value(params, "EKF2_EV_CTRL", 0, 15),
+        rng_ctrl=_int_value(params, "EKF2_RNG_CTRL", 0, 2),
+        mag=has_magnetometer(params),
+        timesync=None if mode is None else mode in TIMESYNC_MODES,
+        message={"odometry": "ODOMETRY", "both": "both messages"}.get(
+            ctx.output, "VISION_POSITION_ESTIMATE"
+        ),
     )
 
-    def ev_ctrl_judge(v: int) -> Judgement:
-        # what PX4 itself showed (docs/decisions.md, "EV yaw"): VISION_POSITION_ESTIMATE is NED
-        # and is fused only once EKF2's heading is aligned: by the magnetometer, or by our yaw
-        # (bit 3); ODOMETRY in LOCAL_FRD is fused at any heading, but its yaw (bit 3) never
-        # aligns EKF2's heading and stops the magnetometer's: PX4 then refuses to arm
-        required = EV_HPOS | (EV_VPOS if hgt_ref == 3 else 0)
-        yaw_needed = vpe and not odometry and mag is False
-        want = EV_HPOS | EV_VPOS | (EV_VEL if odometry else 0) | (EV_YAW if yaw_needed else 0)
-        need = f"{want} ({ev_bits(want)})"
-        if v & required != required:
-            missing = ev_words(required & ~v)
-            why = f"EKF2 ignores our {missing}: bit 0 enables horizontal position fusion"
-            if required & EV_VPOS:
-                why += ", bit 1 height (EKF2_HGT_REF = vision needs it)"
-            keep = v & ~EV_YAW if odometry else v
-            return Judgement(Status.FAIL, need, why, keep | want)
-        if odometry and v & EV_YAW:
-            return Judgement(
-                Status.FAIL,
-                need,
-                "bit 3 (yaw) with ODOMETRY in LOCAL_FRD: EKF2 fuses our yaw instead of the "
-                "magnetometer's but never aligns its heading with it (cs_yaw_align stays "
-                "false), and PX4 refuses to arm ('heading estimate not stable'); as seen on PX4 "
-                "SITL (main, 2026-03), with a magnetometer and without",
-                (v & ~EV_YAW) | want,
-            )
-        if yaw_needed and not v & EV_YAW:
-            return Judgement(
-                Status.FAIL,
-                need,
-                "no magnetometer (SYS_HAS_MAG = 0 or EKF2_MAG_TYPE = 5): EKF2 has no "
-                "north-aligned heading unless it takes ours (bit 3), and it fuses "
-                "VISION_POSITION_ESTIMATE (NED) only with one: without bit 3 our position is "
-                "never fused",
-                v | want,
-            )
-        if v & want != want:
-            notes = {
-                EV_VPOS: "height (our z is metric, from the rangefinders)",
-                EV_VEL: "velocity (ODOMETRY carries it; it steadies the position)",
-            }
-            absent = [n for b, n in notes.items() if want & ~v & b]
-            return Judgement(
-                Status.WARN, need, "horizontal position fused; not " + ", ".join(absent), v | want
-            )
-        if vpe and v & EV_YAW and mag:
-            return Judgement(
-                Status.OK,
-                f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
-                f"EKF2 fuses our {ev_words(v)} ({message}); with bit 3 our heading replaces "
-                "the magnetometer's, which keeps EKF2's heading and our NED frame together "
-                "(both ours) where the magnetometer is disturbed; without it the magnetometer "
-                "gives north and our heading drift shows as position innovations",
-            )
-        if vpe and mag and not v & EV_YAW:
-            return Judgement(
-                Status.OK,
-                f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
-                f"EKF2 fuses our {ev_words(v)} ({message}); the magnetometer gives the "
-                "north-aligned heading VISION_POSITION_ESTIMATE needs (where it is disturbed, "
-                "indoors: bit 3 and EKF2_MAG_TYPE = 5)",
-            )
-        return Judgement(Status.OK, need, f"EKF2 fuses our {ev_words(v)} ({message})")
 
-    def hgt_ref_judge(v: int) -> Judgement:
-        need = "3 (vision), over flat ground"
-        flat = (
-            "our height follows the rangefinders (height above ground): as the reference it "
-            "suits flat ground only, as PX4 says of range and vision height; over uneven "
-            "terrain keep baro (0) and fuse our height with EKF2_EV_CTRL bit 1"
-        )
-        if v == 3:
-            return Judgement(Status.OK, need, "our metric height (range-aided VO); " + flat)
-        if v == 2:
-            if rng_ctrl == 0:
-                return Judgement(
-                    Status.FAIL, need, "range reference but EKF2_RNG_CTRL = 0 (range off)", 3
-                )
-            return Judgement(
-                Status.OK, need, "rangefinder height: fine over flat ground (PX4's advice)"
-            )
-        if v == 0:
-            return Judgement(
-                Status.WARN,
-                need,
-                "baro drifts and sees rotor wash; over flat ground our vision height is "
-                "steadier (over uneven terrain baro is the right reference)",
-                3,
-            )
-        if v == 1:
-            if ctx.gps_seen:
-                why = "GNSS height: metres of noise, fine only outdoors"
-            elif ctx.gps_seen is False:
-                why = (
-                    "GNSS height reference, but no GNSS receiver reported while watching: EKF2 "
-                    "falls back to another height source (baro)"
-                )
-            else:
-                why = (
-                    "GNSS height reference (a receiver was not watched for: --watch-s 0); "
-                    "without one EKF2 falls back to another height source (baro)"
-                )
-            return Judgement(Status.WARN, need, f"{why}; {flat}", 3)
-        return Judgement(Status.FAIL, need, "not a height source PX4 knows", 3)
+def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
+    """Our output, then EKF2's parameters: vision fusion, timing, trust, the other sensors."""
+    f = _ekf2_facts(params, ctx)
+    return [
+        *_output_rows(f),
+        _int_row(params, "EKF2_EV_CTRL", 0, 15, partial(_judge_ev_ctrl, f)),
+        _int_row(params, "EKF2_HGT_REF", 0, 3, partial(_judge_hgt_ref, f), HGT_REF),
+        _float_row(params, "EKF2_EV_DELAY", "ms", partial(_judge_ev_delay, f)),
+        *_trust_rows(params, f),
+        *_other_sensor_rows(params, f),
+    ]
 
-    def qmin_judge(v: int) -> Judgement:
-        if vpe:
-            why = "VISION_POSITION_ESTIMATE has no quality field: PX4 stores 0, so any minimum "
-            why += "rejects every sample"
-            if v > 0:
-                return Judgement(Status.FAIL, "0", why, 0)
-            return Judgement(Status.OK, "0", why)
-        if v > 50:
-            why = "our ODOMETRY quality falls while the scale converges: EKF2 would drop vision"
-            return Judgement(Status.WARN, "<= 50", why, 0)
-        return Judgement(Status.OK, "<= 50", "EKF2 drops samples whose quality is below it")
 
-    def rng_judge(v: int) -> Judgement:
-        if hgt_ref == 2 and v != 2:
-            return Judgement(
-                Status.FAIL if v == 0 else Status.WARN,
-                "2 (enabled)",
-                "EKF2_HGT_REF = range needs the rangefinder fused all the time",
-                2,
-            )
-        return Judgement(
-            Status.OK,
-            "any",
-            "PX4's own use of one rangefinder for height; ours read DISTANCE_SENSOR either way",
-        )
-
-    def gps_judge(v: int) -> Judgement:
-        if ctx.gps_seen is True:
-            return Judgement(Status.OK, "any", "GNSS present: EKF2 fuses vision alongside it")
-        if v == 0:
-            return Judgement(Status.OK, "any", "GNSS fusion off")
-        if ctx.no_gnss:
-            return Judgement(Status.WARN, "0 (--no-gnss)", "GNSS fusion off, as asked", 0)
-        seen = (
-            "no GNSS receiver reported while watching"
-            if ctx.gps_seen is False
-            else "a GNSS receiver was not watched for"
-        )
-        return Judgement(
-            Status.INFO,
-            "any",
-            f"{seen}: with nothing to fuse the setting changes nothing now; 0 would keep a "
-            "receiver fitted later out of the solution (`configure --no-gnss` writes it)",
-        )
-
-    def delay_judge(v: float) -> Judgement:
-        if timesync is False:
-            return Judgement(
-                Status.INFO,
-                "the link's latency",
-                "this link's MAVLink mode streams no TIMESYNC, so PX4 stamps our messages at "
-                "arrival: EKF2_EV_DELAY is then what compensates the latency (see MAV_n_MODE)",
-            )
-        need = "0 ms, with TIMESYNC working"
-        why = (
-            "we stamp at exposure and PX4 moves the stamp into its clock through TIMESYNC: a "
-            "delay on top counts the latency twice (while PX4's time sync works on this link: "
-            "`check` watches it; without it PX4 stamps at arrival and the measured latency "
-            "belongs here)"
-        )
-        if v <= 5.0:
-            return Judgement(Status.OK, need, why)
-        return Judgement(
-            Status.WARN,
-            need,
-            f"EKF2 takes each sample as {v:g} ms older than its stamp says, against the state "
-            f"of that earlier instant; {why}",
-            0.0,
-        )
-
-    def noise_md_judge(v: int) -> Judgement:
-        why = "0: EKF2 uses the covariance we send, the EKF2_EV*_NOISE values as floors"
-        if v == 0:
-            return Judgement(Status.OK, "0 (from the message)", why)
-        return Judgement(
-            Status.WARN, "0 (from the message)", "our covariance is ignored; " + why, 0
-        )
-
-    def floor_judge(
-        lo: float, hi: float, what: str, default: float
-    ) -> Callable[[float], Judgement]:
-        def judge(v: float) -> Judgement:
-            need = f"{lo:g}..{hi:g}"
-            why = f"floor on the {what} variance EKF2 takes from us"
-            if v < lo:
-                return Judgement(Status.FAIL, need, f"below PX4's minimum; {why}", default)
-            if v > hi:
-                return Judgement(
-                    Status.WARN,
-                    need,
-                    f"above our accuracy: EKF2 under-trusts vision ({why})",
-                    default,
-                )
-            return Judgement(Status.OK, need, why)
-
-        return judge
-
-    def gate_judge(v: float) -> Judgement:
-        why = "innovation gate [SD] on our position"
-        if v < 3.0:
-            return Judgement(
-                Status.WARN, "3..10", f"{why}: rejects us after a fast turn or a VO re-init", 5.0
-            )
-        if v > 10.0:
-            return Judgement(Status.WARN, "3..10", f"{why}: lets outliers in", 5.0)
-        return Judgement(Status.OK, "3..10", why)
-
+def _output_rows(f: _Ekf2Facts) -> list[Row]:
+    """service.output: ODOMETRY needs a magnetometer to arm, and both messages interleave."""
     rows = []
-    if ctx.output == "both":
+    if f.odometry and f.mag is False:
+        rows.append(
+            Row(
+                "service.output",
+                f.ctx.output,
+                "vision_position_estimate",
+                "no magnetometer: EKF2 fuses ODOMETRY (LOCAL_FRD) but never aligns its heading, "
+                "with or without our yaw, and PX4 refuses to arm; VISION_POSITION_ESTIMATE with "
+                "EKF2_EV_CTRL bit 3 gives EKF2 our heading (seen on PX4 SITL, main 2026-03)",
+                Status.FAIL,
+            )
+        )
+    if f.ctx.output == "both":
         rows.append(
             Row(
                 "service.output",
@@ -503,55 +340,294 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
                 Status.WARN,
             )
         )
-    rows += [
-        _int_row(params, "EKF2_EV_CTRL", 0, 15, ev_ctrl_judge),
-        _int_row(params, "EKF2_HGT_REF", 0, 3, hgt_ref_judge, HGT_REF),
-        _float_row(params, "EKF2_EV_DELAY", "ms", delay_judge),
-        _int_row(params, "EKF2_EV_NOISE_MD", 0, 1, noise_md_judge, NOISE_MD),
-        _float_row(params, "EKF2_EVP_NOISE", "m", floor_judge(0.01, 0.3, "position", 0.1)),
-        _float_row(params, "EKF2_EVA_NOISE", "rad", floor_judge(0.05, 0.3, "angle", 0.1)),
-        _int_row(params, "EKF2_EV_QMIN", 0, 100, qmin_judge),
-        _float_row(params, "EKF2_EVP_GATE", "SD", gate_judge),
-        _int_row(params, "EKF2_RNG_CTRL", 0, 2, rng_judge, RNG_CTRL),
-        _int_row(params, "EKF2_GPS_CTRL", 0, 15, gps_judge),
+    return rows
+
+
+def _trust_rows(params: Mapping[str, Param], f: _Ekf2Facts) -> list[Row]:
+    """How far EKF2 trusts our samples: covariance source, noise floors, quality, gate."""
+    return [
+        _int_row(params, "EKF2_EV_NOISE_MD", 0, 1, _judge_noise_md, NOISE_MD),
+        _float_row(params, "EKF2_EVP_NOISE", "m", _floor_judge(0.01, 0.3, "position", 0.1)),
+        _float_row(params, "EKF2_EVA_NOISE", "rad", _floor_judge(0.05, 0.3, "angle", 0.1)),
+        _int_row(params, "EKF2_EV_QMIN", 0, 100, partial(_judge_qmin, f)),
+        _float_row(params, "EKF2_EVP_GATE", "SD", _judge_gate),
     ]
 
-    def mag_judge(v: int) -> Judgement:
-        yaw = ev_ctrl is not None and bool(ev_ctrl & EV_YAW)
-        if odometry:
-            why = (
-                "ODOMETRY in LOCAL_FRD is fused at any heading, but only the magnetometer "
-                "aligns EKF2's heading then (our yaw does not): without it PX4 refuses to arm"
-            )
-            if mag is False:
-                return Judgement(Status.FAIL, "a magnetometer", why)
-            return Judgement(Status.OK, "a magnetometer", why)
-        why = "VISION_POSITION_ESTIMATE is NED: EKF2 fuses it only with a north-aligned heading"
-        if mag is False and not yaw:
-            return Judgement(
-                Status.INFO,
-                "a magnetometer, or EV yaw",
-                f"{why}, and it has neither a magnetometer nor our yaw: see EKF2_EV_CTRL",
-            )
-        if mag is False:
-            return Judgement(Status.OK, "a heading source", f"{why}: ours (EKF2_EV_CTRL bit 3)")
-        return Judgement(Status.OK, "a heading source", why)
 
-    rows.append(_int_row(params, "EKF2_MAG_TYPE", 0, 6, mag_judge, MAG_TYPE))
-    if odometry and mag is False:
-        rows.insert(
-            0,
-            Row(
-                "service.output",
-                ctx.output,
-                "vision_position_estimate",
-                "no magnetometer: EKF2 fuses ODOMETRY (LOCAL_FRD) but never aligns its heading, "
-                "with or without our yaw, and PX4 refuses to arm; VISION_POSITION_ESTIMATE with "
-                "EKF2_EV_CTRL bit 3 gives EKF2 our heading (seen on PX4 SITL, main 2026-03)",
-                Status.FAIL,
-            ),
+def _other_sensor_rows(params: Mapping[str, Param], f: _Ekf2Facts) -> list[Row]:
+    """The sensors EKF2 fuses beside us: rangefinder, GNSS, magnetometer (the heading)."""
+    return [
+        _int_row(params, "EKF2_RNG_CTRL", 0, 2, partial(_judge_rng_ctrl, f), RNG_CTRL),
+        _int_row(params, "EKF2_GPS_CTRL", 0, 15, partial(_judge_gps_ctrl, f)),
+        _int_row(params, "EKF2_MAG_TYPE", 0, 6, partial(_judge_mag_type, f), MAG_TYPE),
+    ]
+
+
+def _ev_ctrl_wanted(f: _Ekf2Facts) -> tuple[int, int, bool]:
+    """EKF2_EV_CTRL bits required (else nothing is fused), wanted, and whether yaw is needed."""
+    required = EV_HPOS | (EV_VPOS if f.hgt_ref == 3 else 0)
+    yaw_needed = f.vpe and not f.odometry and f.mag is False
+    want = EV_HPOS | EV_VPOS | (EV_VEL if f.odometry else 0) | (EV_YAW if yaw_needed else 0)
+    return required, want, yaw_needed
+
+
+def _judge_ev_ctrl(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_EV_CTRL: which parts of our estimate EKF2 fuses, and the yaw bit by output."""
+    # what PX4 itself showed (docs/decisions.md, "EV yaw"): VISION_POSITION_ESTIMATE is NED
+    # and is fused only once EKF2's heading is aligned: by the magnetometer, or by our yaw
+    # (bit 3); ODOMETRY in LOCAL_FRD is fused at any heading, but its yaw (bit 3) never
+    # aligns EKF2's heading and stops the magnetometer's: PX4 then refuses to arm
+    required, want, yaw_needed = _ev_ctrl_wanted(f)
+    need = f"{want} ({ev_bits(want)})"
+    failed = _ev_ctrl_failure(f, v, required, want, yaw_needed)
+    if failed is not None:
+        return failed
+    if v & want != want:
+        notes = {
+            EV_VPOS: "height (our z is metric, from the rangefinders)",
+            EV_VEL: "velocity (ODOMETRY carries it; it steadies the position)",
+        }
+        absent = [n for b, n in notes.items() if want & ~v & b]
+        return Judgement(
+            Status.WARN, need, "horizontal position fused; not " + ", ".join(absent), v | want
         )
-    return rows
+    if f.vpe and v & EV_YAW and f.mag:
+        return Judgement(
+            Status.OK,
+            f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
+            f"EKF2 fuses our {ev_words(v)} ({f.message}); with bit 3 our heading replaces "
+            "the magnetometer's, which keeps EKF2's heading and our NED frame together "
+            "(both ours) where the magnetometer is disturbed; without it the magnetometer "
+            "gives north and our heading drift shows as position innovations",
+        )
+    if f.vpe and f.mag and not v & EV_YAW:
+        return Judgement(
+            Status.OK,
+            f"{need} or {want | EV_YAW} ({ev_bits(want | EV_YAW)})",
+            f"EKF2 fuses our {ev_words(v)} ({f.message}); the magnetometer gives the "
+            "north-aligned heading VISION_POSITION_ESTIMATE needs (where it is disturbed, "
+            "indoors: bit 3 and EKF2_MAG_TYPE = 5)",
+        )
+    return Judgement(Status.OK, need, f"EKF2 fuses our {ev_words(v)} ({f.message})")
+
+
+def _ev_ctrl_failure(
+    f: _Ekf2Facts, v: int, required: int, want: int, yaw_needed: bool
+) -> Judgement | None:
+    """EKF2_EV_CTRL values that leave our position unfused or PX4 unable to arm, or None."""
+    need = f"{want} ({ev_bits(want)})"
+    if v & required != required:
+        missing = ev_words(required & ~v)
+        why = f"EKF2 ignores our {missing}: bit 0 enables horizontal position fusion"
+        if required & EV_VPOS:
+            why += ", bit 1 height (EKF2_HGT_REF = vision needs it)"
+        keep = v & ~EV_YAW if f.odometry else v
+        return Judgement(Status.FAIL, need, why, keep | want)
+    if f.odometry and v & EV_YAW:
+        return Judgement(
+            Status.FAIL,
+            need,
+            "bit 3 (yaw) with ODOMETRY in LOCAL_FRD: EKF2 fuses our yaw instead of the "
+            "magnetometer's but never aligns its heading with it (cs_yaw_align stays "
+            "false), and PX4 refuses to arm ('heading estimate not stable'); as seen on PX4 "
+            "SITL (main, 2026-03), with a magnetometer and without",
+            (v & ~EV_YAW) | want,
+        )
+    if yaw_needed and not v & EV_YAW:
+        return Judgement(
+            Status.FAIL,
+            need,
+            "no magnetometer (SYS_HAS_MAG = 0 or EKF2_MAG_TYPE = 5): EKF2 has no "
+            "north-aligned heading unless it takes ours (bit 3), and it fuses "
+            "VISION_POSITION_ESTIMATE (NED) only with one: without bit 3 our position is "
+            "never fused",
+            v | want,
+        )
+    return None
+
+
+def _judge_hgt_ref(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_HGT_REF: our range-aided height suits flat ground; baro, range, GNSS weighed."""
+    need = "3 (vision), over flat ground"
+    flat = (
+        "our height follows the rangefinders (height above ground): as the reference it "
+        "suits flat ground only, as PX4 says of range and vision height; over uneven "
+        "terrain keep baro (0) and fuse our height with EKF2_EV_CTRL bit 1"
+    )
+    if v == 3:
+        return Judgement(Status.OK, need, "our metric height (range-aided VO); " + flat)
+    if v == 2:
+        if f.rng_ctrl == 0:
+            return Judgement(
+                Status.FAIL, need, "range reference but EKF2_RNG_CTRL = 0 (range off)", 3
+            )
+        return Judgement(
+            Status.OK, need, "rangefinder height: fine over flat ground (PX4's advice)"
+        )
+    if v == 0:
+        return Judgement(
+            Status.WARN,
+            need,
+            "baro drifts and sees rotor wash; over flat ground our vision height is "
+            "steadier (over uneven terrain baro is the right reference)",
+            3,
+        )
+    if v == 1:
+        if f.ctx.gps_seen:
+            why = "GNSS height: metres of noise, fine only outdoors"
+        elif f.ctx.gps_seen is False:
+            why = (
+                "GNSS height reference, but no GNSS receiver reported while watching: EKF2 "
+                "falls back to another height source (baro)"
+            )
+        else:
+            why = (
+                "GNSS height reference (a receiver was not watched for: --watch-s 0); "
+                "without one EKF2 falls back to another height source (baro)"
+            )
+        return Judgement(Status.WARN, need, f"{why}; {flat}", 3)
+    return Judgement(Status.FAIL, need, "not a height source PX4 knows", 3)
+
+
+def _judge_ev_delay(f: _Ekf2Facts, v: float) -> Judgement:
+    """EKF2_EV_DELAY: 0 where PX4 time-syncs our exposure stamps, else the link's latency."""
+    if f.timesync is False:
+        return Judgement(
+            Status.INFO,
+            "the link's latency",
+            "this link's MAVLink mode streams no TIMESYNC, so PX4 stamps our messages at "
+            "arrival: EKF2_EV_DELAY is then what compensates the latency (see MAV_n_MODE)",
+        )
+    need = "0 ms, with TIMESYNC working"
+    why = (
+        "we stamp at exposure and PX4 moves the stamp into its clock through TIMESYNC: a "
+        "delay on top counts the latency twice (while PX4's time sync works on this link: "
+        "`check` watches it; without it PX4 stamps at arrival and the measured latency "
+        "belongs here)"
+    )
+    if v <= 5.0:
+        return Judgement(Status.OK, need, why)
+    return Judgement(
+        Status.WARN,
+        need,
+        f"EKF2 takes each sample as {v:g} ms older than its stamp says, against the state "
+        f"of that earlier instant; {why}",
+        0.0,
+    )
+
+
+def _judge_noise_md(v: int) -> Judgement:
+    """EKF2_EV_NOISE_MD: our covariance is real, so EKF2 should take it from the message."""
+    why = "0: EKF2 uses the covariance we send, the EKF2_EV*_NOISE values as floors"
+    if v == 0:
+        return Judgement(Status.OK, "0 (from the message)", why)
+    return Judgement(Status.WARN, "0 (from the message)", "our covariance is ignored; " + why, 0)
+
+
+def _floor_judge(lo: float, hi: float, what: str, default: float) -> Callable[[float], Judgement]:
+    """EKF2_EV*_NOISE: a floor on our variance, within PX4's minimum and our accuracy."""
+
+    def judge(v: float) -> Judgement:
+        need = f"{lo:g}..{hi:g}"
+        why = f"floor on the {what} variance EKF2 takes from us"
+        if v < lo:
+            return Judgement(Status.FAIL, need, f"below PX4's minimum; {why}", default)
+        if v > hi:
+            return Judgement(
+                Status.WARN,
+                need,
+                f"above our accuracy: EKF2 under-trusts vision ({why})",
+                default,
+            )
+        return Judgement(Status.OK, need, why)
+
+    return judge
+
+
+def _judge_qmin(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_EV_QMIN: VISION_POSITION_ESTIMATE has no quality; ours falls while scale settles."""
+    if f.vpe:
+        why = "VISION_POSITION_ESTIMATE has no quality field: PX4 stores 0, so any minimum "
+        why += "rejects every sample"
+        if v > 0:
+            return Judgement(Status.FAIL, "0", why, 0)
+        return Judgement(Status.OK, "0", why)
+    if v > 50:
+        why = "our ODOMETRY quality falls while the scale converges: EKF2 would drop vision"
+        return Judgement(Status.WARN, "<= 50", why, 0)
+    return Judgement(Status.OK, "<= 50", "EKF2 drops samples whose quality is below it")
+
+
+def _judge_gate(v: float) -> Judgement:
+    """EKF2_EVP_GATE: wide enough for a fast turn or a VO re-init, narrow enough for outliers."""
+    why = "innovation gate [SD] on our position"
+    if v < 3.0:
+        return Judgement(
+            Status.WARN, "3..10", f"{why}: rejects us after a fast turn or a VO re-init", 5.0
+        )
+    if v > 10.0:
+        return Judgement(Status.WARN, "3..10", f"{why}: lets outliers in", 5.0)
+    return Judgement(Status.OK, "3..10", why)
+
+
+def _judge_rng_ctrl(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_RNG_CTRL: PX4's own rangefinder use; a range height reference needs it on."""
+    if f.hgt_ref == 2 and v != 2:
+        return Judgement(
+            Status.FAIL if v == 0 else Status.WARN,
+            "2 (enabled)",
+            "EKF2_HGT_REF = range needs the rangefinder fused all the time",
+            2,
+        )
+    return Judgement(
+        Status.OK,
+        "any",
+        "PX4's own use of one rangefinder for height; ours read DISTANCE_SENSOR either way",
+    )
+
+
+def _judge_gps_ctrl(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_GPS_CTRL: GNSS fused beside us, or off where there is none (--no-gnss)."""
+    if f.ctx.gps_seen is True:
+        return Judgement(Status.OK, "any", "GNSS present: EKF2 fuses vision alongside it")
+    if v == 0:
+        return Judgement(Status.OK, "any", "GNSS fusion off")
+    if f.ctx.no_gnss:
+        return Judgement(Status.WARN, "0 (--no-gnss)", "GNSS fusion off, as asked", 0)
+    seen = (
+        "no GNSS receiver reported while watching"
+        if f.ctx.gps_seen is False
+        else "a GNSS receiver was not watched for"
+    )
+    return Judgement(
+        Status.INFO,
+        "any",
+        f"{seen}: with nothing to fuse the setting changes nothing now; 0 would keep a "
+        "receiver fitted later out of the solution (`configure --no-gnss` writes it)",
+    )
+
+
+def _judge_mag_type(f: _Ekf2Facts, v: int) -> Judgement:
+    """EKF2_MAG_TYPE: the heading source our output needs (magnetometer, or our yaw in NED)."""
+    yaw = f.ev_ctrl is not None and bool(f.ev_ctrl & EV_YAW)
+    if f.odometry:
+        why = (
+            "ODOMETRY in LOCAL_FRD is fused at any heading, but only the magnetometer "
+            "aligns EKF2's heading then (our yaw does not): without it PX4 refuses to arm"
+        )
+        if f.mag is False:
+            return Judgement(Status.FAIL, "a magnetometer", why)
+        return Judgement(Status.OK, "a magnetometer", why)
+    why = "VISION_POSITION_ESTIMATE is NED: EKF2 fuses it only with a north-aligned heading"
+    if f.mag is False and not yaw:
+        return Judgement(
+            Status.INFO,
+            "a magnetometer, or EV yaw",
+            f"{why}, and it has neither a magnetometer nor our yaw: see EKF2_EV_CTRL",
+        )
+    if f.mag is False:
+        return Judgement(Status.OK, "a heading source", f"{why}: ours (EKF2_EV_CTRL bit 3)")
+    return Judgement(Status.OK, "a heading source", why)
 
 
 def _uart_order(params: Mapping[str, Param]) -> dict[str, int]:
@@ -617,65 +693,84 @@ def _port_rows(params: Mapping[str, Param], ctx: LinkContext) -> tuple[int | Non
             )
         ]
     if _has_mav_config(params):
-        configs = {i: _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) for i in range(3)}
-        found = [i for i, c in configs.items() if c == code]
-        if found:
-            inst = found[0]
-            return inst, [
-                Row(
-                    f"MAV_{inst}_CONFIG",
-                    _labelled(code, SERIAL_PORT),
-                    _labelled(code, SERIAL_PORT),
-                    f"MAVLink instance {inst} runs on {ctx.fc_port}, where the companion is wired",
-                    Status.OK,
-                )
-            ]
-        free = [i for i in (1, 2, 0) if configs.get(i) == 0]
-        if not free:
-            return None, [
-                Row(
-                    "MAV_n_CONFIG",
-                    ", ".join(f"{i}: {configs[i]}" for i in range(3)),
-                    f"one instance on {ctx.fc_port}",
-                    "no MAVLink instance runs on the companion's port and none is free",
-                    Status.FAIL,
-                )
-            ]
-        inst = free[0]
-        name = f"MAV_{inst}_CONFIG"
-        current = configs.get(inst)
-        return inst, [
-            Row(
-                name,
-                _labelled(current, SERIAL_PORT) if current is not None else "missing",
-                _labelled(code, SERIAL_PORT),
-                f"no MAVLink instance runs on {ctx.fc_port}, where the companion is wired "
-                f"(instance {inst} is free)",
-                Status.FAIL,
-                (Target(name, code, True, True),),
-            )
-        ]
+        return _mav_config_port_rows(params, ctx, code)
     uarts = [t for t, v in _uart_order(params).items() if v == 1]
     if ctx.fc_port == "ETHERNET":
-        name = "MAV_ETH_EN"
-        on = _int_value(params, name, 0, 1)
-        inst = len(uarts)
-        if on is None or inst > 2:
-            why = (
-                "this firmware has neither MAV_n_CONFIG nor MAV_ETH_EN: no MAVLink on Ethernet"
-                if on is None
-                else f"all three MAVLink instances run on UARTs ({', '.join(uarts)})"
-            )
-            return None, [Row(name, str(on), "1 (on)", why, Status.FAIL)]
-        why = (
-            f"MAVLink on Ethernet runs as instance {inst}, after the {inst} MAVLink UART "
-            "port(s) (PX4 after 1.16: MAV_ETH_EN replaced MAV_n_CONFIG = 1000)"
-        )
-        if on == 1:
-            return inst, [Row(name, "1 (on)", "1 (on)", why, Status.OK)]
+        return _ethernet_port_rows(params, uarts)
+    return _uart_port_rows(params, ctx, uarts)
+
+
+def _mav_config_port_rows(
+    params: Mapping[str, Param], ctx: LinkContext, code: int
+) -> tuple[int | None, list[Row]]:
+    """PX4 up to 1.16: the MAV_n_CONFIG naming the companion's port, else a free instance."""
+    configs = {i: _int_value(params, f"MAV_{i}_CONFIG", 0, 1000) for i in range(3)}
+    found = [i for i, c in configs.items() if c == code]
+    if found:
+        inst = found[0]
         return inst, [
-            Row(name, "0 (off)", "1 (on)", why, Status.FAIL, (Target(name, 1, True, True),))
+            Row(
+                f"MAV_{inst}_CONFIG",
+                _labelled(code, SERIAL_PORT),
+                _labelled(code, SERIAL_PORT),
+                f"MAVLink instance {inst} runs on {ctx.fc_port}, where the companion is wired",
+                Status.OK,
+            )
         ]
+    free = [i for i in (1, 2, 0) if configs.get(i) == 0]
+    if not free:
+        return None, [
+            Row(
+                "MAV_n_CONFIG",
+                ", ".join(f"{i}: {configs[i]}" for i in range(3)),
+                f"one instance on {ctx.fc_port}",
+                "no MAVLink instance runs on the companion's port and none is free",
+                Status.FAIL,
+            )
+        ]
+    inst = free[0]
+    name = f"MAV_{inst}_CONFIG"
+    current = configs.get(inst)
+    return inst, [
+        Row(
+            name,
+            _labelled(current, SERIAL_PORT) if current is not None else "missing",
+            _labelled(code, SERIAL_PORT),
+            f"no MAVLink instance runs on {ctx.fc_port}, where the companion is wired "
+            f"(instance {inst} is free)",
+            Status.FAIL,
+            (Target(name, code, True, True),),
+        )
+    ]
+
+
+def _ethernet_port_rows(
+    params: Mapping[str, Param], uarts: list[str]
+) -> tuple[int | None, list[Row]]:
+    """After PX4 1.16: MAV_ETH_EN, whose instance comes after the MAVLink UARTs (three at most)."""
+    name = "MAV_ETH_EN"
+    on = _int_value(params, name, 0, 1)
+    inst = len(uarts)
+    if on is None or inst > 2:
+        why = (
+            "this firmware has neither MAV_n_CONFIG nor MAV_ETH_EN: no MAVLink on Ethernet"
+            if on is None
+            else f"all three MAVLink instances run on UARTs ({', '.join(uarts)})"
+        )
+        return None, [Row(name, str(on), "1 (on)", why, Status.FAIL)]
+    why = (
+        f"MAVLink on Ethernet runs as instance {inst}, after the {inst} MAVLink UART "
+        "port(s) (PX4 after 1.16: MAV_ETH_EN replaced MAV_n_CONFIG = 1000)"
+    )
+    if on == 1:
+        return inst, [Row(name, "1 (on)", "1 (on)", why, Status.OK)]
+    return inst, [Row(name, "0 (off)", "1 (on)", why, Status.FAIL, (Target(name, 1, True, True),))]
+
+
+def _uart_port_rows(
+    params: Mapping[str, Param], ctx: LinkContext, uarts: list[str]
+) -> tuple[int | None, list[Row]]:
+    """After PX4 1.16: SER_<port>_PROT = MAVLink, its instance numbered in port order."""
     tag = "TEL" + ctx.fc_port[-1]
     name = f"SER_{tag}_PROT"
     prot = _uart_order(params).get(tag)
@@ -767,71 +862,94 @@ def _link_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
     inst, rows = _port_rows(params, ctx)
     if inst is None:
         return rows
-
-    def mode_judge(v: int) -> Judgement:
-        need = "2 (Onboard)"
-        if v == 2:
-            why = "Onboard: companion-rate streams, and TIMESYNC at 10 Hz, so PX4 moves our "
-            why += "stamps into its clock"
-            return Judgement(Status.OK, need, why)
-        if v == 8:
-            why = "External Vision: TIMESYNC at 10 Hz and the streams a VIO needs"
-            return Judgement(Status.OK, need, why)
-        if v == 11:
-            why = "Onboard Low Bandwidth: TIMESYNC at 10 Hz with fewer streams (right on a slow "
-            why += "serial link)"
-            return Judgement(Status.OK, need, why)
-        if v in TIMESYNC_MODES:
-            why = f"{MAV_MODE.get(v, v)} mode time-syncs, but streams for another peer"
-            return Judgement(Status.WARN, need, why, 2)
-        return Judgement(
-            Status.WARN,
-            need,
-            f"{MAV_MODE.get(v, v)} mode streams no TIMESYNC: PX4 still fuses our messages but "
-            "stamps them at arrival (latency not compensated), at ground-station stream rates",
-            2,
-        )
-
     mode = _int_value(params, f"MAV_{inst}_MODE", 0, 13)
-    rows.append(_int_row(params, f"MAV_{inst}_MODE", 0, 13, mode_judge, MAV_MODE))
+    rows.append(_int_row(params, f"MAV_{inst}_MODE", 0, 13, _judge_mode, MAV_MODE))
     if ctx.fc_port == "ETHERNET":
-        if ctx.link_kind in ("udpin", "udpout"):
-            key = "REMOTE_PRT" if ctx.link_kind == "udpin" else "UDP_PRT"
-            what = "sends to" if ctx.link_kind == "udpin" else "listens on"
-
-            def port_judge(v: int) -> Judgement:
-                why = f"PX4 {what} this UDP port; the service uses {ctx.link_port}"
-                status = Status.OK if v == ctx.link_port else Status.FAIL
-                return Judgement(status, str(ctx.link_port), why, ctx.link_port)
-
-            rows.append(_int_row(params, f"MAV_{inst}_{key}", 1, 65535, port_judge))
-            rows.append(_partner_row(params, ctx, inst, mode))
+        rows += _udp_rows(params, ctx, inst, mode)
     else:
-        tel = ctx.fc_port[-1]
-        serial = ctx.link_kind == "serial"
+        rows.append(_baud_row(params, ctx))
+    rows += _other_link_rows(params, inst)
+    return rows
 
-        def baud_judge(v: int) -> Judgement:
-            want = ctx.link_port if serial else 921600
-            why = "both ends of the wire at the same rate"
-            if v == 0:
-                return Judgement(
-                    Status.WARN,
-                    str(want),
-                    f"0 = Auto: PX4 chooses the rate; set the service's {want} so that both ends "
-                    "surely match",
-                    want,
-                )
-            if serial and v != want:
-                return Judgement(Status.FAIL, str(want), f"{why}; the service uses {want}", want)
-            if v < MIN_SERIAL_BAUD:
-                return Judgement(
-                    Status.WARN,
-                    f">= {MIN_SERIAL_BAUD}",
-                    "too slow for 30 Hz ODOMETRY plus TIMESYNC and PX4's onboard streams",
-                )
-            return Judgement(Status.OK, str(want), why)
 
-        rows.append(_int_row(params, f"SER_TEL{tel}_BAUD", 0, 3_000_000, baud_judge, {0: "Auto"}))
+def _judge_mode(v: int) -> Judgement:
+    """MAV_n_MODE: a mode that streams TIMESYNC, so PX4 moves our stamps into its clock."""
+    need = "2 (Onboard)"
+    if v == 2:
+        why = "Onboard: companion-rate streams, and TIMESYNC at 10 Hz, so PX4 moves our "
+        why += "stamps into its clock"
+        return Judgement(Status.OK, need, why)
+    if v == 8:
+        why = "External Vision: TIMESYNC at 10 Hz and the streams a VIO needs"
+        return Judgement(Status.OK, need, why)
+    if v == 11:
+        why = "Onboard Low Bandwidth: TIMESYNC at 10 Hz with fewer streams (right on a slow "
+        why += "serial link)"
+        return Judgement(Status.OK, need, why)
+    if v in TIMESYNC_MODES:
+        why = f"{MAV_MODE.get(v, v)} mode time-syncs, but streams for another peer"
+        return Judgement(Status.WARN, need, why, 2)
+    return Judgement(
+        Status.WARN,
+        need,
+        f"{MAV_MODE.get(v, v)} mode streams no TIMESYNC: PX4 still fuses our messages but "
+        "stamps them at arrival (latency not compensated), at ground-station stream rates",
+        2,
+    )
+
+
+def _udp_rows(
+    params: Mapping[str, Param], ctx: LinkContext, inst: int, mode: int | None
+) -> list[Row]:
+    """Ethernet over UDP: PX4's port matches the service's, and who speaks first."""
+    if ctx.link_kind not in ("udpin", "udpout"):
+        return []
+    key = "REMOTE_PRT" if ctx.link_kind == "udpin" else "UDP_PRT"
+    what = "sends to" if ctx.link_kind == "udpin" else "listens on"
+
+    def port_judge(v: int) -> Judgement:
+        why = f"PX4 {what} this UDP port; the service uses {ctx.link_port}"
+        status = Status.OK if v == ctx.link_port else Status.FAIL
+        return Judgement(status, str(ctx.link_port), why, ctx.link_port)
+
+    return [
+        _int_row(params, f"MAV_{inst}_{key}", 1, 65535, port_judge),
+        _partner_row(params, ctx, inst, mode),
+    ]
+
+
+def _baud_row(params: Mapping[str, Param], ctx: LinkContext) -> Row:
+    """A serial port: SER_TELn_BAUD at the service's rate, and fast enough for our streams."""
+    tel = ctx.fc_port[-1]
+    serial = ctx.link_kind == "serial"
+
+    def baud_judge(v: int) -> Judgement:
+        want = ctx.link_port if serial else 921600
+        why = "both ends of the wire at the same rate"
+        if v == 0:
+            return Judgement(
+                Status.WARN,
+                str(want),
+                f"0 = Auto: PX4 chooses the rate; set the service's {want} so that both ends "
+                "surely match",
+                want,
+            )
+        if serial and v != want:
+            return Judgement(Status.FAIL, str(want), f"{why}; the service uses {want}", want)
+        if v < MIN_SERIAL_BAUD:
+            return Judgement(
+                Status.WARN,
+                f">= {MIN_SERIAL_BAUD}",
+                "too slow for 30 Hz ODOMETRY plus TIMESYNC and PX4's onboard streams",
+            )
+        return Judgement(Status.OK, str(want), why)
+
+    return _int_row(params, f"SER_TEL{tel}_BAUD", 0, 3_000_000, baud_judge, {0: "Auto"})
+
+
+def _other_link_rows(params: Mapping[str, Param], inst: int) -> list[Row]:
+    """The other MAVLink instances with a port (MAV_n_CONFIG): context, not ours."""
+    rows = []
     for i in range(3):
         c = _int_value(params, f"MAV_{i}_CONFIG", 0, 1000)
         if i != inst and c:
