@@ -42,6 +42,7 @@ F64 = NDArray[np.float64]
 ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a frame
 MIN_GROUND_SIGMA_REL = 0.01  # a ground start's scale is trusted to 1 % at best (the plane fit)
 LANDED_HEIGHT_SIGMA_M = 0.02  # a configured landing-gear height: its uncertainty [m]
+GROUND_REST_SPREAD_M = 0.02  # readings spreading more than this (or 3 sigma) are not at rest
 VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [us]
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
@@ -248,8 +249,9 @@ class Pipeline:
         """The ground under the camera in metres, or None (DESIGN.md section 4 reconstructs
         the plane from three sensors for roll/pitch; here it starts the VO map).
 
-        From the readings of the last ``vo.ground_window_ms`` of each sensor (their median:
-        the vehicle is at rest on the ground), >= 3 sensors: the least-squares plane through
+        From the readings of the last ``vo.ground_window_ms`` of each sensor (their median;
+        none when any sensor's readings spread more than 3 sigma or 2 cm: the vehicle is not at
+        rest, e.g. low over a roof edge), >= 3 sensors: the least-squares plane through
         their hit points in the body frame, refused unless it fits them within
         ``vo.ground_max_rms_m`` and the camera is within ``vo.ground_max_height_m`` of it.
         Its distance sigma propagates each median's sigma (reading sigma / sqrt(n)) through
@@ -261,10 +263,16 @@ class Pipeline:
         ids, med, sig = [], [], []
         for sid in sorted(self.specs):
             d = self.ranges.window(sid, t0, time_us)
-            if len(d) >= 3:
-                ids.append(sid)
-                med.append(float(np.median(d)))
-                sig.append(self.specs[sid].sigma_m(med[-1]) * 1.25 / np.sqrt(len(d)))
+            if len(d) < 3:
+                continue
+            m = float(np.median(d))
+            sigma = self.specs[sid].sigma_m(m)
+            mad = 1.4826 * float(np.median(np.abs(d - m)))  # robust spread of the window
+            if mad > max(3.0 * sigma, GROUND_REST_SPREAD_M):
+                return None  # readings moving: not at rest on the ground (a roof edge, a climb)
+            ids.append(sid)
+            med.append(m)
+            sig.append(sigma * 1.25 / np.sqrt(len(d)))
         if len(ids) >= 3:
             T = np.stack([self.specs[s].T_body_rf for s in ids])
             origins, beams = ground_fit.beams_body(T)

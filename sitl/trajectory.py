@@ -161,9 +161,15 @@ class Trajectory:
                 + LANDED_HEIGHT_M
             )
             agl = np.minimum(np.minimum(base, up), down)
-        z = -(world.surface_height(xy[:, 0], xy[:, 1]) + agl)
-
         sig = _SMOOTH_SIGMA_S * _SAMPLE_HZ
+        surface = world.surface_height(xy[:, 0], xy[:, 1])
+        if len(world.boxes):
+            # over buildings the height steps by metres at a wall: take the highest surface
+            # the smoothing kernel reaches (+-3 sigma), so the smoothed path clears the roof
+            # edges by the altitude instead of cutting through them
+            surface = ndimage.maximum_filter1d(surface, size=int(6 * sig) + 1, mode="nearest")
+        z = -(surface + agl)
+
         pos = np.stack([xy[:, 0], xy[:, 1], z], axis=1)
         pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
         self._pos = make_interp_spline(t, pos, k=5)
