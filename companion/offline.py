@@ -393,3 +393,48 @@ def run_dpose(config: Config, scenario: Any, arm_time_s: float) -> DposeRun:
         run.dpose.append(res.T_pattern_body if res is not None else nan44)
         run.vo.append(vo_rel)
     return run
+
+
+@dataclass
+class PublishedRun:
+    """What the autopilot would receive over a simulated flight: per published pose its time
+    [s], position (3,) NED [m] and reset_counter, with the true body position (3,) and the
+    true height above the surface [m] at that frame."""
+
+    time_s: list[float] = field(default_factory=list)
+    position: list[F64] = field(default_factory=list)
+    reset_counter: list[int] = field(default_factory=list)
+    truth: list[F64] = field(default_factory=list)
+    height_m: list[float] = field(default_factory=list)
+    vo_resets: int = 0
+    frames: int = 0
+
+    def array(self, name: str) -> F64:
+        return np.asarray(getattr(self, name), dtype=np.float64)
+
+
+def run_published(
+    config: Config, steps: Iterable[Any], world: Any, progress: Iterator[None] | None = None
+) -> PublishedRun:
+    """The Pipeline as the service runs it (the published method, keyframe work after each
+    pose) over SITL steps, recording every published pose against the truth."""
+    pipe = Pipeline(config)
+    run = PublishedRun()
+    t0_us: int | None = None
+    for step in steps:
+        pose = feed_step(pipe, step)
+        pipe.background_work()
+        t0_us = step.frame.time_us if t0_us is None else t0_us
+        run.frames += 1
+        if pose is not None:
+            x, y = step.T_world_body[0, 3], step.T_world_body[1, 3]
+            ground = float(world.surface_height(np.array([x]), np.array([y]))[0])
+            run.time_s.append((step.frame.time_us - t0_us) * 1e-6)
+            run.position.append(pose.position_ned_m)
+            run.reset_counter.append(pose.reset_counter)
+            run.truth.append(step.T_world_body[:3, 3].copy())
+            run.height_m.append(-float(step.T_world_body[2, 3]) - ground)
+        if progress is not None:
+            next(progress)
+    run.vo_resets = pipe.vo.resets
+    return run

@@ -127,3 +127,34 @@ def test_eval_all_methods_on_a_recording(evaluated: Path) -> None:
         "report.md",
     ):
         assert (out / name).stat().st_size > 0, name
+
+
+def test_eval_phases_on_a_take_off_from_the_ground(tmp_path, capsys) -> None:
+    """`companion eval --phases`: the published poses of a flight that starts on the ground,
+    by phase (issue 18), written to phases.json."""
+    import json
+
+    from companion.cli import main
+
+    rc = main(
+        [
+            "eval",
+            "--phases",
+            "--terrain",
+            "flat",
+            "--trajectory",
+            "hover",
+            "--takeoff-landing",
+            "--seconds",
+            "12",
+            "--no-progress",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    s = json.loads((tmp_path / "phases.json").read_text())
+    assert s["first_pose_s"] <= 0.2 and s["vo_resets"] == 0
+    assert s["phases"]["ground"]["frames"] > 30 and s["phases"]["ground"]["max_m"] <= 0.05
+    assert s["phases"]["climb"]["frames"] > 30 and s["phases"]["landed"]["frames"] > 0
+    assert "| ground |" in capsys.readouterr().out

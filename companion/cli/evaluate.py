@@ -38,6 +38,10 @@ if TYPE_CHECKING:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
+    if args.phases:
+        from companion.cli.flight import eval_phases
+
+        return eval_phases(args)
     if args.dpose:
         return eval_dpose(args)
     if args.attitude:
@@ -302,6 +306,9 @@ def add_eval(sub: Any) -> None:
     )
     p.add_argument(
         "--random", type=int, default=0, help="--dpose: N random synthetic poses instead"
+    )
+    p.add_argument(
+        "--phases", action="store_true", help="published poses by flight phase (SITL; issue 18)"
     )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_eval)

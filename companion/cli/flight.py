@@ -1,0 +1,60 @@
+"""``companion eval --phases``: what the autopilot would receive over a simulated flight,
+by flight phase (issue 18: from the ground up). Run from ``companion.offline.run_published``,
+metrics from ``companion.evaluation.phases``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from companion.cli import sim
+from companion.cli.common import EXIT_OK, load, out_dir, progress, run_name
+from companion.errors import CompanionError
+from companion.evaluation.phases import by_phase, flight_ate, phase_labels, published_errors
+
+
+def eval_phases(args: argparse.Namespace) -> int:
+    """First published pose, VO resets, whole-flight metric ATE and the error per phase."""
+    from pathlib import Path
+
+    from companion.offline import run_published
+
+    cfg = load(args)
+    name = run_name(cfg.sitl)
+    out = out_dir(args, Path("out") / "eval" / f"{name}-phases")
+    sc = sim.scenario(cfg)
+    with progress(sc.n_frames, f"phases {name}", not args.no_progress) as ticks:
+        run = run_published(cfg, sc.steps(), sc.world, ticks)
+    if len(run.time_s) < 10:
+        raise CompanionError(f"fewer than 10 poses published over {name}")
+    t, est, gt = run.array("time_s"), run.array("position"), run.array("truth")
+    err = published_errors(est, gt)
+    phases = by_phase(err, phase_labels(t, run.array("height_m")))
+    ate_m, ate_pct = flight_ate(est, gt)
+    summary = {
+        "flight": name,
+        "first_pose_s": float(t[0]),
+        "vo_resets": run.vo_resets,
+        "reset_counters": sorted(set(run.reset_counter)),
+        "published": len(t),
+        "frames": run.frames,
+        "ate_m": ate_m,
+        "ate_pct_of_path": ate_pct,
+        "end_error_m": float(err[-1]),
+        "phases": {
+            p.phase: {"frames": p.frames, "rmse_m": p.rmse_m, "max_m": p.max_m} for p in phases
+        },
+    }
+    (out / "phases.json").write_text(json.dumps(summary, indent=2) + "\n")
+    rows = [
+        f"| {p.phase} | {p.frames} | {100 * p.rmse_m:.1f} | {100 * p.max_m:.1f} |"
+        for p in phases
+        if p.frames
+    ]
+    print(
+        f"{name}: first pose {t[0]:.2f} s, VO resets {run.vo_resets}, metric ATE "
+        f"{ate_m:.3f} m = {ate_pct:.3f} % of the path, end error {100 * err[-1]:.1f} cm"
+    )
+    print("\n".join(["| phase | poses | RMSE [cm] | max [cm] |", "|---|---|---|---|", *rows]))
+    print(f"phases.json in {out}")
+    return EXIT_OK
