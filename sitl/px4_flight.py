@@ -107,6 +107,7 @@ class FlightOptions:
     square_m: float = 20.0
     terrain: str | None = None  # default: the config's (hills)
     configure: bool = True  # run `companion px4 configure` before the service
+    ground_start: bool = False  # experimental: the companion initialises on the ground
     settle_s: float = 6.0  # the VO tracks this long in the air before EKF2 may fuse it
 
 
@@ -560,6 +561,56 @@ class Flight:
     def _fly(self) -> None:
         g, o = self.gcs, self.o
         self._until("PX4's heartbeat", lambda: self.tel.heartbeat_ns > 0, 20)
+        start = self._take_off_on_ours() if o.ground_start else self._take_off_in_altitude_mode()
+        self._phase(f"mission {o.mission}")
+        if o.mission == "hover":
+            g.pump(o.hover_s)
+        else:
+            self._follow(mission_path(o.mission, start, o.square_m), o.speed_m_s)
+        g.pump(2.0)
+        self._phase("landing")
+        g.set_mode(MODE_AUTO, SUB_AUTO_LAND)
+        self._until("Land mode", lambda: g.main_mode() == MODE_AUTO, 10)
+        g.setpoint = None
+        self._until("disarmed after landing", lambda: not self.tel.armed, 90)
+        self._phase("disarmed")
+        g.pump(2.0)
+
+    def _take_off_on_ours(self) -> np.ndarray:
+        """Experimental (the service's ground start, issue 18): the companion starts on the
+        ground, EKF2 fuses it before arming, PX4 arms in Position mode and climbs in Offboard
+        mode on our estimate. Returns the mission's start (NED, PX4's frame)."""
+        g, o = self.gcs, self.o
+        self._start_service()
+        self._until("the service tracking on the ground", self._tracking_for(o.settle_s), 90)
+        self._phase("service tracking")
+        self._until("EKF2 fusing our position", self._fused_for(1.0), 60)
+        self._phase("ev fused")
+        g.set_mode(MODE_POSCTL)
+        self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
+        end = time.monotonic() + 60
+        while not self.tel.armed:
+            if time.monotonic() > end:
+                raise SitlError("PX4 refused to arm for 60 s (see px4-console.log)")
+            g.command(400, 1)
+            g.pump(1.0)
+        self._phase("armed")
+        self.armed_mode = "POSCTL"
+        here = g.position()
+        assert here is not None
+        g.setpoint = (here.copy(), np.zeros(3))
+        g.pump(1.0)
+        g.set_mode(MODE_OFFBOARD)
+        self._until("Offboard mode", lambda: g.main_mode() == MODE_OFFBOARD, 10)
+        top = here + np.array([0.0, 0.0, -o.altitude_m])
+        self._phase("climb in Offboard")
+        self._follow([here, top], 1.0)
+        return top
+
+    def _take_off_in_altitude_mode(self) -> np.ndarray:
+        """Arm in Altitude mode, climb on the stick, start the companion in the air, fuse it,
+        Position then Offboard mode. Returns the mission's start (NED, PX4's frame)."""
+        g, o = self.gcs, self.o
         # arm in Altitude mode: no horizontal position yet (our VO starts in the air)
         self._set_param_int("EKF2_EV_CTRL", 0)  # until our VO has settled in the air
         g.set_mode(MODE_ALTCTL)
@@ -605,20 +656,7 @@ class Flight:
         g.pump(1.0)
         g.set_mode(MODE_OFFBOARD)
         self._until("Offboard mode", lambda: g.main_mode() == MODE_OFFBOARD, 10)
-        start = here
-        self._phase(f"mission {o.mission}")
-        if o.mission == "hover":
-            g.pump(o.hover_s)
-        else:
-            self._follow(mission_path(o.mission, start, o.square_m), o.speed_m_s)
-        g.pump(2.0)
-        self._phase("landing")
-        g.set_mode(MODE_AUTO, SUB_AUTO_LAND)
-        self._until("Land mode", lambda: g.main_mode() == MODE_AUTO, 10)
-        g.setpoint = None
-        self._until("disarmed after landing", lambda: not self.tel.armed, 90)
-        self._phase("disarmed")
-        g.pump(2.0)
+        return here
 
     def _follow(self, pts: list[np.ndarray], speed: float) -> None:
         """Offboard setpoints along the polyline (stop at each corner, 1 s to settle)."""
