@@ -756,6 +756,7 @@ def cli_main(args: Any) -> int:
         seed=args.seed,
         instance=args.instance,
         configure=not args.no_configure,
+        ground_start=bool(getattr(args, "ground_start", False)),
     )
     if args.config:
         opts.config = Path(args.config)

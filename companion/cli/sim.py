@@ -259,6 +259,9 @@ def add_sitl(sub: Any) -> None:
     p_px4.add_argument("--instance", type=int, default=0, help="PX4 instance (ports shift by it)")
     p_px4.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
     p_px4.add_argument("--no-configure", action="store_true", help="skip `companion px4 configure`")
+    p_px4.add_argument(
+        "--ground-start", action="store_true", help="the companion starts on the ground (issue 18)"
+    )
     p_px4.add_argument("--out", type=Path, required=True, help="output folder")
     p_px4.set_defaults(func=cmd_sitl_px4)
     p_sheet = sitl_sub.add_parser("sheet", help="write a PNG contact sheet of a dataset")
