@@ -406,6 +406,9 @@ class PublishedRun:
     reset_counter: list[int] = field(default_factory=list)
     truth: list[F64] = field(default_factory=list)
     height_m: list[float] = field(default_factory=list)
+    vo_own: list[F64] = field(default_factory=list)  # the VO's position without d-Pose's offset
+    dpose_used: list[bool] = field(default_factory=list)  # d-Pose corrected this pose
+    dpose_armed_s: float | None = None  # when d-Pose was armed (None: never)
     vo_resets: int = 0
     frames: int = 0
 
@@ -422,10 +425,13 @@ def run_published(
     run = PublishedRun()
     t0_us: int | None = None
     for step in steps:
+        used = pipe.dpose_used
         pose = feed_step(pipe, step)
         pipe.background_work()
         t0_us = step.frame.time_us if t0_us is None else t0_us
         run.frames += 1
+        if pipe.dpose is not None and pipe.dpose.armed and run.dpose_armed_s is None:
+            run.dpose_armed_s = (step.frame.time_us - t0_us) * 1e-6
         if pose is not None:
             x, y = step.T_world_body[0, 3], step.T_world_body[1, 3]
             ground = float(world.surface_height(np.array([x]), np.array([y]))[0])
@@ -434,6 +440,8 @@ def run_published(
             run.reset_counter.append(pose.reset_counter)
             run.truth.append(step.T_world_body[:3, 3].copy())
             run.height_m.append(-float(step.T_world_body[2, 3]) - ground)
+            run.vo_own.append(pose.position_ned_m - pipe.dpose_offset_m)
+            run.dpose_used.append(pipe.dpose_used > used)
         if progress is not None:
             next(progress)
     run.vo_resets = pipe.vo.resets

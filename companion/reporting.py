@@ -481,3 +481,26 @@ def write_dpose(run: DposeRun, out: Path, title: str) -> str:
     axes[0].set_title(title)
     _save(plt, fig, out / "dpose.png")
     return table
+
+
+def write_dpose_return(
+    time_s: NDArray[np.float64],
+    err_published_m: NDArray[np.float64],
+    err_vo_m: NDArray[np.float64],
+    in_view: NDArray[np.bool_],
+    path: Path,
+) -> Path:
+    """The return over the pad: the published position's error and the VO's own (both from
+    the arming pose) over time, the frames where d-Pose corrected it shaded."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    ax.plot(time_s, 100 * err_vo_m, color="0.5", lw=1, label="VO alone")
+    ax.plot(time_s, 100 * err_published_m, color="C3", lw=1.2, label="published (with d-Pose)")
+    top = float(max(np.nanmax(100 * err_vo_m), 1.0))
+    ax.fill_between(time_s, 0, top, where=in_view, color="C2", alpha=0.15, label="marks in view")
+    ax.axhline(2.0, color="k", ls=":", lw=0.8, label="2 cm")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position error from the arming pose [cm]")
+    ax.legend(loc="upper left")
+    ax.grid(alpha=0.3)
+    return _save(plt, fig, path)

@@ -185,3 +185,42 @@ def test_backoff_doubles_jitters_caps_and_resets() -> None:
     assert 0.25 <= b.next_s() < 0.75
     with pytest.raises(ValueError):
         Backoff(2.0, 1.0)
+
+
+def test_the_autopilots_rangefinder_is_not_mixed_into_a_tfmini_with_its_id(tmp_path) -> None:
+    """PX4 SIH streams its own downward rangefinder as DISTANCE_SENSOR id 0; a sensor 0 wired
+    to the companion (a TFmini on serial) must not take those readings as its own."""
+    from companion.config import load_config
+
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = load_config(
+        None,
+        {
+            "service": {
+                "mavlink_url": f"udpin:127.0.0.1:{port}",
+                "camera_url": f"sitl://127.0.0.1:{free_port()}",
+                "status_socket": str(tmp_path / "s.sock"),
+                "state_dir": str(tmp_path / "state"),
+            },
+            "rangefinders": [
+                {"sensor_id": 0, "serial": str(tmp_path / "ttyTF0")},
+                {"sensor_id": 1},
+            ],
+        },
+    )
+
+    async def main() -> tuple[int, dict[str, int]]:
+        async with Service(cfg) as service:
+            ap = Sender(port)
+            ap.heartbeat()
+            await asyncio.sleep(0.1)
+            for k in range(10):
+                for sid in (0, 1):
+                    ap.send(ap.mav.distance_sensor_encode(k, 10, 4000, 300, 0, sid, 25, 0))
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.3)
+            ap.close()
+            return service.stats.ranges_in, dict(service.stats.ranges_rejected_by)
+
+    taken, refused = asyncio.run(main())
+    assert taken == 10 and refused.get("unknown_id") == 10, (taken, refused)

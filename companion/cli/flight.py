@@ -6,17 +6,28 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from companion.cli import sim
 from companion.cli.common import EXIT_OK, load, out_dir, progress, run_name
 from companion.errors import CompanionError
-from companion.evaluation.phases import by_phase, flight_ate, phase_labels, published_errors
+
+if TYPE_CHECKING:
+    from companion.offline import PublishedRun
+from companion.evaluation.phases import (
+    by_phase,
+    flight_ate,
+    phase_labels,
+    published_errors,
+    relative_errors,
+)
 
 
 def eval_phases(args: argparse.Namespace) -> int:
     """First published pose, VO resets, whole-flight metric ATE and the error per phase."""
-    from pathlib import Path
-
     from companion.offline import run_published
 
     cfg = load(args)
@@ -31,7 +42,7 @@ def eval_phases(args: argparse.Namespace) -> int:
     err = published_errors(est, gt)
     phases = by_phase(err, phase_labels(t, run.array("height_m")))
     ate_m, ate_pct = flight_ate(est, gt)
-    summary = {
+    summary: dict[str, Any] = {
         "flight": name,
         "first_pose_s": float(t[0]),
         "vo_resets": run.vo_resets,
@@ -45,6 +56,8 @@ def eval_phases(args: argparse.Namespace) -> int:
             p.phase: {"frames": p.frames, "rmse_m": p.rmse_m, "max_m": p.max_m} for p in phases
         },
     }
+    if run.dpose_armed_s is not None:
+        summary["dpose"] = _dpose_summary(run, out)
     (out / "phases.json").write_text(json.dumps(summary, indent=2) + "\n")
     rows = [
         f"| {p.phase} | {p.frames} | {100 * p.rmse_m:.1f} | {100 * p.max_m:.1f} |"
@@ -56,5 +69,35 @@ def eval_phases(args: argparse.Namespace) -> int:
         f"{ate_m:.3f} m = {ate_pct:.3f} % of the path, end error {100 * err[-1]:.1f} cm"
     )
     print("\n".join(["| phase | poses | RMSE [cm] | max [cm] |", "|---|---|---|---|", *rows]))
+    if "dpose" in summary:
+        d = summary["dpose"]
+        print(
+            f"d-Pose armed at {d['armed_s']:.2f} s, used on {d['poses_in_view']} poses back over "
+            f"the marks: error from the arming pose RMS {100 * d['published_rmse_m']:.2f} cm, "
+            f"max {100 * d['published_max_m']:.2f} cm (the VO alone: RMS "
+            f"{100 * d['vo_rmse_m']:.2f} cm); plot {d['plot']}"
+        )
     print(f"phases.json in {out}")
     return EXIT_OK
+
+
+def _dpose_summary(run: PublishedRun, out: Path) -> dict[str, Any]:
+    """Back over the marks: the published position and the VO's own, both from the arming
+    pose (the marks' reference), against the truth; and the plot of both over time."""
+    from companion.reporting import write_dpose_return
+
+    t, gt = run.array("time_s"), run.array("truth")
+    assert run.dpose_armed_s is not None
+    i = int(np.searchsorted(t, run.dpose_armed_s))
+    back = np.array(run.dpose_used) & (t > t[i] + 1.0)
+    e_pub = relative_errors(run.array("position"), gt, i)
+    e_own = relative_errors(run.array("vo_own"), gt, i)
+    plot = write_dpose_return(t, e_pub, e_own, back, out / "dpose_return.png")
+    return {
+        "armed_s": float(t[i]),
+        "poses_in_view": int(back.sum()),
+        "published_rmse_m": float(np.sqrt(np.mean(e_pub[back] ** 2))) if back.any() else None,
+        "published_max_m": float(e_pub[back].max()) if back.any() else None,
+        "vo_rmse_m": float(np.sqrt(np.mean(e_own[back] ** 2))) if back.any() else None,
+        "plot": str(plot),
+    }

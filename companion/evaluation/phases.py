@@ -60,6 +60,13 @@ def published_errors(est_m: F64, gt_m: F64) -> F64:
     return np.asarray(np.linalg.norm(moved, axis=1), dtype=np.float64)
 
 
+def relative_errors(est_m: F64, gt_m: F64, i: int) -> F64:
+    """(N,) |(est - est[i]) - (gt - gt[i])| [m]: both taken from sample i (d-Pose: the arming
+    pose, the marks' reference)."""
+    moved = (est_m - est_m[i]) - (gt_m - gt_m[i])
+    return np.asarray(np.linalg.norm(moved, axis=1), dtype=np.float64)
+
+
 def by_phase(errors_m: F64, labels: NDArray[np.str_]) -> list[PhaseErrors]:
     """RMS and max error per phase, in PHASES order."""
     out = []

@@ -144,7 +144,10 @@ class Service:
         self.systemd = SdNotify()
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
-        self.sensors = {r.sensor_id: r for r in config.rangefinders}
+        # the sensors the autopilot reports (DISTANCE_SENSOR); one wired to the companion
+        # (a TFmini on serial) is read here only, so the autopilot's own rangefinder with the
+        # same id (PX4 SIH streams id 0) is not mixed into it
+        self.sensors = {r.sensor_id: r for r in config.rangefinders if not r.serial}
         # frames waiting for the pipeline (bounded: the wait rule keeps it at a few)
         self._frames: deque[CameraFrame] = deque(maxlen=FRAME_QUEUE_MAX)
         self._frames_lock = threading.Lock()
