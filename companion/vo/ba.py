@@ -99,6 +99,211 @@ def _robust_cost(r: F64, huber_px: float) -> float:
     return float(np.sum(np.where(quad, 0.5 * n**2, huber_px * (n - 0.5 * huber_px))))
 
 
+@dataclass(frozen=True, slots=True)
+class _Window:
+    """The observations of one problem and the bookkeeping of its free cameras."""
+
+    obs_cam: I64
+    obs_pt: I64
+    obs_xy: F64
+    focal_px: float
+    n_points: int
+    free: I64  # indices of the free cameras
+    free_index: I64  # (K,) position among the free cameras, -1 for fixed ones
+    fo: I64  # (M,) free index of each observation's camera
+    sel: B  # (M,) observation by a free camera
+    pa: I64  # pairs of observations of the same point by free cameras (Schur complement)
+    pb: I64
+
+    @property
+    def nf(self) -> int:
+        return len(self.free)
+
+    def residuals(self, T: F64, X: F64) -> tuple[F64, F64]:
+        return residuals(T, X, self.obs_cam, self.obs_pt, self.obs_xy, self.focal_px)
+
+
+def _window(
+    obs_cam: I64, obs_pt: I64, obs_xy: F64, fixed_cams: B, focal_px: float, n_points: int
+) -> _Window:
+    free = np.flatnonzero(~fixed_cams)
+    free_index = -np.ones(len(fixed_cams), dtype=np.int64)
+    free_index[free] = np.arange(len(free))
+    pa, pb = _pairs(obs_pt, free_index[obs_cam] >= 0, n_points)
+    fo = free_index[obs_cam]
+    return _Window(
+        obs_cam, obs_pt, obs_xy, focal_px, n_points, free, free_index, fo, fo >= 0, pa, pb
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _GravityPrior:
+    """Measured gravity directions (G, 3) of the free cameras ``cams`` (G,) that have one."""
+
+    cams: I64
+    meas: F64
+    weight: float
+
+    def residuals(self, T: F64) -> F64:
+        """(G, 3) weighted gravity residuals of the free cameras with a measurement."""
+        return np.asarray(self.weight * (T[self.cams, :3, 2] - self.meas), dtype=np.float64)
+
+
+def _gravity_prior(gravity_cam: F64 | None, gravity_weight: float, fixed_cams: B) -> _GravityPrior:
+    g_meas = np.zeros((0, 3))
+    g_free = np.zeros(0, dtype=np.int64)
+    if gravity_cam is not None and gravity_weight > 0:
+        known = np.all(np.isfinite(gravity_cam), axis=1) & ~fixed_cams
+        g_free = np.flatnonzero(known)
+        g_meas = gravity_cam[g_free]
+    return _GravityPrior(g_free, g_meas, gravity_weight)
+
+
+def _total_cost(r: F64, T: F64, huber_px: float, prior: _GravityPrior) -> float:
+    return _robust_cost(r, huber_px) + 0.5 * float(np.sum(prior.residuals(T) ** 2))
+
+
+@dataclass(frozen=True, slots=True)
+class _State:
+    """Cameras, points, their residuals and points in the cameras, and the cost."""
+
+    T: F64
+    X: F64
+    r: F64
+    p_c: F64
+    cost: float
+
+
+@dataclass(frozen=True, slots=True)
+class _NormalEquations:
+    """Point blocks Hpp (P, 3, 3) and gradient gp (P, 3); free-camera blocks Hcc (F, 6, 6) and
+    gradient bc0 (F, 6); the per-observation camera-point blocks Hcp_o (M, 6, 3)."""
+
+    Hpp: F64
+    gp: F64
+    Hcc: F64
+    bc0: F64
+    Hcp_o: F64
+
+
+def _jacobians(T: F64, p_c: F64, obs_cam: I64, focal_px: float) -> tuple[F64, F64]:
+    """Reprojection Jacobians w.r.t. the camera (M, 2, 6) and the point (M, 2, 3)."""
+    z = p_c[:, 2]
+    inv_z = 1.0 / z
+    J_proj = np.zeros((len(z), 2, 3))
+    J_proj[:, 0, 0] = focal_px * inv_z
+    J_proj[:, 1, 1] = focal_px * inv_z
+    J_proj[:, 0, 2] = -focal_px * p_c[:, 0] * inv_z**2
+    J_proj[:, 1, 2] = -focal_px * p_c[:, 1] * inv_z**2
+    J_cam = np.concatenate([J_proj, -J_proj @ _skew_batch(p_c)], axis=2)  # (M, 2, 6)
+    J_pt = J_proj @ T[obs_cam, :3, :3]  # (M, 2, 3)
+    return J_cam, J_pt
+
+
+def _normal_equations(
+    state: _State, win: _Window, prior: _GravityPrior, huber_px: float
+) -> _NormalEquations:
+    """Gauss-Newton normal equations with IRLS Huber weights and the gravity prior."""
+    r = state.r
+    n = np.linalg.norm(r, axis=1)
+    w = np.where(n <= huber_px, 1.0, huber_px / np.maximum(n, 1e-12))  # IRLS Huber weights
+    J_cam, J_pt = _jacobians(state.T, state.p_c, win.obs_cam, win.focal_px)
+    wJc = J_cam * w[:, None, None]
+    wJp = J_pt * w[:, None, None]
+    wJcT = wJc.transpose(0, 2, 1)
+    Hcc_o = wJcT @ J_cam
+    Hcp_o = wJcT @ J_pt
+    Hpp_o = wJp.transpose(0, 2, 1) @ J_pt
+    gc_o = -(wJcT @ r[:, :, None])[:, :, 0]
+    gp_o = -(wJp.transpose(0, 2, 1) @ r[:, :, None])[:, :, 0]
+    Hpp = _accumulate(win.obs_pt, Hpp_o, win.n_points)
+    gp = _accumulate(win.obs_pt, gp_o, win.n_points)
+    sel, fo = win.sel, win.fo
+    Hcc = _accumulate(fo[sel], Hcc_o[sel], win.nf)
+    bc0 = _accumulate(fo[sel], gc_o[sel], win.nf)
+    if len(prior.cams):  # J = w [0, -[g]x] on each free camera with a measurement
+        g = state.T[prior.cams, :3, 2]
+        Jg = np.zeros((len(prior.cams), 3, 6))
+        Jg[:, :, 3:] = -prior.weight * _skew_batch(g)
+        rg = prior.residuals(state.T)
+        Hcc[win.free_index[prior.cams]] += Jg.transpose(0, 2, 1) @ Jg
+        bc0[win.free_index[prior.cams]] -= (Jg.transpose(0, 2, 1) @ rg[:, :, None])[:, :, 0]
+    return _NormalEquations(Hpp, gp, Hcc, bc0, Hcp_o)
+
+
+def _damped_point_inverse(Hpp: F64, lam: float) -> F64:
+    """Inverses (P, 3, 3) of the Levenberg-Marquardt damped point blocks."""
+    diag_p = np.einsum("pii->pi", Hpp)
+    Hpp_d = Hpp + (lam * diag_p + 1e-9)[:, :, None] * np.eye(3)[None]
+    return np.asarray(np.linalg.inv(Hpp_d), dtype=np.float64)
+
+
+def _schur_solve(ne: _NormalEquations, Vinv: F64, lam: float, win: _Window) -> F64 | None:
+    """Camera steps (F, 6) from the damped reduced camera system (the points eliminated);
+    None when it is singular."""
+    nf, fo, sel, obs_pt = win.nf, win.fo, win.sel, win.obs_pt
+    if not nf:
+        return np.zeros((0, 6))
+    Y = ne.Hcp_o @ Vinv[obs_pt]  # (M, 6, 3)
+    S_flat = np.zeros((nf * nf, 6, 6))
+    if len(win.pa):
+        blocks = Y[win.pa] @ ne.Hcp_o[win.pb].transpose(0, 2, 1)
+        S_flat -= _accumulate(fo[win.pa] * nf + fo[win.pb], blocks, nf * nf)
+    S = S_flat.reshape(nf, nf, 6, 6)
+    for i in range(nf):
+        S[i, i] += ne.Hcc[i] + lam * np.diag(np.diag(ne.Hcc[i])) + 1e-9 * np.eye(6)
+    Yg = (Y[sel] @ ne.gp[obs_pt[sel]][:, :, None])[:, :, 0]
+    bc = ne.bc0 - _accumulate(fo[sel], Yg, nf)
+    Sm = S.transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
+    try:
+        return np.asarray(np.linalg.solve(Sm, bc.reshape(-1)).reshape(nf, 6), dtype=np.float64)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _back_substitute(ne: _NormalEquations, Vinv: F64, dc: F64, win: _Window) -> F64:
+    """Point steps (P, 3) given the camera steps."""
+    rhs = ne.gp.copy()
+    if win.nf:
+        sel = win.sel
+        back = (ne.Hcp_o[sel].transpose(0, 2, 1) @ dc[win.fo[sel]][:, :, None])[:, :, 0]
+        rhs -= _accumulate(win.obs_pt[sel], back, win.n_points)
+    return np.asarray((Vinv @ rhs[:, :, None])[:, :, 0], dtype=np.float64)
+
+
+def _damped_step(
+    state: _State,
+    lam: float,
+    ne: _NormalEquations,
+    win: _Window,
+    prior: _GravityPrior,
+    huber_px: float,
+) -> tuple[_State, float]:
+    """Raise the damping until a step lowers the cost: the new state and the lowered damping;
+    or the state unchanged and a damping over 1e6 (give up)."""
+    while True:
+        Vinv = _damped_point_inverse(ne.Hpp, lam)
+        dc = _schur_solve(ne, Vinv, lam, win)
+        if dc is None:
+            lam *= 10
+            if lam > 1e6:
+                return state, lam
+            continue
+        dX = _back_substitute(ne, Vinv, dc, win)
+        T_new = state.T.copy()
+        for i, k in enumerate(win.free):
+            T_new[k] = se3.exp(dc[i]) @ state.T[k]
+        X_new = state.X + dX
+        r_new, p_new = win.residuals(T_new, X_new)
+        valid = np.all(p_new[:, 2] > 1e-6)
+        cost_new = _total_cost(r_new, T_new, huber_px, prior) if valid else np.inf
+        if cost_new < state.cost:
+            return _State(T_new, X_new, r_new, p_new, cost_new), max(lam / 10, 1e-7)
+        lam *= 10
+        if lam > 1e6:
+            return state, lam
+
+
 def bundle_adjust(
     T_cam_vo: F64,
     points_vo: F64,
@@ -120,115 +325,19 @@ def bundle_adjust(
     unknown); gravity_weight: its residual's weight (pixel units per unit vector: a pixel
     sigma over the attitude's sigma in radians); 0 = no prior.
     """
-    K = len(T_cam_vo)
-    P = len(points_vo)
+    win = _window(obs_cam, obs_pt, obs_xy, fixed_cams, focal_px, len(points_vo))
+    prior = _gravity_prior(gravity_cam, gravity_weight, fixed_cams)
     T = T_cam_vo.copy()
     X = points_vo.copy()
-    free = np.flatnonzero(~fixed_cams)
-    free_index = -np.ones(K, dtype=np.int64)
-    free_index[free] = np.arange(len(free))
-    nf = len(free)
-    # pairs of observations of the same point by free cameras (for the Schur complement)
-    pa, pb = _pairs(obs_pt, free_index[obs_cam] >= 0, P)
-    fo = free_index[obs_cam]
-    sel = fo >= 0
-
-    g_meas = np.zeros((0, 3))
-    g_free = np.zeros(0, dtype=np.int64)
-    if gravity_cam is not None and gravity_weight > 0:
-        known = np.all(np.isfinite(gravity_cam), axis=1) & ~fixed_cams
-        g_free = np.flatnonzero(known)
-        g_meas = gravity_cam[g_free]
-
-    def gravity_res(T_: F64) -> F64:
-        """(G, 3) weighted gravity residuals of the free cameras with a measurement."""
-        return np.asarray(gravity_weight * (T_[g_free, :3, 2] - g_meas), dtype=np.float64)
-
-    def total_cost(r_: F64, T_: F64) -> float:
-        return _robust_cost(r_, huber_px) + 0.5 * float(np.sum(gravity_res(T_) ** 2))
-
-    r, p_c = residuals(T, X, obs_cam, obs_pt, obs_xy, focal_px)
-    cost0 = cost = total_cost(r, T)
+    r, p_c = win.residuals(T, X)
+    cost0 = _total_cost(r, T, huber_px, prior)
+    state = _State(T, X, r, p_c, cost0)
     lam = 1e-4
     done = 0
     for it in range(1, iterations + 1):
         done = it
-        n = np.linalg.norm(r, axis=1)
-        w = np.where(n <= huber_px, 1.0, huber_px / np.maximum(n, 1e-12))  # IRLS Huber weights
-        z = p_c[:, 2]
-        inv_z = 1.0 / z
-        J_proj = np.zeros((len(z), 2, 3))
-        J_proj[:, 0, 0] = focal_px * inv_z
-        J_proj[:, 1, 1] = focal_px * inv_z
-        J_proj[:, 0, 2] = -focal_px * p_c[:, 0] * inv_z**2
-        J_proj[:, 1, 2] = -focal_px * p_c[:, 1] * inv_z**2
-        J_cam = np.concatenate([J_proj, -J_proj @ _skew_batch(p_c)], axis=2)  # (M, 2, 6)
-        J_pt = J_proj @ T[obs_cam, :3, :3]  # (M, 2, 3)
-        wJc = J_cam * w[:, None, None]
-        wJp = J_pt * w[:, None, None]
-        wJcT = wJc.transpose(0, 2, 1)
-        Hcc_o = wJcT @ J_cam
-        Hcp_o = wJcT @ J_pt
-        Hpp_o = wJp.transpose(0, 2, 1) @ J_pt
-        gc_o = -(wJcT @ r[:, :, None])[:, :, 0]
-        gp_o = -(wJp.transpose(0, 2, 1) @ r[:, :, None])[:, :, 0]
-        Hpp = _accumulate(obs_pt, Hpp_o, P)
-        gp = _accumulate(obs_pt, gp_o, P)
-        Hcc = _accumulate(fo[sel], Hcc_o[sel], nf)
-        bc0 = _accumulate(fo[sel], gc_o[sel], nf)
-        if len(g_free):  # J = w [0, -[g]x] on each free camera with a measurement
-            g = T[g_free, :3, 2]
-            Jg = np.zeros((len(g_free), 3, 6))
-            Jg[:, :, 3:] = -gravity_weight * _skew_batch(g)
-            rg = gravity_res(T)
-            Hcc[free_index[g_free]] += Jg.transpose(0, 2, 1) @ Jg
-            bc0[free_index[g_free]] -= (Jg.transpose(0, 2, 1) @ rg[:, :, None])[:, :, 0]
-
-        while True:
-            diag_p = np.einsum("pii->pi", Hpp)
-            Hpp_d = Hpp + (lam * diag_p + 1e-9)[:, :, None] * np.eye(3)[None]
-            Vinv = np.linalg.inv(Hpp_d)
-            if nf:
-                Y = Hcp_o @ Vinv[obs_pt]  # (M, 6, 3)
-                S_flat = np.zeros((nf * nf, 6, 6))
-                if len(pa):
-                    blocks = Y[pa] @ Hcp_o[pb].transpose(0, 2, 1)
-                    S_flat -= _accumulate(fo[pa] * nf + fo[pb], blocks, nf * nf)
-                S = S_flat.reshape(nf, nf, 6, 6)
-                for i in range(nf):
-                    S[i, i] += Hcc[i] + lam * np.diag(np.diag(Hcc[i])) + 1e-9 * np.eye(6)
-                Yg = (Y[sel] @ gp[obs_pt[sel]][:, :, None])[:, :, 0]
-                bc = bc0 - _accumulate(fo[sel], Yg, nf)
-                Sm = S.transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
-                try:
-                    dc = np.linalg.solve(Sm, bc.reshape(-1)).reshape(nf, 6)
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    if lam > 1e6:
-                        break
-                    continue
-            else:
-                dc = np.zeros((0, 6))
-            # back-substitution for the points
-            rhs = gp.copy()
-            if nf:
-                back = (Hcp_o[sel].transpose(0, 2, 1) @ dc[fo[sel]][:, :, None])[:, :, 0]
-                rhs -= _accumulate(obs_pt[sel], back, P)
-            dX = (Vinv @ rhs[:, :, None])[:, :, 0]
-            T_new = T.copy()
-            for i, k in enumerate(free):
-                T_new[k] = se3.exp(dc[i]) @ T[k]
-            X_new = X + dX
-            r_new, p_new = residuals(T_new, X_new, obs_cam, obs_pt, obs_xy, focal_px)
-            valid = np.all(p_new[:, 2] > 1e-6)
-            cost_new = total_cost(r_new, T_new) if valid else np.inf
-            if cost_new < cost:
-                T, X, r, p_c, cost = T_new, X_new, r_new, p_new, cost_new
-                lam = max(lam / 10, 1e-7)
-                break
-            lam *= 10
-            if lam > 1e6:
-                break
+        ne = _normal_equations(state, win, prior, huber_px)
+        state, lam = _damped_step(state, lam, ne, win, prior, huber_px)
         if lam > 1e6:
             break
-    return BaResult(T, X, np.linalg.norm(r, axis=1), cost0, cost, done)
+    return BaResult(state.T, state.X, np.linalg.norm(state.r, axis=1), cost0, state.cost, done)
