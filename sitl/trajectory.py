@@ -32,6 +32,7 @@ LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
 _SMOOTH_SIGMA_S = 1.0
 _GROUND_REST_S = 3.5  # on the ground before take-off and after landing (> 3 sigma)
+_CLIMB_RATE_M_S = 1.5  # take-off and landing
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +102,105 @@ def _walk(poly: F64, speed: float, times: F64, repeat: bool = True) -> F64:
     return np.stack([np.interp(s, s_knots, poly[:, 0]), np.interp(s, s_knots, poly[:, 1])], axis=1)
 
 
+@dataclass(frozen=True, slots=True)
+class _Phases:
+    """Sample times and the flight's phases: [rest, take-off] dwell, pattern, dwell, [landing,
+    rest]."""
+
+    t: F64  # sample times [s], padded by the smoothing kernel's reach on both sides
+    tc: F64  # the times clipped to the flight [0, seconds]
+    tp: F64  # time into the pattern [s], held before and after it
+    start: float  # pattern start and end [s]
+    end: float
+
+    @property
+    def duration(self) -> float:
+        """The pattern's duration [s] (> 0)."""
+        return max(self.end - self.start, 1e-6)
+
+
+def _phases(seconds: float, alt: float, takeoff_landing: bool) -> _Phases:
+    dt = 1.0 / _SAMPLE_HZ
+    pad = 4.0 * _SMOOTH_SIGMA_S
+    t = np.arange(-pad, seconds + pad + dt / 2, dt)
+    tc = np.clip(t, 0.0, seconds)
+    dwell = min(2.0, 0.1 * seconds)
+    t_up = (_GROUND_REST_S + alt / _CLIMB_RATE_M_S) if takeoff_landing else 0.0
+    t_pattern0 = t_up + dwell
+    t_pattern1 = max(t_pattern0, seconds - dwell - t_up)
+    tp = np.clip(tc, t_pattern0, t_pattern1) - t_pattern0
+    return _Phases(t, tc, tp, t_pattern0, t_pattern1)
+
+
+def _horizontal(name: str, speed_m_s: float, ph: _Phases) -> F64:
+    """Horizontal position (N, 2) along the pattern: at the cruise speed, or paced by the
+    pattern's duration (climb: out and back once) or slowly (spiral)."""
+    poly = _polyline_xy(name, speed_m_s)
+    if name == "climb":
+        return _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / ph.duration, ph.tp)
+    if name == "spiral":
+        return _walk(poly, 0.3, ph.tp)
+    return _walk(poly, speed_m_s, ph.tp, repeat=name != "pad")
+
+
+def _height_agl(name: str, alt: float, ph: _Phases) -> F64:
+    """Height above ground (N,) [m] before take-off and landing: the cruise altitude, or the
+    climb's and the spiral's profiles."""
+    if name == "climb":
+        lo, hi = 2.0, 15.0
+        phase = np.clip(ph.tp / ph.duration, 0.0, 1.0)
+        agl = lo + (hi - lo) * (1.0 - np.abs(2.0 * phase - 1.0))
+        agl = np.where(ph.tc < ph.start, lo, agl)
+        return np.where(ph.tc > ph.end, lo, agl)
+    if name == "spiral":  # 3 m at the start (arming), then 2 -> 8 -> 2 m, yaw turning
+        phase = np.clip(ph.tp / ph.duration, 0.0, 1.0)
+        agl = 5.0 - 3.0 * np.cos(2 * np.pi * phase)
+        agl = np.where(ph.tc < ph.start, 3.0, np.clip(agl, 2.0, 8.0))
+        return np.where(ph.tc > ph.end, 2.0, agl)
+    return np.full(ph.t.shape, alt)
+
+
+def _with_takeoff_landing(agl: F64, tc: F64, seconds: float) -> F64:
+    """The height capped by the take-off and landing ramps (rest on the ground, climb or
+    descend at the climb rate)."""
+    up = np.clip((tc - _GROUND_REST_S) * _CLIMB_RATE_M_S, 0.0, None) + LANDED_HEIGHT_M
+    down = np.clip((seconds - _GROUND_REST_S - tc) * _CLIMB_RATE_M_S, 0.0, None) + LANDED_HEIGHT_M
+    return np.minimum(np.minimum(agl, up), down)
+
+
+def _clearance_surface(world: World, xy: F64, sig: float) -> F64:
+    """Surface height (N,) under the path, raised to clear buildings after smoothing."""
+    surface = world.surface_height(xy[:, 0], xy[:, 1])
+    if len(world.boxes):
+        # over buildings the height steps by metres at a wall: take the highest surface
+        # the smoothing kernel reaches (+-3 sigma), so the smoothed path clears the roof
+        # edges by the altitude instead of cutting through them
+        surface = ndimage.maximum_filter1d(surface, size=int(6 * sig) + 1, mode="nearest")
+    return np.asarray(surface, dtype=np.float64)
+
+
+def _heading(name: str, vel: F64, ph: _Phases) -> F64:
+    """Yaw (N,) [rad], unsmoothed: along the horizontal velocity when moving, held otherwise;
+    north for the climb; one full turn over the pattern for the spiral."""
+    speed_xy = np.hypot(vel[:, 0], vel[:, 1])
+    yaw = np.arctan2(vel[:, 1], vel[:, 0])
+    moving = speed_xy > 0.3
+    if not moving.any():
+        yaw[:] = 0.0
+    else:
+        idx = np.where(moving, np.arange(len(ph.t)), 0)
+        idx = np.maximum.accumulate(idx)
+        first = int(np.argmax(moving))
+        idx[:first] = first
+        yaw = yaw[idx]
+    yaw = np.unwrap(yaw)
+    if name == "climb":
+        yaw = np.zeros_like(yaw)
+    if name == "spiral":  # one full turn of the heading over the pattern phase
+        yaw = 2 * np.pi * np.clip((ph.tc - ph.start) / ph.duration, 0.0, 1.0)
+    return np.asarray(yaw, dtype=np.float64)
+
+
 class Trajectory:
     """A smooth flight; query any time with :meth:`sample` (times in seconds from start)."""
 
@@ -121,77 +221,19 @@ class Trajectory:
         self.seconds = float(seconds)
         alt = altitude_m if altitude_m > 0 else world.default_altitude_m
         self.altitude_m = alt
-        dt = 1.0 / _SAMPLE_HZ
-        pad = 4.0 * _SMOOTH_SIGMA_S
-        t = np.arange(-pad, self.seconds + pad + dt / 2, dt)
-        tc = np.clip(t, 0.0, self.seconds)
-
-        # phases: [rest, take-off] dwell, pattern, dwell, [landing, rest]
-        dwell = min(2.0, 0.1 * self.seconds)
-        climb_rate = 1.5
-        t_up = (_GROUND_REST_S + alt / climb_rate) if takeoff_landing else 0.0
-        t_pattern0 = t_up + dwell
-        t_pattern1 = max(t_pattern0, self.seconds - dwell - t_up)
-        tp = np.clip(tc, t_pattern0, t_pattern1) - t_pattern0
-        poly = _polyline_xy(name, speed_m_s)
-        xy = _walk(poly, speed_m_s, tp, repeat=name != "pad")
-
-        # height above ground: cruise altitude, climb profile, take-off and landing ramps
-        agl = np.full(t.shape, alt)
-        if name == "climb":
-            lo, hi = 2.0, 15.0
-            dur = max(t_pattern1 - t_pattern0, 1e-6)
-            phase = np.clip(tp / dur, 0.0, 1.0)
-            agl = lo + (hi - lo) * (1.0 - np.abs(2.0 * phase - 1.0))
-            agl = np.where(tc < t_pattern0, lo, agl)
-            agl = np.where(tc > t_pattern1, lo, agl)
-            xy = _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / dur, tp)
-        if name == "spiral":  # 3 m at the start (arming), then 2 -> 8 -> 2 m, yaw turning
-            dur = max(t_pattern1 - t_pattern0, 1e-6)
-            phase = np.clip(tp / dur, 0.0, 1.0)
-            agl = 5.0 - 3.0 * np.cos(2 * np.pi * phase)
-            agl = np.where(tc < t_pattern0, 3.0, np.clip(agl, 2.0, 8.0))
-            agl = np.where(tc > t_pattern1, 2.0, agl)
-            xy = _walk(poly, 0.3, tp)
+        ph = _phases(self.seconds, alt, takeoff_landing)
+        t = ph.t
+        xy = _horizontal(name, speed_m_s, ph)
+        agl = _height_agl(name, alt, ph)
         if takeoff_landing:
-            base = agl.copy()
-            up = np.clip((tc - _GROUND_REST_S) * climb_rate, 0.0, None) + LANDED_HEIGHT_M
-            down = (
-                np.clip((self.seconds - _GROUND_REST_S - tc) * climb_rate, 0.0, None)
-                + LANDED_HEIGHT_M
-            )
-            agl = np.minimum(np.minimum(base, up), down)
+            agl = _with_takeoff_landing(agl, ph.tc, self.seconds)
         sig = _SMOOTH_SIGMA_S * _SAMPLE_HZ
-        surface = world.surface_height(xy[:, 0], xy[:, 1])
-        if len(world.boxes):
-            # over buildings the height steps by metres at a wall: take the highest surface
-            # the smoothing kernel reaches (+-3 sigma), so the smoothed path clears the roof
-            # edges by the altitude instead of cutting through them
-            surface = ndimage.maximum_filter1d(surface, size=int(6 * sig) + 1, mode="nearest")
-        z = -(surface + agl)
+        z = -(_clearance_surface(world, xy, sig) + agl)
 
         pos = np.stack([xy[:, 0], xy[:, 1], z], axis=1)
         pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
         self._pos = make_interp_spline(t, pos, k=5)
-        vel = self._pos.derivative(1)(t)
-        # heading follows the horizontal velocity when moving, held otherwise
-        speed_xy = np.hypot(vel[:, 0], vel[:, 1])
-        yaw = np.arctan2(vel[:, 1], vel[:, 0])
-        moving = speed_xy > 0.3
-        if not moving.any():
-            yaw[:] = 0.0
-        else:
-            idx = np.where(moving, np.arange(len(t)), 0)
-            idx = np.maximum.accumulate(idx)
-            first = int(np.argmax(moving))
-            idx[:first] = first
-            yaw = yaw[idx]
-        yaw = np.unwrap(yaw)
-        if name == "climb":
-            yaw = np.zeros_like(yaw)
-        if name == "spiral":  # one full turn of the heading over the pattern phase
-            dur = max(t_pattern1 - t_pattern0, 1e-6)
-            yaw = 2 * np.pi * np.clip((tc - t_pattern0) / dur, 0.0, 1.0)
+        yaw = _heading(name, self._pos.derivative(1)(t), ph)
         yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
         self._yaw = make_interp_spline(t, yaw, k=5)
         self._pos_d1 = self._pos.derivative(1)
