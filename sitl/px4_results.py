@@ -67,7 +67,44 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         "configure_exit": getattr(flight, "configure_exit", None),
         "notes": list(flight.notes),
     }
-    # ---- PX4's log
+    ulog = _read_log(out, s["notes"])
+    lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
+    clock = _clock_line(lp)
+    s["px4_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
+
+    def ours(t_us: np.ndarray) -> np.ndarray:
+        """PX4 time [us] -> our monotonic clock [ns]."""
+        return clock[0] + clock[1] * np.asarray(t_us, dtype=np.float64) * 1e3
+
+    s["failsafes"] = _failsafes(out, tel, ulog)
+    # ---- truth
+    truth_path = out / "truth.csv"
+    if not truth_path.exists() or len(lp) < 10:
+        s["landed"] = False
+        s["error"] = "no truth or no PX4 position: the flight did not run"
+        return s
+    tr = np.loadtxt(truth_path, delimiter=",", skiprows=1, ndmin=2)
+    t_tr, p_tr = tr[:, 0], tr[:, 1:4]
+    air_t0, air_t1 = _airborne_span(tel.phases, lp, ulog, ours)
+    s["airborne_s"] = float((air_t1 - air_t0) * 1e-9)
+    t_first = _ev_fusion(s, tel, ulog, ours, air_t0, air_t1)
+    t_lp, p_lp = _px4_estimate(s, out, lp, ulog, ours)
+    # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
+    t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
+    s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
+    offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1)
+    _path_and_landing(s, flight, ok, tr, air_t0, air_t1)
+    _camera_and_latency(s, out, ulog)
+    try:
+        _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
+    except Exception as e:  # plots are a by-product: never lose the summary for them
+        s["notes"].append(f"plot failed: {e!r}")
+    return s
+
+
+def _read_log(out: Path, notes: list[str]) -> dict[str, np.ndarray]:
+    """PX4's last .ulg, copied to ``px4.ulg``: the topics of TOPICS (empty if none; a note
+    if unreadable)."""
     ulg_files = sorted(glob.glob(str(out / "px4" / "log" / "*" / "*.ulg")))
     ulog: dict[str, np.ndarray] = {}
     if ulg_files:
@@ -75,9 +112,13 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         try:
             ulog = read_topics(out / "px4.ulg", TOPICS)
         except (ValueError, KeyError) as e:
-            s["notes"].append(f"px4.ulg unreadable: {e}")
-    # ---- PX4 clock -> ours: the smallest arrival delay of LOCAL_POSITION_NED
-    lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
+            notes.append(f"px4.ulg unreadable: {e}")
+    return ulog
+
+
+def _clock_line(lp: np.ndarray) -> np.ndarray:
+    """PX4 clock -> ours, (offset [ns], rate): the smallest arrival delay of
+    LOCAL_POSITION_NED."""
     # SIH's lockstep clock drifts against ours (~1 ms/s seen): a line through the smallest
     # arrival delay of every 2 s of LOCAL_POSITION_NED (arrival = PX4 time + delay >= 0)
     clock = np.array([0.0, 1.0])
@@ -92,13 +133,11 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             clock = np.polyfit(env[:, 1] * 1e6, env[:, 0], 1)[::-1]
         else:
             clock = np.array([float(np.min(lp[:, 0] - lp[:, 1] * 1e6)), 1.0])
-    s["px4_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
+    return clock
 
-    def ours(t_us: np.ndarray) -> np.ndarray:
-        """PX4 time [us] -> our monotonic clock [ns]."""
-        return clock[0] + clock[1] * np.asarray(t_us, dtype=np.float64) * 1e3
 
-    # ---- failsafes: console, STATUSTEXT, vehicle_status
+def _failsafes(out: Path, tel: Any, ulog: dict[str, np.ndarray]) -> list[str]:
+    """Failsafes seen on PX4's console, in STATUSTEXT and in vehicle_status."""
     fs: list[str] = []
     console = out / "px4-console.log"
     if console.exists():
@@ -110,17 +149,14 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             fs.append(f"STATUSTEXT {t:.1f} s: {text}")
     if "vehicle_status" in ulog and np.any(ulog["vehicle_status"]["failsafe"]):
         fs.append("vehicle_status.failsafe set in px4.ulg")
-    s["failsafes"] = fs
-    # ---- truth
-    truth_path = out / "truth.csv"
-    if not truth_path.exists() or len(lp) < 10:
-        s["landed"] = False
-        s["error"] = "no truth or no PX4 position: the flight did not run"
-        return s
-    tr = np.loadtxt(truth_path, delimiter=",", skiprows=1, ndmin=2)
-    t_tr, p_tr = tr[:, 0], tr[:, 1:4]
-    # ---- airborne span and fusion from the log (else the ground station's view)
-    phases = tel.phases
+    return fs
+
+
+def _airborne_span(
+    phases: dict[str, float], lp: np.ndarray, ulog: dict[str, np.ndarray], ours: Any
+) -> tuple[Any, Any]:
+    """Take-off and touchdown [ns, our clock] from PX4's land detector, else the ground
+    station's arm and disarm."""
     t_arm = phases.get("armed", 0.0) * 1e9
     t_disarm = phases.get("disarmed", lp[-1, 0] * 1e-9) * 1e9
     air_t0 = air_t1 = None
@@ -135,7 +171,19 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             air_t1 = t_ld[down[0]] if len(down) else t_disarm
     if air_t0 is None:
         air_t0, air_t1 = t_arm, t_disarm
-    s["airborne_s"] = float((air_t1 - air_t0) * 1e-9)
+    return air_t0, air_t1
+
+
+def _ev_fusion(
+    s: dict[str, Any],
+    tel: Any,
+    ulog: dict[str, np.ndarray],
+    ours: Any,
+    air_t0: Any,
+    air_t1: Any,
+) -> Any:
+    """EKF2's EV position fusion over the airborne time (from the log, else the ground
+    station's view) into ``s``; the time of the first fusion (None if never)."""
     fuse_src = "none"
     t_f = f = None
     if "estimator_status_flags" in ulog:
@@ -159,7 +207,14 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
             s["ev_pos_fused_pct_whole_airborne"] = float(100.0 * fused.mean())
         else:
             s["ev_pos_fused_pct"] = 0.0
-    # ---- PX4's estimate against the truth
+    return t_first
+
+
+def _px4_estimate(
+    s: dict[str, Any], out: Path, lp: np.ndarray, ulog: dict[str, np.ndarray], ours: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """PX4's position estimate (times [ns, our clock], NED positions): from the log at the
+    time it refers to, else LOCAL_POSITION_NED on arrival; the latter saved as CSV."""
     t_lp, p_lp = lp[:, 0], lp[:, 2:5]
     s["px4_position_source"] = "LOCAL_POSITION_NED on the GCS link, stamped on arrival"
     if "vehicle_local_position" in ulog:  # the estimate at the time it refers to
@@ -175,9 +230,23 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         header="t_ns,time_boot_ms,x_m,y_m,z_m",
         comments="",
     )
-    # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
-    t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
-    s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
+    return t_lp, p_lp
+
+
+def _position_errors(
+    s: dict[str, Any],
+    t_tr: np.ndarray,
+    p_tr: np.ndarray,
+    t_lp: np.ndarray,
+    p_lp: np.ndarray,
+    ulog: dict[str, np.ndarray],
+    ours: Any,
+    t_cmp: Any,
+    air_t1: Any,
+) -> np.ndarray:
+    """PX4's estimate against the truth over the compared span, each stretch between EKF2
+    position resets after its own translation, into ``s``; the longest stretch's
+    translation (3,)."""
     # to the touchdown: the truth at the home level, or PX4's land detector if earlier (SIH's
     # vehicle may sink below its start altitude before PX4 sees the landing: px4_bridge.py)
     down = np.flatnonzero((t_tr > t_cmp) & (p_tr[:, 2] >= -0.02))
@@ -212,6 +281,15 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     s["vertical_error_m_p95"] = _p(v_err, 95)
     s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
     s["frame_offset_m"] = [float(v) for v in offset]
+    return offset
+
+
+def _path_and_landing(
+    s: dict[str, Any], flight: Any, ok: bool, tr: np.ndarray, air_t0: Any, air_t1: Any
+) -> None:
+    """The flown path, the error relative to it, where the vehicle came down and whether it
+    landed, into ``s``."""
+    t_tr, p_tr = tr[:, 0], tr[:, 1:4]
     air = (t_tr >= air_t0) & (t_tr <= air_t1)
     path = (
         float(np.sum(np.linalg.norm(np.diff(p_tr[air], axis=0), axis=1))) if air.sum() > 1 else 0.0
@@ -223,14 +301,19 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     final = p_tr[-1]
     s["landing_error_m"] = float(np.linalg.norm(final[:2]))
     s["final_altitude_m"] = float(-final[2])
+    phases = flight.tel.phases
     start_t = phases.get("mission " + flight.o.mission, phases.get("hover"))
     if start_t is not None:
         p_start = np.array([np.interp(start_t * 1e9, t_tr, p_tr[:, i]) for i in range(3)])
         s["landing_error_from_mission_start_m"] = float(np.linalg.norm(final[:2] - p_start[:2]))
     # on the ground and disarmed (SIH's vehicle may rest below its start altitude: see
     # px4_bridge.py), not moving
-    s["landed"] = bool(ok and not tel.armed and np.linalg.norm(tr[-1, 8:11]) < 0.1)
-    # ---- camera, latency (the service's exit report; the bridge's stats)
+    s["landed"] = bool(ok and not flight.tel.armed and np.linalg.norm(tr[-1, 8:11]) < 0.1)
+
+
+def _camera_and_latency(s: dict[str, Any], out: Path, ulog: dict[str, np.ndarray]) -> None:
+    """Camera frames and latency (the service's exit report, the bridge's stats, PX4's
+    receipt of our estimate) into ``s``."""
     rep = _json(out / "service-report.json")
     br = _json(out / "bridge-stats.json")
     s["camera_frames_sent"] = br.get("frames_sent")
@@ -253,11 +336,6 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         s["px4_vision_messages"] = int(len(vo))
         dur = (vo["timestamp"][-1] - vo["timestamp"][0]) * 1e-6 if len(vo) > 1 else 0
         s["px4_vision_rate_hz"] = float((len(vo) - 1) / dur) if dur else None
-    try:
-        _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
-    except Exception as e:  # plots are a by-product: never lose the summary for them
-        s["notes"].append(f"plot failed: {e!r}")
-    return s
 
 
 def _json(path: Path) -> dict[str, Any]:
@@ -301,10 +379,27 @@ def _plot(
 
     t00 = air_t0
     fig, ax = plt.subplots(2, 2, figsize=(13, 9))
-    a = ax[0, 0]
-    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (SIH)")
     sel = t_lp >= (t_first if t_first is not None else air_t0)
-    a.plot(p_lp[sel, 1] + offset[1], p_lp[sel, 0] + offset[0], "b-", lw=0.9, label="PX4 EKF2")
+    _plot_top(ax[0, 0], s, p_tr, p_lp[sel], offset, ulog)
+    _plot_side(ax[0, 1], t_tr, p_tr, t_lp[sel], p_lp[sel], offset, ulog, ours, t00)
+    _plot_fusion(ax[1, 0], ulog, ours, t00, air_t1)
+    _plot_latency(ax[1, 1], s, ulog, ours, t00)
+    fig.tight_layout()
+    fig.savefig(out / "flight.png", dpi=100)
+    plt.close(fig)
+
+
+def _plot_top(
+    a: Any,
+    s: dict[str, Any],
+    p_tr: np.ndarray,
+    p_lp: np.ndarray,
+    offset: np.ndarray,
+    ulog: dict[str, np.ndarray],
+) -> None:
+    """Top view: the truth, PX4's estimate and ours, in the truth's frame."""
+    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (SIH)")
+    a.plot(p_lp[:, 1] + offset[1], p_lp[:, 0] + offset[0], "b-", lw=0.9, label="PX4 EKF2")
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
         a.plot(
@@ -319,9 +414,22 @@ def _plot(
     a.axis("equal")
     a.legend(fontsize=8)
     a.set_title(f"{s['mission']}: top (PX4 frame shifted by one translation)")
-    a = ax[0, 1]
+
+
+def _plot_side(
+    a: Any,
+    t_tr: np.ndarray,
+    p_tr: np.ndarray,
+    t_lp: np.ndarray,
+    p_lp: np.ndarray,
+    offset: np.ndarray,
+    ulog: dict[str, np.ndarray],
+    ours: Any,
+    t00: float,
+) -> None:
+    """Height over time: the truth, PX4's estimate and ours."""
     a.plot((t_tr - t00) * 1e-9, -p_tr[:, 2], "k-", lw=1.6, label="truth")
-    a.plot((t_lp[sel] - t00) * 1e-9, -(p_lp[sel, 2] + offset[2]), "b-", lw=0.9, label="PX4 EKF2")
+    a.plot((t_lp - t00) * 1e-9, -(p_lp[:, 2] + offset[2]), "b-", lw=0.9, label="PX4 EKF2")
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
         a.plot(
@@ -335,7 +443,10 @@ def _plot(
     a.set_ylabel("height above home [m]")
     a.legend(fontsize=8)
     a.set_title("side")
-    a = ax[1, 0]
+
+
+def _plot_fusion(a: Any, ulog: dict[str, np.ndarray], ours: Any, t00: float, air_t1: float) -> None:
+    """EKF2's EV position innovations, test ratio and fusion flag over time."""
     if "estimator_aid_src_ev_pos" in ulog:
         ev = ulog["estimator_aid_src_ev_pos"]
         te = (ours(ev["timestamp"]) - t00) * 1e-9
@@ -356,7 +467,13 @@ def _plot(
     a.set_xlabel("time since take-off [s] (grey: airborne)")
     a.legend(fontsize=7)
     a.set_title("EKF2: EV position fusion")
-    a = ax[1, 1]
+
+
+def _plot_latency(
+    a: Any, s: dict[str, Any], ulog: dict[str, np.ndarray], ours: Any, t00: float
+) -> None:
+    """The age of our estimate at PX4's receipt over time; the service's latency in the
+    title."""
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
         lat = (vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3
@@ -367,6 +484,3 @@ def _plot(
         f"latency: service exposure->send p50 {s.get('latency_ms_p50') or float('nan'):.1f} ms, "
         f"p99 {s.get('latency_ms_p99') or float('nan'):.1f} ms"
     )
-    fig.tight_layout()
-    fig.savefig(out / "flight.png", dpi=100)
-    plt.close(fig)
