@@ -1,4 +1,4 @@
-"""Command line: ``companion sitl record|sheet``, ``companion config``, ``companion bench``.
+"""Command line of ``companion``: the service, evaluation, benchmarks, the simulator, tools.
 
 Exit codes: 0 success, 1 a runtime error (message on stderr), 2 a bad configuration or bad
 arguments (the message names the key), 130 interrupted; ``status``: 3 when the service is not
@@ -7,7 +7,8 @@ running; ``calibrate lasers``: 1 when a sensor is flagged.
 One module per group of commands; each parses its arguments and calls functions elsewhere:
 
 - :mod:`.service`: ``run``, ``status``, ``config``
-- :mod:`.evaluate`: ``eval``, ``report``
+- :mod:`.evaluate`: ``eval``, ``report``; :mod:`.evaluate_dpose` (``eval --dpose``) and
+  :mod:`.flight` (``eval --phases``: the published poses by flight phase) beside it
 - :mod:`.bench`: ``bench render | vo | attitude | dpose | soak``
 - :mod:`.sim`: ``sitl record | sheet | run | px4``, ``demo``; and the one place where the
   product reaches the simulator (``sitl``): the other modules get simulated flights from it
