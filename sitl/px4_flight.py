@@ -588,13 +588,7 @@ class Flight:
         self._phase("ev fused")
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
-        end = time.monotonic() + 60
-        while not self.tel.armed:
-            if time.monotonic() > end:
-                raise SitlError("PX4 refused to arm for 60 s (see px4-console.log)")
-            g.command(400, 1)
-            g.pump(1.0)
-        self._phase("armed")
+        self._arm()
         self.armed_mode = "POSCTL"
         here = g.position()
         assert here is not None
@@ -607,6 +601,16 @@ class Flight:
         self._follow([here, top], 1.0)
         return top
 
+    def _arm(self) -> None:
+        """Send MAV_CMD_COMPONENT_ARM_DISARM until PX4 is armed (60 s at most)."""
+        end = time.monotonic() + 60
+        while not self.tel.armed:
+            if time.monotonic() > end:
+                raise SitlError("PX4 refused to arm for 60 s (see px4-console.log)")
+            self.gcs.command(400, 1)
+            self.gcs.pump(1.0)
+        self._phase("armed")
+
     def _take_off_in_altitude_mode(self) -> np.ndarray:
         """Arm in Altitude mode, climb on the stick, start the companion in the air, fuse it,
         Position then Offboard mode. Returns the mission's start (NED, PX4's frame)."""
@@ -615,13 +619,7 @@ class Flight:
         self._set_param_int("EKF2_EV_CTRL", 0)  # until our VO has settled in the air
         g.set_mode(MODE_ALTCTL)
         self._until("Altitude mode", lambda: g.main_mode() == MODE_ALTCTL, 10)
-        end = time.monotonic() + 60
-        while not self.tel.armed:
-            if time.monotonic() > end:
-                raise SitlError("PX4 refused to arm for 60 s (see px4-console.log)")
-            g.command(400, 1)
-            g.pump(1.0)
-        self._phase("armed")
+        self._arm()
         self.armed_mode = "ALTCTL"
         # the climb and the hold before our estimate is fused are flown on PX4's own downward
         # rangefinder (SIH's, over its flat ground), as a pilot would watch the height: PX4's
