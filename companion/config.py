@@ -221,6 +221,29 @@ class SitlConfig:
     render: RenderConfig = opt(RenderConfig(), "camera rendering")
 
 
+RecordImageFormat = Literal["png", "jpg"]
+
+
+@dataclass(frozen=True, slots=True)
+class RecordOptions:
+    """The flight recorder (companion/service/recorder.py): what the pipeline was fed, written
+    as a dataset (docs/dataset.md) that ``companion eval DIR`` replays."""
+
+    dir: str = opt(
+        "", "record into this folder (empty = off); {start} = the start time YYYYmmdd-HHMMSS"
+    )
+    max_mb: float = opt(2000.0, "disk budget of one recording [MB]; recording stops there", gt=0)
+    min_free_mb: float = opt(200.0, "stop recording when the disk has less free [MB]", ge=0)
+    image_format: RecordImageFormat = opt(
+        "png", "png (lossless: the replay is exact) or jpg (about 5x smaller, replay approximate)"
+    )
+    png_compression: int = opt(1, "PNG compression level (0 fastest .. 9 smallest)", ge=0, le=9)
+    jpg_quality: int = opt(95, "JPEG quality", ge=50, le=100)
+    queue_frames: int = opt(
+        60, "frames waiting for the disk at most; a fuller queue stops the recording", ge=2
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class Config:
     """The whole configuration."""
@@ -235,6 +258,7 @@ class Config:
     dpose: DposeOptions = opt(DposeOptions(), "d-Pose in the published pose")
     service: ServiceOptions = opt(ServiceOptions(), "the service: links and output")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
+    record: RecordOptions = opt(RecordOptions(), "the flight recorder ([record])")
 
     def __post_init__(self) -> None:
         ids = [r.sensor_id for r in self.rangefinders]
