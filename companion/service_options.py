@@ -88,7 +88,8 @@ class ServiceOptions:
     status_socket: str = opt(
         "",
         "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "
-        "else $XDG_RUNTIME_DIR/companion.sock, else /tmp/companion-UID.sock)",
+        "i.e. /run/companion/status.sock, else $XDG_RUNTIME_DIR/companion.sock, else "
+        "/tmp/companion-UID.sock; `companion status` looks in /run/companion first)",
     )
 
     def __post_init__(self) -> None:

@@ -26,15 +26,49 @@ class StatusError(CompanionError):
     """What answered on the status socket is not a companion service we can trust."""
 
 
+# Where the service listens under systemd/companion.service (RuntimeDirectory=companion, so
+# $RUNTIME_DIRECTORY/status.sock): a client looks here first (tests/test_cli.py checks that the
+# unit and config/default.toml agree with it).
+SYSTEM_STATUS_SOCKET = Path("/run/companion/status.sock")
+
+
 def status_path(configured: str) -> Path:
-    """The socket path for service.status_socket (see its help for the empty default)."""
+    """Where the service listens for service.status_socket (see its help for the empty
+    default): ``configured``; else $RUNTIME_DIRECTORY/status.sock under systemd (the unit's
+    RuntimeDirectory: :data:`SYSTEM_STATUS_SOCKET`); else :func:`user_status_path`."""
     if configured:
         return Path(configured)
     if os.environ.get("RUNTIME_DIRECTORY"):  # systemd's RuntimeDirectory=
         return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0]) / "status.sock"
+    return user_status_path()
+
+
+def user_status_path() -> Path:
+    """A service started by hand: $XDG_RUNTIME_DIR/companion.sock, else
+    /tmp/companion-UID.sock."""
     if os.environ.get("XDG_RUNTIME_DIR"):
         return Path(os.environ["XDG_RUNTIME_DIR"]) / "companion.sock"
     return Path("/tmp") / f"companion-{os.getuid()}.sock"
+
+
+def find_status_socket(configured: str = "") -> Path:
+    """Where a client (``companion status``, ``px4 check``) looks for the service: the
+    configured path (``--socket`` or service.status_socket) when given; else
+    :data:`SYSTEM_STATUS_SOCKET` when something is there (the service under systemd), or when
+    its folder cannot be searched (the caller is not in the service's group: reading then
+    says so, instead of "not running"); else :func:`user_status_path`.
+
+    The client does not use $RUNTIME_DIRECTORY: a client run from another unit has that
+    unit's folder there, not the service's."""
+    if configured:
+        return Path(configured)
+    try:
+        SYSTEM_STATUS_SOCKET.lstat()
+    except PermissionError:
+        return SYSTEM_STATUS_SOCKET
+    except OSError:  # absent (no directory, no socket): the service is not under systemd
+        return user_status_path()
+    return SYSTEM_STATUS_SOCKET
 
 
 def check_trusted(path: Path) -> None:
@@ -70,6 +104,11 @@ def read_status(
             s.connect(str(path))
         except (FileNotFoundError, ConnectionRefusedError):
             return None
+        except PermissionError:
+            raise StatusError(
+                f"{path}: permission denied: run as the service's user or a member of its "
+                "group (`sudo usermod -aG companion $USER`, then log in again)"
+            ) from None
         except OSError as e:
             raise StatusError(f"{path}: cannot connect: {e.strerror or e}") from None
         data = bytearray()

@@ -24,7 +24,7 @@ from companion.px4.options import Px4Options
 from companion.px4.rules import LinkContext, Row, Status, evaluate
 from companion.px4.shell import parse_listener, parse_uorb_top
 from drivers.mavlink import LinkUrl
-from drivers.status import StatusError, read_status, status_path
+from drivers.status import StatusError, find_status_socket, read_status
 
 SHELL_TOPICS = (
     "vehicle_visual_odometry",
@@ -94,7 +94,7 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
     fc_port = opts.fc_port
     if fc_port == "auto":
         fc_port = "TELEM2" if link.kind == "serial" else "ETHERNET"
-    socket = Path(opts.socket) if opts.socket else status_path(cfg.service.status_socket)
+    socket = find_status_socket(opts.socket or cfg.service.status_socket)
     ctx = LinkContext(
         cfg.service.output,
         fc_port,
