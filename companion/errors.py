@@ -26,6 +26,15 @@ class Px4Error(CompanionError):
     heartbeat, a parameter that cannot be read or written, a vehicle that is armed."""
 
 
+class UnreachableError(CompanionError):
+    """A peer the command needs does not answer: no autopilot on the link, no service on the
+    status socket. ``companion`` exits 3 for it (1 is for problems found)."""
+
+
+class AutopilotUnreachable(Px4Error, UnreachableError):
+    """No autopilot heartbeat on the link (or the link cannot be opened)."""
+
+
 class CalibrationError(CompanionError):
     """``companion calibrate`` cannot work with its input (no images, no board found, a bad
     board spec or ranges file). The message says what to fix."""
