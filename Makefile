@@ -1,5 +1,7 @@
 # One entry for set-up, demo and tests on a fresh Debian machine (Python >= 3.11).
-# `make demo` and `make test` create .venv and install everything they need.
+# `make demo` and `make test` create .venv and install everything they need (the service, the
+# simulator, the evaluation and the development tools: `.[dev,eval,sim]`).
+# A board: `sudo make install` (the service alone, under systemd; docs/install.md).
 PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
@@ -7,7 +9,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out
 
 .PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude \
-	results-dpose clean
+	results-dpose dist install uninstall clean
 
 all: test
 
@@ -25,7 +27,7 @@ sysdeps:
 $(STAMP): pyproject.toml | sysdeps
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,eval]'
+	$(BIN)/python -m pip install -q -e '.[dev,eval,sim]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -88,5 +90,20 @@ results-dpose: venv
 	  || exit 1; done
 	$(BIN)/companion eval --dpose --random 10000
 
+# the wheel (companion, drivers, sitl; runtime dependencies, extras sim/eval/dev) and the sdist
+# (also the Makefile, configs, unit, docs and tests) in dist/
+dist: venv
+	$(BIN)/python -m build --outdir dist
+
+# A board, as root: the service user, a runtime-only venv in /opt/companion/venv, the unit,
+# /etc/companion/config.toml (never overwritten) and /var/lib/companion; `uninstall` removes
+# all but the config and the state. PY=python3.11 for another interpreter, WHEEL=FILE to
+# install a built wheel, PREFIX / SYSCONFDIR to move it (systemd/board-install.sh).
+install:
+	PY='$(PY)' bash systemd/board-install.sh install
+
+uninstall:
+	bash systemd/board-install.sh uninstall
+
 clean:
-	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(OUT) dist .mypy_cache .ruff_cache .pytest_cache

@@ -131,7 +131,7 @@ def test_unit_file_passes_systemd_analyze_verify(tmp_path) -> None:
     # the installed path does not exist here: point ExecStart at this interpreter
     unit = tmp_path / "companion.service"
     unit.write_text(
-        text.replace("/opt/companion/.venv/bin/companion", f"{sys.executable} -m companion.cli")
+        text.replace("/opt/companion/venv/bin/companion", f"{sys.executable} -m companion.cli")
     )
     r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -214,7 +214,7 @@ def test_systemd_analyze_security_exposure_is_at_most_3(tmp_path) -> None:
     unit = tmp_path / "companion.service"  # the installed ExecStart does not exist here
     unit.write_text(
         UNIT.read_text().replace(
-            "/opt/companion/.venv/bin/companion", f"{sys.executable} -m companion.cli"
+            "/opt/companion/venv/bin/companion", f"{sys.executable} -m companion.cli"
         )
     )
     env = {**os.environ, "SYSTEMD_COLORS": "0", "SYSTEMD_PAGER": "", "LC_ALL": "C.UTF-8"}
