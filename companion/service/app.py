@@ -48,6 +48,7 @@ from companion.pipeline import Pipeline
 from companion.redact import redact_text, redact_url, url_secrets
 from companion.service import preflight
 from companion.service.mqtt import MqttPublisher
+from companion.service.recorder import Recorder
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
@@ -140,6 +141,7 @@ class Service:
         self.mqtt: MqttPublisher | None = (
             MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
         )
+        self.recorder = Recorder(config.record, config)  # a non-empty record.dir: exit 2
         self._last_pose: PoseEstimate | None = None
         self.systemd = SdNotify()
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
@@ -215,6 +217,10 @@ class Service:
             await stack.enter_async_context(self.link)
             if self.mqtt is not None:
                 await stack.enter_async_context(self.mqtt)
+            loop = self._loop  # the recorder says why it stopped from its thread:
+            stack.enter_context(
+                self.recorder.running(lambda t: loop.call_soon_threadsafe(self._warn, t))
+            )
             self._tg = await stack.enter_async_context(asyncio.TaskGroup())
             loops = {
                 "heartbeat": self._heartbeat_loop(),
@@ -577,6 +583,7 @@ class Service:
     ) -> PoseEstimate | None:
         """Worker thread: feed the queued samples, then the frame."""
         p = self.pipeline
+        self.recorder.frame(frame, ranges, atts)  # a reference into its queue
         for a in atts:
             p.feed_attitude(a)
         for r in ranges:
@@ -628,6 +635,7 @@ class Service:
             self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
             self.stats.last_reset_counter = pose.reset_counter
             self.stats.sent.append(pose)
+            self.recorder.pose(pose)
             self._last_pose = pose
 
     async def _sleep(self, seconds: float) -> None:
@@ -671,6 +679,7 @@ class Service:
             "reset_counter": s.last_reset_counter,
             "scale": ps.scale,
             "link": vars(self.link.stats),
+            "recorder": self.recorder.status(),
             "signing": self.link.signing.counters() if self.link.signing else None,
         }
 
@@ -721,6 +730,7 @@ class Service:
                 "dropped": self.mqtt.stats.dropped if self.mqtt else 0,
                 "published": self.mqtt.stats.published if self.mqtt else 0,
             },
+            "recorder": self.recorder.status(),
             "warnings": list(s.warnings),
         }
 

@@ -1,0 +1,255 @@
+"""The flight recorder: what the service's pipeline was fed, as a dataset ``companion eval DIR``
+replays through the same Pipeline (docs/dataset.md, "Recordings").
+
+The service hands over, on the pipeline's worker thread and before it feeds them, each frame
+with the attitudes and ranges queued for it (``frame``), and from the event loop each pose it
+sent (``pose``). Both only put a reference into a bounded queue (``record.queue_frames``): no
+disk work, no encoding, no waiting. A writer thread encodes the images (PNG: lossless, so the
+replay is fed the same bytes) and appends them with ``drivers.dataset.DatasetWriter``.
+
+The flight output always wins: a full queue (the disk is slower than the camera), the disk
+budget (``record.max_mb``), too little free space (``record.min_free_mb``) or a write error
+stops the recording cleanly, never the service; the folder then holds a valid dataset up to its
+last frame, and the reason is said once (the service's warnings, log, MQTT) and kept in the
+status. A recording is not resumed after it stopped: a replay must see every frame the
+pipeline saw, so a recording with a hole would not replay what was flown.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import shutil
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from companion import __version__
+from companion.config import Config, RecordOptions
+from companion.errors import ConfigError, DatasetError
+from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample
+from drivers.dataset import DatasetWriter
+
+log = logging.getLogger("companion.recorder")
+
+SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
+CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
+
+Item = tuple[CameraFrame, Sequence[RangeSample], Sequence[AttitudeSample]] | PoseEstimate
+
+
+def recording_dir(template: str, start: time.struct_time | None = None) -> Path:
+    """``record.dir`` with ``{start}`` replaced by the start time (local, YYYYmmdd-HHMMSS)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", start or time.localtime())
+    return Path(template.replace("{start}", stamp)).expanduser()
+
+
+class Recorder:
+    """``with Recorder(options, config).running(notify):`` record; ``frame`` / ``pose`` from
+    any thread, never blocking. Disabled (every call a no-op) when ``options.dir`` is empty."""
+
+    def __init__(self, options: RecordOptions, config: Config) -> None:
+        self.options = options
+        self.config = config
+        self.enabled = bool(options.dir)
+        self.path = recording_dir(options.dir) if self.enabled else None
+        p = self.path
+        if p is not None and p.exists() and (not p.is_dir() or any(p.iterdir())):
+            raise ConfigError(
+                f"record.dir: {self.path} exists and is not an empty folder (a recording "
+                "goes into a new folder: put {start} in the name for one per run)"
+            )
+        self.state = "recording" if self.enabled else "off"
+        self.reason = ""
+        self.frames_not_recorded = 0  # frames the pipeline got after the recording stopped
+        self._queue: queue.Queue[Item | None] = queue.Queue(maxsize=options.queue_frames)
+        self._lock = threading.Lock()
+        self._writer: DatasetWriter | None = None
+        self._thread: threading.Thread | None = None
+        self._notify: Callable[[str], object] = log.warning
+        self._frames = 0
+        self._poses = 0
+        self._bytes = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self, notify: Callable[[str], object] | None = None) -> None:
+        """Create the dataset folder and start the writer thread. ``notify(text)`` tells the
+        operator why a recording stopped (called from any thread). A folder that cannot be
+        written leaves the service running without a recording (said through ``notify``)."""
+        if notify is not None:
+            self._notify = notify
+        if not self.enabled or self.path is None:
+            return
+        o = self.options
+        try:
+            self._writer = DatasetWriter(
+                self.path,
+                self.config,
+                image_format=o.image_format,
+                png_compression=o.png_compression,
+                jpg_quality=o.jpg_quality,
+                software=__version__,
+            )
+        except (OSError, DatasetError) as e:
+            self._stop(f"cannot record into {self.path}: {e}")
+            return
+        log.info("recording into %s (%s, budget %g MB)", self.path, o.image_format, o.max_mb)
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Write what is queued, then mark the recording complete (meta.toml). A disk that
+        does not take it within CLOSE_TIMEOUT_S leaves the recording unfinished (readable up
+        to its last complete frame)."""
+        if self._thread is None:
+            return
+        try:
+            self._queue.put(None, timeout=CLOSE_TIMEOUT_S)
+        except queue.Full:
+            log.warning("recorder: the disk did not take the queued frames at exit")
+        self._thread.join(CLOSE_TIMEOUT_S)
+        self._thread = None
+        with self._lock:
+            if self.state == "recording":
+                self.state = "closed"
+        if self.path is not None:
+            log.info(
+                "recorded %d frames, %d poses (%.1f MB) into %s",
+                self._frames,
+                self._poses,
+                self._bytes / 1e6,
+                self.path,
+            )
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def running(self, notify: Callable[[str], object] | None = None) -> Recorder:
+        """``start(notify)`` and return self, for ``with`` / ``ExitStack.enter_context``."""
+        self.start(notify)
+        return self
+
+    # ------------------------------------------------------------------ producers
+    def frame(
+        self,
+        frame: CameraFrame,
+        ranges: Sequence[RangeSample],
+        attitudes: Sequence[AttitudeSample],
+    ) -> None:
+        """The frame the pipeline is about to take, with the samples it is fed first (in the
+        order it is fed them). Never blocks; a full queue stops the recording."""
+        if self.state != "recording":
+            if self.enabled:
+                self.frames_not_recorded += 1
+            return
+        self._put((frame, list(ranges), list(attitudes)))
+
+    def pose(self, pose: PoseEstimate) -> None:
+        """A pose the service sent to the autopilot (the wire's reset_counter)."""
+        if self.state == "recording":
+            self._put(pose)
+
+    def _put(self, item: Item) -> None:
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self._stop(
+                f"the disk is slower than the camera ({self._queue.maxsize} frames waiting); "
+                "the flight output is not affected"
+            )
+
+    # ------------------------------------------------------------------ the writer thread
+    def _run(self) -> None:
+        """The writer thread: the only one that touches the DatasetWriter. After a stop it
+        writes what was queued before it (consecutive frames), then closes the dataset."""
+        writer = self._writer
+        assert writer is not None
+        last_sync = time.monotonic()
+        try:
+            while True:
+                try:
+                    item = self._queue.get(timeout=0.2)
+                except queue.Empty:
+                    if self.state != "recording":
+                        break  # stopped by a producer, and all it queued is written
+                    continue
+                if item is None:
+                    break
+                if isinstance(item, PoseEstimate):
+                    writer.write_pose(item)
+                    self._poses += 1
+                elif not self._write_frame(writer, *item):
+                    break  # over budget: stopped
+                self._bytes = writer.bytes_written
+                if time.monotonic() - last_sync > SYNC_PERIOD_S:
+                    writer.sync()
+                    last_sync = time.monotonic()
+        except (OSError, DatasetError) as e:
+            self._stop(f"writing failed: {e}")
+        try:
+            writer.close(self.reason)
+        except OSError as e:
+            log.warning("recorder: closing %s failed: %s", self.path, e)
+        self._bytes = writer.bytes_written
+        while True:  # what was queued after the stop is not written: let it go
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                break
+
+    def _write_frame(
+        self,
+        writer: DatasetWriter,
+        frame: CameraFrame,
+        ranges: Sequence[RangeSample],
+        attitudes: Sequence[AttitudeSample],
+    ) -> bool:
+        """Encode and append one frame; False (and stopped) when it would break the budget."""
+        encoded = writer.encode(frame.image_bgr)
+        need = writer.frame_bytes(encoded, len(ranges), len(attitudes))
+        o = self.options
+        if writer.bytes_written + need > o.max_mb * 1e6:
+            self._stop(f"disk budget of {o.max_mb:g} MB reached (record.max_mb)")
+            return False
+        free = shutil.disk_usage(writer.path).free
+        if free - need < o.min_free_mb * 1e6:
+            self._stop(f"less than {o.min_free_mb:g} MB free on the disk (record.min_free_mb)")
+            return False
+        writer.write_frame(frame, encoded, ranges, attitudes)
+        self._frames += 1
+        return True
+
+    def _stop(self, reason: str) -> None:
+        """Stop recording (once) and say why; the writer thread then closes the dataset,
+        valid up to its last frame. Safe from any thread."""
+        with self._lock:
+            if self.state != "recording":
+                return
+            self.state = "stopped" if self._writer is not None else "failed"
+            self.reason = reason
+        text = f"recorder: stopped after {self._frames} frames in {self.path}: {reason}"
+        try:
+            self._notify(text)
+        except RuntimeError:  # the service's loop is already closed
+            log.warning(text)
+
+    # ------------------------------------------------------------------ status
+    def status(self) -> dict[str, Any]:
+        """The status's recorder section."""
+        return {
+            "enabled": self.enabled,
+            "dir": str(self.path) if self.path is not None else None,
+            "state": self.state,
+            "frames": self._frames,
+            "poses": self._poses,
+            "mb": self._bytes / 1e6,
+            "budget_mb": self.options.max_mb,
+            "queued": self._queue.qsize(),
+            "reason": self.reason,
+            "frames_not_recorded": self.frames_not_recorded,
+        }
