@@ -39,6 +39,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     log = logging.getLogger("companion")
     cfg = load(args)
+    if args.record is not None:  # --record DIR: the [record] options, into this folder
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg, record=dataclasses.replace(cfg.record, dir=str(args.record)))
     for line in describe(cfg):
         log.debug("config %s", line)
     s = cfg.service
@@ -210,6 +214,13 @@ def add_run(sub: Any) -> None:
     p_run.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
     p_run.add_argument("--duration", type=float, help="stop after this many seconds")
     p_run.add_argument("--report", type=Path, help="write a JSON summary here on exit")
+    p_run.add_argument(
+        "--record",
+        type=Path,
+        metavar="DIR",
+        help="record what the pipeline is fed into the new folder DIR ({start}: the start "
+        "time); `companion eval DIR` replays it ([record] in the config: budget, format)",
+    )
     p_run.add_argument("--terrain", help=argparse.SUPPRESS)
     p_run.add_argument("--trajectory", help=argparse.SUPPRESS)
     p_run.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
