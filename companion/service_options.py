@@ -47,6 +47,24 @@ class SigningOptions:
 
 
 @dataclass(frozen=True, slots=True)
+class StatustextOptions:
+    """STATUSTEXT to the ground station on every state change an operator must know
+    (companion/service/statustext.py, docs/service.md "Messages to the ground station")."""
+
+    enabled: bool = opt(True, "send STATUSTEXT (through the autopilot to the ground station)")
+    prefix: str = opt("CMP: ", "put before every text (who is speaking); ASCII, <= 8 characters")
+    key_interval_s: float = opt(
+        2.0, "one message per subject (camera, VO, ...) at most this often [s]", ge=0, le=60
+    )
+    burst: int = opt(5, "messages at once at most (token bucket size)", ge=4, le=50)
+    rate_hz: float = opt(1.0, "messages per second on average at most (bucket refill)", gt=0, le=10)
+
+    def __post_init__(self) -> None:
+        if len(self.prefix) > 8 or not all(" " <= c <= "~" for c in self.prefix):
+            raise ConfigError(f"prefix: ASCII, at most 8 characters, got {self.prefix!r}")
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceOptions:
     """Links, rates and what is sent to the autopilot."""
 
@@ -85,6 +103,7 @@ class ServiceOptions:
     )
     mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
     signing: SigningOptions = opt(SigningOptions(), "MAVLink 2 signing of the autopilot link")
+    statustext: StatustextOptions = opt(StatustextOptions(), "STATUSTEXT to the ground station")
     status_socket: str = opt(
         "",
         "Unix socket of `companion status` (empty: $RUNTIME_DIRECTORY/status.sock under systemd, "

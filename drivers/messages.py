@@ -5,6 +5,7 @@ In: DISTANCE_SENSOR (cm, orientation 25 = downward, id = instance, signal_qualit
 Out: VISION_POSITION_ESTIMATE (NED, roll/pitch/yaw, 21-element upper-triangular covariance,
 reset_counter) and ODOMETRY (frame LOCAL_FRD, child BODY_FRD, estimator VISION, velocity in the
 body frame, quality). Nothing non-finite leaves: callers check :func:`is_finite_pose`.
+STATUSTEXT (severity, 50 characters; a longer text in chunks sharing an id) for the operator.
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ MAV_TYPE_ONBOARD_CONTROLLER = mavlink.MAV_TYPE_ONBOARD_CONTROLLER  # 18: our HEA
 MAV_STATE_STANDBY = mavlink.MAV_STATE_STANDBY  # 3: not tracking
 MAV_STATE_ACTIVE = mavlink.MAV_STATE_ACTIVE  # 4: tracking, poses going out
 MAV_RESULT_ACCEPTED = mavlink.MAV_RESULT_ACCEPTED  # 0
+MAV_MODE_FLAG_SAFETY_ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # 128: HEARTBEAT.base_mode
+STATUSTEXT_CHARS = 50  # text bytes in one STATUSTEXT
+STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut to 4 chunks (200 characters)
 
 # what the service reads from the autopilot (the link skips every other frame unparsed)
 SERVICE_INPUTS = frozenset(
@@ -170,3 +174,32 @@ def odometry(
         MAV_ESTIMATOR_TYPE_VISION,
         int(pose.quality_pct),
     )
+
+
+def statustext_chunk_count(text: str) -> int:
+    """How many STATUSTEXT messages :func:`statustext` makes of ``text``."""
+    n = len(text.encode("ascii", "replace"))
+    if n <= STATUSTEXT_CHARS:
+        return 1
+    return min(n // STATUSTEXT_CHARS + 1, STATUSTEXT_MAX_CHUNKS)
+
+
+def statustext(mav: Any, severity: int, text: str, text_id: int) -> list[Any]:
+    """STATUSTEXT message(s) of ``text`` (ASCII; any other character as '?'). Up to 50
+    characters: one message with id 0 ("the only chunk"). Longer: chunks of 50 sharing
+    ``text_id`` (1..65535) with chunk_seq 0, 1, ...; the last chunk is shorter than 50 (a
+    NUL ends it, which tells the receiver the text is complete: a text of exactly 100
+    characters gets an empty third chunk), at most STATUSTEXT_MAX_CHUNKS chunks (the rest is
+    cut, ending in "...")."""
+    raw = text.encode("ascii", "replace")
+    if len(raw) <= STATUSTEXT_CHARS:
+        return [mav.statustext_encode(severity, raw, 0, 0)]
+    if not 1 <= text_id <= 0xFFFF:
+        raise ValueError(f"text_id must be 1..65535, got {text_id}")
+    room = STATUSTEXT_MAX_CHUNKS * STATUSTEXT_CHARS - 1  # the last chunk keeps its NUL
+    if len(raw) > room:
+        raw = raw[: room - 3] + b"..."
+    chunks = [raw[i : i + STATUSTEXT_CHARS] for i in range(0, len(raw), STATUSTEXT_CHARS)]
+    if len(chunks[-1]) == STATUSTEXT_CHARS:
+        chunks.append(b"")
+    return [mav.statustext_encode(severity, c, text_id, seq) for seq, c in enumerate(chunks)]

@@ -16,6 +16,8 @@ simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
 - Camera: a child process renders the flight ahead of time and releases frame k at its
   exposure time plus ``readout_ms`` (a real camera delivers a frame after its readout); a
   frame that is not ready in time is dropped and counted, as a camera would drop it.
+- Receives STATUSTEXT (kept in ``stats.statustexts``, forwarded to the ground-station endpoint
+  as PX4 forwards an onboard link's messages with ``mavlink start -f``).
 - Receives VISION_POSITION_ESTIMATE and ODOMETRY, moves their time_usec into its clock through
   its time sync (as PX4's mavlink_receiver does), looks up the true pose at that time and
   keeps live errors; at the end writes ``report.json``, ``received.csv`` and ``autopilot.png``.
@@ -106,6 +108,8 @@ class AutopilotStats:
     rate_requests_s: list[float] = field(default_factory=list)  # flight times of requests
     reboots: int = 0
     link: LinkStats = field(default_factory=LinkStats)
+    # STATUSTEXT from the companion: (rx_ns, severity, text, id, chunk_seq)
+    statustexts: list[tuple[int, int, str, int, int]] = field(default_factory=list)
 
 
 def camera_process(
@@ -359,6 +363,10 @@ class SimAutopilot:
             self.send(ack)
         elif kind in ("VISION_POSITION_ESTIMATE", "ODOMETRY"):
             self._on_pose(msg, kind, rx_ns)
+        elif kind == "STATUSTEXT":
+            text = (rx_ns, int(msg.severity), str(msg.text), int(msg.id), int(msg.chunk_seq))
+            self.stats.statustexts.append(text)
+            self.px4.forward_gcs(msg)
 
     def _on_pose(self, msg: Any, kind: str, rx_ns: int) -> None:
         self.px4.on_vision(msg, kind, rx_ns)  # what PX4 and EKF2 make of it

@@ -180,6 +180,17 @@ class Px4Services:
         except OSError:
             self.gcs_stats.tx_dropped += 1
 
+    def forward_gcs(self, msg: Any) -> None:
+        """A message from the companion, as received (its own system and component ids), to
+        the ground station: PX4 forwards a link's messages to its other links (``-f``)."""
+        if self._gcs_transport is None or self.rebooting():
+            return
+        try:
+            self._gcs_transport.sendto(bytes(msg.get_msgbuf()), self._gcs_addr)
+            self.gcs_stats.tx_messages += 1
+        except OSError:
+            self.gcs_stats.tx_dropped += 1
+
     def _on_gcs_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
         rx_ns = time.monotonic_ns()
         if self.rebooting():

@@ -46,7 +46,7 @@ import numpy as np
 from companion.config import Config
 from companion.pipeline import Pipeline
 from companion.redact import redact_text, redact_url, url_secrets
-from companion.service import preflight
+from companion.service import preflight, statustext
 from companion.service.mqtt import MqttPublisher
 from companion.service.recorder import Recorder
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
@@ -97,12 +97,14 @@ class ServiceStats:
     last_reset_counter: int = 0
     autopilot_heartbeat_ns: int = 0
     autopilot_system_id: int = 0
+    autopilot_armed: bool = False  # its HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
     rates_acknowledged: set[int] = field(default_factory=set)
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     process_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     publish_times_ns: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
     warnings: deque[str] = field(default_factory=lambda: deque(maxlen=20))
     sent: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=200))  # last poses
+    statustexts: deque[tuple[int, str]] = field(default_factory=lambda: deque(maxlen=50))
 
 
 class Service:
@@ -172,6 +174,14 @@ class Service:
         self._camera_silent = False
         self._stack: contextlib.AsyncExitStack | None = None
         self._switch_interval_s: float | None = None
+        # STATUSTEXT to the ground station: events from snapshot transitions, rate-limited
+        st = o.statustext
+        self.statustext = statustext.Limiter(st.key_interval_s, st.burst, st.rate_hz, st.prefix)
+        self._operator = statustext.INITIAL
+        self._attitude_held = statustext.Held(statustext.ATTITUDE_HOLD_S)
+        self._dpose_lock = statustext.RecentIncrease(statustext.DPOSE_LOCK_HOLD_S)
+        self.dpose_status = (False, 0)  # (armed, poses used): the worker replaces it
+        self._text_id = 0  # of the last chunked STATUSTEXT
 
     def _tfmini(self, rf: Any) -> Any:
         """A rangefinder wired to the companion (drivers.rangefinder)."""
@@ -204,6 +214,7 @@ class Service:
         """Enter the components in order through one AsyncExitStack: a failure part-way
         (a second instance on the status socket, a port taken) closes what was entered."""
         self._loop = asyncio.get_running_loop()
+        o = self.config.service
         async with contextlib.AsyncExitStack() as stack:
             # first: a second instance stops here (exit 2)
             await stack.enter_async_context(self.status_server)
@@ -230,6 +241,8 @@ class Service:
                 "pipeline": self._pipeline_loop(),
                 "health": self._health_loop(),
             }
+            if o.statustext.enabled:
+                loops["statustext"] = self._statustext_loop()
             if self.systemd.watchdog_s:
                 loops["watchdog"] = self._watchdog_loop()
             if self.mqtt is not None:
@@ -240,7 +253,10 @@ class Service:
             self._stack = stack.pop_all()
         for text in self.preflight_warnings:
             self._warn(text)
-        o = self.config.service
+        from companion import __version__
+
+        for event in statustext.start_events(__version__, o.output, self.preflight_warnings):
+            self.statustext.offer(event, now_ns() * 1e-9)  # sent once the link has a peer
         self.systemd.ready(f"link {o.mavlink_url}, camera {self.camera_url_shown}")
         return self
 
@@ -252,6 +268,8 @@ class Service:
         self.camera.close()
         for task in self._tasks:
             task.cancel()
+        if self._stack is not None and self.config.service.statustext.enabled:
+            self._last_statustexts()  # the link is still open
         if self._stack is not None:
             stack, self._stack = self._stack, None
             await stack.__aexit__(*exc)
@@ -292,6 +310,8 @@ class Service:
             ):
                 self.stats.autopilot_heartbeat_ns = rx_ns
                 self.stats.autopilot_system_id = msg.get_srcSystem()
+                armed = int(msg.base_mode) & messages.MAV_MODE_FLAG_SAFETY_ARMED
+                self.stats.autopilot_armed = bool(armed)
             return
         if kind == "COMMAND_ACK":
             if (
@@ -506,6 +526,67 @@ class Service:
                     rf_said.pop(drv.sensor_id, None)
             await self._sleep(HEALTH_PERIOD_S)
 
+    # ------------------------------------------------------------------ STATUSTEXT
+    def _operator_state(self, now: int) -> statustext.OperatorState:
+        """What the operator cares about now, from the service's own state (the loop's)."""
+        s, p = self.stats, self.pipeline_status
+        camera = "no frames" if self._camera_silent else None
+        if camera is None and self._frame_problem is not None:
+            camera = self._frame_problem.value
+        tracking = p.vo_state == VoState.TRACKING.name
+        t_s = now * 1e-9
+        dpose_armed, dpose_used = self.dpose_status
+        hb = s.autopilot_heartbeat_ns
+        return statustext.OperatorState(
+            camera=camera,
+            vo_state=p.vo_state,
+            vo_resets=p.vo_resets,
+            reset_counter=s.last_reset_counter if s.published else None,
+            scale_ready=tracking and p.scale is not None,
+            scale_sensors=p.sensors_used,
+            attitude_ready=self._attitude_held.update(tracking and p.roll_deg is not None, t_s),
+            autopilot_silent_s=(now - hb) * 1e-9 if hb else None,
+            rangefinder_faults=frozenset(d.sensor_id for d in self.tfminis if d.last_error),
+            dpose_armed=dpose_armed,
+            dpose_locked=self._dpose_lock.update(dpose_used, t_s),
+            armed=s.autopilot_armed,
+        )
+
+    async def _statustext_loop(self) -> None:
+        """Every STATUSTEXT_PERIOD_S: the events between the last snapshot and this one go to
+        the limiter; what it lets out is sent while the link has somebody to send to."""
+        while not self._stop.is_set():
+            now = now_ns()
+            cur = self._operator_state(now)
+            for event in statustext.transitions(self._operator, cur):
+                self.statustext.offer(event, now * 1e-9)
+            self._operator = cur
+            if self.link.connected:
+                for severity, text in self.statustext.take(now * 1e-9):
+                    self._send_statustext(severity, text)
+            await self._sleep(statustext.STATUSTEXT_PERIOD_S)
+
+    def _send_statustext(self, severity: int, text: str) -> None:
+        """One text on the link (in chunks sharing an id when it is longer than 50)."""
+        self._text_id = self._text_id % 0xFFFF + 1
+        for msg in messages.statustext(self.link.mav, severity, text, self._text_id):
+            self.link.send(msg)
+        self.stats.statustexts.append((int(severity), text))
+
+    def _last_statustexts(self) -> None:
+        """At exit: what is still pending, then why we stop (beyond the limits: bounded)."""
+        failed = [
+            t for t in self._tasks if t.done() and not t.cancelled() and t.exception() is not None
+        ]
+        error = None
+        if failed:
+            exc = failed[0].exception()
+            error = f"{failed[0].get_name()} error ({type(exc).__name__})"
+        now_s = now_ns() * 1e-9
+        self.statustext.offer(statustext.stop_event(error, self.stats.autopilot_armed), now_s)
+        for severity, text in self.statustext.drain(now_s):
+            self._send_statustext(severity, text)
+
     def _warn(self, text: str) -> None:
         text = redact_text(text, self._secrets)  # a driver's error may quote the camera URL
         log.warning(text)
@@ -590,6 +671,7 @@ class Service:
             p.feed_range(r)
         pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
         self.pipeline_status = p.status()  # a new frozen snapshot: the loop reads only this
+        self.dpose_status = (p.dpose is not None and p.dpose.armed, p.dpose_used)
         return pose
 
     def _background(self) -> None:
@@ -681,6 +763,7 @@ class Service:
             "link": vars(self.link.stats),
             "recorder": self.recorder.status(),
             "signing": self.link.signing.counters() if self.link.signing else None,
+            "statustext": vars(self.statustext.stats),
         }
 
     def status(self) -> dict[str, Any]:
