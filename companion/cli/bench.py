@@ -161,18 +161,23 @@ def add_bench(sub: Any) -> None:
     p_bench = sub.add_parser("bench", help="benchmarks")
     bench_sub = p_bench.add_subparsers(dest="bench_command", required=True)
     p_br = bench_sub.add_parser("render", help="SITL rendering speed on one core")
-    p_br.add_argument("--config", type=Path)
-    p_br.add_argument("--terrains", nargs="+", default=["flat", "hills", "urban", "slope"])
+    p_br.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
+    p_br.add_argument(
+        "--terrains",
+        nargs="+",
+        default=["flat", "hills", "urban", "slope"],
+        help="terrains to render (default: all four)",
+    )
     p_br.add_argument("--frames", type=int, default=300, help="frames per terrain")
     p_br.set_defaults(func=cmd_bench_render)
     p_bv = bench_sub.add_parser("vo", help="VO speed and memory on one core")
     p_bv.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
     add_sitl_flags(p_bv)
-    p_bv.add_argument("--no-progress", action="store_true")
+    p_bv.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_bv.set_defaults(func=cmd_bench_vo)
     p_ba = bench_sub.add_parser("attitude", help="roll/pitch cost per range update, one core")
     add_sitl_flags(p_ba)
-    p_ba.add_argument("--no-progress", action="store_true")
+    p_ba.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_ba.set_defaults(func=cmd_bench_attitude)
     p_bd = bench_sub.add_parser("dpose", help="d-Pose cost per frame, one core")
     add_sitl_flags(p_bd)
@@ -181,6 +186,13 @@ def add_bench(sub: Any) -> None:
         "soak", help="the service process against the SITL for a long flight: memory, drops"
     )
     p_bs.add_argument("--minutes", type=float, default=30.0, help="flight length [min]")
-    p_bs.add_argument("--config", type=Path, default=Path("config/sitl.toml"))
-    p_bs.add_argument("--out", type=Path, default=Path("out/soak"))
+    p_bs.add_argument(
+        "--config",
+        type=Path,
+        default=Path("config/sitl.toml"),
+        help="the service's config (default config/sitl.toml)",
+    )
+    p_bs.add_argument(
+        "--out", type=Path, default=Path("out/soak"), help="output folder (default out/soak)"
+    )
     p_bs.set_defaults(func=cmd_bench_soak)

@@ -255,14 +255,18 @@ def add_parser(sub: Any) -> None:
     p_sb.add_argument("--out", type=Path, required=True, help="folder to write")
     p_sb.add_argument("--config", type=Path, help="camera from this config (default built-in)")
     p_sb.add_argument("--views", type=int, default=15, help="number of views (default 15)")
-    p_sb.add_argument("--seed", type=int, default=1)
+    p_sb.add_argument(
+        "--seed", type=int, default=1, help="seed of the board poses and image noise (default 1)"
+    )
     p_sb.set_defaults(func=cmd_sim_board)
 
     p_sl = cal.add_parser("sim-lasers", help="synthetic laser-check frames over a flat floor")
     p_sl.add_argument("--out", type=Path, required=True, help="folder to write")
     p_sl.add_argument("--config", type=Path, help="vehicle config (default built-in)")
     p_sl.add_argument("--frames", type=int, default=12, help="number of frames (default 12)")
-    p_sl.add_argument("--seed", type=int, default=1)
+    p_sl.add_argument(
+        "--seed", type=int, default=1, help="seed of the simulated frames (default 1)"
+    )
     p_sl.add_argument(
         "--tilt-sensor",
         type=_tilt,

@@ -1,24 +1,48 @@
 """What the command modules share: exit codes, the config with the SITL flags' overrides, the
-SITL flags themselves, run names, output folders, progress bars and option-dataclass flags."""
+SITL flags themselves, run names, output folders, progress bars and option-dataclass flags.
+
+Light on purpose (``companion --help`` and ``companion status`` import it): the config (NumPy)
+and tqdm are imported by the functions that use them."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import signal
 import sys
 import typing
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from tqdm import tqdm
+if TYPE_CHECKING:
+    from companion.config import Config, SitlConfig
 
-from companion.config import Config, SitlConfig, dpose_rangefinders, from_dict, load_config
+# Exit codes of every command (docs/service.md, "Exit codes"; `companion --help` lists them)
+EXIT_OK = 0
+EXIT_PROBLEMS = 1  # problems found (px4 check, calibrate lasers), or the command failed
+EXIT_USAGE = 2  # bad arguments or a bad configuration (the message names the flag or key)
+EXIT_UNREACHABLE = 3  # no service on the status socket / no autopilot on the link
+EXIT_INTERRUPTED = 130  # SIGINT (128 + 2)
+EXIT_BROKEN_PIPE = 141  # stdout closed by the reader (`companion config | head`): 128 + SIGPIPE
+EXIT_ERROR, EXIT_CONFIG, EXIT_NOT_RUNNING = EXIT_PROBLEMS, EXIT_USAGE, EXIT_UNREACHABLE
+EXIT_CODES: tuple[tuple[int, str], ...] = (
+    (EXIT_OK, "ok"),
+    (EXIT_PROBLEMS, "problems found (px4 check, calibrate lasers) or the command failed"),
+    (EXIT_USAGE, "bad arguments or configuration (the message names the flag or key)"),
+    (EXIT_UNREACHABLE, "no service answers on the status socket, or no autopilot on the link"),
+    (EXIT_INTERRUPTED, "interrupted (SIGINT)"),
+    (EXIT_BROKEN_PIPE, "the reader closed stdout (as a program killed by SIGPIPE)"),
+)
 
-EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
-EXIT_NOT_RUNNING = 3  # as `systemctl status` for a unit that is not active
+
+def json_error(message: str, exit_code: int, kind: str, **extra: Any) -> str:
+    """The one-line JSON object a command given ``--json`` prints instead of a text error:
+    ``{"error": message, "exit_code": n, "kind": kind, ...extra}``."""
+    return json.dumps({"error": message, "exit_code": exit_code, "kind": kind, **extra})
+
 
 DPOSE_ARM_S = 1.0  # d-Pose runs: the marks are painted (and d-Pose armed) at this time [s]
 
@@ -48,12 +72,16 @@ def sitl_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def load(args: argparse.Namespace) -> Config:
     """The config of ``--config`` (default: the built-in SITL one) with the SITL flags."""
+    from companion.config import load_config
+
     return load_config(getattr(args, "config", None), sitl_overrides(args))
 
 
 def dpose_config(args: argparse.Namespace) -> Config:
     """The SITL config of a d-Pose run: the four d-Pose lasers, marks painted at DPOSE_ARM_S,
     the spiral flight unless another trajectory is asked for."""
+    from companion.config import dpose_rangefinders, load_config
+
     overrides = sitl_overrides(args)
     overrides.setdefault("sitl", {}).setdefault("trajectory", "spiral")
     cfg = load_config(getattr(args, "config", None), overrides)
@@ -68,14 +96,26 @@ def dpose_config(args: argparse.Namespace) -> Config:
 def add_sitl_flags(p: argparse.ArgumentParser) -> None:
     """The flags that choose a simulated flight (--terrain, --seconds, ...)."""
     p.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
-    p.add_argument("--terrain", choices=["flat", "hills", "urban", "slope"])
-    p.add_argument("--trajectory", choices=["hover", "circle", "lawnmower", "figure8", "climb"])
+    p.add_argument(
+        "--terrain",
+        choices=["flat", "hills", "urban", "slope"],
+        help="simulated ground (default hills)",
+    )
+    p.add_argument(
+        "--trajectory",
+        choices=["hover", "circle", "lawnmower", "figure8", "climb"],
+        help="flight path (default lawnmower)",
+    )
     p.add_argument("--seconds", type=float, help="flight duration [s]")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=int, help="seed of terrain, noise and faults (default 1)")
     p.add_argument("--altitude", type=float, help="height above ground [m] (0 = terrain default)")
     p.add_argument("--speed", type=float, help="cruise speed [m/s]")
     p.add_argument("--takeoff-landing", action="store_true", help="take off and land")
-    p.add_argument("--laser-marks", choices=["off", "live", "painted"])
+    p.add_argument(
+        "--laser-marks",
+        choices=["off", "live", "painted"],
+        help="laser dots in the image: off, live (move) or painted (stay); default live",
+    )
 
 
 def run_name(s: SitlConfig) -> str:
@@ -93,6 +133,8 @@ def out_dir(args: argparse.Namespace, default: Path) -> Path:
 @contextmanager
 def progress(total: int, desc: str, enabled: bool) -> Iterator[Iterator[None]]:
     """A progress bar on stderr over ``total`` frames; yields the ticks to advance it."""
+    from tqdm import tqdm
+
     bar = tqdm(
         total=total,
         unit="frame",
@@ -137,6 +179,8 @@ def add_option_flags(p: argparse.ArgumentParser, cls: type[Any]) -> None:
 
 def options(args: argparse.Namespace, cls: type[T]) -> T:
     """The options dataclass from the flags the user gave (bounds checked: ConfigError)."""
+    from companion.config import from_dict
+
     assert dataclasses.is_dataclass(cls)
     given = {
         f.name: getattr(args, f.name)

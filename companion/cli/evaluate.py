@@ -220,7 +220,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 def add_report(sub: Any) -> None:
     """``companion report``."""
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
-    p_rep.add_argument("dirs", nargs="+", type=Path)
+    p_rep.add_argument(
+        "dirs", nargs="+", type=Path, help="`eval --methods all` folders (TERRAIN-TRAJECTORY-SEED)"
+    )
     p_rep.set_defaults(func=cmd_report)
 
 
@@ -260,5 +262,5 @@ def add_eval(sub: Any) -> None:
     p.add_argument(
         "--phases", action="store_true", help="published poses by flight phase (SITL; issue 18)"
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)

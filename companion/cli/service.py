@@ -3,24 +3,24 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import logging
-import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, load
-from companion.config import Config, describe
-from companion.redact import redact_url
-from drivers.status import read_status, status_path
+from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, json_error, load
+from drivers.status import find_status_socket, read_status
+
+if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/test_cli.py)
+    from companion.config import Config
 
 
 def cmd_config(args: argparse.Namespace) -> int:
     """Print every option with its value and help, after the checks `run` makes before it
     starts (files, URLs, the status socket path): a file that passes here starts there."""
+    from companion.config import describe
     from companion.service import preflight
 
     cfg = load(args)
@@ -34,6 +34,11 @@ def cmd_config(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     """The service: camera + rangefinders + autopilot link -> pose messages, until SIGTERM /
     SIGINT or --duration."""
+    import asyncio
+
+    from companion.config import describe
+    from companion.redact import redact_url
+
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -64,6 +69,9 @@ async def _serve(
     cfg: Config, duration: float | None, report: Path | str | None, log: logging.Logger
 ) -> dict[str, Any]:
     """Run the service until stopped; write the exit report; return its summary."""
+    import asyncio
+    import signal
+
     from companion.service.app import Service
 
     service = Service(cfg)  # a bad URL raises ConfigError here, before anything starts
@@ -82,12 +90,18 @@ async def _serve(
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    """Show the running service's state (exit 3 when it is not running)."""
-    path = Path(args.socket) if args.socket else status_path(load(args).service.status_socket)
+    """Show the running service's state (exit 3 when it is not running). The socket: --socket,
+    else service.status_socket of --config, else where the service runs (drivers.status:
+    /run/companion/status.sock under systemd, else the per-user path)."""
+    configured = str(args.socket or "") or (load(args).service.status_socket if args.config else "")
+    path = find_status_socket(configured)
     while True:
         st = read_status(path)
         if st is None:
-            print(f"companion is not running (no service on {path})")
+            text = f"companion is not running (no service on {path})"
+            if args.json:
+                text = json_error(text, EXIT_NOT_RUNNING, "not running", socket=str(path))
+            print(text, flush=True)
             return EXIT_NOT_RUNNING
         text = json.dumps(st, indent=2) if args.json else format_status(st)
         if args.watch:
@@ -204,7 +218,7 @@ def format_status(st: dict[str, Any]) -> str:
 def add_config(sub: Any) -> None:
     """``companion config``."""
     p_cfg = sub.add_parser("config", help="print the effective configuration")
-    p_cfg.add_argument("--config", type=Path)
+    p_cfg.add_argument("--config", type=Path, help="TOML config file (default: built-in SITL)")
     p_cfg.set_defaults(func=cmd_config)
 
 
@@ -232,7 +246,11 @@ def add_status(sub: Any) -> None:
     """``companion status``."""
     p_status = sub.add_parser("status", help="the running service's state (exit 3 if none)")
     p_status.add_argument("--config", type=Path, help="TOML config (for service.status_socket)")
-    p_status.add_argument("--socket", type=Path, help="status socket path")
-    p_status.add_argument("--json", action="store_true", help="JSON for machines")
+    p_status.add_argument(
+        "--socket",
+        type=Path,
+        help="status socket path (default: /run/companion/status.sock if there, else per user)",
+    )
+    p_status.add_argument("--json", action="store_true", help="JSON for machines (errors too)")
     p_status.add_argument("--watch", action="store_true", help="refresh every second")
     p_status.set_defaults(func=cmd_status)

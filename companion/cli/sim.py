@@ -231,7 +231,9 @@ def add_sitl(sub: Any) -> None:
     p_rec = sitl_sub.add_parser("record", help="record a dataset")
     add_sitl_flags(p_rec)
     p_rec.add_argument("--out", type=Path, required=True, help="output folder")
-    p_rec.add_argument("--image-format", choices=["jpg", "png"], default="jpg")
+    p_rec.add_argument(
+        "--image-format", choices=["jpg", "png"], default="jpg", help="frame files (default jpg)"
+    )
     p_rec.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     p_rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_rec.set_defaults(func=cmd_sitl_record)
@@ -254,7 +256,12 @@ def add_sitl(sub: Any) -> None:
     p_srun.set_defaults(func=cmd_sitl_run)
     p_px4 = sitl_sub.add_parser("px4", help="fly the real PX4 SITL (SIH) on our estimate")
     p_px4.add_argument("--px4", help="PX4 SITL launcher (else $PX4_SITL, ../shared/px4-sitl)")
-    p_px4.add_argument("--mission", choices=["square", "lawnmower", "hover"], default="square")
+    p_px4.add_argument(
+        "--mission",
+        choices=["square", "lawnmower", "hover"],
+        default="square",
+        help="what PX4 flies (default square)",
+    )
     p_px4.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
     p_px4.add_argument("--instance", type=int, default=0, help="PX4 instance (ports shift by it)")
     p_px4.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
@@ -265,8 +272,8 @@ def add_sitl(sub: Any) -> None:
     p_px4.add_argument("--out", type=Path, required=True, help="output folder")
     p_px4.set_defaults(func=cmd_sitl_px4)
     p_sheet = sitl_sub.add_parser("sheet", help="write a PNG contact sheet of a dataset")
-    p_sheet.add_argument("dataset", type=Path)
-    p_sheet.add_argument("--out", type=Path)
+    p_sheet.add_argument("dataset", type=Path, help="dataset folder")
+    p_sheet.add_argument("--out", type=Path, help="PNG file (default: in the dataset folder)")
     p_sheet.set_defaults(func=cmd_sitl_sheet)
 
 
