@@ -65,6 +65,28 @@ class StatustextOptions:
 
 
 @dataclass(frozen=True, slots=True)
+class ArduPilotOptions:
+    """What the service adds for ArduPilot (told apart from PX4 by its HEARTBEAT): the EKF
+    origin EKF3 needs without GPS (drivers/ardupilot.py)."""
+
+    set_origin: bool = opt(
+        False,
+        "send SET_GPS_GLOBAL_ORIGIN (every second until GLOBAL_POSITION_INT shows the EKF holds "
+        "it): needed without GPS, where EKF3 has no origin of its own",
+    )
+    origin_lat_deg: float = opt(0.0, "EKF origin latitude [deg, WGS-84]", ge=-90, le=90)
+    origin_lon_deg: float = opt(0.0, "EKF origin longitude [deg, WGS-84]", ge=-180, le=180)
+    origin_alt_m: float = opt(0.0, "EKF origin altitude [m AMSL]", ge=-1000, le=10000)
+
+    def __post_init__(self) -> None:
+        if self.set_origin and self.origin_lat_deg == 0.0 and self.origin_lon_deg == 0.0:
+            raise ConfigError(
+                "origin_lat_deg, origin_lon_deg: set_origin needs the site's position (0, 0 is "
+                "what GLOBAL_POSITION_INT reports without an origin)"
+            )
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceOptions:
     """Links, rates and what is sent to the autopilot."""
 
@@ -103,6 +125,7 @@ class ServiceOptions:
     )
     mqtt: MqttOptions = opt(MqttOptions(), "MQTT fleet telemetry")
     signing: SigningOptions = opt(SigningOptions(), "MAVLink 2 signing of the autopilot link")
+    ardupilot: ArduPilotOptions = opt(ArduPilotOptions(), "ArduPilot only: the EKF origin")
     statustext: StatustextOptions = opt(StatustextOptions(), "STATUSTEXT to the ground station")
     status_socket: str = opt(
         "",
