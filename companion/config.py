@@ -63,11 +63,25 @@ class CameraConfig:
     dist: tuple[float, float, float, float, float] = opt(
         (-0.12, 0.05, 0.0005, -0.0003, 0.0), "distortion k1 k2 p1 p2 k3 (OpenCV)"
     )
-    rate_hz: float = opt(30.0, "frame rate [Hz]", gt=0, le=1000)
+    rate_hz: float = opt(
+        30.0, "frame rate [Hz] (asked of V4L2 and picamera2 cameras)", gt=0, le=1000
+    )
+    fourcc: str = opt(
+        "",
+        "V4L2 pixel format asked of a /dev/video camera, 4 characters (MJPG, YUYV); '' = its own",
+    )
+    exposure_us: float = opt(
+        0.0, "fixed exposure time [us] (V4L2, picamera2); 0 = the camera's automatic", ge=0, le=1e6
+    )
     mount: MountConfig = opt(
         MountConfig(xyz_m=(0.05, 0.0, 0.08), rpy_deg=(0.0, 0.0, 90.0)),
         "T_body_cam: camera frame in the body frame",
     )
+
+    def __post_init__(self) -> None:
+        ok = len(self.fourcc) == 4 and all(c.isascii() and c.isprintable() for c in self.fourcc)
+        if self.fourcc and not ok:
+            raise ConfigError(f"fourcc: 4 ASCII characters (MJPG, YUYV) or '', got {self.fourcc!r}")
 
     def model(self) -> CameraModel:
         """The camera model of these intrinsics."""
