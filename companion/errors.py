@@ -31,7 +31,7 @@ class UnreachableError(CompanionError):
     status socket. ``companion`` exits 3 for it (1 is for problems found)."""
 
 
-class AutopilotUnreachable(Px4Error, UnreachableError):
+class AutopilotUnreachableError(Px4Error, UnreachableError):
     """No autopilot heartbeat on the link (or the link cannot be opened)."""
 
 

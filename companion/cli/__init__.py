@@ -161,6 +161,17 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         raise UsageError(self, message)
 
+    def _print_message(self, message: str, file: Any = None) -> None:
+        """As argparse's, but a closed stdout reaches :func:`main` (exit 141) instead of being
+        ignored (which made ``--help`` exit 0 or 141 depending on the stream's buffering)."""
+        if message:
+            try:
+                (file or sys.stderr).write(message)
+            except BrokenPipeError:
+                raise
+            except (AttributeError, OSError):
+                pass
+
 
 class _CommandParser(_Parser):
     """A subcommand's parser: empty until used (parsing or its --help), then filled by its

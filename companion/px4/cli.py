@@ -3,8 +3,8 @@
 Exit codes (docs/service.md, "Exit codes"), as a checker's: 0 everything as needed (check: and
 our estimate is fused), 1 problems found (or a write that did not read back, or the vehicle
 armed), 2 bad arguments or configuration (``companion.cli`` maps ConfigError to 2), 3 no
-autopilot answers on the link (AutopilotUnreachable: no heartbeat, the link cannot be opened),
-so that a script can tell "PX4 would not fuse us" from "nothing is there".
+autopilot answers on the link (AutopilotUnreachableError: no heartbeat, the link cannot be
+opened), so that a script can tell "PX4 would not fuse us" from "nothing is there".
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 from companion.errors import ConfigError
 from companion.px4.options import Px4Options
 
-EXIT_OK, EXIT_PROBLEMS = 0, 1  # and 3 through companion.cli: AutopilotUnreachable
+EXIT_OK, EXIT_PROBLEMS = 0, 1  # and 3 through companion.cli: AutopilotUnreachableError
 CHECK_ONLY = {"watch_s", "shell"}
 CONFIGURE_ONLY = {"yes", "no_gnss"}
 

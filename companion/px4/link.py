@@ -19,7 +19,7 @@ import time
 from collections.abc import AsyncGenerator
 from typing import Any, TypeVar
 
-from companion.errors import AutopilotUnreachable, Px4Error
+from companion.errors import AutopilotUnreachableError, Px4Error
 from companion.px4.rules import Param, Target
 from companion.px4.shell import clean
 from drivers.mavlink import LinkUrl
@@ -78,13 +78,13 @@ class Px4Link:
             await self._mavsdk.add_any_connection(self.url)
         except Exception as e:
             await self.__aexit__()
-            raise AutopilotUnreachable(
+            raise AutopilotUnreachableError(
                 f"cannot open {self.url}: {e} (is the port in use?)"
             ) from None
         self.system = await self._mavsdk.first_autopilot(timeout_s=self.timeout_s)
         if self.system is None:
             await self.__aexit__()
-            raise AutopilotUnreachable(
+            raise AutopilotUnreachableError(
                 f"no autopilot heartbeat on {self.url} within {self.timeout_s:g} s "
                 "(wrong port or baud rate, or the autopilot is off)"
             )
