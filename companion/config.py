@@ -251,7 +251,9 @@ class RecordOptions:
     image_format: RecordImageFormat = opt(
         "png", "png (lossless: the replay is exact) or jpg (about 5x smaller, replay approximate)"
     )
-    png_compression: int = opt(1, "PNG compression level (0 fastest .. 9 smallest)", ge=0, le=9)
+    png_compression: int = opt(
+        1, "PNG: 0 stored, 1 fast (Sub filter, Huffman only), 2..9 zlib (slower)", ge=0, le=9
+    )
     jpg_quality: int = opt(95, "JPEG quality", ge=50, le=100)
     queue_frames: int = opt(
         60, "frames waiting for the disk at most; a fuller queue stops the recording", ge=2
