@@ -4,6 +4,11 @@ Protocol: connect to the socket; the service writes one JSON object (UTF-8, one 
 closes. The socket file is created with mode 0660 (owner and group: the `companion` user and
 its operators) and removed on exit.
 
+Where: ``drivers.status.status_path`` (service.status_socket, else $RUNTIME_DIRECTORY/status.sock
+under systemd: ``/run/companion/status.sock`` for systemd/companion.service, else per user);
+clients find it with ``drivers.status.find_status_socket`` (that fixed path first, then the
+per-user one), so the two agree without flags (tests/test_cli.py).
+
 Both ends distrust the path (docs/security.md; the client side is ``drivers.status``):
 - the service only ever removes a file that is a socket owned by its own user (a stale one
   left by a crashed run); anything else at the path (a regular file, a directory, somebody
