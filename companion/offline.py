@@ -7,6 +7,7 @@ RangeSample / AttitudeSample, from a dataset folder or straight from the simulat
 
 from __future__ import annotations
 
+import logging
 import resource
 import time
 from collections.abc import Iterable, Iterator
@@ -25,6 +26,7 @@ from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSamp
 
 F64 = NDArray[np.float64]
 Event = CameraFrame | RangeSample | AttitudeSample
+log = logging.getLogger("companion.offline")
 
 
 @dataclass
@@ -34,7 +36,9 @@ class VoRun:
     time_us (F,), state (F,) VoState values, T_vo_cam (F, 4, 4) (NaN unless tracking),
     segment (F,) index of the VO map (it changes at every re-initialisation; -1 before the
     first), frame_ms (F,) time to each frame's pose [ms], total_ms (F,) including the keyframe
-    work done after it, keyframe (F,) flags.
+    work done after it, keyframe (F,) flags. poses: every pose the pipeline gave (the
+    published method's, as the service would send it); errors: frames on which the
+    pipeline raised (a replay skips them as the service did).
     """
 
     time_us: list[int] = field(default_factory=list)
@@ -45,6 +49,8 @@ class VoRun:
     total_ms: list[float] = field(default_factory=list)  # with the keyframe work after it
     scale_ms: list[float] = field(default_factory=list)
     keyframe: list[bool] = field(default_factory=list)
+    poses: list[PoseEstimate] = field(default_factory=list)
+    errors: int = 0
     peak_rss_mb: float = 0.0
     resets: int = 0
 
@@ -81,8 +87,13 @@ def run_vo(
     progress: Iterator[None] | None = None,
     camera: CameraModel | None = None,
     T_body_cam: F64 | None = None,
+    checked: bool = False,
 ) -> VoRun:
-    """Feed every event to a fresh Pipeline and record the VO output of every frame."""
+    """Feed every event to a fresh Pipeline and record the VO output of every frame.
+
+    ``checked``: the frames already passed the service's frame check (a recording of the
+    service): the replay then does what the service did, frame for frame: no second check,
+    and a frame on which the pipeline raises is logged, counted and skipped."""
     pipe = Pipeline(config, camera, T_body_cam)
     run = VoRun()
     for ev in events:
@@ -92,7 +103,16 @@ def run_vo(
             pipe.feed_range(ev)
         else:
             t0 = time.perf_counter()
-            pipe.feed_frame(ev)
+            try:
+                pose = pipe.feed_frame(ev, checked=checked)
+            except Exception:
+                if not checked:
+                    raise
+                log.exception("pipeline failed on frame %d (as in the service: skipped)", ev.seq)
+                run.errors += 1
+                continue
+            if pose is not None:
+                run.poses.append(pose)
             t1 = time.perf_counter()
             pipe.background_work()  # as the service does: after the pose is out
             run.frame_ms.append((t1 - t0) * 1e3)
@@ -157,17 +177,22 @@ class ScaleRun:
 def run_scale(
     config: Config,
     steps: Iterable[Any],
-    world: Any,
+    world: Any | None,
     progress: Iterator[None] | None = None,
     keep_points_at_s: float = 30.0,
     sensor_study: int = 0,
+    camera: CameraModel | None = None,
+    T_body_cam: F64 | None = None,
 ) -> ScaleRun:
-    """Run the Pipeline with every scale method over SITL steps (``Scenario.steps()``),
-    recording the truth: true positions and the ground-truth scale of every frame."""
+    """Run the Pipeline with every scale method over SITL steps (``Scenario.steps()``) or a
+    dataset's (``dataset_steps``), recording the truth: true positions (NaN without ground
+    truth) and the ground-truth scale of every frame, ray cast in ``world`` (NaN without
+    one: a dataset that declares no simulated world has no true scale). ``camera`` and
+    ``T_body_cam``: a dataset's own calibration (None: the config's)."""
     from companion.evaluation.scale import gt_scale
     from companion.geometry import se3
 
-    pipe = Pipeline(config, all_methods=True, sensor_study=sensor_study)
+    pipe = Pipeline(config, camera, T_body_cam, all_methods=True, sensor_study=sensor_study)
     names = list(pipe.methods)
     run = ScaleRun(names, scale={n: [] for n in names}, position={n: [] for n in names})
     nan3 = np.full(3, np.nan)
@@ -188,7 +213,7 @@ def run_scale(
             run.scale[n].append(est.scale if est is not None else float("nan"))
             run.position[n].append(pos if pos is not None and est is not None else nan3)
         s_true = float("nan")
-        if out is not None and tracking:
+        if out is not None and tracking and world is not None:
             f = out.features
             has = f.point_ids >= 0
             if has.any():

@@ -392,7 +392,7 @@ def _read_ours(path: Path) -> Dataset:
         fed = (empty if fed_r is None else fed_r, empty if fed_a is None else fed_a)
     last_us = int(times[-1]) if n else -1
     published = [
-        p for p in _read_published(path / "published.csv") if complete or p.time_us <= last_us
+        p for p in read_poses_csv(path / "published.csv") if complete or p.time_us <= last_us
     ]
     return Dataset(
         path,
@@ -418,8 +418,9 @@ def _read_ours(path: Path) -> Dataset:
     )
 
 
-def _read_published(path: Path) -> list[PublishedPose]:
-    """A recording's published.csv (no file: none)."""
+def read_poses_csv(path: Path) -> list[PublishedPose]:
+    """Poses in the published.csv layout (a recording's, or `eval`'s poses.csv); no file:
+    none. A torn last row (a killed writer) is left out."""
     return [
         PublishedPose(
             int(r["time_us"]),
@@ -524,6 +525,41 @@ def _num(v: float) -> str:
     return repr(float(v))
 
 
+def _pose_row(pose: PoseEstimate) -> list[Any]:
+    return [
+        pose.time_us,
+        *map(_num, pose.position_ned_m),
+        *map(_num, pose.quat_wxyz_ned_frd),
+        *map(_num, pose.velocity_ned_m_s),
+        pose.reset_counter,
+        pose.quality_pct,
+    ]
+
+
+def write_poses_csv(path: Path, poses: Sequence[PoseEstimate]) -> None:
+    """Poses in the published.csv layout, floats as their exact shortest text."""
+    with path.open("w") as fh:
+        fh.write(",".join(PUBLISHED_COLUMNS) + "\n")
+        for p in poses:
+            fh.write(",".join(str(v) for v in _pose_row(p)) + "\n")
+
+
+def _png_params(level: int) -> list[int]:
+    """cv2.imencode parameters of a PNG compression level: 0 stored; 1 the Sub filter with
+    Huffman coding only (a camera image with sensor noise: 83 % of raw at a third of zlib
+    level 1's time, docs/BENCHMARKS.md); 2..9 zlib's levels with adaptive filters."""
+    if level == 1:
+        return [
+            cv2.IMWRITE_PNG_COMPRESSION,
+            1,
+            cv2.IMWRITE_PNG_STRATEGY,
+            cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+            cv2.IMWRITE_PNG_FILTER,
+            cv2.IMWRITE_PNG_FILTER_SUB,
+        ]
+    return [cv2.IMWRITE_PNG_COMPRESSION, level]
+
+
 class DatasetWriter:
     """Our format written frame by frame, append-only (the flight recorder's writer).
 
@@ -555,7 +591,7 @@ class DatasetWriter:
         self.path = path
         self.image_format = image_format
         self._encode_params = (
-            [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
+            _png_params(png_compression)
             if image_format == "png"
             else [cv2.IMWRITE_JPEG_QUALITY, jpg_quality]
         )
@@ -668,17 +704,7 @@ class DatasetWriter:
 
     def write_pose(self, pose: PoseEstimate) -> None:
         """Append a pose the service sent (published.csv)."""
-        self._row(
-            "published.csv",
-            [
-                pose.time_us,
-                *map(_num, pose.position_ned_m),
-                *map(_num, pose.quat_wxyz_ned_frd),
-                *map(_num, pose.velocity_ned_m_s),
-                pose.reset_counter,
-                pose.quality_pct,
-            ],
-        )
+        self._row("published.csv", _pose_row(pose))
         self._files["published.csv"].flush()
         self.poses += 1
 

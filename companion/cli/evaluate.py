@@ -17,11 +17,12 @@ import numpy as np
 
 from companion.cli import sim
 from companion.cli.common import EXIT_OK, add_sitl_flags, load, out_dir, progress, run_name
+from companion.cli.evaluate_dataset import dataset_config, eval_scale_no_world, write_replay
 from companion.cli.evaluate_dpose import eval_dpose
-from companion.config import STUDY_RANGEFINDERS, Config, load_config, triangle_rangefinders
+from companion.config import STUDY_RANGEFINDERS, Config, triangle_rangefinders
 from companion.errors import CompanionError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
-from drivers.dataset import dataset_steps, open_dataset, write_tum
+from drivers.dataset import Dataset, dataset_steps, open_dataset, write_poses_csv, write_tum
 
 if TYPE_CHECKING:
     from companion.cli.sim import Flight
@@ -55,6 +56,7 @@ class VoInput:
     camera: Any = None  # a dataset's camera model and T_body_cam (None: the config's)
     T_body_cam: Any = None
     gt_at: Callable[[int], Any] | None = None  # true body pose at a time [us], if known
+    dataset: Dataset | None = None  # None: a simulated flight
 
 
 def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput:
@@ -62,15 +64,15 @@ def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput
     SITL flags (named by ``name``)."""
     if args.dataset is not None:
         ds = open_dataset(args.dataset)
-        has_gt = len(ds.gt_times_us) > 0
         return VoInput(
-            ds.config or load_config(args.config),
+            dataset_config(ds, args.config),  # its calibration and sensors, none invented
             ds.path.name,
             len(ds),
-            ds.events(),
+            ds.events(),  # a recording's: in the order the service fed them
             ds.camera,
             ds.T_body_cam,
-            ds.gt_pose_at if has_gt else None,
+            ds.gt_pose_at if ds.has_ground_truth else None,
+            ds,
         )
     cfg = load(args)  # straight from the simulator, no dataset on disk
     flight = sim.scenario(cfg)
@@ -80,18 +82,33 @@ def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput
 
 
 def eval_vo(args: argparse.Namespace) -> int:
-    """The VO alone: vo.tum, and with ground truth groundtruth.tum, metrics.json, report.md."""
+    """The VO alone: vo.tum, and with ground truth groundtruth.tum, metrics.json, report.md;
+    the poses the pipeline gives (poses.tum, poses.csv: exact) and, for a flight recording,
+    their difference from the ones the service sent (replay.json)."""
     from companion.offline import run_vo
     from companion.reporting import write_vo_report
 
     inp = vo_input(args, lambda cfg: run_name(cfg.sitl))
     out = out_dir(args, Path("out") / "eval" / inp.name)
     with progress(inp.total, f"eval {inp.name}", not args.no_progress) as ticks:
-        run = run_vo(inp.cfg, inp.events, ticks, camera=inp.camera, T_body_cam=inp.T_body_cam)
+        run = run_vo(
+            inp.cfg,
+            inp.events,
+            ticks,
+            camera=inp.camera,
+            T_body_cam=inp.T_body_cam,
+            checked=inp.dataset is not None and inp.dataset.frames_checked,
+        )
     times = np.array(run.time_us)
     track = run.tracking_mask()
     T_est = np.array(run.T_vo_cam)
     write_tum(out / "vo.tum", times[track] * 1e-6, T_est[track])
+    if run.poses:
+        write_poses_csv(out / "poses.csv", run.poses)
+        write_tum(out / "poses.tum", *_pose_arrays(run.poses))
+    replay = write_replay(inp.dataset, run.poses, out) if inp.dataset is not None else None
+    if replay is not None:
+        print(replay)
     if inp.gt_at is not None:  # the camera's true trajectory, to compare with the VO's poses
         T_body_cam = inp.cfg.camera.T_body_cam() if inp.T_body_cam is None else inp.T_body_cam
         gt = np.array([inp.gt_at(int(t)) @ T_body_cam for t in times])
@@ -101,12 +118,25 @@ def eval_vo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _pose_arrays(poses: list[Any]) -> tuple[Any, Any]:
+    """Times [s] (N,) and T_world_body (N, 4, 4) of PoseEstimates."""
+    from companion.geometry import se3
+
+    times = np.array([p.time_us for p in poses]) * 1e-6
+    return times, np.array([se3.from_quat(p.quat_wxyz_ned_frd, p.position_ned_m) for p in poses])
+
+
 # ------------------------------------------------------------------------------ scale
 def eval_scale(args: argparse.Namespace) -> int:
-    """Every scale method on one SITL flight: tables, TUM trajectories and plots."""
+    """Every scale method on one SITL flight or a dataset: tables, TUM trajectories, plots.
+    A dataset without a simulated world: metric and Sim(3) ATE only (evaluate_dataset)."""
     from companion.offline import run_scale
     from companion.reporting import write_plots, write_tables, write_trajectories
 
+    if args.dataset is not None:
+        ds = open_dataset(args.dataset)
+        if not ds.has_world:
+            return eval_scale_no_world(args, ds, args.config)
     study = 6 if args.sensor_study else 0
     cfg, name, world, steps, total = _scale_input(args, study)
     out = out_dir(args, Path("out") / "eval" / name)
@@ -127,10 +157,7 @@ def _scale_input(args: argparse.Namespace, study: int) -> tuple[Config, str, Any
     if args.dataset is not None:
         ds = open_dataset(args.dataset)
         if ds.sitl is None or ds.config is None or len(ds.gt_times_us) == 0:
-            raise CompanionError(
-                f"{ds.path}: --methods all needs a simulated recording (the ground-truth "
-                "scale ray casts its world)"
-            )
+            raise CompanionError(f"{ds.path}: a simulated world needs its ground truth")
         if study and len(ds.config.rangefinders) < study:
             raise CompanionError("--sensor-study needs a recording with six distance sensors")
         return ds.config, ds.path.name, sim.recorded_world(ds), dataset_steps(ds), len(ds)

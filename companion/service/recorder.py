@@ -64,7 +64,9 @@ class Recorder:
         self.state = "recording" if self.enabled else "off"
         self.reason = ""
         self.frames_not_recorded = 0  # frames the pipeline got after the recording stopped
-        self._queue: queue.Queue[Item | None] = queue.Queue(maxsize=options.queue_frames)
+        # unbounded, but at most options.queue_frames frames in it (poses are small)
+        self._queue: queue.Queue[Item | None] = queue.Queue()
+        self._queued_frames = 0
         self._lock = threading.Lock()
         self._writer: DatasetWriter | None = None
         self._thread: threading.Thread | None = None
@@ -105,11 +107,10 @@ class Recorder:
         to its last complete frame)."""
         if self._thread is None:
             return
-        try:
-            self._queue.put(None, timeout=CLOSE_TIMEOUT_S)
-        except queue.Full:
-            log.warning("recorder: the disk did not take the queued frames at exit")
+        self._queue.put(None)
         self._thread.join(CLOSE_TIMEOUT_S)
+        if self._thread.is_alive():
+            log.warning("recorder: the disk did not take the queued frames at exit")
         self._thread = None
         with self._lock:
             if self.state == "recording":
@@ -145,23 +146,25 @@ class Recorder:
         order it is fed them). Never blocks; a full queue stops the recording."""
         if self.state != "recording":
             if self.enabled:
-                self.frames_not_recorded += 1
+                self._not_recorded(1)
             return
-        self._put((frame, list(ranges), list(attitudes)))
+        with self._lock:
+            full = self._queued_frames >= self.options.queue_frames
+            if not full:
+                self._queued_frames += 1
+        if full:
+            self._not_recorded(1)
+            self._stop(
+                f"the disk is slower than the camera ({self.options.queue_frames} frames "
+                "waiting); the flight output is not affected"
+            )
+            return
+        self._queue.put((frame, list(ranges), list(attitudes)))
 
     def pose(self, pose: PoseEstimate) -> None:
         """A pose the service sent to the autopilot (the wire's reset_counter)."""
         if self.state == "recording":
-            self._put(pose)
-
-    def _put(self, item: Item) -> None:
-        try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self._stop(
-                f"the disk is slower than the camera ({self._queue.maxsize} frames waiting); "
-                "the flight output is not affected"
-            )
+            self._queue.put(pose)
 
     # ------------------------------------------------------------------ the writer thread
     def _run(self) -> None:
@@ -180,6 +183,9 @@ class Recorder:
                     continue
                 if item is None:
                     break
+                if isinstance(item, tuple):
+                    with self._lock:
+                        self._queued_frames -= 1
                 if isinstance(item, PoseEstimate):
                     writer.write_pose(item)
                     self._poses += 1
@@ -198,9 +204,15 @@ class Recorder:
         self._bytes = writer.bytes_written
         while True:  # what was queued after the stop is not written: let it go
             try:
-                self._queue.get_nowait()
+                item = self._queue.get_nowait()
             except queue.Empty:
                 break
+            if isinstance(item, tuple):
+                self._not_recorded(1)
+
+    def _not_recorded(self, frames: int) -> None:
+        with self._lock:
+            self.frames_not_recorded += frames
 
     def _write_frame(
         self,
@@ -215,10 +227,12 @@ class Recorder:
         o = self.options
         if writer.bytes_written + need > o.max_mb * 1e6:
             self._stop(f"disk budget of {o.max_mb:g} MB reached (record.max_mb)")
+            self._not_recorded(1)
             return False
         free = shutil.disk_usage(writer.path).free
         if free - need < o.min_free_mb * 1e6:
             self._stop(f"less than {o.min_free_mb:g} MB free on the disk (record.min_free_mb)")
+            self._not_recorded(1)
             return False
         writer.write_frame(frame, encoded, ranges, attitudes)
         self._frames += 1
@@ -249,7 +263,7 @@ class Recorder:
             "poses": self._poses,
             "mb": self._bytes / 1e6,
             "budget_mb": self.options.max_mb,
-            "queued": self._queue.qsize(),
+            "queued_frames": self._queued_frames,
             "reason": self.reason,
             "frames_not_recorded": self.frames_not_recorded,
         }
