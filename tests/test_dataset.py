@@ -193,3 +193,39 @@ def test_cli_record_refuses_to_overwrite_and_writes_sheet(
     assert sheet.shape == (720, 1280, 3)
     path = contact_sheet(open_dataset(recorded), tmp_path / "s.png", n=8, cols=4)
     assert cv2.imread(str(path)).shape == (480, 1280, 3)
+
+
+def test_a_dataset_declares_its_sensors_and_its_world(recorded: Path, tmp_path: Path) -> None:
+    """What a dataset does not declare, it does not have: no [sitl] table, no world (not the
+    default hills); no [[rangefinders]], no sensors (not the four built-in ones); a range
+    from an undeclared sensor is refused by name. EuRoC declares none."""
+    import shutil
+    import tomllib
+
+    import tomli_w
+
+    from companion.cli.evaluate_dataset import dataset_config
+
+    sim = open_dataset(recorded)
+    assert sim.has_world and sim.sitl is not None and sim.sitl.seed == 4
+    real = tmp_path / "real"
+    shutil.copytree(recorded, real)
+    meta = tomllib.loads((real / "meta.toml").read_text())
+    del meta["sitl"]
+    (real / "meta.toml").write_text(tomli_w.dumps(meta))
+    ds = open_dataset(real)
+    assert ds.sitl is None and not ds.has_world and len(ds.rangefinders) == 4
+    calib = tomllib.loads((real / "calibration.toml").read_text())
+    del calib["rangefinders"]
+    (real / "calibration.toml").write_text(tomli_w.dumps(calib))
+    with pytest.raises(DatasetError, match=r"sensor ids \[0, 1, 2, 3\] .* does not declare"):
+        open_dataset(real)
+    (real / "ranges.csv").unlink()
+    ds = open_dataset(real)
+    assert ds.rangefinders == [] and ds.ranges == [] and len(ds.attitudes) > 0
+    assert ds.config is not None and ds.config.rangefinders == ()
+    write_euroc(recorded, tmp_path / "euroc")
+    euroc = open_dataset(tmp_path / "euroc")
+    assert euroc.sitl is None and euroc.config is None
+    cfg = dataset_config(euroc, None)
+    assert cfg.rangefinders == () and cfg.attitude.sensor_ids == ()

@@ -158,3 +158,119 @@ def test_eval_phases_on_a_take_off_from_the_ground(tmp_path, capsys) -> None:
     assert s["phases"]["ground"]["frames"] > 30 and s["phases"]["ground"]["max_m"] <= 0.05
     assert s["phases"]["climb"]["frames"] > 30 and s["phases"]["landed"]["frames"] > 0
     assert "| ground |" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ datasets without a world
+def as_converted_recording(sim: Path, out: Path, ranges: bool = True) -> Path:
+    """The simulated recording ``sim`` as a real clip converted to our format would be: no
+    [sitl] table (no world), no true distances; without ``ranges`` no distance sensors
+    either (no ranges.csv, none declared in calibration.toml)."""
+    import csv
+    import shutil
+    import tomllib
+
+    import tomli_w
+
+    shutil.copytree(sim, out)
+    meta = tomllib.loads((out / "meta.toml").read_text())
+    del meta["sitl"]
+    (out / "meta.toml").write_text(tomli_w.dumps({**meta, "source": "converted"}))
+    with (out / "ranges.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    if ranges:
+        with (out / "ranges.csv").open("w", newline="") as fh:
+            w = csv.DictWriter(fh, [k for k in rows[0] if k != "true_distance_m"])
+            w.writeheader()
+            w.writerows({k: v for k, v in r.items() if k != "true_distance_m"} for r in rows)
+    else:
+        (out / "ranges.csv").unlink()
+        calib = tomllib.loads((out / "calibration.toml").read_text())
+        del calib["rangefinders"]
+        calib["matrices"] = {"T_body_cam": calib["matrices"]["T_body_cam"]}
+        (out / "calibration.toml").write_text(tomli_w.dumps(calib))
+    return out
+
+
+EVAL_WITHOUT_SITL = """
+import json, sys
+from companion.cli import main
+code = main(sys.argv[1:])
+print(json.dumps({"code": code, "sitl": sorted(
+    m for m in sys.modules if m == "sitl" or m.startswith("sitl."))}))
+"""
+
+
+def eval_in_fresh_process(*args: str) -> dict:
+    """`companion eval ARGS` in a new interpreter; its exit code and the sitl modules loaded."""
+    proc = subprocess.run(
+        [sys.executable, "-c", EVAL_WITHOUT_SITL, "eval", *args, "--no-progress"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    result["stdout"] = proc.stdout
+    return result
+
+
+def test_eval_without_a_world_never_touches_the_simulator(evaluated: Path) -> None:
+    """A dataset that declares no simulated world (a converted real clip): every scale method
+    side by side by metric (SE3) and Sim(3) ATE against its ground truth; the figures that
+    need a true scale are unavailable, never computed from a default world; `sitl` is never
+    imported."""
+    real = as_converted_recording(evaluated.parent / "urban", evaluated.parent / "converted")
+    from drivers.dataset import open_dataset
+
+    ds = open_dataset(real)
+    assert ds.sitl is None and not ds.has_world and ds.has_ground_truth
+    assert np.isnan(ds.true_range_m).all() and len(ds.rangefinders) == 4
+    out = evaluated.parent / "converted-all"
+    result = eval_in_fresh_process(str(real), "--methods", "all", "--out", str(out))
+    assert result["code"] == 0 and result["sitl"] == []
+    doc = json.loads((out / "scale_metrics.json").read_text())
+    assert doc["world"] is None and doc["distance_sensors"] == [0, 1, 2, 3]
+    rows = {r["method"]: r for r in doc["methods"]}
+    assert {"MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame"} <= set(rows)
+    for r in rows.values():
+        assert r["scale_mse"] is None and r["scale_mean_abs_rel_pct"] is None
+        assert "no simulated world" in r["unavailable"]["scale_mse"]
+    best = rows["M-MSCwK"]
+    # the accuracy the simulated evaluation of the same recording shows (< 1 % of the path)
+    assert best["frames"] > 100 and best["ate_se3_pct"] < 1.0
+    assert best["ate_sim3_m"] <= best["ate_se3_m"]  # a scale fit can only lower the RMSE
+    assert abs(best["sim3_scale"] - 1.0) < 0.02
+    assert doc["vo"]["ate_sim3_pct"] < 1.0  # the raw VO, Sim(3)-aligned
+    report = (out / "report.md").read_text()
+    assert "unavailable" in report and "Sim(3) ATE" in report
+    assert (out / "M-MSCwK.tum").stat().st_size > 0 and (out / "groundtruth.tum").exists()
+    assert not (out / "point_cloud.png").exists()  # needs the true terrain
+
+
+def test_eval_without_ranges_invents_no_sensors(evaluated: Path) -> None:
+    """No distance sensors declared, no ranges: no method gets a scale (each says why), and
+    none of the built-in simulated sensors appears; the VO is still evaluated."""
+    real = as_converted_recording(
+        evaluated.parent / "urban", evaluated.parent / "no-ranges", ranges=False
+    )
+    from companion.cli.evaluate_dataset import dataset_config
+    from drivers.dataset import open_dataset
+
+    ds = open_dataset(real)
+    assert ds.rangefinders == [] and ds.ranges == []
+    assert dataset_config(ds, None).rangefinders == ()
+    out = evaluated.parent / "no-ranges-all"
+    result = eval_in_fresh_process(str(real), "--methods", "all", "--out", str(out))
+    assert result["code"] == 0 and result["sitl"] == []
+    doc = json.loads((out / "scale_metrics.json").read_text())
+    assert doc["distance_sensors"] == []
+    for r in doc["methods"]:
+        assert r["frames"] == 0 and r["ate_se3_m"] is None
+        assert "no distance sensors" in r["unavailable"]["ate_se3_m"]
+    assert doc["vo"]["tracking_ratio"] >= 0.98  # the VO itself runs as before
+    vo_out = evaluated.parent / "no-ranges-vo"
+    result = eval_in_fresh_process(str(real), "--out", str(vo_out))
+    assert result["code"] == 0 and result["sitl"] == []
+    assert json.loads((vo_out / "metrics.json").read_text())["ate_sim3_pct"] < 1.0
+    assert not (vo_out / "poses.csv").exists()  # no scale, no metric pose
