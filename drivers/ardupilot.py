@@ -28,6 +28,9 @@ from pymavlink.dialects.v20 import common as mavlink
 MAV_AUTOPILOT_PX4 = mavlink.MAV_AUTOPILOT_PX4  # 12
 MAV_AUTOPILOT_ARDUPILOTMEGA = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA  # 3
 MSG_ID_GLOBAL_POSITION_INT = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
+POSITION_RATE_HZ = 2.0  # GLOBAL_POSITION_INT asked of ArduPilot (its SITL streams none by default)
+# what the service reads from ArduPilot beyond what it reads from any autopilot
+ARDUPILOT_INPUTS = frozenset({MSG_ID_GLOBAL_POSITION_INT})
 ORIGIN_RESEND_S = 1.0  # SET_GPS_GLOBAL_ORIGIN again this often until the EKF holds it
 ORIGIN_HOLD_S = 2.0  # GLOBAL_POSITION_INT with a position this long without a break: held
 

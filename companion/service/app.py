@@ -54,7 +54,7 @@ from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
 from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
 from companion.vo.frame_check import FrameCheck, FrameProblem
-from drivers import messages
+from drivers import ardupilot, messages
 from drivers.backoff import Backoff
 from drivers.files import atomic_write
 from drivers.status import status_path
@@ -97,6 +97,7 @@ class ServiceStats:
     last_reset_counter: int = 0
     autopilot_heartbeat_ns: int = 0
     autopilot_system_id: int = 0
+    autopilot: str = ""  # who flies, from its HEARTBEAT: PX4, ArduPilot, ...
     autopilot_armed: bool = False  # its HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
     rates_acknowledged: set[int] = field(default_factory=set)
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
@@ -127,7 +128,7 @@ class Service:
         self.pipeline_status = self.pipeline.status()
         self.sync = ClockSync()
         self.stats = ServiceStats()
-        self.camera = open_camera(o.camera_url)
+        self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
         from drivers.signing import Signing
 
         self.link = MavlinkLink(
@@ -137,7 +138,8 @@ class Service:
             self._on_message,
             Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
             o.mavlink_local_port,
-            wanted=messages.SERVICE_INPUTS,  # the rest is skipped unparsed (floods, streams)
+            # the rest is skipped unparsed (floods, streams)
+            wanted=messages.SERVICE_INPUTS | ardupilot.ARDUPILOT_INPUTS,
         )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt: MqttPublisher | None = (
@@ -145,6 +147,7 @@ class Service:
         )
         self.recorder = Recorder(config.record, config)  # a non-empty record.dir: exit 2
         self._last_pose: PoseEstimate | None = None
+        self.origin = ardupilot.OriginKeeper()  # ArduPilot: does its EKF hold our origin
         self.systemd = SdNotify()
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self._frame_times_ns: deque[int] = deque(maxlen=90)  # arrivals, for the camera fps
@@ -237,6 +240,7 @@ class Service:
                 "heartbeat": self._heartbeat_loop(),
                 "timesync": self._timesync_loop(),
                 "rates": self._rates_loop(),
+                "origin": self._origin_loop(),
                 "camera": self._camera_loop(),
                 "pipeline": self._pipeline_loop(),
                 "health": self._health_loop(),
@@ -310,6 +314,10 @@ class Service:
             ):
                 self.stats.autopilot_heartbeat_ns = rx_ns
                 self.stats.autopilot_system_id = msg.get_srcSystem()
+                name = ardupilot.autopilot_name(msg.autopilot)
+                if name != self.stats.autopilot:
+                    log.info("autopilot: %s (HEARTBEAT.autopilot %d)", name, msg.autopilot)
+                    self.stats.autopilot = name
                 armed = int(msg.base_mode) & messages.MAV_MODE_FLAG_SAFETY_ARMED
                 self.stats.autopilot_armed = bool(armed)
             return
@@ -336,6 +344,10 @@ class Service:
             else:
                 self.stats.ranges_in += 1
                 self._ranges.append(sample)
+            return
+        if kind == "GLOBAL_POSITION_INT":
+            if msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1:
+                self.origin.position(int(msg.lat), int(msg.lon), rx_ns)
             return
         if kind == "ATTITUDE" and msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1:
             att = messages.attitude_from_message(msg, self._fc_to_us(msg))
@@ -383,11 +395,13 @@ class Service:
         COMMAND_ACK does not say which message it was for); again after 3 s of autopilot
         silence (it may have rebooted)."""
         o = self.config.service
-        wanted = {
-            messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
-            messages.MSG_ID_ATTITUDE: o.attitude_rate_hz,
-        }
         while not self._stop.is_set():
+            wanted = {
+                messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
+                messages.MSG_ID_ATTITUDE: o.attitude_rate_hz,
+            }
+            if self.stats.autopilot == "ArduPilot":  # whether it holds our EKF origin
+                wanted[ardupilot.MSG_ID_GLOBAL_POSITION_INT] = ardupilot.POSITION_RATE_HZ
             hb = self.stats.autopilot_heartbeat_ns
             silent = bool(hb) and now_ns() - hb > 3_000_000_000
             if silent and not self._autopilot_lost:
@@ -412,6 +426,44 @@ class Service:
                 await self._sleep(0.3)
             else:
                 await self._sleep(1.0)
+
+    async def _origin_loop(self) -> None:
+        """ArduPilot without GPS: SET_GPS_GLOBAL_ORIGIN every second until GLOBAL_POSITION_INT
+        shows that EKF3 holds it (drivers/ardupilot.py: one sent before "EKF3 IMU0 initialised"
+        is wiped); again after the autopilot fell silent (it may have rebooted). Not asked for
+        ([service.ardupilot] set_origin false): said once if the EKF has none after 20 s."""
+        a = self.config.service.ardupilot
+        origin = ardupilot.Origin(a.origin_lat_deg, a.origin_lon_deg, a.origin_alt_m)
+        first_heard: int | None = None
+        said = False
+        while not self._stop.is_set():
+            now = now_ns()
+            hb = self.stats.autopilot_heartbeat_ns
+            if hb and now - hb > 3_000_000_000:
+                self.origin.reset()
+                first_heard = None
+            elif hb and self.stats.autopilot == "ArduPilot":
+                first_heard = first_heard or now
+                if a.set_origin and self.origin.due(now):
+                    self.link.send(
+                        ardupilot.set_gps_global_origin(
+                            self.link.mav, self.stats.autopilot_system_id, origin, now // 1000
+                        )
+                    )
+                    self.origin.mark_sent(now)
+                elif (
+                    not a.set_origin
+                    and not said
+                    and not self.origin.held
+                    and now - first_heard > 20_000_000_000
+                ):
+                    said = True
+                    self._warn(
+                        "ArduPilot has no EKF origin after 20 s (GLOBAL_POSITION_INT at 0, 0): "
+                        "without GPS set [service.ardupilot] set_origin and the site's "
+                        "origin_lat_deg / origin_lon_deg / origin_alt_m"
+                    )
+            await self._sleep(0.2)
 
     async def _camera_loop(self) -> None:
         """Read the camera in a daemon thread (a blocked driver call can never hold up the
@@ -705,7 +757,12 @@ class Service:
             sent |= self.link.send(messages.vision_position_estimate(mav, pose))
         if o in ("odometry", "both"):
             rates = self._attitude_rates
-            odo = messages.odometry(mav, pose, rates)
+            wire = pose
+            if self.stats.autopilot == "ArduPilot":  # 0 would read "unknown" to AP_VisualOdom
+                wire = dataclasses.replace(
+                    pose, quality_pct=ardupilot.ardupilot_quality(pose.quality_pct)
+                )
+            odo = messages.odometry(mav, wire, rates)
             if odo is not None:
                 sent |= self.link.send(odo)
         if sent:
@@ -826,6 +883,14 @@ class Service:
             if s.autopilot_heartbeat_ns
             else None,
             "system_id": s.autopilot_system_id or None,
+            "type": s.autopilot or None,
+            "ekf_origin": {
+                "held": self.origin.held,
+                "sent": self.origin.sent,
+                "lost": self.origin.lost,
+            }
+            if s.autopilot == "ArduPilot"
+            else None,
             "timesync_converged": self.sync.converged,
             "timesync_offset_ms": self.sync.offset_at(now) * 1e-6 if self.sync.converged else None,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
@@ -848,6 +913,9 @@ class Service:
         recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
         fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
         problem = self._frame_problem.value if self._frame_problem else None
+        if self._camera_silent:  # and why, when the driver said (a size refused, an error)
+            why = self.camera.last_error
+            problem = "no frames" + (f": {redact_text(why, self._secrets)}" if why else "")
         return {
             "url": self.camera_url_shown,
             "fps": fps,
@@ -855,7 +923,7 @@ class Service:
             "dropped": dropped,
             "stamps": self.camera.stamps,
             "last_frame_age_s": (now - frames[-1]) * 1e-9 if frames else None,
-            "problem": "no frames" if self._camera_silent else problem,
+            "problem": problem,
             "rejected": rejected,
             "gaps": self.pipeline_status.gaps,
         }
