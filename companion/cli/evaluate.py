@@ -31,6 +31,8 @@ if TYPE_CHECKING:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
+    if args.dataset is not None and (args.phases or args.dpose):
+        raise CompanionError("--phases and --dpose run on the simulator, not on a dataset")
     if args.phases:
         from companion.cli.flight import eval_phases
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from companion.cli.common import EXIT_OK, out_dir, progress
 from companion.config import Config, load_config
+from companion.errors import CompanionError
 from companion.geometry import so3
 from companion.types import PoseEstimate
 from drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
@@ -101,11 +102,20 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
     from companion.offline import run_scale
 
     cfg = dataset_config(ds, config_path)
+    study = 6 if args.sensor_study else 0
+    if study and len(cfg.rangefinders) < study:
+        raise CompanionError("--sensor-study needs a recording with six distance sensors")
     name = ds.path.name
     out = out_dir(args, Path("out") / "eval" / name)
     with progress(len(ds), f"eval {name}", not args.no_progress) as ticks:
         run = run_scale(
-            cfg, dataset_steps(ds), None, ticks, camera=ds.camera, T_body_cam=ds.T_body_cam
+            cfg,
+            dataset_steps(ds),
+            None,
+            ticks,
+            sensor_study=study,
+            camera=ds.camera,
+            T_body_cam=ds.T_body_cam,
         )
     t = np.array(run.time_us) * 1e-6
     tracking = np.array(run.tracking, dtype=bool)
