@@ -68,7 +68,7 @@ def set_gps_global_origin(mav: Any, target_system: int, origin: Origin, time_us:
         int(round(origin.lat_deg * 1e7)),
         int(round(origin.lon_deg * 1e7)),
         int(round(origin.alt_m * 1000.0)),
-        int(time_us),
+        time_usec=int(time_us),  # an extension field: keyword only in pymavlink
     )
 
 
