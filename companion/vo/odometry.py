@@ -372,25 +372,27 @@ class VisualOdometry:
 
     # ------------------------------------------------------------------ tracking
     def _interval_prediction(self, time_us: int) -> tuple[F64 | None, F32 | None]:
-        """When this frame's interval differs from the one the velocity was measured over
-        (frames skipped upstream: the service takes the newest frame while the last one's
-        keyframe work runs), the constant-velocity pose scaled to this interval, and where
-        the tracks should be in this frame (the KLT's start: from no motion, a pyramidal KLT
-        loses most features beyond ~20 px of flow). (None, None) at the nominal rate, so
-        regular streams are tracked exactly as before."""
+        """The constant-velocity prediction of this frame: (pose, where the tracks should be).
+
+        The pose (4, 4) only when this frame's interval differs from the one the velocity was
+        measured over (frames skipped upstream: the service takes the newest frame while the
+        last one's keyframe work runs), else None. The track guess (N, 2) [px], the KLT's
+        start, whenever the predicted flow is large (median > ``klt_predict_min_px``): from
+        no motion a pyramidal KLT loses most features beyond ~20 px of flow (12 m/s at 6 m
+        is ~30 px per frame at 30 Hz); slow, regular streams are tracked as before."""
         last, dt_v = self._prev_time_us, self._velocity_dt_us
         if self.state != VoState.TRACKING or last is None or not dt_v or dt_v <= 0:
             return None, None
         ratio = (time_us - last) / dt_v
-        if 0.5 <= ratio <= 1.5:
-            return None, None
+        regular = 0.5 <= ratio <= 1.5
         T_rel = self.T_cam_vo @ se3.inverse(self._T_prev)  # motion over dt_v
         try:
             T_pred = se3.exp(ratio * se3.log(T_rel)) @ self.T_cam_vo
         except GeometryError:  # not rigid (numerically): keep the plain prediction
             return None, None
-        if ratio < 1.0 or len(self.tracks) == 0:
-            return T_pred, None
+        pose = None if regular else T_pred
+        if (ratio < 1.0 and not regular) or len(self.tracks) == 0:
+            return pose, None
         tr = self.tracks
         T_new_old = T_pred @ se3.inverse(self.T_cam_vo)  # current camera -> predicted camera
         rays = np.column_stack([self._normalized(tr.px), np.ones(len(tr))])
@@ -401,8 +403,13 @@ class VisualOdometry:
             p_cur[has] = se3.transform(self.T_cam_vo, X)
         uv, ok = self.camera.project(se3.transform(T_new_old, p_cur))
         ok &= np.all(np.isfinite(uv), axis=1)
+        if not ok.any():
+            return pose, None
+        flow_px = float(np.median(np.linalg.norm(uv[ok] - tr.px[ok], axis=1)))
+        if regular and flow_px <= self.opts.klt_predict_min_px:
+            return pose, None
         guess = np.where(ok[:, None], uv, tr.px).astype(np.float32)
-        return T_pred, guess
+        return pose, guess
 
     def _estimate_pose(self) -> bool:
         tr = self.tracks

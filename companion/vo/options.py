@@ -15,6 +15,9 @@ class VoOptions:
     min_distance_px: float = opt(18.0, "minimum distance between features [px]", gt=0)
     klt_window_px: int = opt(15, "KLT window side [px]", ge=5, le=61)
     klt_levels: int = opt(3, "KLT pyramid levels above the image", ge=0, le=6)
+    klt_predict_min_px: float = opt(
+        8.0, "predicted flow above which the KLT starts from the prediction [px]", ge=0
+    )
     pixel_sigma_px: float = opt(1.0, "feature position noise [px]", gt=0)
     inlier_px: float = opt(2.5, "pose inlier threshold on reprojection error [px]", gt=0)
     min_tracked_points: int = opt(25, "fewer 3D points tracked than this = LOST", ge=6)
