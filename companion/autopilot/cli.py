@@ -79,6 +79,10 @@ def cmd_configure(args: argparse.Namespace) -> int:
     text = format_result(report)
     if text:
         print(text)
+    elif report.problems:  # nothing configure can write, and yet problems: show them
+        from companion.px4.check import format_rows
+
+        print("\n" + format_rows(report.rows_after) + f"\n\nresult: {report.problems} problem(s)")
     if report.planned and not report.written:
         return EXIT_PROBLEMS
     return EXIT_OK if report.problems == 0 else EXIT_PROBLEMS

@@ -1,7 +1,7 @@
 """The simulator's commands, and the one place where the product reaches the simulator.
 
-``companion sitl record | sheet | run | px4`` and ``companion demo`` live here. The other
-command modules get simulator objects (a flight, its events, a recorded flight's world, the
+``companion sitl record | sheet | run | px4 | ardupilot`` and ``companion demo`` live here. The
+other command modules get simulator objects (a flight, its events, a recorded flight's world, the
 soak, synthetic calibration input) only through the functions below: no other module of
 ``companion`` imports ``sitl`` (DESIGN.md section 1). ``sitl`` is imported inside them, so
 ``companion run | status | config`` never load the simulator (numba, the renderer).
@@ -172,6 +172,12 @@ def cmd_sitl_px4(args: argparse.Namespace) -> int:
     return int(flight.cli_main(args))
 
 
+def cmd_sitl_ardupilot(args: argparse.Namespace) -> int:
+    """Fly the real ArduCopter SITL on our estimate (sitl/ardupilot_flight.py)."""
+    flight = importlib.import_module("sitl.ardupilot_flight")  # by name, as sitl px4
+    return int(flight.cli_main(args))
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """SITL autopilot + service together on the SITL default; prints what the autopilot saw."""
     load(args)  # a bad config stops here (exit 2), before any process is started
@@ -271,6 +277,27 @@ def add_sitl(sub: Any) -> None:
     )
     p_px4.add_argument("--out", type=Path, required=True, help="output folder")
     p_px4.set_defaults(func=cmd_sitl_px4)
+    p_ap = sitl_sub.add_parser("ardupilot", help="fly the real ArduCopter SITL on our estimate")
+    p_ap.add_argument(
+        "--ardupilot",
+        help="ArduPilot SITL launcher (else $ARDUPILOT_SITL, ../shared/ardupilot-sitl)",
+    )
+    p_ap.add_argument(
+        "--mission",
+        choices=["square", "lawnmower", "hover"],
+        default="square",
+        help="what ArduCopter flies in GUIDED (default square)",
+    )
+    p_ap.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
+    p_ap.add_argument(
+        "--instance", type=int, default=0, help="ArduPilot instance (TCP ports + 10 x N)"
+    )
+    p_ap.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
+    p_ap.add_argument(
+        "--no-configure", action="store_true", help="skip `companion autopilot configure`"
+    )
+    p_ap.add_argument("--out", type=Path, required=True, help="output folder")
+    p_ap.set_defaults(func=cmd_sitl_ardupilot)
     p_sheet = sitl_sub.add_parser("sheet", help="write a PNG contact sheet of a dataset")
     p_sheet.add_argument("dataset", type=Path, help="dataset folder")
     p_sheet.add_argument("--out", type=Path, help="PNG file (default: in the dataset folder)")
