@@ -10,15 +10,17 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
 3. The bridge (``python -m sitl.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
-4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port,
-   started once the vehicle is in the air (our VO cannot initialise on the ground yet).
-5. This process: the ground station (pymavlink on PX4's GCS port 18570+N): arms in Altitude
-   mode with EKF2_EV_CTRL=0, climbs to 5 m on the throttle stick watching PX4's own
-   rangefinder, starts the service, sets EKF2_EV_CTRL=11 once the service has tracked for 6 s,
-   waits until EKF2 fuses our position, switches to Position mode, flies the mission in
-   Offboard mode (position + velocity setpoints in PX4's local frame, which after EKF2's reset
-   to vision is our frame), comes back to where the mission started, lands (AUTO.LAND) and
-   waits for the disarm.
+4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port.
+5. This process: the ground station (pymavlink on PX4's GCS port 18570+N). By default (the
+   ground start of issue 18) it starts the service on the ground, waits until the service has
+   tracked with a metric scale for a while and EKF2 fuses our position, arms in Position mode,
+   climbs to 5 m in Offboard mode on our estimate, flies the mission in Offboard mode
+   (position + velocity setpoints in PX4's local frame, which after EKF2's reset to vision is
+   our frame), comes back to where the mission started, lands (AUTO.LAND) and waits for the
+   disarm. With ``--air-start`` (the take-off before the ground start existed) it arms in
+   Altitude mode with EKF2_EV_CTRL=0, climbs to 5 m on the throttle stick watching PX4's own
+   rangefinder, starts the service, sets EKF2_EV_CTRL=11 once the service has tracked for
+   6 s and switches to Position mode once EKF2 fuses our position.
 
 Afterwards: ``summary.json``, ``flight.png`` (PX4's estimate, ours as PX4 received it, and the
 truth, top and side; EKF2's EV fusion flag and innovations; latency) from the truth the bridge
@@ -107,7 +109,7 @@ class FlightOptions:
     square_m: float = 20.0
     terrain: str | None = None  # default: the config's (hills)
     configure: bool = True  # run `companion px4 configure` before the service
-    ground_start: bool = False  # experimental: the companion initialises on the ground
+    ground_start: bool = True  # the companion initialises on the ground, PX4 arms in Position
     settle_s: float = 6.0  # the VO tracks this long in the air before EKF2 may fuse it
 
 
@@ -577,8 +579,8 @@ class Flight:
         g.pump(2.0)
 
     def _take_off_on_ours(self) -> np.ndarray:
-        """Experimental (the service's ground start, issue 18): the companion starts on the
-        ground, EKF2 fuses it before arming, PX4 arms in Position mode and climbs in Offboard
+        """The default take-off (the service's ground start, issue 18): the companion starts on
+        the ground, EKF2 fuses it before arming, PX4 arms in Position mode and climbs in Offboard
         mode on our estimate. Returns the mission's start (NED, PX4's frame)."""
         g, o = self.gcs, self.o
         self._start_service()
@@ -754,7 +756,7 @@ def cli_main(args: Any) -> int:
         seed=args.seed,
         instance=args.instance,
         configure=not args.no_configure,
-        ground_start=bool(getattr(args, "ground_start", False)),
+        ground_start=not bool(getattr(args, "air_start", False)),
     )
     if args.config:
         opts.config = Path(args.config)

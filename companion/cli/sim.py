@@ -273,7 +273,11 @@ def add_sitl(sub: Any) -> None:
     p_px4.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
     p_px4.add_argument("--no-configure", action="store_true", help="skip `companion px4 configure`")
     p_px4.add_argument(
-        "--ground-start", action="store_true", help="the companion starts on the ground (issue 18)"
+        "--air-start",
+        action="store_true",
+        help="arm in Altitude mode, climb on PX4's rangefinder and start the companion in the "
+        "air (the take-off before the ground start; default: the companion starts on the "
+        "ground and PX4 arms in Position mode)",
     )
     p_px4.add_argument("--out", type=Path, required=True, help="output folder")
     p_px4.set_defaults(func=cmd_sitl_px4)
