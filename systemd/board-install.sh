@@ -18,6 +18,7 @@
 # wheel to install instead of this tree), PIP_ARGS (extra pip arguments, e.g. --no-index
 # --find-links DIR for an offline board).
 set -euo pipefail
+umask 022 # the venv, unit and docs readable by the service user whatever root's umask is
 
 ACTION=${1:-}
 SRC=$(cd "$(dirname "$0")/.." && pwd)
@@ -35,6 +36,7 @@ SERVICE_USER=companion      # the unit's User= and Group=
 UNIT_SRC=$SRC/systemd/companion.service
 UNIT=$UNITDIR/companion.service
 MANIFEST=$PREFIX/.installed # what install created that uninstall may remove
+BUILD_DIR=""                # a clean copy of the source tree to build from, removed on exit
 
 say() { printf 'companion install: %s\n' "$*"; }
 die() {
@@ -61,6 +63,11 @@ install_all() {
 		die "$("$PY" -V 2>&1) is too old: companion needs Python >= 3.11. On Ubuntu 22.04 / JetPack 6 install python3.11 and python3.11-venv and run: sudo make install PY=python3.11 (docs/install.md, \"Python 3.11 on Ubuntu 22.04 and Jetson\")"
 	"$PY" -c 'import ensurepip, venv' 2>/dev/null ||
 		die "$PY has no venv support: apt-get install python3-venv (python3.11-venv for python3.11)"
+	local base
+	base=$("$PY" -c 'import os, sys; print(os.path.realpath(sys.base_prefix))')
+	case $base in
+	/home/* | /root/* | /root) die "$PY lives in $base: the service user cannot run it there (and the unit's ProtectHome= hides it); use a system Python, e.g. PY=/usr/bin/python3" ;;
+	esac
 	[ -f "$UNIT_SRC" ] || die "no $UNIT_SRC: run from the source tree (git clone or the sdist)"
 	if [ -n "$WHEEL" ]; then
 		[ -f "$WHEEL" ] || die "WHEEL=$WHEEL: no such file"
@@ -92,16 +99,16 @@ install_all() {
 		rm -rf "$VENV"
 	fi
 	"$PY" -m venv "$VENV"
-	local pkg tmp=""
+	local pkg
 	if [ -n "$WHEEL" ]; then
 		pkg=$WHEEL
 	else # build from a clean copy: no build/ or *.egg-info left in the source tree, owned by root
-		tmp=$(mktemp -d)
-		trap 'rm -rf "$tmp"' EXIT
+		BUILD_DIR=$(mktemp -d)
+		trap 'rm -rf "$BUILD_DIR"' EXIT
 		cp -r "$SRC/pyproject.toml" "$SRC/README.md" "$SRC/LICENSE" "$SRC/MANIFEST.in" \
-			"$SRC/companion" "$SRC/drivers" "$SRC/sitl" "$tmp/"
-		find "$tmp" -name __pycache__ -prune -exec rm -rf {} +
-		pkg=$tmp
+			"$SRC/companion" "$SRC/drivers" "$SRC/sitl" "$BUILD_DIR/"
+		find "$BUILD_DIR" -name __pycache__ -prune -exec rm -rf {} +
+		pkg=$BUILD_DIR
 	fi
 	say "installing into $VENV (runtime dependencies only)"
 	# the dependencies, then companion itself again: an upgrade with the same version number
@@ -125,6 +132,10 @@ install_all() {
 	install -d -m 0750 -o root -g "$SERVICE_USER" "$SYSCONFDIR"
 	if [ -e "$CONFIG" ]; then
 		say "kept $CONFIG (config/default.toml has the current defaults and comments)"
+		if ! runuser -u "$SERVICE_USER" -- test -r "$CONFIG"; then
+			chgrp "$SERVICE_USER" "$CONFIG" && chmod g+r "$CONFIG"
+			say "made $CONFIG readable by the group $SERVICE_USER"
+		fi
 	else
 		install -m 0640 -o root -g "$SERVICE_USER" "$SRC/config/default.toml" "$CONFIG"
 		say "wrote $CONFIG from config/default.toml: edit it for your board"
