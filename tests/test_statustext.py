@@ -545,6 +545,7 @@ def test_real_px4_forwards_our_statustext_to_its_ground_station_port(tmp_path) -
             tmp_path,
             mavlink_url=f"udpin:127.0.0.1:{px4.companion_port}",
             camera_url=f"sitl://127.0.0.1:{free_port()}",  # nobody there: "camera lost"
+            system_id=px4.instance + 1,  # PX4 SITL's MAV_SYS_ID (its rcS)
         )
         rx = mavlink.MAVLink(None)
         rx.robust_parsing = True
@@ -561,7 +562,9 @@ def test_real_px4_forwards_our_statustext_to_its_ground_station_port(tmp_path) -
 
         def ours() -> list[str]:
             return [
-                str(m.text) for m in seen if (m.get_srcSystem(), m.get_srcComponent()) == (1, 197)
+                str(m.text)
+                for m in seen
+                if (m.get_srcSystem(), m.get_srcComponent()) == (px4.instance + 1, 197)
             ]
 
         async def run() -> None:
@@ -569,13 +572,14 @@ def test_real_px4_forwards_our_statustext_to_its_ground_station_port(tmp_path) -
                 await asyncio.to_thread(
                     listen, lambda: "CMP: camera lost: no frames" in ours(), 45.0
                 )
-                assert service.stats.autopilot_system_id == 1  # PX4's heartbeat heard
+                assert service.stats.autopilot_system_id == px4.instance + 1  # PX4 heard
 
         asyncio.run(run())
         listen(lambda: "CMP: stopping" in ours(), 5.0)
         gcs.close()
     finally:
         px4.stop()
+    print([(m.get_srcSystem(), m.get_srcComponent(), int(m.severity), str(m.text)) for m in seen])
     texts_px4 = ours()
     assert "CMP: started v0.1.0, VPE" in texts_px4, [str(m.text) for m in seen]
     assert "CMP: camera lost: no frames" in texts_px4, [str(m.text) for m in seen]
