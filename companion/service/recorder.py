@@ -17,7 +17,9 @@ pipeline saw, so a recording with a hole would not replay what was flown.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import queue
 import shutil
 import threading
@@ -36,6 +38,7 @@ log = logging.getLogger("companion.recorder")
 
 SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
 CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
+WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 
 Item = tuple[CameraFrame, Sequence[RangeSample], Sequence[AttitudeSample]] | PoseEstimate
 
@@ -172,6 +175,8 @@ class Recorder:
         writes what was queued before it (consecutive frames), then closes the dataset."""
         writer = self._writer
         assert writer is not None
+        with contextlib.suppress(OSError, AttributeError):  # Linux: per thread; else as is
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
         last_sync = time.monotonic()
         try:
             while True:
