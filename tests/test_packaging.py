@@ -234,3 +234,38 @@ def test_default_config_is_a_real_board_and_sitl_config_the_simulator() -> None:
     sim = load_config(REPO / "config" / "sitl.toml").service
     assert sim.mavlink_url.startswith("udpin:127.0.0.1:")
     assert sim.camera_url.startswith("sitl://127.0.0.1:")
+
+
+_PROBE_SIM = r"""
+import importlib.abc, sys
+
+BLOCKED = set(sys.argv[1].split(","))
+
+
+class RefuseExtras(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+
+sys.meta_path.insert(0, RefuseExtras())
+from companion.cli import main
+
+sys.exit(main(["sitl", "record", "--seconds", "1", "--out", sys.argv[2]]))
+"""
+
+
+def test_a_simulator_command_without_the_sim_extra_names_the_extra(tmp_path: Path) -> None:
+    """On a board (runtime dependencies only) `companion sitl ...` exits 1 with one line naming
+    the extra to install, not a traceback."""
+    r = subprocess.run(
+        [sys.executable, "-c", _PROBE_SIM, "numba,llvmlite,skimage,tomli_w", str(tmp_path / "d")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 1, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert "needs the 'sim' extra" in r.stderr and "pip install 'companion[sim]'" in r.stderr
+    assert not (tmp_path / "d").exists()

@@ -318,6 +318,18 @@ def _fail(message: str, code: int, kind: str, as_json: bool, **extra: Any) -> in
     return code
 
 
+# modules that only an extra installs (pyproject.toml): a command that needs one says which
+# extra, instead of a traceback, on a board that has the runtime dependencies alone
+_EXTRA_OF_MODULE = {
+    "numba": "sim",
+    "llvmlite": "sim",
+    "skimage": "sim",
+    "tomli_w": "sim",
+    "matplotlib": "eval",
+    "evo": "eval",
+}
+
+
 def _run(argv: Sequence[str] | None) -> int:
     tokens = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -344,6 +356,15 @@ def _run(argv: Sequence[str] | None) -> int:
         return _fail(str(e), EXIT_PROBLEMS, "error", as_json)
     except KeyboardInterrupt:
         return _fail("interrupted", EXIT_INTERRUPTED, "interrupted", as_json)
+    except ModuleNotFoundError as e:
+        extra = _EXTRA_OF_MODULE.get((e.name or "").split(".")[0])
+        if extra is None:
+            raise
+        message = (
+            f"this command needs the {extra!r} extra ({e.name} is not installed): "
+            f"pip install 'companion[{extra}]' (make venv installs every extra)"
+        )
+        return _fail(message, EXIT_PROBLEMS, "missing extra", as_json)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
