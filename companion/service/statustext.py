@@ -134,8 +134,9 @@ def transitions(prev: OperatorState, cur: OperatorState) -> list[Event]:
     ):
         out.append(Event("reset", Severity.NOTICE, f"pose reset: counter {cur.reset_counter}"))
     if cur.scale_ready and not prev.scale_ready:
-        n = cur.scale_sensors
-        out.append(Event("scale", Severity.INFO, f"scale ready ({n} sensor{'s' * (n != 1)})"))
+        n = cur.scale_sensors  # 0: from a map started on the ground (metric prior) alone
+        more = f" ({n} sensor{'s' * (n != 1)})" if n else ""
+        out.append(Event("scale", Severity.INFO, f"scale ready{more}"))
     elif prev.scale_ready and not cur.scale_ready and cur.tracking:
         out.append(Event("scale", Severity.WARNING, "scale lost: not publishing"))
     if cur.attitude_ready and not prev.attitude_ready:
