@@ -263,9 +263,15 @@ class MavlinkLink:
                 self._peer = (str(peer[0]), int(peer[1]))
                 # from local_port (0: an ephemeral one) on every address of the peer's family
                 local = ("::" if family == socket.AF_INET6 else "0.0.0.0", self.local_port)
-            transport, _ = await self._loop.create_datagram_endpoint(
-                lambda: _Udp(self), local_addr=local, remote_addr=None
-            )
+            try:
+                transport, _ = await self._loop.create_datagram_endpoint(
+                    lambda: _Udp(self), local_addr=local, remote_addr=None
+                )
+            except OSError as e:  # port in use, address not ours: a set-up error, not a crash
+                raise ConfigError(
+                    f"service.mavlink_url: cannot listen on {local[0]}:{local[1]} ({e.strerror}"
+                    "; is another program, or another companion, using it?)"
+                ) from None
             self._transport = transport
             sock = transport.get_extra_info("socket")
             if sock is not None:  # room for a burst while the loop is busy (capped by rmem_max)

@@ -224,3 +224,43 @@ def test_the_autopilots_rangefinder_is_not_mixed_into_a_tfmini_with_its_id(tmp_p
 
     taken, refused = asyncio.run(main())
     assert taken == 10 and refused.get("unknown_id") == 10, (taken, refused)
+
+
+def test_a_busy_listening_port_is_a_config_error_naming_the_key(tmp_path) -> None:
+    """Another program (or a second companion) on our udpin port: a one-line error naming
+    service.mavlink_url from the service, exit 2 from `companion run`, no traceback."""
+    import subprocess
+    import sys
+
+    import pytest
+
+    from companion.errors import ConfigError
+
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("127.0.0.1", 0))
+    port = taken.getsockname()[1]
+    try:
+        cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+
+        async def main() -> None:
+            async with Service(cfg):
+                pass
+
+        with pytest.raises(ConfigError, match=r"service\.mavlink_url: cannot listen"):
+            asyncio.run(main())
+        toml = tmp_path / "busy.toml"
+        toml.write_text(
+            f'[service]\nmavlink_url = "udpin:127.0.0.1:{port}"\n'
+            f'camera_url = "sitl://127.0.0.1:{free_port()}"\n'
+            f'status_socket = "{tmp_path / "s.sock"}"\nstate_dir = "{tmp_path / "state"}"\n'
+        )
+        run = subprocess.run(
+            [sys.executable, "-m", "companion.cli", "run", "--config", str(toml)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert run.returncode == 2, run.stderr[-2000:]
+        assert "service.mavlink_url" in run.stderr and "Traceback" not in run.stderr
+    finally:
+        taken.close()
