@@ -77,6 +77,7 @@ class Recorder:
         self._frames = 0
         self._poses = 0
         self._bytes = 0
+        self._cpu_s = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, notify: Callable[[str], object] | None = None) -> None:
@@ -197,6 +198,7 @@ class Recorder:
                 elif not self._write_frame(writer, *item):
                     break  # over budget: stopped
                 self._bytes = writer.bytes_written
+                self._cpu_s = time.thread_time()  # the writer's own CPU time so far
                 if time.monotonic() - last_sync > SYNC_PERIOD_S:
                     writer.sync()
                     last_sync = time.monotonic()
@@ -267,6 +269,7 @@ class Recorder:
             "frames": self._frames,
             "poses": self._poses,
             "mb": self._bytes / 1e6,
+            "writer_cpu_s": self._cpu_s,  # encoding and writing, on the writer thread
             "budget_mb": self.options.max_mb,
             "queued_frames": self._queued_frames,
             "reason": self.reason,
