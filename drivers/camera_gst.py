@@ -55,6 +55,7 @@ FORMAT_LAYOUT: dict[str, tuple[int, tuple[int, int, int]]] = {
 }
 SINK_FORMATS = "{BGR, BGRx, BGRA, RGB, RGBx, RGBA, xRGB, ARGB, xBGR, ABGR, GRAY8}"
 PULL_TIMEOUT_S = 0.1  # how often the reader looks at the bus and at close()
+EOS_ERROR_WAIT_NS = 200_000_000  # after EOS, how long an error that caused it may take
 INSTALL_HINT = (
     "GStreamer's Python bindings are needed: apt-get install python3-gi gir1.2-gstreamer-1.0 "
     "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good, and a "
@@ -231,7 +232,11 @@ class GstSource(CameraSource):
                     return
                 sample = sink.try_pull_sample(int(PULL_TIMEOUT_S * Gst.SECOND))
                 if sample is None:
-                    if sink.is_eos():
+                    if sink.is_eos():  # a source that fails posts its error, then sends EOS:
+                        # the error may reach the bus after the EOS reached the appsink
+                        late = bus.timed_pop_filtered(EOS_ERROR_WAIT_NS, Gst.MessageType.ERROR)
+                        if late is not None:
+                            raise self._bus_error(late)
                         log.info("camera gst: end of stream")
                         return
                     continue

@@ -289,7 +289,7 @@ class MjpegCamera:
                 rng = np.random.default_rng(0)
                 while cam.running.is_set():
                     img = cv2.GaussianBlur(
-                        rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (5, 5), 0
+                        rng.integers(0, 255, (480, 640, 3), dtype=np.uint8), (5, 5), 0
                     )
                     jpg = cv2.imencode(".jpg", img)[1].tobytes()
                     head = b"--f\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
