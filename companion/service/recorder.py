@@ -98,7 +98,7 @@ class Recorder:
                 jpg_quality=o.jpg_quality,
                 software=__version__,
             )
-        except (OSError, DatasetError) as e:
+        except Exception as e:  # whatever it is, the service runs on without a recording
             self._stop(f"cannot record into {self.path}: {e}")
             return
         log.info("recording into %s (%s, budget %g MB)", self.path, o.image_format, o.max_mb)
@@ -204,6 +204,9 @@ class Recorder:
                     last_sync = time.monotonic()
         except (OSError, DatasetError) as e:
             self._stop(f"writing failed: {e}")
+        except Exception as e:  # a bug: the recording ends, the service does not
+            log.exception("recorder: failed")
+            self._stop(f"failed: {type(e).__name__}: {e}")
         try:
             writer.close(self.reason)
         except OSError as e:
