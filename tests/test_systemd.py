@@ -169,6 +169,11 @@ def test_the_sandbox_keeps_what_the_service_needs() -> None:
     allowed = set(svc["DeviceAllow"])
     for cls in ("video4linux", "ttyS", "ttyUSB", "ttyACM", "ttyAMA"):
         assert f"char-{cls} rw" in allowed, cls
+    # each documented camera (docs/install.md, Cameras): libcamera's media controller and DMA
+    # heaps (Raspberry Pi CSI), the Jetson's nvhost engines, nvmap and nvargus-daemon's socket
+    for node in ("char-media", "char-dma_heap", "char-nvhost", "/dev/nvmap"):
+        assert f"{node} rw" in allowed, node
+    assert "-/tmp/argus_socket" in svc["BindPaths"]
     assert one.get("PrivateDevices", "no") == "no"  # it would hide /dev/video* and /dev/tty*
     assert one["SupplementaryGroups"].split() == ["dialout", "video"]
     # the status socket (RuntimeDirectory, the operators' group may enter) and the state
