@@ -149,6 +149,7 @@ def test_a_full_queue_stops_the_recording_never_the_caller(
 KILLED = textwrap.dedent(
     """
     import sys, time, numpy as np
+    sys.modules["tomli_w"] = None  # the service's install has no TOML writer (the sim extra)
     from companion.config import load_config
     from companion.service.recorder import Recorder
     from companion.types import AttitudeSample, CameraFrame, RangeSample
