@@ -187,6 +187,8 @@ class Px4Link:
 
         async def texts() -> None:
             async for m in direct.subscribe_message("STATUSTEXT"):
+                if int(m.component_id) != 1:  # the service's own (forwarded), not PX4's
+                    continue
                 seen["statustexts"].append(str(json.loads(m.fields_json).get("text", "")))
 
         async def lpos() -> None:
