@@ -14,8 +14,16 @@ OUT     ?= out
 all: test
 
 # System packages: only what the Python wheels do not bring (venv support on Debian's python3,
-# and the Mosquitto broker that the MQTT tests start on 127.0.0.1).
+# the Mosquitto broker that the MQTT tests start on 127.0.0.1, and GStreamer with its Python
+# bindings for `gst:` cameras: the pip OpenCV has no GStreamer; docs/decisions.md, "Cameras").
+GST_DEBS := python3-gi gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
+	gstreamer1.0-plugins-base gstreamer1.0-plugins-good
 sysdeps:
+	@missing=$$(for p in $(GST_DEBS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null \
+	  | grep -q 'ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ] && command -v apt-get >/dev/null; then \
+	  echo "installing $$missing (apt-get)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; fi
 	@$(PY) -c 'import ensurepip, venv' 2>/dev/null || { \
 	  echo "installing python3-venv (apt-get)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; }
@@ -30,7 +38,12 @@ $(STAMP): pyproject.toml | sysdeps
 	$(BIN)/python -m pip install -q -e '.[dev,eval,sim]'
 	touch $(STAMP)
 
-venv: $(STAMP)
+# Debian's gi (GStreamer's bindings) made importable in the venv, nothing else of the system's
+# packages (systemd/venv-system-modules.sh; skipped with a message if built for another Python)
+$(VENV)/system-modules/gi: | $(STAMP)
+	bash systemd/venv-system-modules.sh $(VENV) gi
+
+venv: $(STAMP) $(VENV)/system-modules/gi
 
 # The SITL autopilot and the service together on the default scenario (hills, lawnmower, 60 s,
 # real time over loopback); prints what the autopilot received and where the plots are. The

@@ -15,13 +15,16 @@ is used through its documented API only: ``Picamera2(N)``, ``create_video_config
   a size or format libcamera changed is refused (CameraError naming the key); after
   ``SETTLE_FRAMES`` frames each frame's ``FrameDuration`` and (if fixed) ``ExposureTime``
   metadata must match the request.
-- Time: libcamera's ``SensorTimestamp`` [ns] is the start of the exposure of the first row,
-  documented on CLOCK_BOOTTIME (which runs ahead of CLOCK_MONOTONIC by the time spent in
-  suspend: zero on a board that never sleeps). We take the middle of the exposure
-  (+ ExposureTime / 2, the convention of every source here), convert it with the current
-  BOOTTIME - MONOTONIC offset, and keep it if plausible (drivers.camera.plausible_stamp_us),
-  else the arrival time. The rolling-shutter readout (the last row is read a frame-readout
-  time after the first) is not modelled.
+- Time: ``SensorTimestamp`` [ns]. libcamera's control reference calls it the start of the
+  first row's exposure on CLOCK_BOOTTIME; the kernel's V4L2 buffers it comes from are stamped on
+  CLOCK_MONOTONIC at the start of frame (readout), and Picamera2 itself (0.3.38,
+  ``wait_for_timestamp_``) takes ``SensorTimestamp - ExposureTime`` as the start of exposure
+  and compares it with ``time.monotonic_ns()``. We follow the implementation Picamera2 relies
+  on: mid-exposure = SensorTimestamp - ExposureTime / 2, on CLOCK_MONOTONIC (our clock), kept
+  if plausible (drivers.camera.plausible_stamp_us), else the arrival time. (Read as the
+  documentation says, the stamp would be one exposure time later: 1-10 ms.) The
+  rolling-shutter readout (the last row is read a frame-readout time after the first) is not
+  modelled.
 """
 
 from __future__ import annotations
@@ -109,27 +112,19 @@ def metadata_problems(request: CaptureRequest, metadata: dict[str, Any]) -> list
     return problems
 
 
-def sensor_stamp_us(
-    metadata: dict[str, Any], arrival_us: int, boot_minus_mono_ns: int
-) -> int | None:
+def sensor_stamp_us(metadata: dict[str, Any], arrival_us: int) -> int | None:
     """Mid-exposure time in our monotonic clock [us] from a frame's metadata, or None (no
     SensorTimestamp, or not plausible: see the module docstring).
 
-    metadata: SensorTimestamp [ns, CLOCK_BOOTTIME, start of the first row's exposure],
-    ExposureTime [us]; arrival_us: our clock when the request came back; boot_minus_mono_ns:
-    CLOCK_BOOTTIME - CLOCK_MONOTONIC now [ns].
+    metadata: SensorTimestamp [ns, CLOCK_MONOTONIC, end of the first row's exposure],
+    ExposureTime [us]; arrival_us: our clock when the request came back.
     """
-    start_ns = metadata.get("SensorTimestamp")
-    if not isinstance(start_ns, int) or start_ns <= 0:
+    end_ns = metadata.get("SensorTimestamp")
+    if not isinstance(end_ns, int) or end_ns <= 0:
         return None
     exposure_us = metadata.get("ExposureTime") or 0
-    mid_mono_ns = start_ns + round(exposure_us * 500) - boot_minus_mono_ns
-    return plausible_stamp_us(mid_mono_ns // 1000, arrival_us)
-
-
-def boot_minus_mono_ns() -> int:
-    """CLOCK_BOOTTIME - CLOCK_MONOTONIC [ns] (the time this machine spent suspended)."""
-    return time.clock_gettime_ns(time.CLOCK_BOOTTIME) - time.monotonic_ns()
+    mid_ns = end_ns - round(exposure_us * 500)
+    return plausible_stamp_us(mid_ns // 1000, arrival_us)
 
 
 class Picamera2Source(CameraSource):
@@ -201,7 +196,7 @@ class Picamera2Source(CameraSource):
                         raise CameraError(
                             f"camera picamera2:{self.camera_num}: " + "; ".join(problems)
                         )
-                t_us = sensor_stamp_us(metadata, arrival_us, boot_minus_mono_ns())
+                t_us = sensor_stamp_us(metadata, arrival_us)
                 stamps = "arrival" if t_us is None else "sensor timestamp"
                 if stamps != self.stamps:
                     log.info("camera picamera2:%d: frames stamped at %s", self.camera_num, stamps)

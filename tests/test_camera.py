@@ -445,7 +445,7 @@ class FakeRequest:
 
     def get_metadata(self) -> dict:
         return {
-            "SensorTimestamp": self.cam.t0_boot_ns + self.k * 33_333_000,
+            "SensorTimestamp": self.cam.t0_ns + self.k * 33_333_000,
             "ExposureTime": self.cam.exposure_us,
             "FrameDuration": self.cam.frame_duration_us,
         }
@@ -466,8 +466,8 @@ class FakePicamera2:
         self.frame_duration_us = 33_333
         self.requests: list[FakeRequest] = []
         self.calls: list[str] = []
-        # frames exposed 20 ms ago, on CLOCK_BOOTTIME
-        self.t0_boot_ns = time.clock_gettime_ns(time.CLOCK_BOOTTIME) - 20_000_000
+        # each frame's first row finished its exposure 20 ms before it is captured
+        self.t0_ns = time.monotonic_ns() - 20_000_000
 
     def create_video_configuration(self, main=None, controls=None, queue=True, **_):
         self.calls.append("create")
@@ -490,8 +490,7 @@ class FakePicamera2:
     def capture_request(self) -> FakeRequest:
         k = len(self.requests)
         self.requests.append(FakeRequest(self, k))
-        # pretend the exposure of frame k was 20 ms before now
-        self.t0_boot_ns = time.clock_gettime_ns(time.CLOCK_BOOTTIME) - 20_000_000 - k * 33_333_000
+        self.t0_ns = time.monotonic_ns() - 20_000_000 - k * 33_333_000
         return self.requests[-1]
 
     def stop(self) -> None:
@@ -528,16 +527,14 @@ def test_picamera2_configuration_pixels_and_time(monkeypatch) -> None:
     assert src.stamps == "sensor timestamp"
     for f, arrived in got:
         np.testing.assert_array_equal(f.image_bgr, cam.scene_bgr)  # RGB888 bytes are BGR
-        # mid-exposure: 20 ms before the request came back, + half the 4 ms exposure
-        assert 0 <= arrived - f.time_us - (20_000 - 2_000) < 50_000
-    # the stamp: BOOTTIME start of exposure + half of it, less the suspend offset
+        # mid-exposure: half the 4 ms exposure before the end stamped 20 ms before capture
+        assert 0 <= arrived - f.time_us - (20_000 + 2_000) < 50_000
+    # the stamp: the end of the first row's exposure less half of it, on our clock
     md = {"SensorTimestamp": 10_000_000_000, "ExposureTime": 4000}
-    assert sensor_stamp_us(md, 10_010_000, 0) == 10_002_000
-    # 1 s spent in suspend: BOOTTIME is 1 s ahead of our clock
-    assert sensor_stamp_us(md, 9_010_000, 1_000_000_000) == 9_002_000
-    assert sensor_stamp_us(md, 10_002_000 - 1, 0) is None  # after the frame arrived: not ours
-    assert sensor_stamp_us(md, 11_000_000, 0) is None  # 1 s old: not ours
-    assert sensor_stamp_us({}, 11_000_000, 0) is None
+    assert sensor_stamp_us(md, 10_010_000) == 9_998_000
+    assert sensor_stamp_us(md, 9_998_000 - 1) is None  # after the frame arrived: not ours
+    assert sensor_stamp_us(md, 11_000_000) is None  # 1 s old: not ours
+    assert sensor_stamp_us({}, 11_000_000) is None
 
 
 def test_picamera2_refuses_what_libcamera_changed() -> None:
