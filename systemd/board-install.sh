@@ -28,6 +28,8 @@ SYSCONFDIR=${SYSCONFDIR:-/etc/companion}
 UNITDIR=${UNITDIR:-/etc/systemd/system}
 BINDIR=${BINDIR:-/usr/local/bin}
 WHEEL=${WHEEL:-}
+EXTRAS=${EXTRAS:-}                        # e.g. pi (picamera2): docs/install.md, Cameras
+SYSTEM_PY_MODULES=${SYSTEM_PY_MODULES:-gi} # a Pi camera: "gi libcamera pykms"
 PIP_ARGS=${PIP_ARGS:-}
 VENV=$PREFIX/venv
 CONFIG=$SYSCONFDIR/config.toml
@@ -114,11 +116,15 @@ install_all() {
 	# the dependencies, then companion itself again: an upgrade with the same version number
 	# (a newer checkout) must replace the installed code
 	# shellcheck disable=SC2086  # PIP_ARGS is a list of arguments
-	"$VENV/bin/python" -m pip install --quiet --disable-pip-version-check $PIP_ARGS "$pkg"
+	"$VENV/bin/python" -m pip install --quiet --disable-pip-version-check $PIP_ARGS \
+		"$pkg${EXTRAS:+[$EXTRAS]}"
 	# shellcheck disable=SC2086
 	"$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --force-reinstall \
 		--no-deps $PIP_ARGS "$pkg"
 	"$VENV/bin/companion" --version >/dev/null || die "$VENV/bin/companion does not start"
+	# cameras: the system's GStreamer bindings (gst:), libcamera's (picamera2:) into the venv
+	# shellcheck disable=SC2086  # a list of module names
+	bash "$SRC/systemd/venv-system-modules.sh" "$VENV" $SYSTEM_PY_MODULES
 
 	# 3. the unit, pointing at this PREFIX and SYSCONFDIR
 	mkdir -p "$UNITDIR"
