@@ -481,7 +481,7 @@ def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
         conn, _ = srv.accept()
         rng = np.random.default_rng(0)
         for seq in range(60):  # 2 s at 30 fps, then killed (new pixels: not a frozen camera)
-            img = rng.integers(0, 255, (120, 160, 3), dtype=np.uint8)
+            img = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)  # the intrinsics' size
             conn.sendall(encode_frame(CameraFrame(time.monotonic_ns() // 1000, seq, img)))
             time.sleep(1 / 30)
         conn.close()
