@@ -2,7 +2,7 @@
 
 The same bridge as PX4's (:mod:`sitl.px4_bridge`, reused: its world clipped to the home level,
 camera rendering and release, TFmini pseudo-terminals, truth log), with the truth from
-ArduPilot instead of SIH: SIM_STATE (id 108, asked at 50 Hz with MAV_CMD_SET_MESSAGE_INTERVAL
+ArduPilot instead of SIH: SIM_STATE (id 108, asked at 100 Hz with MAV_CMD_SET_MESSAGE_INTERVAL
 on a MAVLink link of its own, ArduCopter's SERIAL2 by default) stamped on arrival with our
 monotonic clock; ``lat_int`` / ``lon_int`` (degE7) and ``alt`` (m AMSL) -> local NED around the
 first sample (the vehicle at rest at home: px4_bridge.ned_of), ``q1..q4`` (body FRD -> NED,
@@ -24,7 +24,7 @@ from companion.config import Config, load_config
 from sitl.px4_bridge import Bridge, TruthSample, ned_of
 
 MSG_ID_SIM_STATE = 108
-TRUTH_RATE_HZ = 50.0
+TRUTH_RATE_HZ = 100.0  # the camera waits for the first sample after each exposure: 10 ms at most
 
 
 class ArduPilotBridge(Bridge):

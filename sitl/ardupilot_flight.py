@@ -93,6 +93,7 @@ class Telemetry:
 
     lpos: list[tuple[int, int, float, float, float]] = field(default_factory=list)
     ekf: list[tuple[int, int]] = field(default_factory=list)  # (t, EKF_STATUS_REPORT.flags)
+    yaw: list[tuple[int, float]] = field(default_factory=list)  # (t, ATTITUDE.yaw [rad])
     texts: list[tuple[float, int, str]] = field(default_factory=list)
     armed: bool = False
     custom_mode: int = -1
@@ -160,6 +161,8 @@ class Gcs:
             self.tel.lpos.append((t, int(m.time_boot_ms), m.x, m.y, m.z))
         elif kind == "EKF_STATUS_REPORT":
             self.tel.ekf.append((t, int(m.flags)))
+        elif kind == "ATTITUDE":
+            self.tel.yaw.append((t, float(m.yaw)))
         elif kind == "HEARTBEAT":
             self.tel.armed = bool(m.base_mode & 128)
             self.tel.custom_mode = int(m.custom_mode)
@@ -217,6 +220,7 @@ class Flight:
     # ------------------------------------------------------------------ setup
     def run(self) -> dict[str, Any]:
         self.t_start = time.monotonic()
+        self.wall_minus_mono_s = time.time() - time.monotonic()  # the service logs wall time
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "flight.log").write_text("")
         work = self.out / "ardupilot"
@@ -231,7 +235,7 @@ class Flight:
             self.ap.start()
             self.gcs = Gcs(f"tcp:127.0.0.1:{port(0, n)}", self.tel)
             self.gcs.pump(1.0)
-            for msg_id, hz in ((32, 50.0), (193, 10.0), (245, 5.0)):
+            for msg_id, hz in ((32, 50.0), (193, 10.0), (245, 5.0), (30, 10.0)):
                 self.gcs.command(511, msg_id, 1e6 / hz)
                 self.gcs.pump(0.1)
             self.gcs.command(512, 148)  # AUTOPILOT_VERSION

@@ -2,9 +2,14 @@
 they apply (sitl/px4_results.py, whose path, landing, camera and latency parts are reused).
 
 - EKF3's estimate: LOCAL_POSITION_NED (its time_boot_ms moved into our clock through the
-  smallest arrival delay, px4_results._clock_line) against the truth the bridge logged, after
-  one constant translation (the median difference: EKF3's frame is ours, whose origin is where
-  our VO started), from 2 s after take-off to the touchdown;
+  smallest arrival delay, px4_results._clock_line) against the truth the bridge logged, from
+  2 s after take-off to the touchdown: as in the PX4 loop each stretch between position resets
+  (our reset_counter changes, from the service's log) after its own translation (the median
+  difference: EKF3's frame is ours, whose origin is where our VO started), and
+  ``horizontal_error_m_p95_one_frame`` after one translation for the whole flight; both in
+  EKF3's own axes (turned by ``heading_offset_deg``, the true minus EKF3's yaw at arming: EKF3's
+  heading comes from ours, ours from the autopilot's when our VO started), and
+  ``horizontal_error_m_p95_north`` in north-aligned axes;
 - fused: the share of the airborne time in which EKF_STATUS_REPORT said EKF3 has a relative
   horizontal position and is not in constant-position mode;
 - failsafes: STATUSTEXTs that name one (ArduPilot says "EKF failsafe", "Failsafe", "Lost ...").
@@ -12,8 +17,10 @@ they apply (sitl/px4_results.py, whose path, landing, camera and latency parts a
 
 from __future__ import annotations
 
+import datetime
 import json
 import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +30,37 @@ from sitl.px4_results import _camera_and_latency, _clock_line, _p, _path_and_lan
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)
 EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
+
+
+def _service_resets_ns(out: Path, wall_minus_mono_s: float | None) -> np.ndarray:
+    """The times [ns, our monotonic clock] of the service's "VO re-initialised" lines (its log
+    stamps wall-clock time: moved by the flight's wall-minus-monotonic offset), sorted."""
+    log = out / "service.log"
+    if wall_minus_mono_s is None or not log.exists():
+        return np.zeros(0)
+    times = []
+    for line in log.read_text(errors="replace").splitlines():
+        if "VO re-initialised" in line:
+            try:
+                wall = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+            except ValueError:
+                continue
+            times.append((wall - wall_minus_mono_s) * 1e9)
+    return np.array(sorted(times))
+
+
+def _heading_offset(tr: np.ndarray, yaw: np.ndarray, phases: dict[str, float]) -> float:
+    """True yaw minus EKF3's (ATTITUDE) at arming [rad], wrapped; 0 without both."""
+    t_arm = phases.get("armed")
+    if t_arm is None or len(yaw) == 0 or len(tr) == 0:
+        return 0.0
+    t = t_arm * 1e9
+    k = int(np.clip(np.searchsorted(tr[:, 0], t), 0, len(tr) - 1))
+    qw, qx, qy, qz = tr[k, 4:8]
+    true_yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    j = int(np.clip(np.searchsorted(yaw[:, 0], t), 0, len(yaw) - 1))
+    d = true_yaw - yaw[j, 1]
+    return float(np.arctan2(np.sin(d), np.cos(d)))
 
 
 def summarise(flight: Any, ok: bool) -> dict[str, Any]:
@@ -69,12 +107,38 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     span = (t_lp >= t_cmp) & (t_lp <= t_touch) & (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
     if span.sum() >= 10:
         gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
-        offset = np.median(gt - p_lp[span], axis=0)
-        err = p_lp[span] + offset - gt
+        est = p_lp[span]
+        # in north-aligned axes, one translation for the whole flight
+        offset = np.median(gt - est, axis=0)
+        h_north = np.linalg.norm((est + offset - gt)[:, :2], axis=1)
+        s["horizontal_error_m_p95_north"] = _p(h_north, 95)
+        # EKF3's heading reference is ours, and ours is the autopilot's heading when our VO
+        # started (EK3_SRC1_YAW = 6: before our data EKF3 has no heading of its own): its local
+        # frame is turned from north by the heading error of that moment. Compared in EKF3's
+        # own axes: turned by the difference between the true and EKF3's yaw at arming.
+        dpsi = _heading_offset(tr, np.array(tel.yaw, dtype=np.float64).reshape(-1, 2), ph)
+        s["heading_offset_deg"] = float(np.degrees(dpsi))
+        c, sn = np.cos(dpsi), np.sin(dpsi)
+        est = est @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
+        offset = np.median(gt - est, axis=0)
+        h_one = np.linalg.norm((est + offset - gt)[:, :2], axis=1)
+        s["horizontal_error_m_p95_one_frame"] = _p(h_one, 95)
+        # as the PX4 loop: each stretch between position resets after its own translation
+        # (EKF3 resets its position to ours when our reset_counter changes; ArduPilot's
+        # telemetry has no reset counter, so the service's own reset times are used)
+        resets = _service_resets_ns(out, getattr(flight, "wall_minus_mono_s", None))
+        s["position_resets_in_flight"] = int(np.sum((resets > t_cmp) & (resets < t_touch)))
+        seg = np.searchsorted(resets, t_lp[span])
+        err = np.full_like(est, np.nan)
+        for value in np.unique(seg):
+            k = seg == value
+            if k.sum() >= 10:
+                err[k] = est[k] + np.median(gt[k] - est[k], axis=0) - gt[k]
+        err = err[np.all(np.isfinite(err), axis=1)]
         h_err = np.linalg.norm(err[:, :2], axis=1)
         s["horizontal_error_m_p95"] = _p(h_err, 95)
         s["vertical_error_m_p95"] = _p(np.abs(err[:, 2]), 95)
-        s["horizontal_error_m_max"] = float(h_err.max())
+        s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
         s["frame_offset_m"] = [float(v) for v in offset]
     else:
         s["horizontal_error_m_p95"] = s["vertical_error_m_p95"] = None
