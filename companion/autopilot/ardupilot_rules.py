@@ -351,7 +351,13 @@ def _judge_posz_source(ctx: ArduPilotContext, v: float) -> Judgement:
 
 def _judge_yaw_source(v: float) -> Judgement:
     if v == EXTNAV:
-        return Judgement(Status.OK, "6 (ExternalNav)", "EKF3 takes its heading from our attitude")
+        return Judgement(
+            Status.OK,
+            "6 (ExternalNav)",
+            "EKF3 takes its heading from our attitude; ours is the autopilot's when our VO "
+            "started, which before our data has no heading reference: EKF3's north is then the "
+            "vehicle's first heading (local flight is unaffected; global positions turn with it)",
+        )
     if v == COMPASS:
         return Judgement(
             Status.OK,
