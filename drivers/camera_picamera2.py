@@ -83,8 +83,9 @@ def configuration_problems(request: CaptureRequest | None, config: dict[str, Any
         if size != (request.width, request.height):
             problems.append(
                 f"camera.width/camera.height: asked {request.width}x{request.height}, libcamera "
-                f"configured {'x'.join(str(v) for v in size) or 'no size'} (a size the ISP can "
-                "output: widths a multiple of 16 are safe)"
+                f"configured {'x'.join(str(v) for v in size) or 'no size'} (Picamera2 rounds "
+                "a size down to even numbers and libcamera may adjust it to what the ISP can "
+                "output: 640x480, 1280x720 and other multiples of 16 are safe)"
             )
     return problems
 

@@ -461,7 +461,7 @@ class FakePicamera2:
     def __init__(self, num: int = 0) -> None:
         self.num = num
         self.scene_bgr = np.random.default_rng(5).integers(0, 256, (480, 640, 3), np.uint8)
-        self.align_to: int | None = None
+        self.aligned = False
         self.exposure_us = 4000
         self.frame_duration_us = 33_333
         self.requests: list[FakeRequest] = []
@@ -477,8 +477,8 @@ class FakePicamera2:
         self.calls.append("configure")
         self.configured = config
         w, h = config["main"].get("size", (640, 480))
-        if self.align_to:  # what align_configuration would do
-            w = (w + self.align_to - 1) // self.align_to * self.align_to
+        if self.aligned:  # what Picamera2's align_stream(optimal=False) does: even sizes
+            w, h = w - w % 2, h - h % 2
         self.configured["main"]["size"] = (w, h)
 
     def camera_configuration(self) -> dict:
@@ -538,11 +538,11 @@ def test_picamera2_configuration_pixels_and_time(monkeypatch) -> None:
 
 
 def test_picamera2_refuses_what_libcamera_changed() -> None:
-    # a width the ISP rounds up (100 -> 128)
+    # an odd size, which Picamera2 rounds down to even numbers
     cam = FakePicamera2()
-    cam.align_to = 64
-    src = picamera2_source(cam, CaptureRequest(100, 80, 30.0))
-    with pytest.raises(CameraError, match=r"camera.width/camera.height: asked 100x80.*128x80"):
+    cam.aligned = True
+    src = picamera2_source(cam, CaptureRequest(101, 81, 30.0))
+    with pytest.raises(CameraError, match=r"camera.width/camera.height: asked 101x81.*100x80"):
         next(iter(src.frames()))
     assert cam.calls[-2:] == ["stop", "close"] and "start" not in cam.calls
     # a sensor that cannot run at 90 Hz at this size: refused once the controls settled
