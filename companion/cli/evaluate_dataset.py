@@ -40,6 +40,14 @@ def dataset_config(ds: Dataset, config_path: Path | None) -> Config:
     )
 
 
+def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest |a - b|; NaN against NaN (unknown on both sides) agrees, NaN against a number
+    does not (inf)."""
+    both = np.isnan(a) & np.isnan(b)
+    d = np.where(both, 0.0, np.abs(a - b))
+    return float(np.nan_to_num(d, nan=np.inf).max())
+
+
 def _quat_angle_rad(q_a: np.ndarray, q_b: np.ndarray) -> float:
     """The rotation angle between two unit quaternions (wxyz; q and -q are the same)."""
     return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(q_a, q_b))))))
@@ -60,9 +68,9 @@ def replay_check(
         if mine is None:
             missing += 1
             continue
-        pos.append(float(np.abs(mine.position_ned_m - sent.position_ned_m).max()))
+        pos.append(_max_diff(mine.position_ned_m, sent.position_ned_m))
         ang.append(_quat_angle_rad(mine.quat_wxyz_ned_frd, sent.quat_wxyz))
-        vel.append(float(np.abs(mine.velocity_ned_m_s - sent.velocity_ned_m_s).max()))
+        vel.append(_max_diff(mine.velocity_ned_m_s, sent.velocity_ned_m_s))
     return {
         "published": len(published),
         "replayed": len(poses),
