@@ -140,6 +140,10 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         s["vertical_error_m_p95"] = _p(np.abs(err[:, 2]), 95)
         s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
         s["frame_offset_m"] = [float(v) for v in offset]
+        try:
+            _plot(out, s, t_tr, p_tr, t_lp[span], est + offset, t_cmp)
+        except Exception as e:  # a by-product: never lose the summary for it
+            s["notes"].append(f"plot failed: {e!r}")
     else:
         s["horizontal_error_m_p95"] = s["vertical_error_m_p95"] = None
     s["ardupilot_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
@@ -150,3 +154,48 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         data = json.loads(rep.read_text())
         s["vo_resets"] = data.get("vo_resets")
     return s
+
+
+def _plot(
+    out: Path,
+    s: dict[str, Any],
+    t_tr: np.ndarray,
+    p_tr: np.ndarray,
+    t_est: np.ndarray,
+    p_est: np.ndarray,
+    t0: float,
+) -> None:
+    """flight.png: top and side views of the truth and EKF3's position (in EKF3's axes, one
+    translation), and the horizontal error over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(16, 5))
+    a = ax[0]
+    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (ArduPilot SITL)")
+    a.plot(p_est[:, 1], p_est[:, 0], "b-", lw=0.9, label="ArduPilot EKF3 (its axes)")
+    a.set_xlabel("east [m]")
+    a.set_ylabel("north [m]")
+    a.axis("equal")
+    a.legend(fontsize=8)
+    a.set_title(f"{s['mission']} seed {s['seed']}: top")
+    a = ax[1]
+    a.plot((t_tr - t0) * 1e-9, -p_tr[:, 2], "k-", lw=1.6, label="truth")
+    a.plot((t_est - t0) * 1e-9, -p_est[:, 2], "b-", lw=0.9, label="EKF3")
+    a.set_xlabel("time [s]")
+    a.set_ylabel("height [m]")
+    a.legend(fontsize=8)
+    a.set_title("side")
+    a = ax[2]
+    gt = np.column_stack([np.interp(t_est, t_tr, p_tr[:, i]) for i in range(3)])
+    a.plot((t_est - t0) * 1e-9, np.linalg.norm((p_est - gt)[:, :2], axis=1), "b-", lw=0.9)
+    a.set_xlabel("time [s]")
+    a.set_ylabel("horizontal error [m]")
+    a.set_title(
+        f"EKF3 - truth: p95 {s.get('horizontal_error_m_p95_one_frame') or float('nan'):.3f} m"
+    )
+    fig.tight_layout()
+    fig.savefig(out / "flight.png", dpi=90)
+    plt.close(fig)
