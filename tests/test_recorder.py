@@ -21,6 +21,7 @@ import textwrap
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -217,20 +218,15 @@ def test_a_used_record_dir_is_a_config_error(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------ round trip
-@pytest.mark.slow
-@pytest.mark.timeout(4 * FLIGHT_S + 300)
-def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -> None:
-    """The service flies the SITL stub with --record; `companion eval DIR` replays the
-    recording through a fresh Pipeline: every pose the service sent comes out again, equal
-    to 1e-9 (the pipeline is deterministic given the same inputs in the same order, and the
-    recording keeps both: PNG frames, exact floats, the order of ingestion)."""
+def fly_recording(tmp_path: Path, **record: object) -> Any:
+    """The service with the recorder into tmp_path/rec ([record] options ``record``) on a
+    SITL flight of FLIGHT_S seconds against the SITL autopilot (peers.sitl_flight); returns
+    the service after the flight."""
     from companion.service.app import Service
     from sitl.autopilot import SimAutopilot
 
     cfg, opts = sitl_flight(tmp_path, FLIGHT_S)
-    # room for the whole flight in the writer's queue: on a machine loaded by other work the
-    # (niced) writer may fall far behind, and back-pressure has its own test above
-    cfg = with_record(cfg, tmp_path / "rec", queue_frames=int(FLIGHT_S * 30) + 60)
+    cfg = with_record(cfg, tmp_path / "rec", **record)
 
     async def fly() -> Service:
         stub = SimAutopilot(cfg, opts)
@@ -241,7 +237,24 @@ def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -
         await stub_task
         return service
 
-    service = asyncio.run(fly())
+    return asyncio.run(fly())
+
+
+def same(a: np.ndarray, b: np.ndarray) -> None:
+    """Equal to 1e-9; NaN (unknown) only against NaN."""
+    np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-9, equal_nan=True)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(4 * FLIGHT_S + 300)
+def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -> None:
+    """The service flies the SITL stub with --record; `companion eval DIR` replays the
+    recording through a fresh Pipeline: every pose the service sent comes out again, equal
+    to 1e-9 (the pipeline is deterministic given the same inputs in the same order, and the
+    recording keeps both: PNG frames, exact floats, the order of ingestion)."""
+    # room for the whole flight in the writer's queue: on a machine loaded by other work the
+    # (niced) writer may fall far behind, and back-pressure has its own test above
+    service = fly_recording(tmp_path, queue_frames=int(FLIGHT_S * 30) + 60)
     summary = service.summary()
     assert summary["pipeline_errors"] == 0
     assert summary["recorder"]["state"] == "closed", summary["recorder"]
@@ -258,9 +271,6 @@ def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -
     assert main(["eval", str(rec), "--out", str(out), "--no-progress"]) == 0
     replayed = {p.time_us: p for p in read_poses_csv(out / "poses.csv")}
 
-    def same(a: np.ndarray, b: np.ndarray) -> None:  # to 1e-9; NaN (unknown) only with NaN
-        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-9, equal_nan=True)
-
     for pose in sent:  # against the service's own poses (float64, in memory)
         mine = replayed[pose.time_us]
         same(mine.position_ned_m, pose.position_ned_m)
@@ -274,3 +284,31 @@ def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -
     check = json.loads((out / "replay.json").read_text())
     assert check["matched"] == check["published"] == len(published)
     assert check["max_position_diff_m"] <= 1e-9 and check["max_angle_diff_rad"] <= 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(4 * FLIGHT_S + 300)
+def test_the_disk_budget_ends_the_recording_mid_flight_not_the_output(tmp_path: Path) -> None:
+    """A budget of about a third of the flight: the recording stops cleanly (said in the
+    service's warnings and status), the service keeps publishing after it, and the recording
+    replays exactly up to its last frame."""
+    budget_mb = 0.74 * 30 * FLIGHT_S / 3  # PNG frames of the SITL camera: ~0.74 MB each
+    service = fly_recording(tmp_path, max_mb=budget_mb, queue_frames=int(FLIGHT_S * 30) + 60)
+    summary = service.summary()
+    rec = summary["recorder"]
+    assert rec["state"] == "stopped" and "record.max_mb" in rec["reason"], rec
+    assert any("recorder: stopped" in w and "record.max_mb" in w for w in summary["warnings"])
+    ds = open_dataset(tmp_path / "rec")
+    assert ds.complete and ds.meta["stop_reason"] == rec["reason"]
+    assert 0 < len(ds) < summary["frames_processed"] and rec["mb"] <= budget_mb
+    last_us = int(ds.frame_times_us[-1])
+    after = [p for p in service.stats.sent if p.time_us > last_us]
+    assert len(after) >= 100  # the output went on after the recording stopped
+    out = tmp_path / "replay"
+    assert main(["eval", str(tmp_path / "rec"), "--out", str(out), "--no-progress"]) == 0
+    replayed = {p.time_us: p for p in read_poses_csv(out / "poses.csv")}
+    published = read_poses_csv(tmp_path / "rec" / "published.csv")
+    assert published and all(p.time_us <= last_us for p in published)
+    for p in published:
+        same(replayed[p.time_us].position_ned_m, p.position_ned_m)
+        same(replayed[p.time_us].quat_wxyz, p.quat_wxyz)
