@@ -445,6 +445,44 @@ def test_the_service_tells_a_pymavlink_autopilot_config_camera_link_and_stop(tmp
     assert summary["statustext"]["messages"] >= len(got)
 
 
+@pytest.mark.timeout(120)
+def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None:
+    """A pipeline that raises on every frame ends the service after 30 frames; its last word,
+    sent on the way out, names the loop and the exception (CRITICAL: armed)."""
+    from companion.pipeline import Pipeline
+    from sitl.dataset import record
+
+    ds = record(
+        load_config(overrides={"sitl": {"terrain": "flat", "seconds": 2.0}}),
+        tmp_path / "ds",
+        image_format="png",
+        progress=False,
+    )
+
+    def broken(self: Pipeline, frame: Any, checked: bool = False) -> None:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(Pipeline, "feed_frame", broken)
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}", camera_url=f"folder:{ds}")
+
+    async def main() -> list[tuple[int, str]]:
+        autopilot = Autopilot(port, armed=True)
+        autopilot.heartbeat()
+        with pytest.raises(ExceptionGroup) as failed:
+            async with Service(cfg) as service:
+                while not service._stop.is_set():
+                    autopilot.heartbeat()
+                    await asyncio.sleep(0.3)
+        assert failed.group_contains(RuntimeError, match="a bug")
+        await asyncio.sleep(0.2)
+        return autopilot.statustexts()
+
+    got = asyncio.run(main())
+    print(got)
+    assert got[-1] == (Severity.CRITICAL, "CMP: stopped on pipeline error (RuntimeError)"), got
+
+
 # ---------------------------------------------------------------------------------------------
 # the SITL stub: a camera fault in an armed flight
 # ---------------------------------------------------------------------------------------------
