@@ -12,9 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import tomli_w
 from ardupilot_peer import HOME, SKIP_REASON
 from peers import service_config
 
+from companion.autopilot.cli import detect
+from companion.cli import main
 from companion.config import load_config, to_dict
 from companion.service.app import Service
 from sitl import ardupilot_sitl
@@ -57,15 +60,28 @@ async def _serve(cfg: Any, seconds: float) -> dict[str, Any]:
 
 @pytest.mark.skipif(not ardupilot_sitl.available(), reason=SKIP_REASON)
 @pytest.mark.timeout(120)
-def test_service_sets_the_ekf_origin_and_maps_ardupilots_rangefinder(tmp_path: Path) -> None:
+def test_service_sets_the_ekf_origin_and_maps_ardupilots_rangefinder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     params = {
         "RNGFND1_TYPE": 100,  # SITL's own rangefinder
         "RNGFND1_ORIENT": 25,
         "RNGFND1_MIN": 0.05,
         "RNGFND1_MAX": 40.0,
     }
+    cfg = _config(tmp_path, set_origin=True)
     with ArduPilotSitl(tmp_path / "ap", "odom", params, INSTANCE):
-        st = asyncio.run(_serve(_config(tmp_path, set_origin=True), 60.0))
+        st = asyncio.run(_serve(cfg, 60.0))
+        # `companion autopilot check` asks the autopilot who it is and runs ArduPilot's check
+        assert detect(f"tcp:127.0.0.1:{port(1, INSTANCE)}", 10.0) == "ArduPilot"
+        toml = tmp_path / "service.toml"
+        toml.write_bytes(tomli_w.dumps(to_dict(cfg)).encode())
+        url = f"tcp:127.0.0.1:{port(2, INSTANCE)}"
+        code = main(["autopilot", "check", "--config", str(toml), "--url", url, "--watch-s", "2"])
+    out = capsys.readouterr().out
+    assert "autopilot: ArduPilot system 1" in out and "RNGFND1_ORIENT" in out, out
+    # RNGFND2-4 (our sensors 1-3 read from the autopilot) are off: problems, exit 1
+    assert code == 1 and "RNGFND2_TYPE" in out, out
     ap = st["autopilot"]
     assert ap["type"] == "ArduPilot", st
     assert ap["ekf_origin"]["held"] and ap["ekf_origin"]["sent"] >= 1, st
