@@ -101,7 +101,10 @@ class Pipeline:
         self.dpose_offset_m = np.zeros(3)
         self.dpose_resets = 0  # corrections applied at once (each a new reset_counter)
         self.dpose_used = 0  # d-Pose poses that corrected the published position
-        self._first_pose_us: int | None = None
+        self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
+        # d-Pose arming: (time [us], the pose and autopilot attitude at the window's start,
+        # the four ranges [m] of every frame since)
+        self._dpose_window: tuple[int, PoseEstimate, F64, list[dict[int, float]]] | None = None
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -150,6 +153,8 @@ class Pipeline:
         initialises anew, so the poses after a camera fault carry a new reset_counter.
         ``checked``: the caller already ran a FrameCheck on every delivered frame (the
         service does, in its camera reader), so it is not run again here."""
+        if self._first_frame_us is None:
+            self._first_frame_us = frame.time_us
         self.scale_input = None
         self.tilt = None
         self.tilt_input = None
@@ -209,7 +214,7 @@ class Pipeline:
         self, frame: CameraFrame, pose: PoseEstimate, range_m: dict[int, float]
     ) -> PoseEstimate:
         """The published pose with d-Pose's correction (thesis abstract: the direct pose is
-        metric and drift-free). Armed ``dpose.arm_after_s`` after the first published pose,
+        metric and drift-free). Armed ``dpose.arm_after_s`` after the first frame,
         with the four lasers' readings then (the marks are left where they hit) and the
         published pose then as the pattern's place in the world. Afterwards every d-Pose
         pose (marks in view, translation sigma <= ``dpose.max_sigma_m``) moves the offset
@@ -219,13 +224,11 @@ class Pipeline:
         assert self.dpose is not None
         o = self.config.dpose
         R_ap = self.attitude_at(frame.time_us)
-        if self._first_pose_us is None:
-            self._first_pose_us = frame.time_us
         if not self.dpose.armed:
-            waited = (frame.time_us - self._first_pose_us) * 1e-6 >= o.arm_after_s
+            start_us = frame.time_us if self._first_frame_us is None else self._first_frame_us
+            waited = (frame.time_us - start_us) * 1e-6 >= o.arm_after_s
             if waited and R_ap is not None and len(range_m) == 4:
-                T_world_body = se3.from_quat(pose.quat_wxyz_ned_frd, pose.position_ned_m)
-                self.dpose.arm(range_m, T_world_body, R_ap)
+                self._arm_dpose(frame.time_us, pose, R_ap, range_m)
         else:
             res = self.dpose.step(frame.time_us, frame.image_bgr, R_ap, range_m or None)
             if res is not None and np.sqrt(np.max(np.diag(res.cov_6x6)[3:])) <= o.max_sigma_m:
@@ -244,6 +247,31 @@ class Pipeline:
             position_ned_m=pose.position_ned_m + self.dpose_offset_m,
             reset_counter=pose.reset_counter + self.dpose_resets,
         )
+
+    def _arm_dpose(
+        self, time_us: int, pose: PoseEstimate, R_ap: F64, range_m: dict[int, float]
+    ) -> None:
+        """Arm d-Pose once the vehicle has hovered ``dpose.arm_window_s`` (the published
+        position within ``dpose.arm_max_motion_m`` of the window's start): the pattern from
+        the four ranges averaged over the window (each reading's noise divided by about the
+        square root of the frames in it: the pattern's error is the bias of every later
+        d-Pose pose), the world reference the published pose at the window's start (when the
+        marks are left). A window where the vehicle moved starts again."""
+        assert self.dpose is not None
+        o = self.config.dpose
+        w = self._dpose_window
+        moved = w is not None and (
+            float(np.linalg.norm(pose.position_ned_m - w[1].position_ned_m)) > o.arm_max_motion_m
+        )
+        if w is None or moved:
+            w = self._dpose_window = (time_us, pose, R_ap, [])
+        w[3].append(range_m)
+        if (time_us - w[0]) * 1e-6 < o.arm_window_s:
+            return
+        mean_range_m = {s: float(np.mean([r[s] for r in w[3]])) for s in range_m}
+        T_world_body = se3.from_quat(w[1].quat_wxyz_ned_frd, w[1].position_ned_m)
+        self.dpose.arm(mean_range_m, T_world_body, w[2])
+        self._dpose_window = None
 
     def ground_plane(self, time_us: int, R_world_body: F64 | None) -> GroundPlane | None:
         """The ground under the camera in metres, or None (DESIGN.md section 4 reconstructs

@@ -33,6 +33,7 @@ _SAMPLE_HZ = 100.0
 _SMOOTH_SIGMA_S = 1.0
 _GROUND_REST_S = 3.5  # on the ground before take-off and after landing (> 3 sigma)
 _CLIMB_RATE_M_S = 1.5  # take-off and landing
+PAD_HOVER_S = 6.0  # "pad": the hover over the start before and after the square [s]
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,12 +120,12 @@ class _Phases:
         return max(self.end - self.start, 1e-6)
 
 
-def _phases(seconds: float, alt: float, takeoff_landing: bool) -> _Phases:
+def _phases(seconds: float, alt: float, takeoff_landing: bool, dwell_s: float = 2.0) -> _Phases:
     dt = 1.0 / _SAMPLE_HZ
     pad = 4.0 * _SMOOTH_SIGMA_S
     t = np.arange(-pad, seconds + pad + dt / 2, dt)
     tc = np.clip(t, 0.0, seconds)
-    dwell = min(2.0, 0.1 * seconds)
+    dwell = min(dwell_s, 0.1 * seconds if dwell_s <= 2.0 else dwell_s)
     t_up = (_GROUND_REST_S + alt / _CLIMB_RATE_M_S) if takeoff_landing else 0.0
     t_pattern0 = t_up + dwell
     t_pattern1 = max(t_pattern0, seconds - dwell - t_up)
@@ -221,7 +222,8 @@ class Trajectory:
         self.seconds = float(seconds)
         alt = altitude_m if altitude_m > 0 else world.default_altitude_m
         self.altitude_m = alt
-        ph = _phases(self.seconds, alt, takeoff_landing)
+        # over the pad the vehicle hovers 6 s before it leaves (the marks are left then)
+        ph = _phases(self.seconds, alt, takeoff_landing, PAD_HOVER_S if name == "pad" else 2.0)
         t = ph.t
         xy = _horizontal(name, speed_m_s, ph)
         agl = _height_agl(name, alt, ph)

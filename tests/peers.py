@@ -47,13 +47,17 @@ class Broker:
 
 
 def sitl_flight(
-    tmp_path: Path, seconds: float, service: dict | None = None, **autopilot: object
+    tmp_path: Path,
+    seconds: float,
+    service: dict | None = None,
+    config: str = "config/sitl.toml",
+    **autopilot: object,
 ) -> tuple[object, object]:
     """A config (config/sitl.toml, ``seconds`` of flight) and SITL autopilot options that put
     the autopilot, the service and the camera on free loopback ports, with a prerendered
     camera (the two cores are then the service's and the autopilot's, not the renderer's)
     and the status socket in ``tmp_path``. ``service``: more [service] keys;
-    ``autopilot``: more AutopilotOptions fields."""
+    ``config``: the scenario's config file; ``autopilot``: more AutopilotOptions fields."""
     from companion.config import load_config
     from sitl.autopilot import AutopilotOptions
 
@@ -75,7 +79,7 @@ def sitl_flight(
         "state_dir": str(tmp_path / "state"),
         **(service or {}),
     }
-    cfg = load_config("config/sitl.toml", {"sitl": {"seconds": seconds}, "service": svc})
+    cfg = load_config(config, {"sitl": {"seconds": seconds}, "service": svc})
     return cfg, opts
 
 

@@ -16,7 +16,13 @@ class DposeOptions:
         False, "correct the published position with d-Pose (needs exactly four rangefinders)"
     )
     arm_after_s: float = opt(
-        1.0, "arm (the marks are left) this long after the first published pose [s]", ge=0
+        1.0, "arm (the marks are left) this long after the first camera frame [s]", ge=0
+    )
+    arm_window_s: float = opt(
+        0.4, "the four ranges are averaged over this long of hover when d-Pose is armed [s]", ge=0
+    )
+    arm_max_motion_m: float = opt(
+        0.02, "the hover while arming: the published position within this of its start [m]", gt=0
     )
     reset_m: float = opt(
         0.05,
