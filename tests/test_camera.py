@@ -40,21 +40,28 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def gst_available() -> str | None:
-    """Why GStreamer cannot be used here (None: it can)."""
-    try:
-        from drivers.camera_gst import load_gst
-
-        load_gst()
-    except (ImportError, ValueError) as e:
+    """Why GStreamer cannot be used here (None: it can). Asked in a child process: at
+    collection time the check would otherwise initialise GStreamer (its threads, its plugin
+    scanner) inside the pytest process that every later test shares."""
+    probe = subprocess.run(
+        [sys.executable, "-c", "from drivers.camera_gst import load_gst; load_gst()"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    if probe.returncode != 0:
+        why = (probe.stderr.strip().splitlines() or ["no output"])[-1]
         return (
-            f"GStreamer's Python bindings do not load ({e}): apt-get install python3-gi "
+            f"GStreamer's Python bindings do not load ({why}): apt-get install python3-gi "
             "gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base "
             "gstreamer1.0-plugins-good, then `make venv` (links gi into .venv)"
         )
     return None
 
 
-needs_gst = pytest.mark.skipif(gst_available() is not None, reason=str(gst_available()))
+GST_MISSING = gst_available()
+needs_gst = pytest.mark.skipif(GST_MISSING is not None, reason=str(GST_MISSING))
 
 
 def camera(width: int = 640, height: int = 480, rate_hz: float = 30.0, **more: object):
