@@ -77,6 +77,15 @@ class ArduPilotOptions:
     origin_lat_deg: float = opt(0.0, "EKF origin latitude [deg, WGS-84]", ge=-90, le=90)
     origin_lon_deg: float = opt(0.0, "EKF origin longitude [deg, WGS-84]", ge=-180, le=180)
     origin_alt_m: float = opt(0.0, "EKF origin altitude [m AMSL]", ge=-1000, le=10000)
+    set_declination: bool = opt(
+        False,
+        "`autopilot configure` writes the site's magnetic declination to COMPASS_DEC (with "
+        "COMPASS_AUTODEC 0): without GPS ArduPilot cannot look it up, and with a compass heading "
+        "(EK3_SRC1_YAW 1) EKF3's north is magnetic north until it is set",
+    )
+    declination_deg: float = opt(
+        0.0, "the site's magnetic declination [deg, east positive]", ge=-180, le=180
+    )
 
     def __post_init__(self) -> None:
         if self.set_origin and self.origin_lat_deg == 0.0 and self.origin_lon_deg == 0.0:

@@ -53,7 +53,7 @@ BOOT_PARAMS: dict[str, float] = {
     "EK3_SRC1_VELXY": 6,
     "EK3_SRC1_POSZ": 6,
     "EK3_SRC1_VELZ": 6,
-    "EK3_SRC1_YAW": 6,
+    "EK3_SRC1_YAW": 6,  # --heading extnav; --heading compass: HEADING_COMPASS_PARAMS
     # our exposure-to-send latency: the service's p50 was 36-46 ms in these runs (2 cores
     # shared with the renderer); EKF3 moves our samples back by it after its jitter correction
     # (docs/decisions.md, "ArduPilot's dialect")
@@ -64,6 +64,18 @@ BOOT_PARAMS: dict[str, float] = {
     # GUIDED keeps the heading (default 2 turns towards each target)
     "WP_YAW_BEHAVIOR": 0,
 }
+# The site's magnetic declination [deg, east positive] at the launcher's home in ArduPilot's own
+# field model, as a user would look it up for their site (NOAA's or BGS's calculator): its
+# compass reads the vehicle's true heading of -7.0 deg (SIM_STATE) as -19.8 deg magnetic
+# (SCALED_IMU, tilt-compensated; EKF3 with COMPASS_DEC 0 said -19.8 to -19.9), and with 12.87
+# EKF3's heading at rest is the truth's (docs/RESULTS.md, "Heading").
+SITE_DECLINATION_DEG = 12.87
+HEADING_COMPASS_PARAMS: dict[str, float] = {
+    "EK3_SRC1_YAW": 1,  # compass: EKF3's north is true north (with the declination)
+    "COMPASS_DEC": round(float(np.radians(SITE_DECLINATION_DEG)), 5),
+    "COMPASS_AUTODEC": 0,
+}
+HEADINGS = ("compass", "extnav")
 MODE_GUIDED, MODE_LAND = 4, 9
 EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
 CAMERA_PORT = 15700  # + instance
@@ -84,6 +96,9 @@ class FlightOptions:
     terrain: str | None = None
     configure: bool = True  # run `companion autopilot configure` before the service
     settle_s: float = 6.0  # the service tracks this long with a scale before arming
+    # EKF3's heading: "compass" (+ the site's declination: EKF3's north is true north) or
+    # "extnav" (ours alone: EKF3's north is the vehicle's first heading)
+    heading: str = "compass"
     params: dict[str, float] = field(default_factory=dict)  # on top of BOOT_PARAMS
 
 
@@ -227,7 +242,12 @@ class Flight:
         if work.exists():
             shutil.rmtree(work)
         n = self.o.instance
-        self.ap = ArduPilotSitl(work, "odom", {**BOOT_PARAMS, **self.o.params}, n, self.o.ardupilot)
+        if self.o.heading not in HEADINGS:
+            raise SitlError(f"heading {self.o.heading!r}: one of {', '.join(HEADINGS)}")
+        params = dict(BOOT_PARAMS)
+        if self.o.heading == "compass":
+            params.update(HEADING_COMPASS_PARAMS)
+        self.ap = ArduPilotSitl(work, "odom", {**params, **self.o.params}, n, self.o.ardupilot)
         old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
         ok = False
         try:
@@ -291,6 +311,8 @@ class Flight:
             "origin_lat_deg": HOME[0],
             "origin_lon_deg": HOME[1],
             "origin_alt_m": HOME[2],
+            "set_declination": self.o.heading == "compass",
+            "declination_deg": SITE_DECLINATION_DEG,
         }
         path = self.out / "service.toml"
         path.write_bytes(tomli_w.dumps(d).encode())
@@ -491,6 +513,7 @@ def cli_main(args: Any) -> int:
         seed=args.seed,
         instance=args.instance,
         configure=not args.no_configure,
+        heading=args.heading,
     )
     if args.config:
         opts.config = Path(args.config)

@@ -70,6 +70,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         "autopilot": "ArduPilot",
         "mission": flight.o.mission,
         "seed": flight.o.seed,
+        "heading": flight.o.heading,
         "completed": ok,
         "ardupilot_version": tel.version or None,
         "armed_mode": "GUIDED",

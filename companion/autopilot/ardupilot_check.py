@@ -70,6 +70,9 @@ def context(
         gps_seen=seen.gps_seen if seen is not None else None,
         origin_seen=origin,
         no_gnss=opts.no_gnss,
+        declination_deg=(
+            cfg.service.ardupilot.declination_deg if cfg.service.ardupilot.set_declination else None
+        ),
     )
 
 

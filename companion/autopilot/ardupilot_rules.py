@@ -27,6 +27,7 @@ AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them (
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -71,6 +72,7 @@ class ArduPilotContext:
     gps_seen: bool | None = None  # a GPS with a fix type >= 1 (None: not watched)
     origin_seen: bool | None = None  # the EKF holds an origin (None: not watched)
     no_gnss: bool = False  # configure --no-gnss: also turn the GPS off (GPS1_TYPE = 0)
+    declination_deg: float | None = None  # [service.ardupilot] declination_deg, when set
     odometry: bool = field(init=False)  # we send ODOMETRY
     vpe: bool = field(init=False)  # we send VISION_POSITION_ESTIMATE
 
@@ -288,7 +290,66 @@ def _source_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row
             params, "EK3_SRC1_VELZ", partial(_judge_vel_source, ctx, "vertical velocity"), SOURCES
         ),
         _row(params, "EK3_SRC1_YAW", _judge_yaw_source, YAW_SOURCES),
+        *_declination_rows(params, ctx),
     ]
+
+
+def _declination_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
+    """COMPASS_DEC / COMPASS_AUTODEC, when EKF3 takes its heading from the compass.
+
+    Our frame's heading is the autopilot's when our VO starts, so with a compass heading EKF3's
+    north is true north only if the declination is right. ArduPilot looks it up from a GPS
+    position (COMPASS_AUTODEC); without GPS it stays COMPASS_DEC [rad], and every error in it
+    turns the whole flight (7 deg = 2.4 m at 20 m from home)."""
+    if value_of(params, "EK3_SRC1_YAW") != COMPASS:
+        return []
+    rows = [_row(params, "COMPASS_DEC", partial(_judge_declination, ctx), unit="rad")]
+    if ctx.declination_deg is not None:
+        rows.append(_row(params, "COMPASS_AUTODEC", _judge_autodec))
+    return rows
+
+
+DECLINATION_TOL_RAD = 0.005  # 0.3 deg: 0.1 m at 20 m from home
+
+
+def _judge_declination(ctx: ArduPilotContext, v: float) -> Judgement:
+    if ctx.declination_deg is None:
+        if v == 0.0:
+            return Judgement(
+                Status.WARN,
+                "the site's declination",
+                "0: without GPS (no automatic look-up) EKF3's north is magnetic north; set "
+                "[service.ardupilot] set_declination and declination_deg to the site's and "
+                "`autopilot configure` writes it",
+            )
+        return Judgement(
+            Status.INFO,
+            "the site's declination",
+            f"{math.degrees(v):.2f} deg, set by hand ([service.ardupilot] declination_deg "
+            "would let the check compare it)",
+        )
+    want = math.radians(ctx.declination_deg)
+    need = f"{want:.4f} ({ctx.declination_deg:g} deg)"
+    if abs(v - want) <= DECLINATION_TOL_RAD:
+        return Judgement(Status.OK, need, "the site's declination: EKF3's north is true north")
+    return Judgement(
+        Status.FAIL,
+        need,
+        f"{math.degrees(v):.2f} deg, not the site's {ctx.declination_deg:g} deg: EKF3's frame "
+        f"turns by {math.degrees(v) - ctx.declination_deg:+.2f} deg from true north",
+        want,
+    )
+
+
+def _judge_autodec(v: float) -> Judgement:
+    if v == 0.0:
+        return Judgement(Status.OK, "0", "the declination is ours (COMPASS_DEC)")
+    return Judgement(
+        Status.WARN,
+        "0",
+        "automatic declination: a GPS fix would overwrite the site's COMPASS_DEC",
+        0.0,
+    )
 
 
 def _judge_pos_source(ctx: ArduPilotContext, what: str, v: float) -> Judgement:
@@ -362,7 +423,9 @@ def _judge_yaw_source(v: float) -> Judgement:
         return Judgement(
             Status.OK,
             "6 (ExternalNav) or 1 (Compass)",
-            "heading from the compass: our frame's heading is the autopilot's at our start",
+            "heading from the compass (+ COMPASS_DEC): our frame's heading is the autopilot's "
+            "when our VO starts, so EKF3's north is true north (a compass disturbed by the "
+            "site, indoors or near steel, is better left out: 6)",
         )
     return Judgement(
         Status.FAIL,

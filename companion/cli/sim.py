@@ -294,6 +294,13 @@ def add_sitl(sub: Any) -> None:
     )
     p_ap.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
     p_ap.add_argument(
+        "--heading",
+        choices=["compass", "extnav"],
+        default="compass",
+        help="EKF3's heading: the compass with the site's declination (default; EKF3's north "
+        "is true north) or ours alone (EKF3's north is the vehicle's first heading)",
+    )
+    p_ap.add_argument(
         "--instance", type=int, default=0, help="ArduPilot instance (TCP ports + 10 x N)"
     )
     p_ap.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
