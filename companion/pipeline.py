@@ -438,6 +438,9 @@ class Pipeline:
             features=int(len(out.features.pixels)) if out is not None else 0,
             keyframes=len(self.vo.keyframes),
             vo_resets=self.vo.resets,
+            vo_heading_deg=(
+                float(np.degrees(self.vo.yaw_vo_rad)) if self.vo.yaw_vo_known else None
+            ),
             gaps=self.gaps,
             method=self.method_name,
             scale=est.scale if est is not None else None,
@@ -460,6 +463,9 @@ class PipelineStatus:
     features: int  # tracked features in the last frame
     keyframes: int  # keyframes in the VO map
     vo_resets: int  # VO re-initialisations so far
+    # heading of the VO frame's x axis [deg]: the autopilot's at the VO's initialisation; None
+    # when no autopilot attitude was at hand then (the frame's x axis is the first heading)
+    vo_heading_deg: float | None
     gaps: int  # resets forced by a gap without usable frames
     method: str  # the published scale method
     scale: float | None  # its scale (metres per VO unit), None before the first

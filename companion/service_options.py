@@ -126,6 +126,13 @@ class ServiceOptions:
         "a queued frame older than this (since its exposure) is skipped for a newer one [ms]",
         gt=0,
     )
+    attitude_wait_s: float = opt(
+        3.0,
+        "the VO does not initialise before the autopilot's attitude is at hand (its heading is "
+        "our frame's) until this long after the first frame; then it goes without, warned [s]",
+        ge=0,
+        le=60,
+    )
     report_path: str = opt("", "write a JSON summary here on exit (empty = none)")
     state_dir: str = opt(
         "",

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.geometry import se3
+from companion.geometry import se3, so3
 from companion.offline import feed_step
 from companion.pipeline import Pipeline, PipelineStatus
-from companion.types import VoState
+from companion.types import AttitudeSample, VoState
 from sitl.scenario import Scenario
 
 
@@ -129,6 +129,41 @@ def test_the_status_snapshot_is_frozen_and_follows_the_pipeline() -> None:
     assert before.vo_state == "INITIALIZING"  # an old snapshot never changes
     with pytest.raises(AttributeError):
         after.vo_state = "LOST"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("autopilot_yaw_deg", [None, 0.0, 30.0, -150.0])
+def test_the_vo_frame_takes_the_autopilots_heading_at_its_start(
+    autopilot_yaw_deg: float | None,
+) -> None:
+    """The published frame's north is the autopilot's: the VO's frame gets the heading of the
+    autopilot's attitude at initialisation (here the true one turned by a constant, as a
+    magnetometer with a declination would give it), and says when it had none (heading 0 =
+    the camera's first, the autopilot's frame turned against ours: docs/decisions.md)."""
+    cfg, sc = _ground_flight(1.0)
+    p = Pipeline(cfg)
+    R_turn = so3.rot_z(np.radians(autopilot_yaw_deg or 0.0))
+    pose = None
+    for k, st in enumerate(sc.steps()):
+        if autopilot_yaw_deg is not None:
+            for a in st.attitudes:
+                R = R_turn @ so3.quat_to_matrix(a.quat_wxyz)
+                p.feed_attitude(AttitudeSample(a.time_us, so3.matrix_to_quat(R), a.rates_rad_s))
+        for r in st.ranges:
+            if r.sample is not None:
+                p.feed_range(r.sample)
+        pose = p.feed_frame(st.frame) or pose
+        if k == 8:
+            break
+    assert pose is not None
+    heading = p.status().vo_heading_deg
+    yaw_sent_deg = np.degrees(so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))[2])
+    if autopilot_yaw_deg is None:
+        assert heading is None
+        assert abs(yaw_sent_deg) < 1.0  # the camera's first heading is our north
+    else:
+        assert heading is not None and abs(heading - autopilot_yaw_deg) < 0.5, heading
+        wrapped = (yaw_sent_deg - autopilot_yaw_deg + 180.0) % 360.0 - 180.0
+        assert abs(wrapped) < 1.0, (yaw_sent_deg, autopilot_yaw_deg)
 
 
 def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() -> None:

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.pipeline import Pipeline
+from companion.pipeline import Pipeline, PipelineStatus
 from companion.redact import redact_text, redact_url, url_secrets
 from companion.service import preflight, statustext
 from companion.service.mqtt import MqttPublisher
@@ -85,6 +85,7 @@ class ServiceStats:
     frames_processed: int = 0
     published: int = 0
     not_published: int = 0  # processed frames without a pose (not tracking / no scale)
+    waited_for_attitude: int = 0  # frames held from the VO's start: no autopilot attitude yet
     stale: int = 0  # poses not sent because their frame was older than stale_frame_ms
     pipeline_errors: int = 0  # frames on which the pipeline raised (a bug: logged)
     ranges_in: int = 0
@@ -169,6 +170,8 @@ class Service:
         self._rate_pending: int | None = None
         self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
+        self._vo_start_logged = -1  # vo_resets of the last initialisation logged
+        self._first_frame_us: int | None = None  # for service.attitude_wait_s
         self.frame_check = FrameCheck(config.vo)  # on every delivered frame (reader thread)
         self._frame_problem: FrameProblem | None = None  # the camera fault in progress
         self._autopilot_lost = False
@@ -721,15 +724,53 @@ class Service:
             p.feed_attitude(a)
         for r in ranges:
             p.feed_range(r)
+        if self._wait_for_attitude(frame):
+            return None
         pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
         self.pipeline_status = p.status()  # a new frozen snapshot: the loop reads only this
         self.dpose_status = (p.dpose is not None and p.dpose.armed, p.dpose_used)
         return pose
 
+    def _wait_for_attitude(self, frame: CameraFrame) -> bool:
+        """Whether to hold this frame from a VO that has not started: the heading of the VO's
+        frame is the autopilot's attitude at its start (else 0, the camera's first heading,
+        and the autopilot's frame and ours are turned by its heading for the whole flight).
+        ArduPilot streams ATTITUDE only once asked, some time after the first frames; after
+        service.attitude_wait_s from the first frame the VO starts without one (logged)."""
+        p = self.pipeline
+        if p.vo.state == VoState.TRACKING or p.attitude_at(frame.time_us) is not None:
+            return False
+        if self._first_frame_us is None:
+            self._first_frame_us = frame.time_us
+        wait_us = self.config.service.attitude_wait_s * 1e6
+        if wait_us <= 0 or frame.time_us - self._first_frame_us > wait_us:
+            return False
+        self.stats.waited_for_attitude += 1
+        return True
+
     def _background(self) -> None:
         """Worker thread: the keyframe work the pose did not need, then a new snapshot."""
         if self.pipeline.background_work():
             self.pipeline_status = self.pipeline.status()
+
+    def _log_vo_start(self, p: PipelineStatus) -> None:
+        """Once per VO initialisation: which heading its frame has (the autopilot's, or none:
+        then our north is the camera's first heading and the autopilot's frame is turned)."""
+        if p.vo_resets == self._vo_start_logged:
+            return
+        self._vo_start_logged = p.vo_resets
+        if p.vo_heading_deg is None:
+            log.warning(
+                "VO tracking (initialisation %d) without an autopilot attitude at hand: its "
+                "heading 0 is the camera's first, not the autopilot's",
+                p.vo_resets + 1,
+            )
+        else:
+            log.info(
+                "VO tracking (initialisation %d): its frame's heading %.2f deg (the autopilot's)",
+                p.vo_resets + 1,
+                p.vo_heading_deg,
+            )
 
     def _camera_problem(self, problem: FrameProblem | None) -> None:
         """A camera fault starts or ends (on the event loop): said once, not per frame."""
@@ -741,6 +782,8 @@ class Service:
 
     def _publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
         self._last_vo_state = VoState[self.pipeline_status.vo_state]
+        if self._last_vo_state == VoState.TRACKING:
+            self._log_vo_start(self.pipeline_status)
         if pose is None or not messages.is_finite_pose(pose):
             self.stats.not_published += 1
             return
@@ -798,6 +841,7 @@ class Service:
             "frames_processed": s.frames_processed,
             "published": s.published,
             "not_published": s.not_published,
+            "waited_for_attitude": s.waited_for_attitude,
             "publish_rate_hz": rate,
             "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -838,6 +882,7 @@ class Service:
                 "features": p.features,
                 "keyframes": p.keyframes,
                 "resets": p.vo_resets,
+                "heading_deg": p.vo_heading_deg,
             },
             "scale": {
                 "method": p.method,

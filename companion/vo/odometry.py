@@ -132,7 +132,11 @@ class VisualOdometry:
         self._ref_R_vo_cam = np.eye(3)
         self.last_keyframe_time_us = -1
         self._ref_yaw_rad = 0.0
+        self._ref_yaw_known = False
         self.yaw_vo_rad = 0.0
+        # whether yaw_vo_rad is the autopilot's heading at initialisation (False: no attitude
+        # was at hand, the VO frame's x axis is the camera's first heading, 0)
+        self.yaw_vo_known = False
         # the relative sigma of the VO unit in metres when the map started on a metric ground
         # plane (None: a two-view start, arbitrary unit)
         self.metric_sigma_rel: float | None = None
@@ -263,6 +267,7 @@ class VisualOdometry:
         self._ref_frames = 0
         self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
         self._ref_yaw_rad = 0.0 if R_world_body is None else so3.matrix_to_rpy(R_world_body)[2]
+        self._ref_yaw_known = R_world_body is not None
 
     def _initialize_on_plane(
         self, gray: U8, time_us: int, R_world_body: F64 | None, plane: GroundPlane
@@ -278,6 +283,7 @@ class VisualOdometry:
             self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
             if R_world_body is not None:
                 self._ref_yaw_rad = so3.matrix_to_rpy(R_world_body)[2]
+                self._ref_yaw_known = True
         tr = self.tracks
         xy = self._normalized(tr.px)
         rays = np.column_stack([xy, np.ones(len(tr))])
@@ -307,6 +313,7 @@ class VisualOdometry:
         self.T_cam_vo = T_c0_vo
         self._T_prev = T_c0_vo.copy()
         self.yaw_vo_rad = self._ref_yaw_rad
+        self.yaw_vo_known = self._ref_yaw_known
         self._frames_since_kf = 0
         self.last_keyframe_time_us = time_us
         self.metric_sigma_rel = sigma_rel
@@ -363,6 +370,7 @@ class VisualOdometry:
         self.metric_sigma_rel = None  # the unit is the median depth, not a metre
         self.T_cam_vo = T_c1_vo
         self.yaw_vo_rad = self._ref_yaw_rad  # heading of the VO frame's x axis in the world
+        self.yaw_vo_known = self._ref_yaw_known
         self._T_prev = T_c1_vo.copy()
         self._frames_since_kf = 0
         self.last_keyframe_time_us = time_us
