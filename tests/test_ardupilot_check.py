@@ -1,17 +1,21 @@
 """``companion autopilot check | configure`` against the real ArduCopter (SITL): the right
 set-up and four broken ones each get their verdict; configure writes and reads back.
 
-Each scenario boots its own ArduCopter (parameters applied at boot: VISO_TYPE and GPS1_TYPE
+Each scenario has its own ArduCopter (parameters applied at boot: VISO_TYPE and GPS1_TYPE
 need it) with a companion stand-in (tests/ardupilot_peer.py: the true state sent back as ODOMETRY,
-the EKF origin sent as the service sends it) on SERIAL0 and the checker on SERIAL1. Instance 3
-(TCP 5790-5793). About 20-30 s per scenario; nothing asserts speed.
+the EKF origin sent as the service sends it) on SERIAL0 and the checker on SERIAL1. They are all
+started together when the first test needs one (instances 3 and 10-14: TCP 5790-5793 and
+5860-5903), so that their 15-25 s of EKF start-up pass side by side instead of one after the
+other; each test then checks its own instance (still at least that long after its boot) and
+stops it. Nothing asserts speed.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +37,14 @@ from companion.px4.rules import Param, Status
 from sitl import ardupilot_sitl
 from sitl.ardupilot_sitl import ArduPilotSitl, port
 
-INSTANCE = 3
+INSTANCES = {  # one ArduCopter per test, all running at once
+    "right": 3,
+    "viso_type_0": 10,
+    "no_origin": 11,
+    "odometry_local_ned": 12,
+    "gps_and_vision": 13,
+    "configure": 14,
+}
 real = pytest.mark.skipif(not ardupilot_sitl.available(), reason=SKIP_REASON)
 RIGHT = {
     "VISO_TYPE": 1,
@@ -49,14 +60,14 @@ RIGHT = {
 }
 
 
-def _config(tmp: Path, set_origin: bool = True) -> Config:
+def _config(tmp: Path, instance: int, set_origin: bool = True) -> Config:
     base = load_config(None)
     return load_config(
         None,
         {
             "service": {
                 "output": "odometry",
-                "mavlink_url": f"tcp:127.0.0.1:{port(0, INSTANCE)}",
+                "mavlink_url": f"tcp:127.0.0.1:{port(0, instance)}",
                 "status_socket": str(tmp / "no-service.sock"),
                 "ardupilot": {
                     "set_origin": set_origin,
@@ -80,9 +91,9 @@ def _rf_dict(rf: Any) -> dict[str, Any]:
     return d
 
 
-def _opts(**kw: Any) -> Px4Options:
+def _opts(instance: int, **kw: Any) -> Px4Options:
     values: dict[str, Any] = {"watch_s": 6.0, "timeout_s": 20.0, **kw}
-    return Px4Options(url=f"tcp:127.0.0.1:{port(1, INSTANCE)}", **values)
+    return Px4Options(url=f"tcp:127.0.0.1:{port(1, instance)}", **values)
 
 
 @dataclass(frozen=True)
@@ -112,10 +123,14 @@ SCENARIOS = {
 }
 
 
-def _wait_ekf(sender: TruthSender, seconds: float) -> None:
+BROKEN = {"VISO_ORIENT": 2, "VISO_SCALE": 2.0, "VISO_QUAL_MIN": 90, "EK3_SRC1_VELXY": 3}
+CONFIGURE = Scenario(BROKEN)  # the configure test's ArduCopter: the right sender
+
+
+def _wait_ekf(sender: TruthSender, booted_s: float, seconds: float) -> None:
     """Let EKF3 initialise (and, where it can, start on our data): 'using external nav data'
-    or ``seconds``, whichever comes first."""
-    end = time.monotonic() + seconds
+    or ``seconds`` after the boot at ``booted_s`` (monotonic), whichever comes first."""
+    end = booted_s + seconds
     while time.monotonic() < end:
         if any("is using external nav" in t for t in sender.texts):
             time.sleep(2.0)
@@ -123,22 +138,86 @@ def _wait_ekf(sender: TruthSender, seconds: float) -> None:
         time.sleep(0.2)
 
 
-def _run(tmp: Path, sc: Scenario) -> ArduPilotReport:
-    with (
-        ArduPilotSitl(tmp / "ap", "odom", {**RIGHT, **sc.params}, INSTANCE),
-        TruthSender(port(0, INSTANCE), frame_id=sc.frame_id, set_origin=sc.set_origin) as sender,
-    ):
-        _wait_ekf(sender, 25.0)
-        report = asyncio.run(run_check(_config(tmp, sc.set_origin), _opts()))
-    return report
+@dataclass
+class Booted:
+    """One scenario's running ArduCopter and its companion stand-in."""
+
+    instance: int
+    tmp: Path
+    sender: TruthSender
+    booted_s: float  # monotonic time at which it was up
+    stack: contextlib.ExitStack
+
+    def stop(self) -> None:
+        self.stack.close()
+
+
+class Fleet:
+    """The ArduCopters of the tests that were selected, all started at the first request."""
+
+    def __init__(self, cases: list[str], factory: pytest.TempPathFactory) -> None:
+        self.cases, self.factory = cases, factory
+        self.booted: dict[str, Booted] = {}
+
+    def _boot(self, case: str) -> Booted:
+        sc = CONFIGURE if case == "configure" else SCENARIOS[case]
+        instance, tmp = INSTANCES[case], self.factory.mktemp(case)
+        stack = contextlib.ExitStack()
+        try:
+            stack.enter_context(ArduPilotSitl(tmp / "ap", "odom", {**RIGHT, **sc.params}, instance))
+            sender = stack.enter_context(
+                TruthSender(port(0, instance), frame_id=sc.frame_id, set_origin=sc.set_origin)
+            )
+        except BaseException:
+            stack.close()
+            raise
+        return Booted(instance, tmp, sender, time.monotonic(), stack)
+
+    def get(self, case: str) -> Booted:
+        if case not in self.booted:
+            for c in [case, *self.cases]:
+                if c not in self.booted:
+                    self.booted[c] = self._boot(c)
+        return self.booted[case]
+
+    def close(self) -> None:
+        for b in self.booted.values():
+            b.stop()
+
+
+@pytest.fixture(scope="module")
+def fleet(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Fleet]:
+    if not ardupilot_sitl.available():
+        pytest.skip(SKIP_REASON)
+    cases = []
+    for item in request.session.items:  # only the selected tests' instances
+        if item.module is request.module and "fleet" in getattr(item, "fixturenames", ()):
+            spec = getattr(item, "callspec", None)
+            cases.append(spec.params["case"] if spec is not None else "configure")
+    f = Fleet(cases, tmp_path_factory)
+    try:
+        yield f
+    finally:
+        f.close()
+
+
+def _run(fleet: Fleet, case: str) -> ArduPilotReport:
+    sc, b = SCENARIOS[case], fleet.get(case)
+    try:
+        _wait_ekf(b.sender, b.booted_s, 25.0)
+        return asyncio.run(run_check(_config(b.tmp, b.instance, sc.set_origin), _opts(b.instance)))
+    finally:
+        b.stop()
 
 
 @real
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("case", list(SCENARIOS))
-def test_real_ardupilot_gives_each_set_up_its_verdict(tmp_path: Path, case: str) -> None:
+def test_real_ardupilot_gives_each_set_up_its_verdict(fleet: Fleet, case: str) -> None:
     sc = SCENARIOS[case]
-    report = _run(tmp_path, sc)
+    report = _run(fleet, case)
     text = format_check(report)
     assert report.autopilot == "ArduPilot", text
     v = report.verdict
@@ -159,18 +238,17 @@ def test_real_ardupilot_gives_each_set_up_its_verdict(tmp_path: Path, case: str)
 
 @real
 @pytest.mark.timeout(120)
-def test_real_ardupilot_configure_writes_and_reads_back(tmp_path: Path) -> None:
+def test_real_ardupilot_configure_writes_and_reads_back(fleet: Fleet) -> None:
     """A broken parameter set (VISO_ORIENT, VISO_SCALE, VISO_QUAL_MIN, EK3_SRC1_VELXY from GPS):
     configure plans exactly those, writes them, reads each back, and check is clean after."""
-    broken = {"VISO_ORIENT": 2, "VISO_SCALE": 2.0, "VISO_QUAL_MIN": 90, "EK3_SRC1_VELXY": 3}
-    cfg = _config(tmp_path)
-    with (
-        ArduPilotSitl(tmp_path / "ap", "odom", {**RIGHT, **broken}, INSTANCE),
-        TruthSender(port(0, INSTANCE)) as sender,
-    ):
-        _wait_ekf(sender, 15.0)
-        report = asyncio.run(run_configure(cfg, _opts(yes=True), show=lambda s: None))
-        after = asyncio.run(run_check(cfg, _opts(watch_s=0.0)))
+    b = fleet.get("configure")
+    cfg = _config(b.tmp, b.instance)
+    try:
+        _wait_ekf(b.sender, b.booted_s, 15.0)
+        report = asyncio.run(run_configure(cfg, _opts(b.instance, yes=True), show=lambda s: None))
+        after = asyncio.run(run_check(cfg, _opts(b.instance, watch_s=0.0)))
+    finally:
+        b.stop()
     planned = {c.target.name: c.target.value for c in report.planned}
     assert planned == {"VISO_ORIENT": 0, "VISO_SCALE": 1.0, "VISO_QUAL_MIN": 0, "EK3_SRC1_VELXY": 6}
     assert report.written and all(c.ok for c in report.changes), report.changes
