@@ -26,7 +26,7 @@ from drivers.mavlink import LinkUrl
 
 log = logging.getLogger("companion.px4")
 T = TypeVar("T")
-SHELL_PROMPT = "nsh> "
+SHELL_PROMPTS = ("nsh> ", "pxh> ")  # NuttX on a flight controller; PX4 SITL (POSIX) says pxh
 
 
 def mavsdk_url(url: str, key: str = "--url") -> str:
@@ -255,8 +255,10 @@ class Px4Link:
 
 
 def _complete(text: str, command: str) -> bool:
-    """The command's output is in: a prompt after its echo (or after some output)."""
+    """The command's output is in: a prompt after its echo (or after some output). Without
+    it each command waits out its timeout (3 s: PX4 SITL's ``pxh>`` took 21 s per check)."""
     t = clean(text)
     start = t.find(command)
     rest = t[start + len(command) :] if start >= 0 else t
-    return SHELL_PROMPT in rest and rest.rstrip().endswith(SHELL_PROMPT.strip())
+    tail = rest.rstrip()
+    return any(p in rest and tail.endswith(p.strip()) for p in SHELL_PROMPTS)
