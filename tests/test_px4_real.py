@@ -4,9 +4,11 @@ broken set-ups: each gets its reason from check, and the stub agrees with PX4.
 The real PX4 is ``../shared/px4-sitl/px4-sitl`` (skipped, saying why and how to get it, where it
 is absent). One PX4 instance serves the vision-only scenarios in turn (parameters set at runtime
 with PX4's ``param set``: EKF2 applies EKF2_EV_CTRL and EKF2_EV_DELAY at once); GNSS and a missing
-magnetometer need a boot of their own. A small MAVLink peer (tests/px4_peer.py) plays the
-companion: a constant pose at 30 Hz, TIMESYNC answered. Every wait polls PX4's own topics with a
-generous deadline; nothing asserts speed.
+magnetometer need a boot of their own; they run between the shared PX4's first check (time
+sync not converged) and its converged one, so that its ~50 s of converging pass meanwhile (each
+test still waits for what it asserts, alone too). A small MAVLink peer (tests/px4_peer.py)
+plays the companion: a constant pose at 30 Hz, TIMESYNC answered. Every wait polls PX4's own
+topics with a generous deadline; nothing asserts speed.
 """
 
 from __future__ import annotations
@@ -141,6 +143,21 @@ def test_stub_time_sync_window_reports_not_converged(tmp_path: Path) -> None:
     assert any("has not converged" in w for w in v.warnings), explain(report)
 
 
+def test_a_shell_command_is_complete_at_px4s_prompt_on_nuttx_and_on_sitl() -> None:
+    """The MAVLink shell's output ends with ``nsh>`` on a flight controller and ``pxh>`` on PX4
+    SITL (as PX4 SITL printed it, a log line may follow the prompt); anything short of the
+    prompt after the echoed command is not complete (check would read a cut table)."""
+    from companion.px4.link import _complete
+
+    cmd = "listener vehicle_mocap_odometry"
+    for prompt in ("nsh> ", "pxh> "):
+        assert _complete(f"{cmd}\r\nnever published\r\n{prompt}", cmd)
+        assert _complete(f"\x1b[K{cmd}\nTOPIC: x\n    a: 1\n\x1b[K{prompt}  ", cmd)
+        assert not _complete(f"{prompt}{cmd}\nTOPIC: x\n    a: 1\n", cmd)  # prompt before it
+        assert not _complete(f"{cmd}\nTOPIC: x\n    a: 1", cmd)
+    assert not _complete(f"{cmd}\nnever published\nbash$ ", cmd)
+
+
 # ---------------------------------------------------------------------------------------------
 # the real PX4
 # ---------------------------------------------------------------------------------------------
@@ -230,7 +247,8 @@ def test_real_px4_fuses_vision_with_no_false_fail_and_an_honest_time_sync(
 ) -> None:
     """The README's vision-only set-up: fused, no FAIL from a port parameter this PX4 lacks
     (MAV_ETH_EN, SER_*_PROT, MAV_n_CONFIG), and PX4's time sync reported as not converged while
-    it cannot have converged (fewer than ~500 answers), then as converged."""
+    it cannot have converged (fewer than ~500 answers). Converged: the test after the two
+    that boot a PX4 of their own (this PX4 converges meanwhile: ~500 answers at 10 Hz)."""
     r = vision_px4
     set_up(r, Scenario(VPE, fused=True))
     report = r.check(VPE)
@@ -244,37 +262,6 @@ def test_real_px4_fuses_vision_with_no_false_fail_and_an_honest_time_sync(
     if answered < 400:  # PX4's window is ~500 answers: it cannot have converged
         assert v.timesync_converged is False, text
         assert any("has not converged" in w for w in v.warnings), text
-
-    # converged: PX4 moves our stamps into its clock (timestamp_sample != timestamp)
-    def converted() -> bool:
-        o = r.px4.listener("vehicle_visual_odometry") or {}
-        return bool(o) and o.get("timestamp") != o.get("timestamp_sample")
-
-    wait_for(r.px4, "time sync converged", converted, 180.0)
-    later = r.check(VPE)
-    assert later.verdict is not None and later.verdict.timesync_converged is True, explain(later)
-    assert not any("has not converged" in w for w in later.verdict.warnings), explain(later)
-
-
-@real
-@pytest.mark.timeout(240)
-@pytest.mark.parametrize("case", list(SCENARIOS))
-def test_real_px4_gives_each_broken_set_up_its_reason(vision_px4: RealPx4, case: str) -> None:
-    r, s = vision_px4, SCENARIOS[case]
-    set_up(r, s)
-    if s.stopped:
-        r.sender.sending = False
-        r.sender.answering = False
-    try:
-        wait_for(r.px4, f"cs_ev_pos {s.fused}", lambda: ev_pos(r.px4) is s.fused)
-        time.sleep(1.0)
-        report = r.check(s.output)
-    finally:
-        set_up(r, Scenario(VPE))
-        r.sender.answering = True
-        if case != LAST:  # after ODOMETRY, EV yaw in NED did not align the heading again
-            wait_for(r.px4, "vision fused again", lambda: ev_pos(r.px4) is True)
-    assert_scenario(report, s)
 
 
 @real
@@ -351,3 +338,44 @@ def test_real_px4_vpe_without_magnetometer_needs_ev_yaw_and_configure_sets_it(
             assert after.verdict is not None and after.verdict.ok, explain(after)
     finally:
         px4.stop()
+
+
+@real
+@pytest.mark.timeout(240)
+def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
+    vision_px4: RealPx4,
+) -> None:
+    """PX4's time sync converged (it moves our stamps into its clock: timestamp_sample !=
+    timestamp): check says converged and no longer warns."""
+    r = vision_px4
+    set_up(r, Scenario(VPE, fused=True))
+
+    def converted() -> bool:
+        o = r.px4.listener("vehicle_visual_odometry") or {}
+        return bool(o) and o.get("timestamp") != o.get("timestamp_sample")
+
+    wait_for(r.px4, "time sync converged", converted, 180.0)
+    later = r.check(VPE)
+    assert later.verdict is not None and later.verdict.timesync_converged is True, explain(later)
+    assert not any("has not converged" in w for w in later.verdict.warnings), explain(later)
+
+
+@real
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("case", list(SCENARIOS))
+def test_real_px4_gives_each_broken_set_up_its_reason(vision_px4: RealPx4, case: str) -> None:
+    r, s = vision_px4, SCENARIOS[case]
+    set_up(r, s)
+    if s.stopped:
+        r.sender.sending = False
+        r.sender.answering = False
+    try:
+        wait_for(r.px4, f"cs_ev_pos {s.fused}", lambda: ev_pos(r.px4) is s.fused)
+        time.sleep(1.0)
+        report = r.check(s.output)
+    finally:
+        set_up(r, Scenario(VPE))
+        r.sender.answering = True
+        if case != LAST:  # after ODOMETRY, EV yaw in NED did not align the heading again
+            wait_for(r.px4, "vision fused again", lambda: ev_pos(r.px4) is True)
+    assert_scenario(report, s)
