@@ -34,6 +34,7 @@ import itertools
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -75,6 +76,10 @@ BOOT_PARAMS = {
     # its covariance says); with the floor PX4's position lagged ours more (docs/decisions.md)
     "EKF2_EVP_NOISE": "0.03",
 }
+SERIAL_CONTROL_DEV_SHELL = 10
+SERIAL_CONTROL_FLAG_RESPOND, SERIAL_CONTROL_FLAG_EXCLUSIVE = 2, 4
+_BEFORE_TIMESTAMP = re.compile(r"timestamp_sample:\s*\d+\s*\((-?\d+)\s+us before timestamp\)")
+TIMESYNC_WAIT_S = 120.0  # PX4 needs ~500 TIMESYNC answers (~50 s at 10 Hz) after we start
 # PX4 custom modes (main mode << 16 | sub mode << 24)
 MODE_ALTCTL, MODE_POSCTL, MODE_AUTO, MODE_OFFBOARD = 2, 3, 4, 6
 SUB_AUTO_LAND = 6
@@ -111,6 +116,9 @@ class FlightOptions:
     configure: bool = True  # run `companion px4 configure` before the service
     ground_start: bool = True  # the companion initialises on the ground, PX4 arms in Position
     settle_s: float = 6.0  # the VO tracks this long in the air before EKF2 may fuse it
+    # arm only once PX4 converts our stamps through its time sync (as `companion px4 check`
+    # advises): before, it stamps our samples at arrival and the latency is not compensated
+    wait_timesync: bool = True
 
 
 @dataclass
@@ -180,6 +188,7 @@ class Gcs:
         self.hold_range_m: float | None = None  # throttle stick holds this range (Altitude mode)
         self._last_hb = 0.0
         self.t0 = time.monotonic()
+        self._shell_out: list[bytes] = []  # SERIAL_CONTROL replies of PX4's MAVLink shell
 
     def pump(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -246,12 +255,46 @@ class Gcs:
                 self.range_m = (time.monotonic(), int(m.current_distance) * 0.01)
         elif kind == "PARAM_VALUE":
             self.params[str(m.param_id)] = float(m.param_value)
+        elif kind == "SERIAL_CONTROL" and int(m.device) == SERIAL_CONTROL_DEV_SHELL:
+            self._shell_out.append(bytes(m.data[: int(m.count)]))
         elif kind == "STATUSTEXT":
             self.tel.texts.append((time.monotonic() - self.t0, int(m.severity), str(m.text)))
         elif kind == "AUTOPILOT_VERSION":
             v = int(m.flight_sw_version)
             git = bytes(m.flight_custom_version)[::-1].hex()[:10] if m.flight_custom_version else ""
             self.tel.version = f"v{v >> 24 & 255}.{v >> 16 & 255}.{v >> 8 & 255} ({git})"
+
+    def shell(self, command: str, wait_s: float = 3.0) -> str:
+        """Run one command in PX4's MAVLink shell (SERIAL_CONTROL, device SHELL); its output
+        until the next prompt (or ``wait_s``)."""
+        self._shell_out.clear()
+        data = (command + "\n").encode()
+        for k in range(0, len(data), 70):
+            chunk = data[k : k + 70]
+            self.mav.serial_control_send(
+                SERIAL_CONTROL_DEV_SHELL,
+                SERIAL_CONTROL_FLAG_RESPOND | SERIAL_CONTROL_FLAG_EXCLUSIVE,
+                0,
+                0,
+                len(chunk),
+                list(chunk.ljust(70, b"\0")),
+            )
+        end = time.monotonic() + wait_s
+        text = ""
+        while time.monotonic() < end:
+            self.pump(0.1)
+            text = b"".join(self._shell_out).decode(errors="replace")
+            if text.rstrip().endswith("nsh>") and len(text.strip()) > len("nsh>"):
+                break
+        return text
+
+    def px4_stamps_converted(self) -> bool | None:
+        """Whether PX4 converts our time_usec through its time sync (``listener
+        vehicle_visual_odometry``: a converted stamp lies some latency before the message's
+        arrival; before PX4's filter converges, after ~500 TIMESYNC answers, it stamps our
+        samples with their arrival: "0 us before timestamp"). None: no answer."""
+        found = _BEFORE_TIMESTAMP.search(self.shell("listener vehicle_visual_odometry -n 1"))
+        return None if found is None else int(found.group(1)) != 0
 
     def command(self, cmd: int, *params: float) -> None:
         p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
@@ -588,6 +631,7 @@ class Flight:
         self._phase("service tracking")
         self._until("EKF2 fusing our position", self._fused_for(1.0), 60)
         self._phase("ev fused")
+        self._wait_timesync()
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
         self._arm()
@@ -602,6 +646,29 @@ class Flight:
         self._phase("climb in Offboard")
         self._follow([here, top], 1.0)
         return top
+
+    def _wait_timesync(self) -> None:
+        """Before arming: until PX4 converts our exposure stamps through its time sync
+        (TIMESYNC_WAIT_S at most; then flown anyway, noted). ``timesync_converged_at_arming``
+        in the summary says which."""
+        self.timesync_converged: bool | None = None
+        if not self.o.wait_timesync:
+            return
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < TIMESYNC_WAIT_S:
+            self.timesync_converged = self.gcs.px4_stamps_converted()
+            if self.timesync_converged:
+                break
+            self.gcs.pump(2.0)
+            self._check_alive()
+        self.timesync_wait_s = time.monotonic() - t0
+        if self.timesync_converged:
+            self._phase(f"PX4's time sync converged (waited {self.timesync_wait_s:.0f} s)")
+        else:
+            self.notes.append(
+                f"PX4's time sync had not converged after {TIMESYNC_WAIT_S:g} s "
+                f"(shell said {self.timesync_converged}): flown with arrival stamps"
+            )
 
     def _arm(self) -> None:
         """Send MAV_CMD_COMPONENT_ARM_DISARM until PX4 is armed (60 s at most)."""

@@ -64,6 +64,8 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         "completed": ok,
         "px4_version": tel.version or None,
         "armed_mode": getattr(flight, "armed_mode", None),
+        "timesync_converged_at_arming": getattr(flight, "timesync_converged", None),
+        "timesync_wait_s": getattr(flight, "timesync_wait_s", None),
         "configure_exit": getattr(flight, "configure_exit", None),
         "notes": list(flight.notes),
     }

@@ -42,6 +42,9 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
     assert s["completed"], detail
     assert s["failsafes"] == [], detail
     assert s["landed"], detail
+    # armed only once PX4 converted our stamps through its time sync (its shell said so:
+    # `listener vehicle_visual_odometry`, a stamp some latency before arrival)
+    assert s["timesync_converged_at_arming"] is True, detail
     assert s["ev_pos_fused_pct"] >= 99.0, detail
     # the ground start: PX4 armed in Position mode on our estimate, so it is fused over the
     # whole airborne time and the vehicle comes down where it took off (0.18-0.42 m measured
