@@ -30,9 +30,11 @@ import contextlib
 import csv
 import json
 import multiprocessing as mp
+import os
 import socket
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -137,7 +139,7 @@ def camera_process(
     images: list[Any] = []
     if prerender:
         n_distinct = min(scenario.n_frames, first + n_loop) if n_loop > 0 else scenario.n_frames
-        images = [scenario.step(k).frame.image_bgr for k in range(n_distinct)]
+        images = prerender_frames(scenario, n_distinct)
     if ready is not None:
         ready.set()
     while counters[2] == 0:  # the parent sets the flight start once everybody is ready
@@ -159,6 +161,39 @@ def camera_process(
         counters,
         faults,
     )
+
+
+def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:
+    """Images (BGR uint8, H x W x 3) of frames 0 .. n_frames - 1 of ``scenario`` (a
+    :class:`sitl.scenario.Scenario` that has rendered once: kernels compiled, textures built),
+    rendered by ``workers`` threads (0: one per core this process may use, at most 4).
+
+    The render kernels run without the GIL and frame k's image depends on k alone (its noise
+    is seeded by k, the laser marks by its time), so each thread renders every workers-th
+    frame with a Scenario of its own (its own buffers) over the same world, and the images are
+    bit for bit those one thread renders (tests/test_render.py)."""
+    from sitl.scenario import Scenario
+
+    if workers <= 0:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        workers = max(1, min(4, cores or 1))
+    workers = min(workers, max(1, n_frames))
+    images: list[Any] = [None] * n_frames
+    scenarios = [scenario] + [
+        Scenario(scenario.cfg, world=scenario.world) for _ in range(workers - 1)
+    ]
+
+    def render_every(i: int) -> None:
+        for k in range(i, n_frames, workers):
+            images[k] = scenarios[i].step(k).frame.image_bgr
+
+    if workers == 1:
+        render_every(0)
+        return images
+    with ThreadPoolExecutor(workers, thread_name_prefix="prerender") as pool:
+        for done in [pool.submit(render_every, i) for i in range(workers)]:
+            done.result()
+    return images
 
 
 def _stream_frames(

@@ -7,7 +7,10 @@ recorder, offline evaluation and (later) the SITL autopilot, so all see identica
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +70,30 @@ class Scenario:
         frame = CameraFrame(t_us, seq, rendered.image_bgr)
         return Step(frame, rendered, T_world_body, ranges, atts)
 
-    def steps(self, start: int = 0, stop: int | None = None) -> Iterator[Step]:
-        """Frames start..stop-1 in order."""
-        for seq in range(start, self.n_frames if stop is None else min(stop, self.n_frames)):
-            yield self.step(seq)
+    def steps(self, start: int = 0, stop: int | None = None, workers: int = 1) -> Iterator[Step]:
+        """Frames start..stop-1 in order. ``workers`` > 1: rendered ahead (at most 2 x workers
+        steps) on that many threads, each with a Scenario of its own over this world; the render
+        kernels run without the GIL and step k depends on k alone (every noise is seeded by
+        its frame or sample time), so the steps are those of one thread (tests/test_render.py)."""
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        if workers <= 1:
+            for seq in range(start, stop):
+                yield self.step(seq)
+            return
+        _ = self.world.textures  # built once, before the threads share the world
+        local = threading.local()
+
+        def step(seq: int) -> Step:
+            mine: Scenario | None = getattr(local, "scenario", None)
+            if mine is None:
+                mine = local.scenario = Scenario(self.cfg, world=self.world)
+            return mine.step(seq)
+
+        with ThreadPoolExecutor(workers, thread_name_prefix="scenario") as pool:
+            ahead: deque[Future[Step]] = deque()
+            seq = start
+            while seq < stop or ahead:
+                while seq < stop and len(ahead) < 2 * workers:
+                    ahead.append(pool.submit(step, seq))
+                    seq += 1
+                yield ahead.popleft().result()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -186,3 +187,44 @@ def test_direct_8bit_output_equals_linear_plus_noise(
     diff = np.abs(out.reshape(direct.shape).astype(int) - direct.astype(int))
     assert diff.max() <= 1 and (diff > 0).mean() < 1e-3
     assert 20 < direct.mean() < 230  # a real image, not blank
+
+
+@pytest.mark.parametrize(("marks", "blur", "workers"), [("live", False, 3), ("painted", True, 2)])
+def test_rendering_ahead_on_threads_gives_what_one_thread_renders(
+    marks: str, blur: bool, workers: int
+) -> None:
+    """The SITL camera prerenders a flight on one thread per core (sitl/autopilot.py) and
+    ``Scenario.steps(workers=N)`` renders ahead on N threads: every frame must be bit for bit
+    the image a single thread renders in order (noise, motion blur, laser marks), and every
+    step the same samples and pose (2 threads, and 3 for an uneven share)."""
+    from companion.config import load_config
+    from sitl.autopilot import prerender_frames
+    from sitl.scenario import Scenario, Step
+
+    cfg = load_config(
+        "config/sitl.toml",
+        {"sitl": {"seconds": 0.2, "render": {"laser_marks": marks, "motion_blur": blur}}},
+    )
+    one = Scenario(cfg)
+    expected = list(one.steps())
+    images = [e.frame.image_bgr for e in expected]
+    assert len(expected) == 6 and len({i.tobytes() for i in images}) == 6  # they differ
+
+    def same_step(a: Step, b: Step) -> None:
+        assert a.frame.seq == b.frame.seq and a.frame.time_us == b.frame.time_us
+        assert np.array_equal(a.frame.image_bgr, b.frame.image_bgr), a.frame.seq
+        assert np.array_equal(a.T_world_body, b.T_world_body)
+        for x, y in ((a.ranges, b.ranges), (a.attitudes, b.attitudes)):  # to the last bit
+            assert pickle.dumps(x) == pickle.dumps(y), a.frame.seq
+        assert len(a.ranges) >= 4 and len(a.attitudes) >= 1
+
+    sc = Scenario(cfg, world=one.world)  # the world is built once (0.9 s)
+    sc.step(0)
+    got = prerender_frames(sc, sc.n_frames, workers)
+    assert len(got) == 6
+    for k, (a, b) in enumerate(zip(got, images, strict=True)):
+        assert a.shape == (480, 640, 3) and np.array_equal(a, b), k
+    ahead = list(Scenario(cfg, world=one.world).steps(start=1, workers=workers))
+    assert [s.frame.seq for s in ahead] == list(range(1, 6))
+    for a, b in zip(ahead, expected[1:], strict=True):
+        same_step(a, b)
