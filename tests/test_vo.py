@@ -3,7 +3,6 @@ recovery, hover drift and accuracy on rendered flights."""
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
 
 import numpy as np
@@ -153,7 +152,7 @@ def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
         }
     )
     sc = Scenario(cfg)
-    steps = list(sc.steps())
+    steps = list(sc.steps(workers=2))  # rendered on 2 threads
     vo, outs = run_vo(cfg, [s.frame for s in steps], [s.T_world_body[:3, :3] for s in steps])
     states = [o.state for o in outs]
     first = states.index(VoState.TRACKING)
@@ -193,7 +192,7 @@ def test_black_frames_make_it_lost_at_once_and_it_recovers(default_config: Confi
     )
     sc = Scenario(cfg)
     frames, atts = [], []
-    for s in sc.steps():
+    for s in sc.steps(workers=2):  # rendered ahead on 2 threads
         img = s.frame.image_bgr
         if 150 <= s.frame.seq < 180:  # the lens covered for a second
             img = np.zeros_like(img)
@@ -249,7 +248,7 @@ def test_vo_keeps_tracking_at_twelve_metres_per_second() -> None:
     sitl = {"terrain": "hills", "trajectory": "lawnmower", "seconds": 60.0, "seed": 1}
     sitl |= {"speed_m_s": 12.0, "takeoff_landing": True}
     cfg = load_config(overrides={"sitl": sitl})
-    steps = list(itertools.islice(Scenario(cfg).steps(), 14 * 30))  # the climb, 5 s at 12 m/s
+    steps = list(Scenario(cfg).steps(stop=14 * 30, workers=2))  # the climb, 5 s at 12 m/s
     vo, outs = run_vo(cfg, [s.frame for s in steps], [s.T_world_body[:3, :3] for s in steps])
     states = [o.state for o in outs]
     first = states.index(VoState.TRACKING)
