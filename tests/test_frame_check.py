@@ -20,7 +20,7 @@ def steps() -> list[object]:
     cfg = load_config(
         overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 14.0}}
     )
-    return list(Scenario(cfg).steps())
+    return list(Scenario(cfg).steps(workers=2))  # rendered on 2 threads
 
 
 def _frame(t_us: int, seq: int, img: np.ndarray) -> CameraFrame:
