@@ -30,7 +30,6 @@ import contextlib
 import csv
 import json
 import multiprocessing as mp
-import os
 import socket
 import time
 from collections.abc import Callable
@@ -172,11 +171,10 @@ def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any
     is seeded by k, the laser marks by its time), so each thread renders every workers-th
     frame with a Scenario of its own (its own buffers) over the same world, and the images are
     bit for bit those one thread renders (tests/test_render.py)."""
-    from sitl.scenario import Scenario
+    from sitl.scenario import Scenario, render_threads
 
     if workers <= 0:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        workers = max(1, min(4, cores or 1))
+        workers = render_threads()
     workers = min(workers, max(1, n_frames))
     images: list[Any] = [None] * n_frames
     scenarios = [scenario] + [

@@ -77,6 +77,8 @@ def _write_flight(
     """Fly the scenario: frames.csv, ranges.csv, attitude.csv and the images; the truth back."""
     from tqdm import tqdm
 
+    from sitl.scenario import render_threads
+
     enc = (
         [cv2.IMWRITE_JPEG_QUALITY, 95]
         if image_format == "jpg"
@@ -103,7 +105,7 @@ def _write_flight(
             disable=not progress,
             dynamic_ncols=True,
         )
-        for step in scenario.steps():
+        for step in scenario.steps(workers=render_threads()):  # rendered ahead, in order
             _write_sensors(step, w_att, w_ranges)
             name = f"images/{step.frame.seq:06d}.{image_format}"
             if not cv2.imwrite(str(out_dir / name), step.frame.image_bgr, enc):

@@ -7,6 +7,7 @@ recorder, offline evaluation and (later) the SITL autopilot, so all see identica
 
 from __future__ import annotations
 
+import os
 import threading
 from collections import deque
 from collections.abc import Iterator
@@ -24,6 +25,12 @@ from sitl.trajectory import Trajectory
 from sitl.world import World, make_world
 
 F64 = NDArray[np.float64]
+
+
+def render_threads() -> int:
+    """Threads worth rendering on: one per core this process may use, at most 4."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(4, cores or 1))
 
 
 @dataclass(frozen=True, slots=True)
