@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pymavlink.dialects.v20 import common as mavlink
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.errors import ConfigError
 from companion.service_options import SigningOptions

@@ -92,3 +92,8 @@ def test_service_sets_the_ekf_origin_and_maps_ardupilots_rangefinder(
     assert by.get("no_reading", 0) + st["scale"]["ranges_in"] > 20, str(st["scale"])
     assert not by.get("unknown_id") and not by.get("not_downward"), str(st["scale"])
     assert ap["timesync_converged"] is True, str(ap)  # ArduPilot answers our TIMESYNC
+    # ArduPilot's own messages (EKF_STATUS_REPORT, SIMSTATE, ...) are its dialect, not bad
+    # frames: the link parses ardupilotmega (7 % of an ArduCopter link counted as bad with
+    # common; 0 of 7,800 in a flight with ardupilotmega). What is left here is ArduPilot's
+    # boot banner ("Init ArduCopter V4.7.0-dev ...", plain text before MAVLink: 5 chunks)
+    assert ap["rx_messages"] > 100 and ap["rx_bad"] <= 0.02 * ap["rx_messages"], str(ap)
