@@ -11,17 +11,15 @@ wxyz), ``vn/ve/vd`` (m/s).
 
 from __future__ import annotations
 
-import argparse
 import os
-import signal
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from companion.config import Config, load_config
-from sitl.px4_bridge import Bridge, TruthSample, ned_of
+from companion.config import Config
+from sitl.px4_bridge import Bridge, TruthSample, ned_of, parse_bridge_args, serve
 
 MSG_ID_SIM_STATE = 108
 TRUTH_RATE_HZ = 100.0  # the camera waits for the first sample after each exposure: 10 ms at most
@@ -78,24 +76,15 @@ class ArduPilotBridge(Bridge):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sitl.ardupilot_bridge", description=__doc__)
-    ap.add_argument("--config", type=Path, required=True)
-    ap.add_argument("--truth-url", required=True, help="pymavlink URL of an ArduPilot link")
-    ap.add_argument("--camera-port", type=int, required=True)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--gear-m", type=float, default=0.35)
-    args = ap.parse_args(argv)
-    cfg = load_config(args.config)
-    args.out.mkdir(parents=True, exist_ok=True)
-    bridge = ArduPilotBridge(cfg, args.truth_url, args.camera_port, args.out, args.gear_m)
-
-    def on_term(signum: int, frame: Any) -> None:
-        bridge.stop.set()
-
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
-    bridge.run()
-    return 0
+    args, cfg = parse_bridge_args(
+        "python -m sitl.ardupilot_bridge",
+        __doc__,
+        argv,
+        lambda ap: ap.add_argument(
+            "--truth-url", required=True, help="pymavlink URL of an ArduPilot link"
+        ),
+    )
+    return serve(ArduPilotBridge(cfg, args.truth_url, args.camera_port, args.out, args.gear_m))
 
 
 if __name__ == "__main__":

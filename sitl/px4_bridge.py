@@ -38,6 +38,7 @@ import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -399,17 +400,29 @@ class Bridge:
         (self.out / "bridge-stats.json").write_text(json.dumps(stats, indent=2) + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sitl.px4_bridge", description=__doc__)
+def parse_bridge_args(
+    prog: str,
+    description: str | None,
+    argv: list[str] | None,
+    add_truth_source: Callable[[argparse.ArgumentParser], Any],
+) -> tuple[argparse.Namespace, Config]:
+    """The command line of a bridge (``--config``, its truth source's flags as
+    ``add_truth_source`` adds them, ``--camera-port``, ``--out``, ``--gear-m``): the arguments
+    and the loaded config; ``--out`` is created."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("--config", type=Path, required=True)
-    ap.add_argument("--instance", type=int, default=0)
+    add_truth_source(ap)
     ap.add_argument("--camera-port", type=int, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--gear-m", type=float, default=0.35)
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
     args.out.mkdir(parents=True, exist_ok=True)
-    bridge = Bridge(cfg, args.instance, args.camera_port, args.out, args.gear_m)
+    return args, cfg
+
+
+def serve(bridge: Bridge) -> int:
+    """Run ``bridge`` until SIGTERM or SIGINT (then it writes its truth and stats); exit 0."""
 
     def on_term(signum: int, frame: Any) -> None:
         bridge.stop.set()
@@ -418,6 +431,16 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_term)
     bridge.run()
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, cfg = parse_bridge_args(
+        "python -m sitl.px4_bridge",
+        __doc__,
+        argv,
+        lambda ap: ap.add_argument("--instance", type=int, default=0),
+    )
+    return serve(Bridge(cfg, args.instance, args.camera_port, args.out, args.gear_m))
 
 
 if __name__ == "__main__":
