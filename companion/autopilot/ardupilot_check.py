@@ -19,7 +19,7 @@ from companion.autopilot.ardupilot_link import ArduPilotLink, Watched
 from companion.autopilot.ardupilot_rules import ArduPilotContext, evaluate
 from companion.config import Config
 from companion.errors import Px4Error
-from companion.px4.check import format_rows, resolve, service_status
+from companion.px4.check import autopilot_line, format_report, resolve, service_status
 from companion.px4.configure import Change, ConfigureReport, ask, format_plan
 from companion.px4.fusion import Verdict
 from companion.px4.options import Px4Options
@@ -118,41 +118,16 @@ def header(
 ) -> str:
     origin = "sends the EKF origin" if ctx.set_origin else "sends no EKF origin"
     return (
-        f"autopilot: {autopilot} system {system_id} on {url}, "
-        f"{'ARMED' if armed else 'disarmed'}, {n} parameters\n"
-        f"companion: sends {ctx.output} as system {ctx.system_id}, {origin}"
+        autopilot_line(url, system_id, autopilot, armed, n)
+        + f"\ncompanion: sends {ctx.output} as system {ctx.system_id}, {origin}"
         + (f", latency {ctx.latency_ms:.0f} ms (p50)" if ctx.latency_ms is not None else "")
     )
 
 
 def format_check(r: ArduPilotReport) -> str:
     """Everything check prints (the layout of ``companion px4 check``)."""
-    out = [header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx), ""]
-    out.append(format_rows(r.rows))
-    warns = sum(x.status is Status.WARN for x in r.rows)
-    v = r.verdict
-    if v is not None:
-        out += ["", f"fusion (watched {r.watch_s:.1f} s): {v.headline}"]
-        if v.reasons:
-            first = "most likely:" if v.fused is False else "but:        "
-            out.append(f"  {first} {v.reasons[0]}")
-            out += [f"  also:        {x}" for x in v.reasons[1:]]
-        out += [f"  warning:     {x}" for x in v.warnings]
-        out += [f"  seen:        {x}" for x in v.evidence]
-    else:
-        out += ["", "fusion: not watched (--watch-s 0)"]
-    n = r.problems
-    out += [
-        "",
-        f"result: {'OK' if n == 0 else f'{n} problem(s)'}"
-        + (f", {warns} warning(s)" if warns else "")
-        + (
-            " -- `companion autopilot configure` writes the needed values"
-            if any(x.targets and x.status is not Status.OK for x in r.rows)
-            else ""
-        ),
-    ]
-    return "\n".join(out)
+    head = header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx)
+    return format_report(head, r, "companion autopilot configure", "but:        ")
 
 
 def _write_all(link: ArduPilotLink, planned: tuple[Change, ...]) -> list[Change]:

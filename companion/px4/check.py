@@ -14,7 +14,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from companion.config import Config
 from companion.errors import ConfigError
@@ -182,6 +182,15 @@ def format_rows(rows: tuple[Row, ...] | list[Row]) -> str:
     return "\n".join(lines)
 
 
+def autopilot_line(url: str, system_id: int, autopilot: str, armed: bool, n: int) -> str:
+    """The header's first line (check and configure, PX4 and ArduPilot): the autopilot as
+    reached."""
+    return (
+        f"autopilot: {autopilot} system {system_id} on {url}, "
+        f"{'ARMED' if armed else 'disarmed'}, {n} parameters"
+    )
+
+
 def header(url: str, system_id: int, autopilot: str, armed: bool, n: int, ctx: LinkContext) -> str:
     """Two lines: the autopilot as reached, and our side."""
     link = (
@@ -190,16 +199,33 @@ def header(url: str, system_id: int, autopilot: str, armed: bool, n: int, ctx: L
         else f"{ctx.link_host} at {ctx.link_port} baud"
     )
     return (
-        f"autopilot: {autopilot} system {system_id} on {url}, "
-        f"{'ARMED' if armed else 'disarmed'}, {n} parameters\n"
-        f"companion: sends {ctx.output} on {link}, wired to the autopilot's {ctx.fc_port}"
+        autopilot_line(url, system_id, autopilot, armed, n)
+        + f"\ncompanion: sends {ctx.output} on {link}, wired to the autopilot's {ctx.fc_port}"
     )
 
 
-def format_check(report: CheckReport) -> str:
-    """Everything check prints."""
-    r = report
-    out = [header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx), ""]
+class CheckedReport(Protocol):
+    """What :func:`format_report` prints of a check's report (PX4's or ArduPilot's)."""
+
+    @property
+    def rows(self) -> tuple[Row, ...]: ...
+
+    @property
+    def verdict(self) -> Verdict | None: ...
+
+    @property
+    def watch_s(self) -> float: ...
+
+    @property
+    def problems(self) -> int: ...
+
+
+def format_report(head: str, r: CheckedReport, configure_command: str, undecided_label: str) -> str:
+    """Everything a check prints: ``head``, the parameter table, the fusion verdict and the
+    result line, which points to ``configure_command`` when it would write something. The
+    first reason is "most likely:" when not fused, "but:" when fused, ``undecided_label``
+    (12 characters) when the verdict cannot tell."""
+    out = [head, ""]
     out.append(format_rows(r.rows))
     warns = sum(x.status is Status.WARN for x in r.rows)
     v = r.verdict
@@ -209,7 +235,7 @@ def format_check(report: CheckReport) -> str:
             first = (
                 "most likely:"
                 if v.fused is False
-                else ("but:        " if v.fused else "because:    ")
+                else ("but:        " if v.fused else undecided_label)
             )
             out.append(f"  {first} {v.reasons[0]}")
             out += [f"  also:        {x}" for x in v.reasons[1:]]
@@ -223,9 +249,16 @@ def format_check(report: CheckReport) -> str:
         f"result: {'OK' if n == 0 else f'{n} problem(s)'}"
         + (f", {warns} warning(s)" if warns else "")
         + (
-            " -- `companion px4 configure` writes the needed values"
+            f" -- `{configure_command}` writes the needed values"
             if any(x.targets and x.status is not Status.OK for x in r.rows)
             else ""
         ),
     ]
     return "\n".join(out)
+
+
+def format_check(report: CheckReport) -> str:
+    """Everything check prints."""
+    r = report
+    head = header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx)
+    return format_report(head, r, "companion px4 configure", "because:    ")
