@@ -1,8 +1,8 @@
 """The summary of an ArduPilot flight (sitl/ardupilot_flight.py): the PX4 loop's figures where
-they apply (sitl/px4_results.py, whose path, landing, camera and latency parts are reused).
+they apply (sitl/loop_results.py: the path, landing, camera and latency parts both share).
 
 - EKF3's estimate: LOCAL_POSITION_NED (its time_boot_ms moved into our clock through the
-  smallest arrival delay, px4_results._clock_line) against the truth the bridge logged, from
+  smallest arrival delay, loop_results.clock_line) against the truth the bridge logged, from
   2 s after take-off to the touchdown: as in the PX4 loop each stretch between position resets
   (our reset_counter changes, from the service's log) after its own translation (the median
   difference: EKF3's frame is ours, whose origin is where our VO started), and
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl.px4_results import _camera_and_latency, _clock_line, _p, _path_and_landing
+from sitl import loop_results
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)
@@ -63,6 +63,18 @@ def _heading_offset(tr: np.ndarray, yaw: np.ndarray, phases: dict[str, float]) -
     return float(np.arctan2(np.sin(d), np.cos(d)))
 
 
+def _ekf_fused(s: dict[str, Any], ekf_rows: list[Any], air_t0: float, air_t1: float) -> None:
+    """``ev_pos_fused_pct``: the share of the EKF_STATUS_REPORTs (t [ns], flags) between
+    ``air_t0`` and ``air_t1`` that say EKF3 has a relative horizontal position and is not in
+    constant-position mode (none airborne: no key)."""
+    ekf = np.array(ekf_rows, dtype=np.float64).reshape(-1, 2)
+    air = (ekf[:, 0] >= air_t0) & (ekf[:, 0] <= air_t1)
+    if air.any():
+        flags = ekf[air, 1].astype(np.int64)
+        fused = (flags & EKF_POS_HORIZ_REL != 0) & (flags & EKF_CONST_POS_MODE == 0)
+        s["ev_pos_fused_pct"] = float(100.0 * fused.mean())
+
+
 def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     tel = flight.tel
     out = flight.out
@@ -79,40 +91,31 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     }
     s["failsafes"] = [t for _, _, t in tel.texts if FAILSAFE.search(t)]
     lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
-    truth_path = out / "truth.csv"
-    if not truth_path.exists() or len(lp) < 10:
-        s["landed"] = False
-        s["error"] = "no truth or no ArduPilot position: the flight did not run"
+    tr = loop_results.read_truth(s, out, lp, "ArduPilot")
+    if tr is None:
         return s
-    tr = np.loadtxt(truth_path, delimiter=",", skiprows=1, ndmin=2)
     t_tr, p_tr = tr[:, 0], tr[:, 1:4]
-    clock = _clock_line(lp)
+    clock = loop_results.clock_line(lp)
     t_lp = clock[0] + clock[1] * lp[:, 1] * 1e6
     p_lp = lp[:, 2:5]
     ph = tel.phases
     air_t0 = ph.get("take-off", ph.get("armed", 0.0)) * 1e9
     air_t1 = ph.get("disarmed", t_lp[-1] * 1e-9) * 1e9
     s["airborne_s"] = float((air_t1 - air_t0) * 1e-9)
-    ekf = np.array(tel.ekf, dtype=np.float64).reshape(-1, 2)
-    air = (ekf[:, 0] >= air_t0) & (ekf[:, 0] <= air_t1)
-    if air.any():
-        flags = ekf[air, 1].astype(np.int64)
-        fused = (flags & EKF_POS_HORIZ_REL != 0) & (flags & EKF_CONST_POS_MODE == 0)
-        s["ev_pos_fused_pct"] = float(100.0 * fused.mean())
+    _ekf_fused(s, tel.ekf, air_t0, air_t1)
     t_cmp = air_t0 + SETTLE_NS
     # the touchdown: back on the ground (the truth's home level) after the landing began
     t_land = ph.get("landing", air_t1 * 1e-9) * 1e9
-    down = np.flatnonzero((t_tr > t_land) & (p_tr[:, 2] >= -0.05))
-    t_touch = min(air_t1, t_tr[down[0]]) if len(down) else air_t1
+    t_touch = loop_results.touchdown(t_tr, p_tr, t_land, air_t1, 0.05)
     s["compared_s"] = float((t_touch - t_cmp) * 1e-9)
     span = (t_lp >= t_cmp) & (t_lp <= t_touch) & (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
     if span.sum() >= 10:
-        gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
+        gt = loop_results.truth_at(t_lp[span], t_tr, p_tr)
         est = p_lp[span]
         # in north-aligned axes, one translation for the whole flight
         offset = np.median(gt - est, axis=0)
         h_north = np.linalg.norm((est + offset - gt)[:, :2], axis=1)
-        s["horizontal_error_m_p95_north"] = _p(h_north, 95)
+        s["horizontal_error_m_p95_north"] = loop_results.percentile(h_north, 95)
         # EKF3's heading reference is ours, and ours is the autopilot's heading when our VO
         # started (EK3_SRC1_YAW = 6: before our data EKF3 has no heading of its own): its local
         # frame is turned from north by the heading error of that moment. Compared in EKF3's
@@ -123,23 +126,13 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         est = est @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
         offset = np.median(gt - est, axis=0)
         h_one = np.linalg.norm((est + offset - gt)[:, :2], axis=1)
-        s["horizontal_error_m_p95_one_frame"] = _p(h_one, 95)
+        s["horizontal_error_m_p95_one_frame"] = loop_results.percentile(h_one, 95)
         # as the PX4 loop: each stretch between position resets after its own translation
         # (EKF3 resets its position to ours when our reset_counter changes; ArduPilot's
         # telemetry has no reset counter, so the service's own reset times are used)
         resets = _service_resets_ns(out, getattr(flight, "wall_minus_mono_s", None))
         s["position_resets_in_flight"] = int(np.sum((resets > t_cmp) & (resets < t_touch)))
-        seg = np.searchsorted(resets, t_lp[span])
-        err = np.full_like(est, np.nan)
-        for value in np.unique(seg):
-            k = seg == value
-            if k.sum() >= 10:
-                err[k] = est[k] + np.median(gt[k] - est[k], axis=0) - gt[k]
-        err = err[np.all(np.isfinite(err), axis=1)]
-        h_err = np.linalg.norm(err[:, :2], axis=1)
-        s["horizontal_error_m_p95"] = _p(h_err, 95)
-        s["vertical_error_m_p95"] = _p(np.abs(err[:, 2]), 95)
-        s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
+        loop_results.segment_errors(s, est, gt, np.searchsorted(resets, t_lp[span]))
         s["frame_offset_m"] = [float(v) for v in offset]
         try:
             _plot(out, s, t_tr, p_tr, t_lp[span], est + offset, t_cmp)
@@ -148,8 +141,8 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     else:
         s["horizontal_error_m_p95"] = s["vertical_error_m_p95"] = None
     s["ardupilot_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
-    _path_and_landing(s, flight, ok, tr, air_t0, air_t1)
-    _camera_and_latency(s, out, {})
+    loop_results.path_and_landing(s, flight, ok, tr, air_t0, air_t1)
+    loop_results.camera_and_latency(s, out)
     rep = out / "service-report.json"
     if rep.exists():
         data = json.loads(rep.read_text())
@@ -174,23 +167,14 @@ def _plot(
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 3, figsize=(16, 5))
-    a = ax[0]
-    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (ArduPilot SITL)")
-    a.plot(p_est[:, 1], p_est[:, 0], "b-", lw=0.9, label="ArduPilot EKF3 (its axes)")
-    a.set_xlabel("east [m]")
-    a.set_ylabel("north [m]")
-    a.axis("equal")
-    a.legend(fontsize=8)
-    a.set_title(f"{s['mission']} seed {s['seed']}: top")
-    a = ax[1]
-    a.plot((t_tr - t0) * 1e-9, -p_tr[:, 2], "k-", lw=1.6, label="truth")
-    a.plot((t_est - t0) * 1e-9, -p_est[:, 2], "b-", lw=0.9, label="EKF3")
-    a.set_xlabel("time [s]")
-    a.set_ylabel("height [m]")
-    a.legend(fontsize=8)
-    a.set_title("side")
+    title = f"{s['mission']} seed {s['seed']}: top"
+    labels = ("truth (ArduPilot SITL)", "ArduPilot EKF3 (its axes)")
+    loop_results.plot_top(ax[0], p_tr, p_est, labels, title)
+    loop_results.plot_side(
+        ax[1], t0, (t_tr, p_tr), ("EKF3", t_est, p_est), ("time [s]", "height [m]")
+    )
     a = ax[2]
-    gt = np.column_stack([np.interp(t_est, t_tr, p_tr[:, i]) for i in range(3)])
+    gt = loop_results.truth_at(t_est, t_tr, p_tr)
     a.plot((t_est - t0) * 1e-9, np.linalg.norm((p_est - gt)[:, :2], axis=1), "b-", lw=0.9)
     a.set_xlabel("time [s]")
     a.set_ylabel("horizontal error [m]")

@@ -24,7 +24,6 @@ Definitions (docs/RESULTS.md, "PX4 in the loop"):
 from __future__ import annotations
 
 import glob
-import json
 import re
 import shutil
 from pathlib import Path
@@ -32,6 +31,18 @@ from typing import Any
 
 import numpy as np
 
+from sitl.loop_results import (
+    camera_and_latency,
+    clock_line,
+    path_and_landing,
+    percentile,
+    plot_side,
+    plot_top,
+    read_truth,
+    segment_errors,
+    touchdown,
+    truth_at,
+)
 from sitl.ulog import read_topics
 
 SETTLE_NS = 2e9  # compared from this long after the first EV fusion
@@ -51,10 +62,6 @@ def _hold(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray) -> np.ndarray:
     return v_src[idx]
 
 
-def _p(a: np.ndarray, q: float) -> float | None:
-    return float(np.percentile(a, q)) if len(a) else None
-
-
 def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     out: Path = flight.out
     tel = flight.tel
@@ -71,7 +78,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     }
     ulog = _read_log(out, s["notes"])
     lp = np.array(tel.lpos, dtype=np.float64).reshape(-1, 5)
-    clock = _clock_line(lp)
+    clock = clock_line(lp)
     s["px4_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
 
     def ours(t_us: np.ndarray) -> np.ndarray:
@@ -80,12 +87,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
 
     s["failsafes"] = _failsafes(out, tel, ulog)
     # ---- truth
-    truth_path = out / "truth.csv"
-    if not truth_path.exists() or len(lp) < 10:
-        s["landed"] = False
-        s["error"] = "no truth or no PX4 position: the flight did not run"
+    tr = read_truth(s, out, lp, "PX4")
+    if tr is None:
         return s
-    tr = np.loadtxt(truth_path, delimiter=",", skiprows=1, ndmin=2)
     t_tr, p_tr = tr[:, 0], tr[:, 1:4]
     air_t0, air_t1 = _airborne_span(tel.phases, lp, ulog, ours)
     s["airborne_s"] = float((air_t1 - air_t0) * 1e-9)
@@ -95,8 +99,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
     offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1)
-    _path_and_landing(s, flight, ok, tr, air_t0, air_t1)
-    _camera_and_latency(s, out, ulog)
+    path_and_landing(s, flight, ok, tr, air_t0, air_t1)
+    camera_and_latency(s, out)
+    _px4_vision_age(s, ulog)
     try:
         _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
     except Exception as e:  # plots are a by-product: never lose the summary for them
@@ -116,26 +121,6 @@ def _read_log(out: Path, notes: list[str]) -> dict[str, np.ndarray]:
         except (ValueError, KeyError) as e:
             notes.append(f"px4.ulg unreadable: {e}")
     return ulog
-
-
-def _clock_line(lp: np.ndarray) -> np.ndarray:
-    """PX4 clock -> ours, (offset [ns], rate): the smallest arrival delay of
-    LOCAL_POSITION_NED."""
-    # SIH's lockstep clock drifts against ours (~1 ms/s seen): a line through the smallest
-    # arrival delay of every 2 s of LOCAL_POSITION_NED (arrival = PX4 time + delay >= 0)
-    clock = np.array([0.0, 1.0])
-    if len(lp) > 10:
-        bins = ((lp[:, 0] - lp[0, 0]) // 2e9).astype(int)
-        pts = [
-            lp[bins == b][np.argmin(lp[bins == b, 0] - lp[bins == b, 1] * 1e6)]
-            for b in np.unique(bins)
-        ]
-        env = np.array(pts)
-        if len(env) >= 3:
-            clock = np.polyfit(env[:, 1] * 1e6, env[:, 0], 1)[::-1]
-        else:
-            clock = np.array([float(np.min(lp[:, 0] - lp[:, 1] * 1e6)), 1.0])
-    return clock
 
 
 def _failsafes(out: Path, tel: Any, ulog: dict[str, np.ndarray]) -> list[str]:
@@ -251,12 +236,11 @@ def _position_errors(
     translation (3,)."""
     # to the touchdown: the truth at the home level, or PX4's land detector if earlier (SIH's
     # vehicle may sink below its start altitude before PX4 sees the landing: px4_bridge.py)
-    down = np.flatnonzero((t_tr > t_cmp) & (p_tr[:, 2] >= -0.02))
-    t_touch = min(air_t1, t_tr[down[0]]) if len(down) else air_t1
+    t_touch = touchdown(t_tr, p_tr, t_cmp, air_t1, 0.02)
     s["compared_s"] = float((t_touch - t_cmp) * 1e-9)
     span = (t_lp >= t_cmp) & (t_lp <= t_touch)
     span &= (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
-    gt = np.column_stack([np.interp(t_lp[span], t_tr, p_tr[:, i]) for i in range(3)])
+    gt = truth_at(t_lp[span], t_tr, p_tr)
     est_p = p_lp[span]
     # PX4 resets its position to ours when our reset_counter changes (a VO re-initialisation):
     # each stretch between EKF2 position resets is compared after its own translation
@@ -265,99 +249,28 @@ def _position_errors(
         vlp = ulog["vehicle_local_position"]
         rc = vlp["xy_reset_counter"].astype(np.int64) * 256 + vlp["z_reset_counter"]
         seg = _hold(ours(vlp["timestamp"]), rc, t_lp[span])
-    err = np.full_like(est_p, np.nan)
-    offset = np.zeros(3)
-    best = 0
-    for value in np.unique(seg):
-        k = seg == value
-        if k.sum() >= 10:
-            off = np.median(gt[k] - est_p[k], axis=0)
-            err[k] = est_p[k] + off - gt[k]
-            if k.sum() > best:
-                best, offset = int(k.sum()), off
     s["px4_position_resets"] = int(len(np.unique(seg)) - 1)
-    err = err[np.all(np.isfinite(err), axis=1)]
-    h_err = np.linalg.norm(err[:, :2], axis=1)
-    v_err = np.abs(err[:, 2])
-    s["horizontal_error_m_p95"] = _p(h_err, 95)
-    s["vertical_error_m_p95"] = _p(v_err, 95)
-    s["horizontal_error_m_max"] = float(h_err.max()) if len(h_err) else None
+    offset = segment_errors(s, est_p, gt, seg)
     s["frame_offset_m"] = [float(v) for v in offset]
     return offset
 
 
-def _path_and_landing(
-    s: dict[str, Any], flight: Any, ok: bool, tr: np.ndarray, air_t0: Any, air_t1: Any
-) -> None:
-    """The flown path, the error relative to it, where the vehicle came down and whether it
-    landed, into ``s``."""
-    t_tr, p_tr = tr[:, 0], tr[:, 1:4]
-    air = (t_tr >= air_t0) & (t_tr <= air_t1)
-    path = (
-        float(np.sum(np.linalg.norm(np.diff(p_tr[air], axis=0), axis=1))) if air.sum() > 1 else 0.0
-    )
-    s["path_m"] = path
-    s["horizontal_error_pct_of_path"] = (
-        100.0 * s["horizontal_error_m_p95"] / path if path and s["horizontal_error_m_p95"] else None
-    )
-    final = p_tr[-1]
-    s["landing_error_m"] = float(np.linalg.norm(final[:2]))
-    s["final_altitude_m"] = float(-final[2])
-    phases = flight.tel.phases
-    start_t = phases.get("mission " + flight.o.mission, phases.get("hover"))
-    if start_t is not None:
-        p_start = np.array([np.interp(start_t * 1e9, t_tr, p_tr[:, i]) for i in range(3)])
-        s["landing_error_from_mission_start_m"] = float(np.linalg.norm(final[:2] - p_start[:2]))
-    # on the ground and disarmed (SIH's vehicle may rest below its start altitude: see
-    # px4_bridge.py), not moving
-    s["landed"] = bool(ok and not flight.tel.armed and np.linalg.norm(tr[-1, 8:11]) < 0.1)
-
-
-def _camera_and_latency(s: dict[str, Any], out: Path, ulog: dict[str, np.ndarray]) -> None:
-    """Camera frames and latency (the service's exit report, the bridge's stats, PX4's
-    receipt of our estimate) into ``s``."""
-    rep = _json(out / "service-report.json")
-    br = _json(out / "bridge-stats.json")
-    s["camera_frames_sent"] = br.get("frames_sent")
-    s["camera_frames_dropped_by_bridge"] = br.get("frames_dropped")
-    s["camera_frames_dropped_by_service"] = _find(rep, "frames_dropped")
-    s["camera_frames_dropped"] = (br.get("frames_dropped") or 0) + (
-        _find(rep, "frames_dropped") or 0
-    )
-    s["render_ms_p50"] = br.get("render_ms_p50")
-    s["render_ms_p99"] = br.get("render_ms_p99")
-    s["truth_rate_hz"] = br.get("truth_rate_hz")
-    s["latency_ms_p50"] = _find(rep, "latency_ms_p50")
-    s["latency_ms_p99"] = _find(rep, "latency_ms_p99")
-    s["service_poses_sent"] = _find(rep, "published")
+def _px4_vision_age(s: dict[str, Any], ulog: dict[str, np.ndarray]) -> None:
+    """PX4's receipt of our estimate (``vehicle_visual_odometry``: its age, count and rate)
+    into ``s``."""
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
-        lat = (vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3
-        s["px4_vision_age_ms_p50"] = _p(lat, 50)
-        s["px4_vision_age_ms_p99"] = _p(lat, 99)
+        lat = _vision_age_ms(vo)
+        s["px4_vision_age_ms_p50"] = percentile(lat, 50)
+        s["px4_vision_age_ms_p99"] = percentile(lat, 99)
         s["px4_vision_messages"] = int(len(vo))
         dur = (vo["timestamp"][-1] - vo["timestamp"][0]) * 1e-6 if len(vo) > 1 else 0
         s["px4_vision_rate_hz"] = float((len(vo) - 1) / dur) if dur else None
 
 
-def _json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-        return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):
-        return {}
-
-
-def _find(d: Any, key: str) -> Any:
-    """The first value of ``key`` anywhere in a nested dict (the report's layout may change)."""
-    if isinstance(d, dict):
-        if key in d:
-            return d[key]
-        for v in d.values():
-            got = _find(v, key)
-            if got is not None:
-                return got
-    return None
+def _vision_age_ms(vo: np.ndarray) -> np.ndarray:
+    """PX4's receipt minus our exposure stamp [ms] of each ``vehicle_visual_odometry``."""
+    return np.asarray((vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3)
 
 
 def _plot(
@@ -382,69 +295,23 @@ def _plot(
     t00 = air_t0
     fig, ax = plt.subplots(2, 2, figsize=(13, 9))
     sel = t_lp >= (t_first if t_first is not None else air_t0)
-    _plot_top(ax[0, 0], s, p_tr, p_lp[sel], offset, ulog)
-    _plot_side(ax[0, 1], t_tr, p_tr, t_lp[sel], p_lp[sel], offset, ulog, ours, t00)
+    # the truth, PX4's estimate and ours (as PX4 received it), in the truth's frame
+    p_est = p_lp[sel] + offset
+    top_ours = side_ours = None
+    if "vehicle_visual_odometry" in ulog:
+        vo = ulog["vehicle_visual_odometry"]
+        top_ours = ("ours (as PX4 received it)", vo["position"] + offset)
+        side_ours = (ours(vo["timestamp"]), vo["position"] + offset)
+    title = f"{s['mission']}: top (PX4 frame shifted by one translation)"
+    plot_top(ax[0, 0], p_tr, p_est, ("truth (SIH)", "PX4 EKF2"), title, top_ours)
+    axis_labels = ("time since take-off [s]", "height above home [m]")
+    est = ("PX4 EKF2", t_lp[sel], p_est)
+    plot_side(ax[0, 1], t00, (t_tr, p_tr), est, axis_labels, side_ours)
     _plot_fusion(ax[1, 0], ulog, ours, t00, air_t1)
     _plot_latency(ax[1, 1], s, ulog, ours, t00)
     fig.tight_layout()
     fig.savefig(out / "flight.png", dpi=100)
     plt.close(fig)
-
-
-def _plot_top(
-    a: Any,
-    s: dict[str, Any],
-    p_tr: np.ndarray,
-    p_lp: np.ndarray,
-    offset: np.ndarray,
-    ulog: dict[str, np.ndarray],
-) -> None:
-    """Top view: the truth, PX4's estimate and ours, in the truth's frame."""
-    a.plot(p_tr[:, 1], p_tr[:, 0], "k-", lw=1.6, label="truth (SIH)")
-    a.plot(p_lp[:, 1] + offset[1], p_lp[:, 0] + offset[0], "b-", lw=0.9, label="PX4 EKF2")
-    if "vehicle_visual_odometry" in ulog:
-        vo = ulog["vehicle_visual_odometry"]
-        a.plot(
-            vo["position"][:, 1] + offset[1],
-            vo["position"][:, 0] + offset[0],
-            "r.",
-            ms=1,
-            label="ours (as PX4 received it)",
-        )
-    a.set_xlabel("east [m]")
-    a.set_ylabel("north [m]")
-    a.axis("equal")
-    a.legend(fontsize=8)
-    a.set_title(f"{s['mission']}: top (PX4 frame shifted by one translation)")
-
-
-def _plot_side(
-    a: Any,
-    t_tr: np.ndarray,
-    p_tr: np.ndarray,
-    t_lp: np.ndarray,
-    p_lp: np.ndarray,
-    offset: np.ndarray,
-    ulog: dict[str, np.ndarray],
-    ours: Any,
-    t00: float,
-) -> None:
-    """Height over time: the truth, PX4's estimate and ours."""
-    a.plot((t_tr - t00) * 1e-9, -p_tr[:, 2], "k-", lw=1.6, label="truth")
-    a.plot((t_lp - t00) * 1e-9, -(p_lp[:, 2] + offset[2]), "b-", lw=0.9, label="PX4 EKF2")
-    if "vehicle_visual_odometry" in ulog:
-        vo = ulog["vehicle_visual_odometry"]
-        a.plot(
-            (ours(vo["timestamp"]) - t00) * 1e-9,
-            -(vo["position"][:, 2] + offset[2]),
-            "r.",
-            ms=1,
-            label="ours",
-        )
-    a.set_xlabel("time since take-off [s]")
-    a.set_ylabel("height above home [m]")
-    a.legend(fontsize=8)
-    a.set_title("side")
 
 
 def _plot_fusion(a: Any, ulog: dict[str, np.ndarray], ours: Any, t00: float, air_t1: float) -> None:
@@ -478,7 +345,7 @@ def _plot_latency(
     title."""
     if "vehicle_visual_odometry" in ulog:
         vo = ulog["vehicle_visual_odometry"]
-        lat = (vo["timestamp"].astype(np.float64) - vo["timestamp_sample"]) * 1e-3
+        lat = _vision_age_ms(vo)
         a.plot((ours(vo["timestamp"]) - t00) * 1e-9, lat, "b.", ms=1)
         a.set_ylabel("PX4 receipt - our exposure stamp [ms]")
     a.set_xlabel("time since take-off [s]")
