@@ -78,7 +78,12 @@ def encode_frame(frame: CameraFrame) -> bytes:
 
 class CameraError(CompanionError):
     """A camera that cannot deliver what the config asks (a size, a rate, a pixel format), or a
-    driver error (a GStreamer element, libcamera). The message names the config key."""
+    driver error (a GStreamer element, libcamera). The message names the config key;
+    ``brief`` says it in a few words for a ground station (STATUSTEXT: 50 characters)."""
+
+    def __init__(self, message: str, brief: str = "") -> None:
+        super().__init__(message)
+        self.brief = brief
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +114,8 @@ def check_frame_size(img: np.ndarray, request: CaptureRequest | None) -> None:
         raise CameraError(
             f"camera.width/camera.height: the camera delivers {w}x{h} frames, the intrinsics "
             f"are calibrated for {request.width}x{request.height}; set the camera to that size "
-            "or calibrate it at this one (frames refused)"
+            "or calibrate it at this one (frames refused)",
+            brief=f"{w}x{h}, calibrated {request.width}x{request.height}",
         )
 
 
@@ -134,6 +140,7 @@ class CameraSource(ABC):
         self.stamps = "source"  # where the last frame's time_us came from
         self.request = request
         self.last_error: str | None = None
+        self.last_error_brief: str | None = None  # CameraError.brief of last_error, if any
 
     def frames(self) -> Iterator[CameraFrame]:
         """The frames, stamped in our monotonic clock at exposure (blocking; a worker thread);
@@ -141,10 +148,11 @@ class CameraSource(ABC):
         try:
             for frame in self._read():
                 check_frame_size(frame.image_bgr, self.request)
-                self.last_error = None
+                self.last_error = self.last_error_brief = None
                 yield frame
         except Exception as e:
             self.last_error = str(e)
+            self.last_error_brief = e.brief or None if isinstance(e, CameraError) else None
             raise
 
     @abstractmethod

@@ -324,8 +324,9 @@ def test_the_sitl_stream_is_checked_against_the_intrinsics() -> None:
     assert [(f.time_us, f.seq) for f in got] == [(f.time_us, f.seq) for f in sent]
     server, t = serve(sent)
     src = open_camera(f"sitl://127.0.0.1:{server.getsockname()[1]}", camera=camera(640, 480))
-    with pytest.raises(CameraError, match=r"64x48 frames.*640x480"):
+    with pytest.raises(CameraError, match=r"64x48 frames.*640x480") as e:
         next(iter(src.frames()))
+    assert e.value.brief == "64x48, calibrated 640x480" == src.last_error_brief
     src.close()
     t.join()
     server.close()
@@ -595,16 +596,19 @@ def test_the_service_survives_a_camera_of_the_wrong_size_and_says_why(tmp_path) 
     )
     cfg = service_config(tmp_path, camera_url=url)
 
-    async def run() -> tuple[dict, list[str], int]:
+    async def run() -> tuple[dict, list[str], int, object]:
         async with Service(cfg) as service:
             deadline = time.monotonic() + 20
             while time.monotonic() < deadline and not service._camera_silent:
                 await asyncio.sleep(0.1)
             await asyncio.sleep(0.5)
-            return service.status(), list(service.stats.warnings), service.stats.frames_in
+            operator = service._operator_state(time.monotonic_ns())
+            return service.status(), list(service.stats.warnings), service.stats.frames_in, operator
 
-    status, warnings, frames_in = asyncio.run(run())
+    status, warnings, frames_in, operator = asyncio.run(run())
     assert frames_in == 0
+    # the ground station's STATUSTEXT says which size, in a few words (not only "no frames")
+    assert getattr(operator, "camera", None) == "no frames (320x240, calibrated 640x480)", operator
     problem = status["camera"]["problem"]
     assert problem.startswith("no frames: camera.width/camera.height") and "320x240" in problem
     refused = [w for w in warnings if "camera: failed: camera.width/camera.height" in w]

@@ -42,6 +42,11 @@ TRACKING = OperatorState(vo_state="TRACKING", scale_ready=True, scale_sensors=4)
     [
         (INITIAL, OperatorState(camera="no frames"), [("camera", 4, "camera lost: no frames")]),
         (
+            INITIAL,
+            OperatorState(camera="no frames (1280x720, calibrated 640x480)"),
+            [("camera", 4, "camera lost: no frames (1280x720, calibrated 640x480)")],
+        ),
+        (
             OperatorState(armed=True),
             OperatorState(camera="frozen", armed=True),
             [("camera", 2, "camera lost: frozen frames")],  # CRITICAL in flight

@@ -586,6 +586,8 @@ class Service:
         """What the operator cares about now, from the service's own state (the loop's)."""
         s, p = self.stats, self.pipeline_status
         camera = "no frames" if self._camera_silent else None
+        if camera is not None and self.camera.last_error_brief:  # a size refused, say which
+            camera = f"no frames ({self.camera.last_error_brief})"
         if camera is None and self._frame_problem is not None:
             camera = self._frame_problem.value
         tracking = p.vo_state == VoState.TRACKING.name

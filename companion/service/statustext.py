@@ -62,7 +62,8 @@ class Event:
 class OperatorState:
     """What the operator cares about at one instant (built by the service).
 
-    ``camera``: None while frames are usable, else why not ("no frames", "frozen", "dark",
+    ``camera``: None while frames are usable, else why not ("no frames", "no frames (1280x720,
+    calibrated 640x480)" for a refused size, "frozen", "dark",
     "saturated", "blank", "out_of_order"); ``vo_state``: a VoState name; ``vo_resets``: VO
     re-initialisations so far; ``reset_counter``: the reset_counter of the last pose sent
     (None before the first); ``scale_ready``: tracking with a metric scale (poses can go
@@ -116,7 +117,8 @@ def transitions(prev: OperatorState, cur: OperatorState) -> list[Event]:
             out.append(Event("camera", Severity.INFO, "camera ok"))
         else:
             sev = Severity.CRITICAL if cur.armed else Severity.WARNING
-            what = "no frames" if cur.camera == "no frames" else f"{cur.camera} frames"
+            no_frames = cur.camera.startswith("no frames")
+            what = cur.camera if no_frames else f"{cur.camera} frames"
             out.append(Event("camera", sev, f"camera lost: {what}"))
     if prev.tracking and not cur.tracking:
         out.append(Event("vo", Severity.WARNING, "VO lost"))
