@@ -379,12 +379,15 @@ def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) ->
     image = np.zeros((4, 4, 3), np.uint8)
     t0 = 5_000_000_000
     frames = [CameraFrame(t0 + k * 100_000, k, image) for k in range(40)]  # 10 Hz, 4 s
+    assert service._wait_for_attitude(frames[0]) is False  # no autopilot heard: nothing held
+    service.stats.autopilot_heartbeat_ns = 1  # an autopilot's HEARTBEAT came, no ATTITUDE yet
     held = [service._wait_for_attitude(f) for f in frames]
     # no attitude: 2 s held (frames 0-20, the 20th exactly at the limit), then none
     assert held == [True] * 21 + [False] * 19
     assert service.stats.waited_for_attitude == 21
 
     late = Service(service_config(tmp_path, attitude_wait_s=2.0))
+    late.stats.autopilot_heartbeat_ns = 1
     assert late._wait_for_attitude(frames[0]) is True
     q = np.array([1.0, 0.0, 0.0, 0.0])
     late.pipeline.feed_attitude(AttitudeSample(frames[1].time_us - 5_000, q, np.zeros(3)))
@@ -393,6 +396,7 @@ def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) ->
     assert late._wait_for_attitude(frames[15]) is True
 
     off = Service(service_config(tmp_path, attitude_wait_s=0.0))
+    off.stats.autopilot_heartbeat_ns = 1
     assert off._wait_for_attitude(frames[0]) is False
 
 

@@ -469,7 +469,13 @@ def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None
 
     monkeypatch.setattr(Pipeline, "feed_frame", broken)
     port = free_port(socket.SOCK_DGRAM)
-    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}", camera_url=f"folder:{ds}")
+    # this autopilot sends no ATTITUDE: the VO would hold the 2 s of frames for it
+    cfg = service_config(
+        tmp_path,
+        mavlink_url=f"udpin:127.0.0.1:{port}",
+        camera_url=f"folder:{ds}",
+        attitude_wait_s=0.0,
+    )
 
     async def main() -> list[tuple[int, str]]:
         autopilot = Autopilot(port, armed=True)

@@ -737,10 +737,15 @@ class Service:
         """Whether to hold this frame from a VO that has not started: the heading of the VO's
         frame is the autopilot's attitude at its start (else 0, the camera's first heading,
         and the autopilot's frame and ours are turned by its heading for the whole flight).
-        ArduPilot streams ATTITUDE only once asked, some time after the first frames; after
-        service.attitude_wait_s from the first frame the VO starts without one (logged)."""
+        ArduPilot streams ATTITUDE only once asked, some time after its first HEARTBEAT; after
+        service.attitude_wait_s from the first frame held the VO starts without one (logged).
+        Without an autopilot's HEARTBEAT (a replay, a bench test) nothing is held."""
         p = self.pipeline
-        if p.vo.state == VoState.TRACKING or p.attitude_at(frame.time_us) is not None:
+        if (
+            not self.stats.autopilot_heartbeat_ns  # no autopilot (yet): nothing to wait for
+            or p.vo.state == VoState.TRACKING
+            or p.attitude_at(frame.time_us) is not None
+        ):
             return False
         if self._first_frame_us is None:
             self._first_frame_us = frame.time_us
