@@ -1,0 +1,563 @@
+"""What the two closed loops share (``companion sitl px4``: sitl/px4_flight.py, ``companion sitl
+ardupilot``: sitl/ardupilot_flight.py): the processes they start, the missions and their
+setpoints, a minimal ground station's pump and common telemetry, and :class:`LoopFlight`, the
+flight's skeleton (start, fly, stop everything, summarise) with the steps both fly alike: the
+bridge and the service started and waited for, the service's status socket polled until it
+tracks with a metric scale, the autopilot's fusion of our estimate held, arming, the mission
+along its legs, the landing and the disarm.
+
+Positions are NED [m] in the autopilot's local frame (ours once its EKF fuses our estimate);
+times [s] of our monotonic clock unless named ``*_ns``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from companion.config import load_config, to_dict
+from companion.errors import SitlError
+
+REPO = Path(__file__).resolve().parent.parent
+# SET_POSITION_TARGET_LOCAL_NED type_mask: position + velocity; no acceleration, no yaw, no
+# yaw rate
+POS_VEL_TYPE_MASK = 0b0000_1101_1100_0000
+
+
+class Procs:
+    """The processes this run started (own process groups), stopped in reverse order."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, subprocess.Popen[bytes], int]] = []
+
+    def start(self, name: str, argv: list[str], log: Path, **kw: Any) -> subprocess.Popen[bytes]:
+        fh = log.open("wb")
+        p = subprocess.Popen(
+            argv, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, **kw
+        )
+        fh.close()
+        self.items.append((name, p, signal.SIGTERM))
+        return p
+
+    def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> None:
+        for n, p, _ in self.items:
+            if n == name and p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, sig)
+                try:
+                    p.wait(timeout_s)
+                except subprocess.TimeoutExpired:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.killpg(p.pid, signal.SIGKILL)
+                    p.wait(5)
+
+    def stop_all(self) -> None:
+        for name, _, _ in reversed(self.items):
+            self.stop(name)
+
+
+def mission_path(name: str, start: np.ndarray, side_m: float) -> list[np.ndarray]:
+    """Waypoints (NED) of a mission from ``start`` at its altitude: a square of side side_m
+    (north, east, south, west, back), or a lawnmower of four 30 m legs 6 m apart and back."""
+    if name == "square":
+        offs = [(0, 0), (side_m, 0), (side_m, side_m), (0, side_m), (0, 0)]
+    elif name == "lawnmower":
+        offs = [(0, 0)]
+        for k in range(4):
+            e = 6.0 * k
+            offs += [(30.0, e), (30.0, e + 6.0)] if k % 2 == 0 else [(0.0, e), (0.0, e + 6.0)]
+        offs[-1] = (offs[-1][0], 18.0)
+        offs += [(0.0, 18.0), (0.0, 0.0)]
+    else:
+        offs = [(0, 0)]
+    return [start + np.array([n, e, 0.0]) for n, e in offs]
+
+
+def leg_setpoints(
+    a: np.ndarray, b: np.ndarray, speed: float, accel: float = 1.0
+) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """(t, position, velocity) along a straight leg with a trapezoidal speed profile."""
+    d = float(np.linalg.norm(b - a))
+    if d < 1e-6:
+        return []
+    u = (b - a) / d
+    v = min(speed, math.sqrt(accel * d))
+    t_acc = v / accel
+    d_acc = 0.5 * accel * t_acc**2
+    t_cruise = (d - 2 * d_acc) / v
+    total = 2 * t_acc + t_cruise
+    out = []
+    for t in np.arange(0.0, total + 1e-9, 0.05):
+        if t < t_acc:
+            s, sp = 0.5 * accel * t**2, accel * t
+        elif t < t_acc + t_cruise:
+            s, sp = d_acc + v * (t - t_acc), v
+        else:
+            tr = total - t
+            s, sp = d - 0.5 * accel * tr**2, accel * tr
+        out.append((float(t), a + u * s, u * sp))
+    out.append((total, b.copy(), np.zeros(3)))
+    return out
+
+
+def companion_argv() -> list[str]:
+    """How to run ``companion`` from this interpreter (its script, else ``-m companion.cli``)."""
+    exe = Path(sys.executable).parent / "companion"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "companion.cli"]
+
+
+def raise_interrupt(signum: int, frame: Any) -> None:
+    """A signal handler (SIGTERM) that stops the flight as Ctrl-C does."""
+    raise KeyboardInterrupt
+
+
+@dataclass
+class LoopOptions:
+    """What both loops fly (each loop's FlightOptions adds its own)."""
+
+    out: Path
+    mission: str = "square"  # one of MISSIONS
+    seed: int = 1
+    instance: int = 0  # the autopilot's instance: its ports shift by it
+    config: Path = REPO / "config" / "px4_sitl.toml"  # the loop's camera and sensors
+    altitude_m: float = 5.0
+    speed_m_s: float = 3.0
+    hover_s: float = 20.0
+    square_m: float = 20.0
+    terrain: str | None = None  # default: the config's (hills)
+    configure: bool = True  # run the autopilot's `companion ... configure` before the service
+    settle_s: float = 6.0  # the service tracks this long with a scale before EKF may fuse it
+
+
+def options_from_args(cls: type[Any], args: Any, **own: Any) -> Any:
+    """A loop's FlightOptions (``cls``) from the ``companion sitl px4|ardupilot`` arguments
+    both share (--out, --mission, --seed, --instance, --no-configure, --config) and ``own``."""
+    opts = cls(
+        out=Path(args.out),
+        mission=args.mission,
+        seed=args.seed,
+        instance=args.instance,
+        configure=not args.no_configure,
+        **own,
+    )
+    if args.config:
+        opts.config = Path(args.config)
+    return opts
+
+
+@dataclass
+class LoopTelemetry:
+    """What the ground station saw of either autopilot (arrival times: our monotonic clock
+    [ns]); each loop's Telemetry adds its own."""
+
+    lpos: list[tuple[int, int, float, float, float]] = field(default_factory=list)
+    texts: list[tuple[float, int, str]] = field(default_factory=list)
+    landed_state: int = 0
+    armed: bool = False
+    custom_mode: int = 0
+    heartbeat_ns: int = 0
+    version: str = ""
+    phases: dict[str, float] = field(default_factory=dict)  # name -> monotonic [s]
+
+
+class GcsBase:
+    """A minimal ground station (pymavlink connection ``conn`` to system ``sysid``, component
+    1), pumped from the flight's thread: a heartbeat a second, the subclass's periodic sends
+    (:meth:`_send`), and the telemetry of :class:`LoopTelemetry` (the subclass's messages:
+    :meth:`_on_other`)."""
+
+    def __init__(self, conn: Any, sysid: int, tel: LoopTelemetry) -> None:
+        self.conn = conn
+        self.mav = conn.mav
+        self.sysid = sysid
+        self.tel = tel
+        self.setpoint: tuple[np.ndarray, np.ndarray] | None = None  # NED position, velocity
+        self._last_hb = 0.0
+        self.t0 = time.monotonic()
+
+    def pump(self, seconds: float) -> None:
+        """Send and receive for ``seconds`` (at least one round)."""
+        end = time.monotonic() + seconds
+        while True:
+            now = time.monotonic()
+            if now - self._last_hb > 1.0:
+                self.mav.heartbeat_send(6, 8, 0, 0, 0)  # GCS, INVALID autopilot
+                self._last_hb = now
+            self._send(now)
+            if now >= end:
+                return
+            m = self.conn.recv_match(blocking=True, timeout=min(0.01, max(end - now, 0.001)))
+            while m is not None:
+                self._on(m)
+                m = self.conn.recv_match(blocking=False)
+
+    def _send(self, now: float) -> None:
+        """The subclass's periodic messages (sticks, setpoints), at monotonic time ``now``."""
+
+    def send_setpoint(self) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED of :attr:`setpoint` (position + velocity, from the
+        EKF origin); nothing without one."""
+        if self.setpoint is None:
+            return
+        p, v = self.setpoint
+        self.mav.set_position_target_local_ned_send(
+            0,
+            self.sysid,
+            1,
+            1,  # MAV_FRAME_LOCAL_NED
+            POS_VEL_TYPE_MASK,
+            *(float(x) for x in p),
+            *(float(x) for x in v),
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+
+    def _on(self, m: Any) -> None:
+        if m.get_srcSystem() != self.sysid or m.get_srcComponent() != 1:
+            return
+        kind = m.get_type()
+        t = time.monotonic_ns()
+        if kind == "LOCAL_POSITION_NED":
+            self.tel.lpos.append((t, int(m.time_boot_ms), m.x, m.y, m.z))
+        elif kind == "HEARTBEAT":
+            self.tel.armed = bool(m.base_mode & 128)
+            self.tel.custom_mode = int(m.custom_mode)
+            self.tel.heartbeat_ns = t
+        elif kind == "EXTENDED_SYS_STATE":
+            self.tel.landed_state = int(m.landed_state)
+        elif kind == "STATUSTEXT":
+            self.tel.texts.append((time.monotonic() - self.t0, int(m.severity), str(m.text)))
+        else:
+            self._on_other(kind, m, t)
+
+    def _on_other(self, kind: str, m: Any, t: int) -> None:
+        """A message of another ``kind`` from the autopilot, arrived at ``t`` [ns]."""
+
+    def command(self, cmd: int, *params: float) -> None:
+        p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
+        self.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
+
+    def ask_streams(self, rates_hz: tuple[tuple[int, float], ...]) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL for each (message id, rate [Hz]), then
+        MAV_CMD_REQUEST_MESSAGE AUTOPILOT_VERSION."""
+        for msg_id, hz in rates_hz:
+            self.command(511, msg_id, 1e6 / hz)
+            self.pump(0.1)
+        self.command(512, 148)
+
+    def position(self) -> np.ndarray | None:
+        """The autopilot's latest LOCAL_POSITION_NED (3,), None before the first."""
+        return np.array(self.tel.lpos[-1][2:5]) if self.tel.lpos else None
+
+
+class LoopFlight:
+    """A closed-loop flight's skeleton and the steps both loops fly alike. A subclass sets
+    ``gcs`` (a :class:`GcsBase`) and provides :meth:`_prepare`, :meth:`_start_and_fly`,
+    :meth:`_stop_autopilot`, :meth:`_ev_fused` and :meth:`summarise`."""
+
+    AUTOPILOT = "the autopilot"  # in log lines and errors: "PX4", "ArduPilot"
+    ARM_LOG = "flight.log"  # where to look when it refuses to arm
+    TELEMETRY: type[LoopTelemetry] = LoopTelemetry  # the loop's Telemetry
+    gcs: Any
+
+    def __init__(self, opts: Any) -> None:
+        self.o = opts
+        self.out: Path = opts.out.resolve()
+        self.procs = Procs()
+        self.tel = self.TELEMETRY()
+        self.notes: list[str] = []
+        self.configure_exit: int | None = None
+
+    def log(self, msg: str) -> None:
+        line = f"[{time.monotonic() - self.t_start:6.1f} s] {msg}"
+        print(line, flush=True)
+        with (self.out / "flight.log").open("a") as fh:
+            fh.write(line + "\n")
+
+    # ------------------------------------------------------------------ the skeleton
+    def run(self) -> dict[str, Any]:
+        """Start everything, fly, stop everything (also on Ctrl-C, SIGTERM or failure, noted),
+        write ``summary.json`` and the subclass's telemetry files; the summary."""
+        self.t_start = time.monotonic()
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "flight.log").write_text("")
+        self._prepare()
+        old_term = signal.signal(signal.SIGTERM, raise_interrupt)
+        ok = False
+        try:
+            self._start_and_fly()
+            ok = True
+        except KeyboardInterrupt:
+            self.notes.append("interrupted (Ctrl-C / SIGTERM): everything stopped")
+            self.log("interrupted")
+        except SitlError as e:
+            self.notes.append(f"failed: {e}")
+            self.log(f"FAILED: {e}")
+        finally:
+            signal.signal(signal.SIGTERM, old_term)
+            self.log(f"stopping the service, the bridge and {self.AUTOPILOT}")
+            self.procs.stop("service", signal.SIGINT)
+            self.procs.stop("bridge")
+            self._stop_autopilot()
+        summary = self.summarise(ok)
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        self._write_telemetry()
+        return summary
+
+    def _cleared(self, name: str) -> Path:
+        """OUT/name, removed if it was there (the autopilot's work folder)."""
+        work = self.out / name
+        if work.exists():
+            shutil.rmtree(work)
+        return work
+
+    def _prepare(self) -> None:
+        """After OUT and its empty flight.log are made, before the signal handler: what may
+        fail (SitlError, raised from run) before anything is started."""
+        raise NotImplementedError
+
+    def _start_and_fly(self) -> None:
+        """Start the autopilot, the bridge, the service; fly (SitlError on failure)."""
+        raise NotImplementedError
+
+    def _stop_autopilot(self) -> None:
+        """Stop the autopilot and whatever else is left (the service and bridge are)."""
+        raise NotImplementedError
+
+    def _ev_fused(self) -> bool:
+        """Whether the autopilot's EKF fuses our position now (its latest status)."""
+        raise NotImplementedError
+
+    def summarise(self, ok: bool) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _write_telemetry(self) -> None:
+        """Files of what the ground station saw, after summary.json (none by default)."""
+
+    # ------------------------------------------------------------------ setup
+    def _loop_config(self) -> dict[str, Any]:
+        """The loop's config (``config``) with the flight's seed and terrain, as a dict for
+        the loop to point at its autopilot (then :meth:`_write_service_config`)."""
+        over: dict[str, Any] = {"sitl": {"seed": self.o.seed}}
+        if self.o.terrain:
+            over["sitl"]["terrain"] = self.o.terrain
+        return to_dict(load_config(self.o.config, over))
+
+    def _write_service_config(self, d: dict[str, Any]) -> Path:
+        """OUT/service.toml from ``d``; its path."""
+        path = self.out / "service.toml"
+        path.write_bytes(tomli_w.dumps(d).encode())
+        return path
+
+    def _run_configure(
+        self, label: str, argv: list[str], log_name: str, timeout_s: float, **kw: Any
+    ) -> int:
+        """Run ``label`` (a ``companion ... configure``: ``argv``) to its end, its output into
+        OUT/``log_name``; its exit code (-1: timed out after ``timeout_s``), also in
+        ``configure_exit``."""
+        self.log(f"{label} " + " ".join(argv[4:]))
+        try:
+            r = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, **kw)
+            text, code = r.stdout + r.stderr, r.returncode
+        except subprocess.TimeoutExpired as e:
+            text, code = str(e.stdout or "") + f"\ntimed out after {timeout_s:g} s", -1
+        (self.out / log_name).write_text(text)
+        self.configure_exit = code
+        self.log(f"{label} exit {code} ({log_name})")
+        return code
+
+    def _start_bridge_with(self, argv: list[str], cfg_path: Path) -> list[str]:
+        """Start the bridge (``argv``), wait for its bridge.json and write its TFmini ptys into
+        the service config at ``cfg_path``; the ptys."""
+        info = self.out / "bridge.json"
+        info.unlink(missing_ok=True)
+        self.procs.start("bridge", argv, self.out / "bridge.log", cwd=REPO)
+        self._wait_started(info, "the bridge", 120, "bridge.log")
+        ptys: list[str] = json.loads(info.read_text())["rangefinder_ptys"]
+        data = to_dict(load_config(cfg_path))
+        for rf, dev in zip(data["rangefinders"], ptys, strict=True):
+            rf["serial"] = dev
+        cfg_path.write_bytes(tomli_w.dumps(data).encode())
+        return ptys
+
+    def _start_service(self) -> None:
+        argv = [*companion_argv(), "run", "--config", str(self.out / "service.toml")]
+        self.procs.start("service", argv, self.out / "service.log", cwd=REPO)
+        self._wait_started(self.out / "status.sock", "the service", 60, "service.log")
+        self.log("service up")
+
+    def _wait_started(self, path: Path, what: str, timeout_s: float, log_name: str) -> None:
+        """Until the last started process made ``path`` (pumping the ground station)."""
+        end = time.monotonic() + timeout_s
+        while not path.exists():
+            if time.monotonic() > end:
+                raise SitlError(f"{what} did not start within {timeout_s:g} s: see {log_name}")
+            if self.procs.items[-1][1].poll() is not None:
+                raise SitlError(f"{what} exited: see {log_name}")
+            self.gcs.pump(0.2)
+
+    # ------------------------------------------------------------------ flight
+    def _check_alive(self) -> None:
+        for name, p, _ in self.procs.items:
+            if p.poll() is not None:
+                raise SitlError(f"{name} exited with {p.returncode} during the flight")
+
+    def _until(self, what: str, cond: Callable[[], bool], timeout_s: float) -> None:
+        end = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > end:
+                raise SitlError(f"timed out after {timeout_s:g} s waiting for: {what}")
+            self.gcs.pump(0.05)
+            self._check_alive()
+
+    def _phase(self, name: str) -> None:
+        self.tel.phases[name] = time.monotonic()
+        self.log(name)
+
+    def _wait_heartbeat(self, timeout_s: float) -> None:
+        self._until(f"{self.AUTOPILOT}'s heartbeat", lambda: self.tel.heartbeat_ns > 0, timeout_s)
+
+    def _wait_tracking(self, what: str, timeout_s: float) -> None:
+        """Until the service tracked with a scale for ``settle_s``: phase "service tracking"."""
+        self._until(what, self._tracking_for(self.o.settle_s), timeout_s)
+        self._phase("service tracking")
+
+    def _wait_fused(self, what: str, seconds: float) -> None:
+        """Until the autopilot fused our position for ``seconds`` (60 s at most): phase
+        "ev fused"."""
+        self._until(what, self._fused_for(seconds), 60)
+        self._phase("ev fused")
+
+    def _arm(self) -> None:
+        """MAV_CMD_COMPONENT_ARM_DISARM until the autopilot is armed (60 s at most)."""
+        end = time.monotonic() + 60
+        while not self.tel.armed:
+            if time.monotonic() > end:
+                raise SitlError(f"{self.AUTOPILOT} refused to arm for 60 s (see {self.ARM_LOG})")
+            self.gcs.command(400, 1)
+            self.gcs.pump(1.0)
+        self._phase("armed")
+
+    def _fly_mission(self, start: np.ndarray) -> None:
+        """The mission from ``start`` (hover: hold there for ``hover_s``), then the phase
+        "landing" (the caller lands)."""
+        o = self.o
+        self._phase(f"mission {o.mission}")
+        if o.mission == "hover":
+            self.gcs.pump(o.hover_s)
+        else:
+            self._follow(mission_path(o.mission, start, o.square_m), o.speed_m_s)
+        self.gcs.pump(2.0)
+        self._phase("landing")
+
+    def _wait_disarmed(self) -> None:
+        self._until("disarmed after landing", lambda: not self.tel.armed, 90)
+        self._phase("disarmed")
+        self.gcs.pump(2.0)
+
+    def _follow(self, pts: list[np.ndarray], speed: float) -> None:
+        """Setpoints along the polyline (stop at each corner, 1 s to settle)."""
+        g = self.gcs
+        for a, b in itertools.pairwise(pts):
+            t0 = time.monotonic()
+            for t, p, v in leg_setpoints(a, b, speed):
+                g.pump(max(0.0, t0 + t - time.monotonic()))
+                g.setpoint = (p, v)
+            g.pump(1.0)
+            self._check_alive()
+
+    def _status(self) -> dict[str, Any]:
+        """The service's `companion status` JSON (its status socket), {} when not answering."""
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sk:
+                sk.settimeout(1.0)
+                sk.connect(str(self.out / "status.sock"))
+                buf = b""
+                while not buf.endswith(b"\n"):
+                    chunk = sk.recv(65536)
+                    if not chunk:
+                        break
+                    buf += chunk
+            data = json.loads(buf)
+            return data if isinstance(data, dict) else {}
+        except (OSError, ValueError):
+            return {}
+
+    def _tracking_for(self, seconds: float) -> Callable[[], bool]:
+        """A condition: the service has tracked with a metric scale, without a VO reset, for
+        ``seconds`` (its status asked every 0.5 s at most)."""
+        since: list[Any] = []
+        last = [0.0]
+
+        def cond() -> bool:
+            if time.monotonic() - last[0] < 0.5:
+                return False
+            last[0] = time.monotonic()
+            st = self._status()
+            vo = st.get("vo", {})
+            ok = vo.get("state") == "TRACKING" and st.get("scale", {}).get("value") is not None
+            if not ok or (since and vo.get("resets") != since[1]):
+                since.clear()
+                return False
+            if not since:
+                since.extend([time.monotonic(), vo.get("resets")])
+            return time.monotonic() - since[0] >= seconds
+
+        return cond
+
+    def _fused_for(self, seconds: float) -> Callable[[], bool]:
+        """A condition: the autopilot has fused our position (:meth:`_ev_fused`) for
+        ``seconds`` without a break."""
+        since: list[float] = []
+
+        def cond() -> bool:
+            if not self._ev_fused():
+                since.clear()
+                return False
+            if not since:
+                since.append(time.monotonic())
+            return time.monotonic() - since[0] >= seconds
+
+        return cond
+
+
+def fly_from_cli(flight: LoopFlight, find_autopilot: Callable[[], Any]) -> int:
+    """``companion sitl px4|ardupilot``: exit 2 when the autopilot is not found (said on
+    stderr), else fly and print the summary's scalars and failsafes; exit 0 when landed without
+    a failsafe, else 1."""
+    try:
+        find_autopilot()
+    except SitlError as e:
+        print(f"companion: {e}", file=sys.stderr)
+        return 2
+    summary = flight.run()
+    print(
+        json.dumps(
+            {
+                k: v
+                for k, v in summary.items()
+                if not isinstance(v, (list, dict)) or k == "failsafes"
+            },
+            indent=2,
+        )
+    )
+    return 0 if summary.get("landed") and not summary.get("failsafes") else 1
