@@ -191,7 +191,9 @@ class Gcs(GcsBase):
         while time.monotonic() < end:
             self.pump(0.1)
             text = b"".join(self._shell_out).decode(errors="replace")
-            if text.rstrip().endswith("nsh>") and len(text.strip()) > len("nsh>"):
+            tail = text.rstrip()
+            # the prompt after the output: pxh> on PX4 SITL (POSIX), nsh> on NuttX
+            if tail.endswith(("pxh>", "nsh>")) and len(tail) > len("pxh>"):
                 break
         return text
 
