@@ -196,7 +196,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     sc = Scenario(cfg)
     p = Pipeline(cfg)
     rows = []
-    for st in sc.steps():
+    for st in sc.steps(workers=2):  # rendered ahead on 2 threads (identical steps)
         used = p.dpose_used
         pose = feed_step(p, st)
         p.background_work()
