@@ -22,10 +22,17 @@ from companion.evaluation.scale import ScaleMetrics, methods_metrics
 from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Pipeline
-from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
+from companion.types import (
+    AttitudeSample,
+    CameraFrame,
+    ImuSample,
+    PoseEstimate,
+    RangeSample,
+    VoState,
+)
 
 F64 = NDArray[np.float64]
-Event = CameraFrame | RangeSample | AttitudeSample
+Event = CameraFrame | RangeSample | AttitudeSample | ImuSample
 log = logging.getLogger("companion.offline")
 
 
@@ -66,10 +73,13 @@ class VoRun:
 
 
 def feed_step(pipe: Pipeline, step: Any) -> PoseEstimate | None:
-    """One SITL step (``Scenario.steps()``) into the pipeline: its attitudes and ranges (in
-    time order, dropouts left out), then its frame; returns the frame's pose."""
+    """One SITL step (``Scenario.steps()``) into the pipeline: its attitudes, accelerometer
+    samples (a recording's) and ranges (in time order, dropouts left out), then its frame;
+    returns the frame's pose."""
     for a in step.attitudes:
         pipe.feed_attitude(a)
+    for m in getattr(step, "imus", ()):
+        pipe.feed_imu(m)
     for r in step.ranges:
         if r.sample is not None:
             pipe.feed_range(r.sample)
@@ -101,6 +111,8 @@ def run_vo(
             pipe.feed_attitude(ev)
         elif isinstance(ev, RangeSample):
             pipe.feed_range(ev)
+        elif isinstance(ev, ImuSample):
+            pipe.feed_imu(ev)
         else:
             t0 = time.perf_counter()
             try:

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from companion.attitude import ground as ground_fit
 from companion.attitude.estimator import CloudView, RollPitch, TiltStep
 from companion.attitude.fusion import corrected_rotation
+from companion.attitude.gravity import GravityEstimate, gravity_from_motion
 from companion.config import Config
 from companion.dpose.estimator import Dpose
 from companion.geometry import se3, so3
@@ -28,6 +29,7 @@ from companion.types import (
     AttitudeSample,
     CameraFrame,
     GroundPlane,
+    ImuSample,
     PoseEstimate,
     RangeSample,
     ScaleEstimate,
@@ -47,6 +49,8 @@ VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [u
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
 VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
+IMU_BUFFER = 4096  # accelerometer samples kept (80 s at 50 Hz, 16 s at 250 Hz)
+MOTION_BUFFER = 1024  # (time, map, R_vo_body, metric position) of the last frames kept
 
 
 class Pipeline:
@@ -73,6 +77,11 @@ class Pipeline:
         self.gaps = 0  # times tracking was dropped after a gap between usable frames
         self._last_good_us: int | None = None
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
+        # accelerometer samples and our own motion, for gravity in the VO frame
+        self._imu: deque[ImuSample] = deque(maxlen=IMU_BUFFER)
+        self._motion: deque[tuple[int, tuple[int, int], F64, F64]] = deque(maxlen=MOTION_BUFFER)
+        self.gravity: GravityEstimate | None = None  # the last one given to the VO
+        self.gravity_used = 0  # frames that had one
         self.ranges = RangeHistory()
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
         methods = make_methods(self.camera, config.scale, sensor_study)
@@ -113,6 +122,14 @@ class Pipeline:
         if self._attitude and sample.time_us <= self._attitude[-1].time_us:
             return
         self._attitude.append(sample)
+
+    def feed_imu(self, sample: ImuSample) -> None:
+        """Buffer an accelerometer sample (ignored unless finite and newer than the last)."""
+        if not np.all(np.isfinite(sample.accel_frd_m_s2)):
+            return
+        if self._imu and sample.time_us <= self._imu[-1].time_us:
+            return
+        self._imu.append(sample)
 
     def feed_range(self, sample: RangeSample) -> None:
         """Buffer a distance-sensor sample (invalid, unknown or out-of-order ones are counted
@@ -173,7 +190,10 @@ class Pipeline:
         plane = None
         if self.vo.state != VoState.TRACKING and self.config.vo.ground_init:
             plane = self.ground_plane(frame.time_us, R_world_body)
-        self.vo_output = out = self.vo.process(frame, R_world_body, plane)
+        self.gravity = self._imu_gravity(frame.time_us)
+        g = None if self.gravity is None else (self.gravity.down_vo, self.gravity.sigma_rad)
+        self.gravity_used += g is not None
+        self.vo_output = out = self.vo.process(frame, R_world_body, plane, g)
         if out.state != VoState.TRACKING:
             return None
         t0 = time.perf_counter()
@@ -206,6 +226,7 @@ class Pipeline:
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
         pose = self._pose(frame.time_us)
+        self._remember_motion(frame.time_us)
         if pose is not None and self.dpose is not None:
             pose = self._dpose_corrected(frame, pose, {s: v[0] for s, v in lasers.items()})
         return pose
@@ -337,6 +358,57 @@ class Pipeline:
         and local bundle adjustment). The service runs it after publishing; if nobody calls
         it, the next feed_frame does it first. Returns whether there was any."""
         return self.vo.finish_pending()
+
+    def _remember_motion(self, time_us: int) -> None:
+        """The body's rotation and metric position in the VO frame at this frame, for
+        :meth:`_imu_gravity` (with the VO map and the published trajectory's reset counter:
+        positions of different maps or across a jump are not differenced)."""
+        p = self.metric_positions.get(self.method_name)
+        R = self.R_vo_body()
+        if p is None or R is None or self.config.vo.imu_gravity_window_s <= 0:
+            return
+        seg = (self.vo.resets, self.trajectories[self.method_name].reset_counter)
+        self._motion.append((time_us, seg, R, np.array(p, dtype=np.float64)))
+
+    def _imu_gravity(self, time_us: int) -> GravityEstimate | None:
+        """Gravity in the current VO map's frame from the accelerometer samples and our motion
+        over the last ``vo.imu_gravity_window_s`` (companion/attitude/gravity.py); None without
+        accelerometer samples, before the window is covered, or off (window 0)."""
+        window_s = self.config.vo.imu_gravity_window_s
+        if window_s <= 0 or not self._imu or not self._motion:
+            return None
+        if self.vo.state != VoState.TRACKING:
+            return None
+        seg = self._motion[-1][1]
+        if seg[0] != self.vo.resets:
+            return None
+        t_from = self._motion[-1][0] - int((window_s + 0.5) * 1e6)
+        rows = []
+        for m in reversed(self._motion):
+            if m[1] != seg or m[0] < t_from:
+                break
+            rows.append(m)
+        if len(rows) < 3:
+            return None
+        rows.reverse()
+        t_pose = np.array([r[0] for r in rows], dtype=np.int64)
+        imu = []
+        for s in reversed(self._imu):
+            if s.time_us < t_pose[0]:
+                break
+            if s.time_us <= time_us:
+                imu.append(s)
+        if not imu:
+            return None
+        imu.reverse()
+        return gravity_from_motion(
+            np.array([s.time_us for s in imu], dtype=np.int64),
+            np.array([s.accel_frd_m_s2 for s in imu], dtype=np.float64),
+            t_pose,
+            np.stack([r[2] for r in rows]),
+            np.stack([r[3] for r in rows]),
+            window_s,
+        )
 
     def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:
         """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""

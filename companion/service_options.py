@@ -117,6 +117,13 @@ class ServiceOptions:
     attitude_rate_hz: float = opt(
         50.0, "ATTITUDE rate asked from the autopilot [Hz]", gt=0, le=1000
     )
+    imu_rate_hz: float = opt(
+        50.0,
+        "SCALED_IMU rate asked from a PX4 autopilot [Hz] (its accelerometer gives the VO "
+        "gravity: vo.imu_gravity_window_s); 0 = not asked",
+        ge=0,
+        le=1000,
+    )
     timesync_rate_hz: float = opt(2.0, "our own TIMESYNC requests [Hz]", gt=0, le=50)
     stale_frame_ms: float = opt(
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0

@@ -77,6 +77,18 @@ class AttitudeSample:
     rates_rad_s: F64
 
 
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """One accelerometer sample from the autopilot (SCALED_IMU).
+
+    accel_frd_m_s2: (3,) specific force in the body frame (FRD) [m/s^2]: about (0, 0, -9.81)
+    level and at rest.
+    """
+
+    time_us: int
+    accel_frd_m_s2: F64
+
+
 class VoState(enum.Enum):
     """Visual odometry state; nothing is published unless TRACKING."""
 

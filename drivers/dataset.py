@@ -40,6 +40,7 @@ from companion.geometry.camera import CameraModel
 from companion.types import (
     AttitudeSample,
     CameraFrame,
+    ImuSample,
     PoseEstimate,
     RangeSample,
     RangeSensorSpec,
@@ -51,11 +52,12 @@ I64 = NDArray[np.int64]
 
 FORMAT_NAME = "companion-dataset"
 FORMAT_VERSION = 1
-Event = CameraFrame | RangeSample | AttitudeSample
+Event = CameraFrame | RangeSample | AttitudeSample | ImuSample
 # the algorithm options a recording was processed with (config.toml of a recording)
 ALGORITHM_SECTIONS = ("vo", "scale", "attitude", "dpose")
 RANGE_COLUMNS = ["time_us", "sensor_id", "distance_m", "min_m", "max_m", "signal_quality"]
 ATTITUDE_COLUMNS = ["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"]
+IMU_COLUMNS = ["time_us", "ax_m_s2", "ay_m_s2", "az_m_s2"]  # specific force, body FRD
 PUBLISHED_COLUMNS = [
     "time_us",
     "x_m",
@@ -102,8 +104,9 @@ class Dataset:
     rangefinders: the sensors the dataset declares (none: no ranges, none invented).
     frame_seqs (F,): the recorded sequence numbers (None: the index). fed_before: for a
     recording, the index of the frame each range (R,) and attitude (A,) sample was fed before
-    (the exact ingest order of the run); None: merge by time. frames_checked: the recorded
-    frames passed the service's frame check (a replay must not check them again).
+    (the exact ingest order of the run); None: merge by time. imus: the accelerometer samples
+    (imu.csv, optional) and imu_fed (I,) their frame indices in a recording. frames_checked:
+    the recorded frames passed the service's frame check (a replay must not check them again).
     published: the poses the service sent (a recording's published.csv). complete: False
     for a recording that did not close (a crash, SIGKILL, power loss): it was read up to its
     last complete frame.
@@ -129,6 +132,8 @@ class Dataset:
     published: list[PublishedPose] = field(default_factory=list)
     complete: bool = True
     meta: dict[str, Any] = field(default_factory=dict)
+    imus: list[ImuSample] = field(default_factory=list)
+    imu_fed: I64 | None = None
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -170,17 +175,22 @@ class Dataset:
         streams: list[Iterator[tuple[int, int, int, Any]]] = [
             ((a.time_us, 0, i, a) for i, a in enumerate(self.attitudes)),
             ((r.time_us, 1, i, r) for i, r in enumerate(self.ranges)),
+            ((m.time_us, 1, i, m) for i, m in enumerate(self.imus)),
             ((int(t), 2, i, i) for i, t in enumerate(self.frame_times_us)),
         ]
         for _, kind, _, item in heapq.merge(*streams):
             yield self.load_frame(item) if kind == 2 else item
 
     def _fed_events(self, range_frame: I64, att_frame: I64) -> Iterator[Event]:
-        ri = ai = 0
+        ri = ai = mi = 0
+        imu_frame = np.zeros(0, dtype=np.int64) if self.imu_fed is None else self.imu_fed
         for k in range(len(self)):
             while ai < len(self.attitudes) and att_frame[ai] == k:
                 yield self.attitudes[ai]
                 ai += 1
+            while mi < len(imu_frame) and mi < len(self.imus) and imu_frame[mi] == k:
+                yield self.imus[mi]
+                mi += 1
             while ri < len(self.ranges) and range_frame[ri] == k:
                 yield self.ranges[ri]
                 ri += 1
@@ -215,6 +225,7 @@ class DatasetStep:
     T_world_body: F64
     ranges: list[_Reading]
     attitudes: list[AttitudeSample]
+    imus: list[ImuSample] = field(default_factory=list)
 
 
 def dataset_steps(ds: Dataset) -> Iterator[DatasetStep]:
@@ -222,6 +233,7 @@ def dataset_steps(ds: Dataset) -> Iterator[DatasetStep]:
     and its true pose (all NaN without ground truth)."""
     ranges: list[_Reading] = []
     atts: list[AttitudeSample] = []
+    imus: list[ImuSample] = []
     truth = ds.true_range_m if len(ds.true_range_m) == len(ds.ranges) else None
     index = {id(r): i for i, r in enumerate(ds.ranges)}
     no_truth = np.full((4, 4), np.nan)
@@ -231,10 +243,12 @@ def dataset_steps(ds: Dataset) -> Iterator[DatasetStep]:
         elif isinstance(ev, RangeSample):
             t = float(truth[index[id(ev)]]) if truth is not None else float("nan")
             ranges.append(_Reading(ev, t))
+        elif isinstance(ev, ImuSample):
+            imus.append(ev)
         else:
             T = ds.gt_pose_at(ev.time_us) if ds.has_ground_truth else no_truth
-            yield DatasetStep(ev, T, ranges, atts)
-            ranges, atts = [], []
+            yield DatasetStep(ev, T, ranges, atts, imus)
+            ranges, atts, imus = [], [], []
 
 
 def _read_csv(path: Path, optional: bool = False) -> list[dict[str, str]]:
@@ -351,6 +365,14 @@ def _read_ours(path: Path) -> Dataset:
     att_rows = _read_csv(path / "attitude.csv", optional=True)
     fed_r = _fed_column(range_rows, "ranges.csv")
     fed_a = _fed_column(att_rows, "attitude.csv")
+    imu_rows = _read_csv(path / "imu.csv", optional=True)
+    fed_i = _fed_column(imu_rows, "imu.csv")
+    if fed_i is not None:
+        imu_rows, fed_i = imu_rows[: int(np.searchsorted(fed_i, n))], fed_i[fed_i < n]
+    imus = [
+        ImuSample(int(r["time_us"]), np.array([float(r[k]) for k in IMU_COLUMNS[1:]]))
+        for r in imu_rows
+    ]
     if fed_r is not None:  # samples fed before a frame that was not written: not part of it
         range_rows, fed_r = range_rows[: int(np.searchsorted(fed_r, n))], fed_r[fed_r < n]
     if fed_a is not None:
@@ -412,6 +434,8 @@ def _read_ours(path: Path) -> Dataset:
         cfg,
         frame_seqs=seqs,
         fed_before=fed,
+        imus=imus,
+        imu_fed=fed_i,
         frames_checked=bool(meta.get("frames_checked", False)),
         published=published,
         complete=complete,
@@ -678,12 +702,13 @@ class DatasetWriter:
         )
         self._files = {
             name: (path / name).open("w", newline="")
-            for name in ("frames.csv", "ranges.csv", "attitude.csv", "published.csv")
+            for name in ("frames.csv", "ranges.csv", "attitude.csv", "imu.csv", "published.csv")
         }
         self._csv = {name: csv.writer(fh, lineterminator="\n") for name, fh in self._files.items()}
         self._row("frames.csv", ["time_us", "seq", "filename"])
         self._row("ranges.csv", [*RANGE_COLUMNS, FED])
         self._row("attitude.csv", [*ATTITUDE_COLUMNS, FED])
+        self._row("imu.csv", [*IMU_COLUMNS, FED])
         self._row("published.csv", PUBLISHED_COLUMNS)
         self._flush()
 
@@ -708,9 +733,9 @@ class DatasetWriter:
             raise DatasetError(f"cannot encode a {image_bgr.shape} image as {self.image_format}")
         return bytes(buf)
 
-    def frame_bytes(self, encoded: bytes, n_ranges: int, n_attitudes: int) -> int:
+    def frame_bytes(self, encoded: bytes, n_ranges: int, n_attitudes: int, n_imus: int = 0) -> int:
         """About what a frame adds to the folder [bytes] (for a disk budget)."""
-        return len(encoded) + 40 + 90 * n_ranges + 200 * n_attitudes
+        return len(encoded) + 40 + 90 * n_ranges + 200 * n_attitudes + 80 * n_imus
 
     def write_frame(
         self,
@@ -718,6 +743,7 @@ class DatasetWriter:
         encoded: bytes,
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
+        imus: Sequence[ImuSample] = (),
     ) -> None:
         """Append one frame with the samples fed before it (in the order they were fed)."""
         k = self.frames
@@ -730,6 +756,8 @@ class DatasetWriter:
                 "attitude.csv",
                 [a.time_us, *map(_num, a.quat_wxyz), *map(_num, a.rates_rad_s), k],
             )
+        for m in imus:
+            self._row("imu.csv", [m.time_us, *map(_num, m.accel_frd_m_s2), k])
         for r in ranges:
             self._row(
                 "ranges.csv",
@@ -744,6 +772,7 @@ class DatasetWriter:
                 ],
             )
         self._files["attitude.csv"].flush()
+        self._files["imu.csv"].flush()
         self._files["ranges.csv"].flush()
         self._row("frames.csv", [frame.time_us, frame.seq, name])
         self._files["frames.csv"].flush()

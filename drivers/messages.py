@@ -18,9 +18,10 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import RangefinderConfig
 from companion.geometry import so3
-from companion.types import AttitudeSample, PoseEstimate, RangeSample, SignalQuality
+from companion.types import AttitudeSample, ImuSample, PoseEstimate, RangeSample, SignalQuality
 
 MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
+MSG_ID_SCALED_IMU = mavlink.MAVLINK_MSG_ID_SCALED_IMU
 MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
 MAV_CMD_SET_MESSAGE_INTERVAL = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
 # names for the numbers the service puts on the wire or compares with
@@ -42,8 +43,11 @@ SERVICE_INPUTS = frozenset(
         mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
         MSG_ID_DISTANCE_SENSOR,
         MSG_ID_ATTITUDE,
+        MSG_ID_SCALED_IMU,
     }
 )
+STANDARD_GRAVITY_M_S2 = 9.80665  # PX4's and ArduPilot's 1 g in SCALED_IMU's mG
+MAX_SPECIFIC_FORCE_M_S2 = 160.0  # 16 g: beyond any multirotor's accelerometer range
 MAV_SENSOR_ROTATION_PITCH_270 = mavlink.MAV_SENSOR_ROTATION_PITCH_270  # downward
 MAV_FRAME_LOCAL_FRD = mavlink.MAV_FRAME_LOCAL_FRD
 MAV_FRAME_BODY_FRD = mavlink.MAV_FRAME_BODY_FRD
@@ -98,6 +102,18 @@ def attitude_from_message(msg: Any, time_us: int) -> AttitudeSample | None:
         return None
     q = so3.matrix_to_quat(so3.rpy_to_matrix(*rpy))
     return AttitudeSample(time_us, q, rates)
+
+
+def imu_from_scaled(msg: Any, time_us: int) -> ImuSample | None:
+    """An ImuSample (accelerometer, body FRD [m/s^2]) from SCALED_IMU (mG); None unless the
+    three accelerations are finite and below 16 g. SCALED_IMU, not HIGHRES_IMU: PX4 subtracts
+    EKF2's accelerometer bias estimate from HIGHRES_IMU, and without GNSS that estimate wanders
+    (0.1-0.3 m/s^2 on SIH: 1-2 deg of tilt in our gravity); SCALED_IMU is the calibrated
+    sensor alone (docs/decisions.md, "Gravity from the accelerometer")."""
+    f = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=np.float64) * (STANDARD_GRAVITY_M_S2 / 1e3)
+    if not np.all(np.isfinite(f)) or float(np.linalg.norm(f)) > MAX_SPECIFIC_FORCE_M_S2:
+        return None
+    return ImuSample(time_us, f)
 
 
 def set_message_interval(mav: Any, target_system: int, msg_id: int, rate_hz: float) -> Any:

@@ -31,7 +31,7 @@ from companion.cli import main
 from companion.config import Config, load_config
 from companion.errors import ConfigError
 from companion.service.recorder import Recorder, recording_dir
-from companion.types import AttitudeSample, CameraFrame, RangeSample
+from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
 from drivers.dataset import DatasetWriter, open_dataset, read_poses_csv
 
 FLIGHT_S = float(os.environ.get("COMPANION_RECORDER_SECONDS", "20"))
@@ -67,17 +67,22 @@ def synthetic_inputs(n: int, seed: int = 0) -> list[tuple[CameraFrame, list, lis
 def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) -> None:
     cfg = with_record(load_config(), tmp_path / "rec")
     inputs = synthetic_inputs(12)
+    rng = np.random.default_rng(7)
+    imus = [  # accelerometer samples (SCALED_IMU) for all but the first frame
+        [ImuSample(f.time_us - d, rng.normal(0.0, 3.0, 3)) for d in (30_000, 10_000)] if k else []
+        for k, (f, _, _) in enumerate(inputs)
+    ]
     with Recorder(cfg.record, cfg).running() as rec:
-        for frame, ranges, atts in inputs:
-            rec.frame(frame, ranges, atts)
+        for (frame, ranges, atts), imu in zip(inputs, imus, strict=True):
+            rec.frame(frame, ranges, atts, imu)
     assert rec.state == "closed" and rec.status()["frames"] == 12
     ds = open_dataset(tmp_path / "rec")
     assert ds.complete and ds.frames_checked and not ds.has_world and ds.sitl is None
     assert [r.sensor_id for r in ds.rangefinders] == [r.sensor_id for r in cfg.rangefinders]
     assert ds.config is not None and ds.config.vo == cfg.vo and ds.config.scale == cfg.scale
     expected: list[object] = []
-    for frame, ranges, atts in inputs:
-        expected += [*atts, *ranges, frame]
+    for (frame, ranges, atts), imu in zip(inputs, imus, strict=True):
+        expected += [*atts, *imu, *ranges, frame]
     got = list(ds.events())
     assert len(got) == len(expected)
     for a, b in zip(got, expected, strict=True):
@@ -87,6 +92,9 @@ def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) ->
             assert np.array_equal(a.image_bgr, b.image_bgr)  # PNG: lossless
         elif isinstance(b, RangeSample):
             assert a == b  # every float exactly
+        elif isinstance(b, ImuSample):
+            assert a.time_us == b.time_us
+            assert np.array_equal(a.accel_frd_m_s2, b.accel_frd_m_s2)
         else:
             assert a.time_us == b.time_us
             assert np.array_equal(a.quat_wxyz, b.quat_wxyz)
@@ -153,7 +161,7 @@ KILLED = textwrap.dedent(
     sys.modules["tomli_w"] = None  # the service's install has no TOML writer (the sim extra)
     from companion.config import load_config
     from companion.service.recorder import Recorder
-    from companion.types import AttitudeSample, CameraFrame, RangeSample
+    from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
     cfg = load_config(overrides={"record": {"dir": sys.argv[1]}})
     rec = Recorder(cfg.record, cfg).running()
     rng = np.random.default_rng(1)

@@ -208,6 +208,23 @@ def test_implausible_attitudes_are_refused() -> None:
         assert messages.attitude_from_message(att(*v), 5) is None
 
 
+def test_scaled_imu_gives_the_accelerometer_or_nothing() -> None:
+    """SCALED_IMU's accelerometer (mG -> specific force, FRD [m/s^2]) for the VO's gravity;
+    beyond 16 g: none."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def imu(ax: int, ay: int, az: int):
+        m = mav.scaled_imu_encode(123, ax, ay, az, 0, 0, 0, 0, 0, 0)
+        return decode(m.pack(mav))
+
+    got = messages.imu_from_scaled(imu(10, -20, -1000), 42)
+    assert got is not None and got.time_us == 42
+    assert np.allclose(got.accel_frd_m_s2, [0.0980665, -0.196133, -9.80665])
+    assert messages.imu_from_scaled(imu(0, 0, -17000), 42) is None  # 17 g
+
+
 def test_garbage_is_counted_not_raised() -> None:
     from pymavlink.dialects.v20 import common as mavlink
 

@@ -52,7 +52,14 @@ from companion.service.recorder import Recorder
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
-from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample, VoState
+from companion.types import (
+    AttitudeSample,
+    CameraFrame,
+    ImuSample,
+    PoseEstimate,
+    RangeSample,
+    VoState,
+)
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from drivers import ardupilot, messages
 from drivers.backoff import Backoff
@@ -93,6 +100,8 @@ class ServiceStats:
     ranges_rejected_by: dict[str, int] = field(default_factory=dict)  # reason -> count
     attitudes_in: int = 0
     attitudes_rejected: int = 0  # not finite or outside the Euler ranges
+    imus_in: int = 0  # SCALED_IMU accelerometer samples taken (gravity for the VO)
+    imus_rejected: int = 0  # not finite or beyond 16 g
     foreign_messages: int = 0  # from another system id than the configured autopilot's
     timesync_replies: int = 0
     last_reset_counter: int = 0
@@ -163,6 +172,7 @@ class Service:
         # bounded: if the pipeline stalls, the oldest samples go first
         self._ranges: deque[RangeSample] = deque(maxlen=4096)
         self._attitudes: deque[AttitudeSample] = deque(maxlen=4096)
+        self._imus: deque[ImuSample] = deque(maxlen=4096)
         self._stop = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -360,6 +370,14 @@ class Service:
                 self._attitude_rates = att.rates_rad_s
                 self.stats.attitudes_in += 1
                 self._attitudes.append(att)
+            return
+        if kind == "SCALED_IMU" and msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1:
+            imu = messages.imu_from_scaled(msg, self._fc_to_us(msg))
+            if imu is None:
+                self.stats.imus_rejected += 1
+            else:
+                self.stats.imus_in += 1
+                self._imus.append(imu)
 
     def _fc_to_us(self, msg: Any) -> int:
         """A message's time_boot_ms in our clock [us] (its reception time until synced)."""
@@ -403,6 +421,12 @@ class Service:
                 messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
                 messages.MSG_ID_ATTITUDE: o.attitude_rate_hz,
             }
+            if (
+                self.stats.autopilot == "PX4"
+                and o.imu_rate_hz > 0
+                and self.config.vo.imu_gravity_window_s > 0
+            ):
+                wanted[messages.MSG_ID_SCALED_IMU] = o.imu_rate_hz
             if self.stats.autopilot == "ArduPilot":  # whether it holds our EKF origin
                 wanted[ardupilot.MSG_ID_GLOBAL_POSITION_INT] = ardupilot.POSITION_RATE_HZ
             hb = self.stats.autopilot_heartbeat_ns
@@ -683,12 +707,13 @@ class Service:
                 await self._frame_ready.wait()
                 self._frame_ready.clear()
                 continue
-            ranges, atts = list(self._ranges), list(self._attitudes)
+            ranges, atts, imus = list(self._ranges), list(self._attitudes), list(self._imus)
             self._ranges.clear()
             self._attitudes.clear()
+            self._imus.clear()
             t0 = time.perf_counter()
             try:
-                pose = await asyncio.to_thread(self._process, frame, ranges, atts)
+                pose = await asyncio.to_thread(self._process, frame, ranges, atts, imus)
             except Exception:
                 # a bug on one frame must not take the autopilot's estimate down for good:
                 # log it, count it, skip the frame; a persistent failure ends the service
@@ -717,13 +742,20 @@ class Service:
             return self._frames.popleft() if self._frames else None
 
     def _process(
-        self, frame: CameraFrame, ranges: list[RangeSample], atts: list[AttitudeSample]
+        self,
+        frame: CameraFrame,
+        ranges: list[RangeSample],
+        atts: list[AttitudeSample],
+        imus: list[ImuSample] | None = None,
     ) -> PoseEstimate | None:
         """Worker thread: feed the queued samples, then the frame."""
         p = self.pipeline
-        self.recorder.frame(frame, ranges, atts)  # a reference into its queue
+        imus = imus or []
+        self.recorder.frame(frame, ranges, atts, imus)  # a reference into its queue
         for a in atts:
             p.feed_attitude(a)
+        for m in imus:
+            p.feed_imu(m)
         for r in ranges:
             p.feed_range(r)
         if self._wait_for_attitude(frame):
@@ -857,6 +889,8 @@ class Service:
             "ranges_in": s.ranges_in,
             "ranges_rejected": s.ranges_rejected,
             "attitudes_in": s.attitudes_in,
+            "imus_in": s.imus_in,
+            "imu_gravity_frames": self.pipeline.gravity_used,
             "timesync_replies": s.timesync_replies,
             "timesync_converged": self.sync.converged,
             "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
@@ -953,6 +987,7 @@ class Service:
             "foreign_messages": s.foreign_messages + link.rx_foreign,
             "other_address": link.rx_other_address,
             "attitudes_rejected": s.attitudes_rejected,
+            "imus_rejected": s.imus_rejected,
             "signing": self.link.signing.counters() if self.link.signing else None,
         }
 

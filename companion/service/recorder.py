@@ -31,7 +31,7 @@ from typing import Any
 from companion import __version__
 from companion.config import Config, RecordOptions
 from companion.errors import ConfigError, DatasetError
-from companion.types import AttitudeSample, CameraFrame, PoseEstimate, RangeSample
+from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
 from drivers.dataset import DatasetWriter
 
 log = logging.getLogger("companion.recorder")
@@ -40,7 +40,10 @@ SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
 CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 
-Item = tuple[CameraFrame, Sequence[RangeSample], Sequence[AttitudeSample]] | PoseEstimate
+Item = (
+    tuple[CameraFrame, Sequence[RangeSample], Sequence[AttitudeSample], Sequence[ImuSample]]
+    | PoseEstimate
+)
 
 
 def recording_dir(template: str, start: time.struct_time | None = None) -> Path:
@@ -145,6 +148,7 @@ class Recorder:
         frame: CameraFrame,
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
+        imus: Sequence[ImuSample] = (),
     ) -> None:
         """The frame the pipeline is about to take, with the samples it is fed first (in the
         order it is fed them). Never blocks; a full queue stops the recording."""
@@ -163,7 +167,7 @@ class Recorder:
                 "waiting); the flight output is not affected"
             )
             return
-        self._queue.put((frame, list(ranges), list(attitudes)))
+        self._queue.put((frame, list(ranges), list(attitudes), list(imus)))
 
     def pose(self, pose: PoseEstimate) -> None:
         """A pose the service sent to the autopilot (the wire's reset_counter)."""
@@ -230,10 +234,11 @@ class Recorder:
         frame: CameraFrame,
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
+        imus: Sequence[ImuSample] = (),
     ) -> bool:
         """Encode and append one frame; False (and stopped) when it would break the budget."""
         encoded = writer.encode(frame.image_bgr)
-        need = writer.frame_bytes(encoded, len(ranges), len(attitudes))
+        need = writer.frame_bytes(encoded, len(ranges), len(attitudes), len(imus))
         o = self.options
         if writer.bytes_written + need > o.max_mb * 1e6:
             self._stop(f"disk budget of {o.max_mb:g} MB reached (record.max_mb)")
@@ -244,7 +249,7 @@ class Recorder:
             self._stop(f"less than {o.min_free_mb:g} MB free on the disk (record.min_free_mb)")
             self._not_recorded(1)
             return False
-        writer.write_frame(frame, encoded, ranges, attitudes)
+        writer.write_frame(frame, encoded, ranges, attitudes, imus)
         self._frames += 1
         return True
 

@@ -142,21 +142,25 @@ class _GravityPrior:
 
     cams: I64
     meas: F64
-    weight: float
+    weight: F64  # (G,)
 
     def residuals(self, T: F64) -> F64:
         """(G, 3) weighted gravity residuals of the free cameras with a measurement."""
-        return np.asarray(self.weight * (T[self.cams, :3, 2] - self.meas), dtype=np.float64)
+        r = self.weight[:, None] * (T[self.cams, :3, 2] - self.meas)
+        return np.asarray(r, dtype=np.float64)
 
 
-def _gravity_prior(gravity_cam: F64 | None, gravity_weight: float, fixed_cams: B) -> _GravityPrior:
+def _gravity_prior(
+    gravity_cam: F64 | None, gravity_weight: float | F64, fixed_cams: B
+) -> _GravityPrior:
     g_meas = np.zeros((0, 3))
     g_free = np.zeros(0, dtype=np.int64)
-    if gravity_cam is not None and gravity_weight > 0:
-        known = np.all(np.isfinite(gravity_cam), axis=1) & ~fixed_cams
+    w_all = np.broadcast_to(np.asarray(gravity_weight, dtype=np.float64), fixed_cams.shape)
+    if gravity_cam is not None:
+        known = np.all(np.isfinite(gravity_cam), axis=1) & ~fixed_cams & (w_all > 0)
         g_free = np.flatnonzero(known)
         g_meas = gravity_cam[g_free]
-    return _GravityPrior(g_free, g_meas, gravity_weight)
+    return _GravityPrior(g_free, g_meas, np.asarray(w_all[g_free], dtype=np.float64))
 
 
 def _total_cost(r: F64, T: F64, huber_px: float, prior: _GravityPrior) -> float:
@@ -224,7 +228,7 @@ def _normal_equations(
     if len(prior.cams):  # J = w [0, -[g]x] on each free camera with a measurement
         g = state.T[prior.cams, :3, 2]
         Jg = np.zeros((len(prior.cams), 3, 6))
-        Jg[:, :, 3:] = -prior.weight * _skew_batch(g)
+        Jg[:, :, 3:] = -prior.weight[:, None, None] * _skew_batch(g)
         rg = prior.residuals(state.T)
         Hcc[win.free_index[prior.cams]] += Jg.transpose(0, 2, 1) @ Jg
         bc0[win.free_index[prior.cams]] -= (Jg.transpose(0, 2, 1) @ rg[:, :, None])[:, :, 0]
@@ -315,7 +319,7 @@ def bundle_adjust(
     huber_px: float = 2.0,
     iterations: int = 5,
     gravity_cam: F64 | None = None,
-    gravity_weight: float = 0.0,
+    gravity_weight: float | F64 = 0.0,
 ) -> BaResult:
     """Refine cameras and points; cameras with ``fixed_cams`` True stay put (gauge and scale:
     fix at least two cameras of a monocular window).
@@ -323,7 +327,8 @@ def bundle_adjust(
     obs_cam, obs_pt: (M,) indices into the cameras and points; obs_xy: (M, 2) observations.
     gravity_cam: (K, 3) measured gravity direction in each camera frame (rows of NaN where
     unknown); gravity_weight: its residual's weight (pixel units per unit vector: a pixel
-    sigma over the attitude's sigma in radians); 0 = no prior.
+    sigma over the gravity direction's sigma in radians), one for all or (K,) per camera;
+    0 = no prior.
     """
     win = _window(obs_cam, obs_pt, obs_xy, fixed_cams, focal_px, len(points_vo))
     prior = _gravity_prior(gravity_cam, gravity_weight, fixed_cams)

@@ -42,6 +42,7 @@ from companion.vo.triangulation import triangulate
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
+Gravity = tuple[NDArray[np.float64], float]  # (down_vo (3,), sigma_rad)
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
@@ -55,7 +56,8 @@ class Keyframe:
     time_us: int
     T_cam_vo: F64
     obs: dict[int, F64] = field(default_factory=dict)
-    gravity_cam: F64 | None = None  # (3,) gravity in the camera frame from the attitude
+    gravity_cam: F64 | None = None  # (3,) gravity in the camera frame (attitude and/or IMU)
+    gravity_sigma_rad: float = 0.0  # its direction's sigma [rad] (0: gravity_cam is None)
 
 
 @dataclass
@@ -125,7 +127,7 @@ class VisualOdometry:
         self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self._frames_since_kf = 0
         # (gray, time_us, R_world_body) of the frame whose keyframe is still to be built
-        self._pending_keyframe: tuple[U8, int, F64 | None] | None = None
+        self._pending_keyframe: tuple[U8, int, F64 | None, Gravity | None] | None = None
         self._keyframe_added = False  # a keyframe was built since the last output
         self._ref_time_us = 0
         self._ref_frames = 0
@@ -510,20 +512,44 @@ class VisualOdometry:
         return self._frames_since_kf >= self.opts.kf_max_frames
 
     # ------------------------------------------------------------------ keyframes
-    def _gravity_cam(self, R_world_body: F64 | None) -> F64 | None:
-        """(3,) gravity (down) in the camera frame from the attitude: R_cam_body R_body_world
-        e_z (the VO frame's yaw does not matter: gravity is its +z too)."""
-        if R_world_body is None:
-            return None
-        g: F64 = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
-        return g
+    def _gravity_cam(
+        self, R_world_body: F64 | None, gravity: Gravity | None = None
+    ) -> tuple[F64 | None, float]:
+        """(3,) gravity (down) in the camera frame and its sigma [rad] for the BA's prior.
 
-    def _add_keyframe(self, gray: U8, time_us: int, R_world_body: F64 | None = None) -> None:
+        From the attitude: R_cam_body R_body_world e_z (the VO frame's yaw does not matter:
+        gravity is its +z too), sigma ``gravity_sigma_deg``. From ``gravity`` = (down_vo (3,),
+        sigma_rad), the VO frame's gravity that the caller measured (the accelerometer against
+        our motion, companion/attitude/gravity.py): R_cam_vo down_vo at the current pose. Both:
+        their information-weighted mean (unit vector), sigma 1/sqrt(w1 + w2)."""
+        parts: list[tuple[F64, float]] = []
+        sigma_ap = np.radians(self.opts.gravity_sigma_deg)
+        if R_world_body is not None and sigma_ap > 0:
+            g_ap = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
+            parts.append((g_ap, float(sigma_ap)))
+        if gravity is not None and gravity[1] > 0 and self.opts.gravity_sigma_deg > 0:
+            parts.append((self.T_cam_vo[:3, :3] @ gravity[0], float(gravity[1])))
+        if not parts:
+            return None, 0.0
+        w = np.array([1.0 / s**2 for _, s in parts])
+        g = np.sum([wi * gi for wi, (gi, _) in zip(w, parts, strict=True)], axis=0)
+        g = np.asarray(g / np.linalg.norm(g), dtype=np.float64)
+        return g, float(1.0 / np.sqrt(w.sum()))
+
+    def _add_keyframe(
+        self,
+        gray: U8,
+        time_us: int,
+        R_world_body: F64 | None = None,
+        gravity: Gravity | None = None,
+    ) -> None:
+        g_cam, g_sigma = self._gravity_cam(R_world_body, gravity)
         kf = Keyframe(
             self._next_kf,
             time_us,
             self.T_cam_vo.copy(),
-            gravity_cam=self._gravity_cam(R_world_body),
+            gravity_cam=g_cam,
+            gravity_sigma_rad=g_sigma,
         )
         self._next_kf += 1
         tr = self.tracks
@@ -598,7 +624,9 @@ class VisualOdometry:
         gravity = np.array(
             [kf.gravity_cam if kf.gravity_cam is not None else np.full(3, np.nan) for kf in window]
         )
-        sigma_rad = np.radians(self.opts.gravity_sigma_deg)
+        sigma_rad = np.array([kf.gravity_sigma_rad for kf in window])
+        weight = np.zeros(len(window))
+        weight[sigma_rad > 0] = self.opts.pixel_sigma_px / sigma_rad[sigma_rad > 0]
         res = bundle_adjust(
             T,
             X,
@@ -610,7 +638,7 @@ class VisualOdometry:
             huber_px=self.opts.inlier_px,
             iterations=self.opts.ba_iterations,
             gravity_cam=gravity,
-            gravity_weight=self.opts.pixel_sigma_px / sigma_rad if sigma_rad > 0 else 0.0,
+            gravity_weight=weight,
         )
         for k, kf in enumerate(window):
             kf.T_cam_vo = res.T_cam_vo[k]
@@ -648,11 +676,15 @@ class VisualOdometry:
         frame: CameraFrame,
         R_world_body: F64 | None = None,
         ground: GroundPlane | None = None,
+        gravity: Gravity | None = None,
     ) -> VoOutput:
         """One frame in, one VoOutput out. ``R_world_body``: the attitude at the frame time
         (used to gravity-align the VO frame at initialisation), or None. ``ground``: the
         ground plane in metres when the caller knows it (the vehicle near the ground): while
-        not tracking, the map then starts on it at once, metric, without parallax."""
+        not tracking, the map then starts on it at once, metric, without parallax.
+        ``gravity``: (down_vo (3,), sigma_rad), gravity in this VO map's frame as the caller
+        measured it (companion/attitude/gravity.py), fused with the attitude's for the
+        keyframe prior; None: the attitude's alone."""
         self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
         self.n_frames += 1
         img = frame.image_bgr
@@ -691,7 +723,7 @@ class VisualOdometry:
             self._check_candidates()
             self._frames_since_kf += 1
             if self._need_keyframe():  # built after this frame's output (finish_pending)
-                self._pending_keyframe = (gray, frame.time_us, R_world_body)
+                self._pending_keyframe = (gray, frame.time_us, R_world_body, gravity)
         self._prev_gray = gray
         self._T_pred = None
         if self.state == VoState.TRACKING and self._prev_time_us is not None:

@@ -39,6 +39,13 @@ class VoOptions:
         "0 = images only",
         ge=0,
     )
+    imu_gravity_window_s: float = opt(
+        4.0,
+        "gravity for the BA's prior also from the autopilot's accelerometer against our own "
+        "motion over this window (when SCALED_IMU arrives) [s]; 0 = the attitude's alone",
+        ge=0,
+        le=30,
+    )
     window_keyframes: int = opt(6, "keyframes optimised by the local bundle adjustment", ge=2)
     max_keyframes: int = opt(10, "keyframes kept in the map (older ones dropped)", ge=2)
     ba_iterations: int = opt(4, "Levenberg-Marquardt iterations of the local BA", ge=0, le=50)

@@ -1,0 +1,151 @@
+"""Gravity in the VO frame from the accelerometer and our motion (companion/attitude/gravity.py)
+and its use as the VO's keyframe gravity prior (seeded synthetic flights)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.attitude.gravity import (
+    STANDARD_GRAVITY_M_S2,
+    gravity_from_motion,
+    rotations_at,
+    velocity_at,
+)
+from companion.geometry import so3
+from companion.geometry.camera import CameraModel
+from companion.vo.odometry import VisualOdometry
+from companion.vo.options import VoOptions
+
+G_NED = np.array([0.0, 0.0, STANDARD_GRAVITY_M_S2])
+
+
+def manoeuvre(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A multirotor-like flight in NED: position (N, 3) [m], acceleration (N, 3) [m/s^2] and
+    R_world_body (N, 3, 3) tilted with the horizontal acceleration (as a multirotor is), a
+    slow yaw turn on top."""
+    w = np.array([0.9, 0.7, 0.4])
+    amp = np.array([3.0, 2.5, 0.5])
+    p = amp * np.sin(np.outer(t_s, w))
+    a = -amp * w**2 * np.sin(np.outer(t_s, w))
+    R = []
+    for ai, ti in zip(a, t_s, strict=True):
+        # thrust along -z_body balances gravity and gives the acceleration: tilt towards it
+        thrust = G_NED - ai
+        z_body = -thrust / np.linalg.norm(thrust)
+        yaw = 0.2 * ti
+        x_ref = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        y_body = np.cross(z_body, x_ref)
+        y_body /= np.linalg.norm(y_body)
+        x_body = np.cross(y_body, z_body)
+        R.append(np.stack([x_body, y_body, z_body], axis=1))
+    return p, a, np.array(R)
+
+
+def synthetic(
+    seed: int,
+    tilt_rad: np.ndarray,
+    accel_noise: float = 0.5,
+    pos_noise_m: float = 0.003,
+    imu_hz: float = 50.0,
+    duration_s: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Accelerometer samples and VO poses (30 Hz) of :func:`manoeuvre` seen from a VO frame
+    tilted by exp(tilt_rad) against NED; returns (imu_t_us, f_body, pose_t_us, R_vo_body,
+    p_vo_m, true down in the VO frame)."""
+    rng = np.random.default_rng(seed)
+    R_vo_world = so3.exp(tilt_rad)
+    t_imu = np.arange(0.0, duration_s, 1.0 / imu_hz)
+    _, a_imu, R_imu = manoeuvre(t_imu)
+    f = np.einsum("nji,nj->ni", R_imu, a_imu - G_NED)  # R_body_world (a - g)
+    f += rng.normal(0.0, accel_noise, f.shape)
+    t_pose = np.arange(0.0, duration_s, 1.0 / 30.0)
+    p_pose, _, R_pose = manoeuvre(t_pose)
+    p_vo = (R_vo_world @ p_pose.T).T + rng.normal(0.0, pos_noise_m, p_pose.shape)
+    R_vo_body = np.einsum("ij,njk->nik", R_vo_world, R_pose)
+    return (
+        (t_imu * 1e6).astype(np.int64),
+        f,
+        (t_pose * 1e6).astype(np.int64),
+        R_vo_body,
+        p_vo,
+        R_vo_world @ np.array([0.0, 0.0, 1.0]),
+    )
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_gravity_recovers_the_vo_frames_tilt_during_manoeuvres(seed: int) -> None:
+    tilt = np.radians([2.0, -1.5, 0.0])  # the VO frame drifted 2.5 deg off level
+    imu_t, f, pose_t, R, p, down_true = synthetic(seed, tilt)
+    est = gravity_from_motion(imu_t, f, pose_t, R, p, window_s=4.0)
+    assert est is not None
+    err_rad = float(np.arccos(np.clip(est.down_vo @ down_true, -1.0, 1.0)))
+    # 0.5 m/s^2 noise at 50 Hz over 4 s: the mean's 0.035 m/s^2 is 0.2 deg per axis
+    assert err_rad < np.radians(0.5)
+    assert err_rad < 3.0 * est.sigma_rad
+    assert abs(est.norm_m_s2 - STANDARD_GRAVITY_M_S2) < 0.2
+    assert np.isclose(np.linalg.norm(est.down_vo), 1.0)
+    # ignoring the motion (a level-flight assumption) would be degrees off here: the
+    # velocity term is what makes the estimate right
+    naive = -np.einsum("nij,nj->ni", rotations_at(imu_t, pose_t, R), f)[
+        (imu_t >= est.t0_us) & (imu_t < est.t1_us)
+    ].mean(axis=0)
+    naive /= np.linalg.norm(naive)
+    assert np.degrees(np.arccos(naive @ down_true)) > 1.0
+
+
+def test_gravity_sigma_grows_with_the_accelerometer_noise() -> None:
+    tilt = np.zeros(3)
+    quiet = gravity_from_motion(*synthetic(4, tilt, accel_noise=0.05)[:5], window_s=4.0)
+    noisy = gravity_from_motion(*synthetic(4, tilt, accel_noise=5.0)[:5], window_s=4.0)
+    assert quiet is not None and noisy is not None
+    assert noisy.sigma_rad > 2.0 * quiet.sigma_rad
+    assert quiet.sigma_rad >= np.radians(0.2)  # the floor
+
+
+def test_gravity_refuses_what_it_cannot_support() -> None:
+    imu_t, f, pose_t, R, p, _ = synthetic(5, np.zeros(3), duration_s=3.0)
+    # the poses do not cover a 4 s window
+    assert gravity_from_motion(imu_t, f, pose_t, R, p, window_s=4.0) is None
+    # too few accelerometer samples (5 Hz where 20 Hz are needed)
+    imu_t, f, pose_t, R, p, _ = synthetic(5, np.zeros(3), imu_hz=5.0)
+    assert gravity_from_motion(imu_t, f, pose_t, R, p, window_s=4.0) is None
+    # accelerometer in g instead of m/s^2: an implausible |g|
+    imu_t, f, pose_t, R, p, _ = synthetic(5, np.zeros(3))
+    assert gravity_from_motion(imu_t, f / 9.81, pose_t, R, p, window_s=4.0) is None
+
+
+def test_velocity_fit_and_rotation_interpolation() -> None:
+    t = np.arange(0, 1_000_000, 33_333, dtype=np.int64)
+    p = np.outer(t * 1e-6, [1.0, -2.0, 0.5])  # constant velocity
+    v, sigma = velocity_at(500_000.0, t, p, 100_000.0)
+    assert np.allclose(v, [1.0, -2.0, 0.5])
+    assert sigma < 1e-9
+    with pytest.raises(ValueError):
+        velocity_at(2_000_000.0, t, p, 100_000.0)
+    Rs = np.stack([so3.rot_z(0.0), so3.rot_z(0.02)])
+    mid = rotations_at(np.array([16_666]), np.array([0, 33_333]), Rs)[0]
+    assert np.allclose(mid, so3.rot_z(0.01), atol=1e-4)
+
+
+def test_vo_fuses_the_attitudes_and_the_imus_gravity_by_their_information() -> None:
+    cam = CameraModel(320, 240, 230.0, 230.0, 159.5, 119.5)
+    vo = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=1.0))
+    R_cam = so3.rpy_to_matrix(0.1, -0.05, 0.3)
+    vo.T_cam_vo = np.eye(4)
+    vo.T_cam_vo[:3, :3] = R_cam
+    down_imu = so3.exp(np.radians([0.5, 0.0, 0.0])) @ np.array([0.0, 0.0, 1.0])
+    R_ap = so3.rpy_to_matrix(0.02, 0.01, 0.3)
+    g_ap = R_ap.T @ np.array([0.0, 0.0, 1.0])
+    g_imu = R_cam @ down_imu
+    g, sigma = vo._gravity_cam(R_ap, (down_imu, np.radians(0.5)))
+    assert g is not None
+    w_ap, w_imu = 1.0 / np.radians(1.0) ** 2, 1.0 / np.radians(0.5) ** 2
+    expect = (w_ap * g_ap + w_imu * g_imu) / np.linalg.norm(w_ap * g_ap + w_imu * g_imu)
+    assert np.allclose(g, expect)
+    assert sigma == pytest.approx(1.0 / np.sqrt(w_ap + w_imu))
+    # one source alone is itself; gravity_sigma_deg 0 (images only) uses neither
+    g1, s1 = vo._gravity_cam(None, (down_imu, np.radians(0.5)))
+    assert g1 is not None and np.allclose(g1, g_imu) and s1 == pytest.approx(np.radians(0.5))
+    images_only = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=0.0))
+    assert images_only._gravity_cam(R_ap, (down_imu, 0.01)) == (None, 0.0)
