@@ -18,7 +18,12 @@ from numpy.typing import NDArray
 from companion.attitude import ground as ground_fit
 from companion.attitude.estimator import CloudView, RollPitch, TiltStep
 from companion.attitude.fusion import corrected_rotation
-from companion.attitude.gravity import GravityEstimate, gravity_from_motion
+from companion.attitude.gravity import (
+    AttitudeCorrection,
+    GravityEstimate,
+    attitude_correction,
+    gravity_from_motion,
+)
 from companion.config import Config
 from companion.dpose.estimator import Dpose
 from companion.geometry import se3, so3
@@ -79,8 +84,12 @@ class Pipeline:
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
         # accelerometer samples and our own motion, for gravity in the VO frame
         self._imu: deque[ImuSample] = deque(maxlen=IMU_BUFFER)
-        self._motion: deque[tuple[int, tuple[int, int], F64, F64]] = deque(maxlen=MOTION_BUFFER)
-        self.gravity: GravityEstimate | None = None  # the last one given to the VO
+        # (time, (VO map, reset counter), R_vo_body, metric position, autopilot R_world_body)
+        self._motion: deque[tuple[int, tuple[int, int], F64, F64, F64 | None]] = deque(
+            maxlen=MOTION_BUFFER
+        )
+        self.gravity: GravityEstimate | None = None  # the last window's gravity
+        self.gravity_correction: AttitudeCorrection | None = None  # given to the VO
         self.gravity_used = 0  # frames that had one
         self.ranges = RangeHistory()
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
@@ -190,8 +199,9 @@ class Pipeline:
         plane = None
         if self.vo.state != VoState.TRACKING and self.config.vo.ground_init:
             plane = self.ground_plane(frame.time_us, R_world_body)
-        self.gravity = self._imu_gravity(frame.time_us)
-        g = None if self.gravity is None else (self.gravity.down_vo, self.gravity.sigma_rad)
+        self.gravity_correction = self._imu_gravity(frame.time_us)
+        c = self.gravity_correction
+        g = None if c is None else (c.R_vo, c.sigma_rad)
         self.gravity_used += g is not None
         self.vo_output = out = self.vo.process(frame, R_world_body, plane, g)
         if out.state != VoState.TRACKING:
@@ -226,7 +236,7 @@ class Pipeline:
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
         pose = self._pose(frame.time_us)
-        self._remember_motion(frame.time_us)
+        self._remember_motion(frame.time_us, R_world_body)
         if pose is not None and self.dpose is not None:
             pose = self._dpose_corrected(frame, pose, {s: v[0] for s, v in lasers.items()})
         return pose
@@ -359,7 +369,7 @@ class Pipeline:
         it, the next feed_frame does it first. Returns whether there was any."""
         return self.vo.finish_pending()
 
-    def _remember_motion(self, time_us: int) -> None:
+    def _remember_motion(self, time_us: int, R_world_body: F64 | None) -> None:
         """The body's rotation and metric position in the VO frame at this frame, for
         :meth:`_imu_gravity` (with the VO map and the published trajectory's reset counter:
         positions of different maps or across a jump are not differenced)."""
@@ -368,12 +378,14 @@ class Pipeline:
         if p is None or R is None or self.config.vo.imu_gravity_window_s <= 0:
             return
         seg = (self.vo.resets, self.trajectories[self.method_name].reset_counter)
-        self._motion.append((time_us, seg, R, np.array(p, dtype=np.float64)))
+        self._motion.append((time_us, seg, R, np.array(p, dtype=np.float64), R_world_body))
 
-    def _imu_gravity(self, time_us: int) -> GravityEstimate | None:
-        """Gravity in the current VO map's frame from the accelerometer samples and our motion
-        over the last ``vo.imu_gravity_window_s`` (companion/attitude/gravity.py); None without
-        accelerometer samples, before the window is covered, or off (window 0)."""
+    def _imu_gravity(self, time_us: int) -> AttitudeCorrection | None:
+        """The correction of the autopilot's gravity from the accelerometer samples and our
+        motion over the last ``vo.imu_gravity_window_s`` (companion/attitude/gravity.py:
+        gravity in the current VO map's frame, then the autopilot's mean tilt error against it
+        in the window); None without accelerometer samples or attitudes, before the window is
+        covered, or off (window 0). The window's gravity stays in ``gravity``."""
         window_s = self.config.vo.imu_gravity_window_s
         if window_s <= 0 or not self._imu or not self._motion:
             return None
@@ -401,13 +413,24 @@ class Pipeline:
         if not imu:
             return None
         imu.reverse()
-        return gravity_from_motion(
+        self.gravity = est = gravity_from_motion(
             np.array([s.time_us for s in imu], dtype=np.int64),
             np.array([s.accel_frd_m_s2 for s in imu], dtype=np.float64),
             t_pose,
             np.stack([r[2] for r in rows]),
             np.stack([r[3] for r in rows]),
             window_s,
+        )
+        if est is None:
+            return None
+        inside = [r for r in rows if est.t0_us <= r[0] <= est.t1_us and r[4] is not None]
+        if len(inside) < 3:
+            return None
+        return attitude_correction(
+            est.down_vo,
+            est.sigma_rad,
+            np.stack([r[2] for r in inside]),
+            np.stack([r[4] for r in inside if r[4] is not None]),
         )
 
     def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:

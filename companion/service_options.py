@@ -12,6 +12,7 @@ from companion.errors import ConfigError
 from companion.options import opt
 
 OutputName = Literal["vision_position_estimate", "odometry", "both"]
+OdometryFrame = Literal["local_frd", "local_ned"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,6 +111,21 @@ class ServiceOptions:
     camera_url: str = opt("sitl://127.0.0.1:5600", "camera: sitl://, folder:PATH, /dev/videoN, URL")
     output: OutputName = opt(
         "vision_position_estimate", "vision_position_estimate, odometry or both"
+    )
+    odometry_frame: OdometryFrame = opt(
+        "local_frd",
+        "ODOMETRY's frame_id: local_frd (any heading: PX4 aligns it to its own north; "
+        "ArduPilot's only) or local_ned (our frame is north-aligned from the autopilot's "
+        "heading: PX4 takes it as VISION_POSITION_ESTIMATE's NED, with our yaw on "
+        "EKF2_EV_CTRL bit 3)",
+    )
+    odometry_centre_frames: int = opt(
+        0,
+        "ODOMETRY (output odometry/both) as the centre of the last N poses with their central "
+        "velocity, stamped (N-1)/2 frames back (for EKF2_EV_CTRL bit 2); 0 = the newest pose "
+        "with the velocity over the last 150 ms",
+        ge=0,
+        le=15,
     )
     distance_sensor_rate_hz: float = opt(
         50.0, "DISTANCE_SENSOR rate asked from the autopilot [Hz]", gt=0, le=1000

@@ -10,7 +10,7 @@ STATUSTEXT (severity, 50 characters; a longer text in chunks sharing an id) for 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,7 @@ MAX_SPECIFIC_FORCE_M_S2 = 160.0  # 16 g: beyond any multirotor's accelerometer r
 MAV_SENSOR_ROTATION_PITCH_270 = mavlink.MAV_SENSOR_ROTATION_PITCH_270  # downward
 MAV_FRAME_LOCAL_FRD = mavlink.MAV_FRAME_LOCAL_FRD
 MAV_FRAME_BODY_FRD = mavlink.MAV_FRAME_BODY_FRD
+MAV_FRAME_LOCAL_NED = mavlink.MAV_FRAME_LOCAL_NED
 MAV_ESTIMATOR_TYPE_VISION = mavlink.MAV_ESTIMATOR_TYPE_VISION
 
 
@@ -155,14 +156,47 @@ def vision_position_estimate(mav: Any, pose: PoseEstimate) -> Any:
     )
 
 
+def centred_pose(poses: Sequence[PoseEstimate]) -> PoseEstimate | None:
+    """The pose at the centre of the last ``len(poses)`` published ones (time order, N >= 3):
+    time and position their means (a straight-line fit's value at the mean time), velocity
+    [m/s] the fit's slope: a central difference, right under constant acceleration, where the
+    velocity over the last poses stamped at the newest one lags by half its span in every
+    turn. Attitude, covariance and quality are the middle pose's. None when the poses are
+    fewer than three, of different VO maps (reset counters), or not finite.
+
+    What it is for: ODOMETRY with velocity for EKF2 (EKF2_EV_CTRL bit 2), stamped (N-1)/2
+    frames back; EKF2 fuses each sample at its own time in its delayed horizon, so the older
+    stamp costs no lag, where a velocity stamped late would pull EKF2 behind in every turn."""
+    if len(poses) < 3 or len({p.reset_counter for p in poses}) != 1:
+        return None
+    t = np.array([p.time_us for p in poses], dtype=np.float64)
+    p = np.array([q.position_ned_m for q in poses], dtype=np.float64)
+    if not (np.all(np.isfinite(p)) and np.all(np.diff(t) > 0)):
+        return None
+    tc = (t - t.mean()) * 1e-6
+    velocity = (tc @ (p - p.mean(axis=0))) / float(tc @ tc)
+    mid = poses[len(poses) // 2]
+    return PoseEstimate(
+        int(round(t.mean())),
+        p.mean(axis=0),
+        mid.quat_wxyz_ned_frd,
+        np.asarray(velocity, dtype=np.float64),
+        mid.covariance_6x6,
+        mid.reset_counter,
+        mid.quality_pct,
+    )
+
+
 def odometry(
     mav: Any,
     pose: PoseEstimate,
     rates_rad_s: Any = (0.0, 0.0, 0.0),
     velocity_sigma_m_s: float = 0.1,
+    frame: str = "local_frd",
 ) -> Any | None:
-    """ODOMETRY (LOCAL_FRD / BODY_FRD, VISION) of a pose with the body rates (the autopilot's
-    latest, FRD [rad/s]); None until the velocity is known or if the rates are not finite."""
+    """ODOMETRY (``frame`` local_frd: LOCAL_FRD, local_ned: LOCAL_NED; velocity in BODY_FRD;
+    VISION) of a pose with the body rates (the autopilot's latest, FRD [rad/s]); None until
+    the velocity is known or if the rates are not finite."""
     w = np.asarray(rates_rad_s, dtype=np.float64)
     if not (np.all(np.isfinite(pose.velocity_ned_m_s)) and np.all(np.isfinite(w))):
         return None
@@ -172,7 +206,7 @@ def odometry(
     x, y, z = (float(v) for v in pose.position_ned_m)
     return mav.odometry_encode(
         pose.time_us,
-        MAV_FRAME_LOCAL_FRD,
+        MAV_FRAME_LOCAL_NED if frame == "local_ned" else MAV_FRAME_LOCAL_FRD,
         MAV_FRAME_BODY_FRD,
         x,
         y,

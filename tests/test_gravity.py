@@ -8,6 +8,7 @@ import pytest
 
 from companion.attitude.gravity import (
     STANDARD_GRAVITY_M_S2,
+    attitude_correction,
     gravity_from_motion,
     rotations_at,
     velocity_at,
@@ -128,24 +129,58 @@ def test_velocity_fit_and_rotation_interpolation() -> None:
     assert np.allclose(mid, so3.rot_z(0.01), atol=1e-4)
 
 
-def test_vo_fuses_the_attitudes_and_the_imus_gravity_by_their_information() -> None:
+def test_attitude_correction_removes_the_autopilots_slow_tilt_error() -> None:
+    """The autopilot's attitude is 2 deg off in roll for the whole window (a slow EKF tilt
+    error) with 0.3 deg of fast noise; the window's measured gravity turns its mean down onto
+    the VO frame's true down, and every corrected sample is within the fast noise."""
+    rng = np.random.default_rng(11)
+    tilt_vo = np.radians([1.0, -0.5, 0.0])  # the VO frame's own tilt against NED
+    R_vo_world = so3.exp(tilt_vo)
+    down_true = R_vo_world @ np.array([0.0, 0.0, 1.0])
+    t = np.linspace(0.0, 4.0, 120)
+    _, _, R_world_body = manoeuvre(t)
+    R_vo_body = np.einsum("ij,njk->nik", R_vo_world, R_world_body)
+    R_err = so3.exp(np.radians([2.0, 0.0, 0.0]))
+    R_ap = np.array(
+        [R_err @ so3.exp(rng.normal(0.0, np.radians(0.3), 3)) @ R for R in R_world_body]
+    )
+    c = attitude_correction(down_true, np.radians(0.4), R_vo_body, R_ap)
+    assert c is not None
+    assert np.degrees(c.angle_rad) == pytest.approx(2.0, abs=0.15)
+    ez = np.array([0.0, 0.0, 1.0])
+    before = [
+        np.degrees(np.arccos(np.clip((Rv @ Ra.T @ ez) @ down_true, -1, 1)))
+        for Rv, Ra in zip(R_vo_body, R_ap, strict=True)
+    ]
+    after = [
+        np.degrees(np.arccos(np.clip((c.R_vo @ Rv @ Ra.T @ ez) @ down_true, -1, 1)))
+        for Rv, Ra in zip(R_vo_body, R_ap, strict=True)
+    ]
+    assert min(before) > 1.0 and np.median(before) > 1.7
+    assert np.percentile(after, 95) < 0.8 and np.median(after) < 0.5
+    # its sigma holds the measurement's and the fast scatter (0.3 deg per axis)
+    assert np.radians(0.4) < c.sigma_rad < np.radians(0.8)
+    assert attitude_correction(down_true, 0.01, R_vo_body[:0], R_ap[:0]) is None
+
+
+def test_vo_turns_the_attitudes_gravity_by_the_measured_correction() -> None:
     cam = CameraModel(320, 240, 230.0, 230.0, 159.5, 119.5)
     vo = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=1.0))
-    R_cam = so3.rpy_to_matrix(0.1, -0.05, 0.3)
+    R_cam_vo = so3.rpy_to_matrix(0.1, -0.05, 0.3)
     vo.T_cam_vo = np.eye(4)
-    vo.T_cam_vo[:3, :3] = R_cam
-    down_imu = so3.exp(np.radians([0.5, 0.0, 0.0])) @ np.array([0.0, 0.0, 1.0])
+    vo.T_cam_vo[:3, :3] = R_cam_vo
     R_ap = so3.rpy_to_matrix(0.02, 0.01, 0.3)
-    g_ap = R_ap.T @ np.array([0.0, 0.0, 1.0])
-    g_imu = R_cam @ down_imu
-    g, sigma = vo._gravity_cam(R_ap, (down_imu, np.radians(0.5)))
-    assert g is not None
-    w_ap, w_imu = 1.0 / np.radians(1.0) ** 2, 1.0 / np.radians(0.5) ** 2
-    expect = (w_ap * g_ap + w_imu * g_imu) / np.linalg.norm(w_ap * g_ap + w_imu * g_imu)
-    assert np.allclose(g, expect)
-    assert sigma == pytest.approx(1.0 / np.sqrt(w_ap + w_imu))
-    # one source alone is itself; gravity_sigma_deg 0 (images only) uses neither
-    g1, s1 = vo._gravity_cam(None, (down_imu, np.radians(0.5)))
-    assert g1 is not None and np.allclose(g1, g_imu) and s1 == pytest.approx(np.radians(0.5))
+    ez = np.array([0.0, 0.0, 1.0])
+    g_ap, s_ap = vo._gravity_cam(R_ap)
+    assert g_ap is not None and np.allclose(g_ap, R_ap.T @ ez)
+    assert s_ap == pytest.approx(np.radians(1.0))
+    R_corr = so3.exp(np.radians([0.0, 1.5, 0.0]))
+    g, sigma = vo._gravity_cam(R_ap, (R_corr, np.radians(0.6)))
+    assert g is not None and sigma == pytest.approx(np.radians(0.6))
+    # the correction acts in the VO frame: seen from the VO frame the gravity turned by it
+    assert np.allclose(R_cam_vo.T @ g, R_corr @ (R_cam_vo.T @ g_ap))
+    assert 1.0 < np.degrees(np.arccos(np.clip(g @ g_ap, -1, 1))) <= 1.5 + 1e-9
+    # no attitude: no prior (the correction corrects an attitude); images only: none
+    assert vo._gravity_cam(None, (R_corr, 0.01)) == (None, 0.0)
     images_only = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=0.0))
-    assert images_only._gravity_cam(R_ap, (down_imu, 0.01)) == (None, 0.0)
+    assert images_only._gravity_cam(R_ap, (R_corr, 0.01)) == (None, 0.0)

@@ -208,6 +208,36 @@ def test_implausible_attitudes_are_refused() -> None:
         assert messages.attitude_from_message(att(*v), 5) is None
 
 
+def test_centred_pose_velocity_is_exact_under_constant_acceleration() -> None:
+    """ODOMETRY's centred pose: the mean time and position of the last N poses and their
+    central velocity, which under constant acceleration is the true velocity at the mean
+    time (the newest pose's 150 ms difference lags it by 75 ms)."""
+    from companion.types import PoseEstimate
+
+    a = np.array([2.0, -1.0, 0.5])
+    v0 = np.array([1.0, 3.0, 0.0])
+
+    def pose(t_us: int, reset: int = 4) -> PoseEstimate:
+        t = t_us * 1e-6
+        p = v0 * t + 0.5 * a * t**2
+        return PoseEstimate(
+            t_us, p, np.array([1.0, 0, 0, 0]), np.full(3, np.nan), np.eye(6), reset, 90
+        )
+
+    poses = [pose(1_000_000 + k * 33_333) for k in range(5)]
+    c = messages.centred_pose(poses)
+    assert c is not None and c.time_us == poses[2].time_us
+    assert np.allclose(c.velocity_ned_m_s, v0 + a * c.time_us * 1e-6, atol=1e-9)
+    # the position is the mean: under acceleration it sits a/2 * var(t) off the curve
+    t_c = c.time_us * 1e-6
+    var_t = np.var([q.time_us * 1e-6 for q in poses])
+    curve = v0 * t_c + 0.5 * a * t_c**2
+    assert np.allclose(c.position_ned_m, curve + 0.5 * a * var_t, atol=1e-9)
+    assert c.reset_counter == 4 and c.quality_pct == 90
+    assert messages.centred_pose(poses[:2]) is None
+    assert messages.centred_pose([*poses[:4], pose(1_200_000, reset=5)]) is None
+
+
 def test_scaled_imu_gives_the_accelerometer_or_nothing() -> None:
     """SCALED_IMU's accelerometer (mG -> specific force, FRD [m/s^2]) for the VO's gravity;
     beyond 16 g: none."""

@@ -18,6 +18,16 @@ so (1) measures the frame's tilt against true gravity. Measured on a recorded PX
 (accelerometer at 50 Hz, our positions as PX4 received them): 0.39 deg RMS with T = 4 s,
 against PX4's own 1.27 deg.
 
+How it is used (:func:`attitude_correction`): not as each keyframe's gravity on its own. The
+window's estimate says where the VO frame's down is on average over seconds; a keyframe's own
+gravity still needs the attitude at its instant (a prior tying the keyframe to its tracked
+rotation instead let the lift-off's rotation errors stand: 7 deg of frame tilt in a PX4
+square). What the window measures is the autopilot's slow tilt error: over the window, its
+attitude seen through our VO rotation, d_i = R_vo_body(t_i) R_world_body(t_i)^T e_z, should
+average to g_vo's direction; the rotation taking their mean onto it corrects the autopilot's
+gravity at every keyframe (its fast part stays the autopilot's, its slow part is the
+accelerometer's).
+
 Uncertainty: the accelerometer's white noise (from its first differences) over the samples'
 count, the two velocities' standard errors over T, both over |g|; plus a floor for what
 neither shows (accelerometer bias and misalignment). Estimates whose |g_vo| is more than
@@ -31,6 +41,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from companion.geometry import so3
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -52,6 +64,42 @@ class GravityEstimate:
     n_imu: int
     t0_us: int
     t1_us: int
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeCorrection:
+    """The autopilot's tilt error over a window, as a rotation of the VO frame.
+
+    R_vo: (3, 3) rotation (VO frame) taking the attitude's mean down onto the measured one;
+    angle_rad: its angle; sigma_rad: the corrected gravity's direction sigma (the measured
+    one's and the attitude's scatter about its mean in the window, combined).
+    """
+
+    R_vo: F64
+    angle_rad: float
+    sigma_rad: float
+
+
+def attitude_correction(
+    down_vo: F64, sigma_rad: float, R_vo_body: F64, R_world_body: F64
+) -> AttitudeCorrection | None:
+    """The correction of the autopilot's gravity that the measured ``down_vo`` (3,) implies.
+
+    R_vo_body (M, 3, 3): our rotations of the window's frames; R_world_body (M, 3, 3): the
+    autopilot's attitudes at the same instants. d_i = R_vo_body_i R_world_body_i^T e_z is
+    the autopilot's down in the VO frame; R_vo rotates their (normalised) mean onto down_vo
+    about their common perpendicular. None for an empty window."""
+    if len(R_vo_body) == 0:
+        return None
+    d = np.einsum("nij,nkj,k->ni", R_vo_body, R_world_body, np.array([0.0, 0.0, 1.0]))
+    d_mean = d.mean(axis=0)
+    d_mean = d_mean / np.linalg.norm(d_mean)
+    scatter = float(np.sqrt(np.mean(np.sum(np.cross(d, d_mean) ** 2, axis=1))))
+    axis = np.cross(d_mean, down_vo)
+    s = float(np.linalg.norm(axis))
+    angle = float(np.arctan2(s, float(d_mean @ down_vo)))
+    R = np.eye(3) if s < 1e-12 else so3.exp(axis / s * angle)
+    return AttitudeCorrection(R, angle, float(np.hypot(sigma_rad, scatter)))
 
 
 def velocity_at(t_us: float, pose_time_us: I64, p_m: F64, half_span_us: float) -> tuple[F64, float]:

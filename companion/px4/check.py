@@ -102,6 +102,7 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
         link.port,
         link_host=link.host,
         no_gnss=opts.no_gnss,
+        odometry_frame=cfg.service.odometry_frame,
     )
     own = mavsdk_url(service_url, "service.mavlink_url")
     url = mavsdk_url(opts.url) if opts.url else own

@@ -127,6 +127,7 @@ class LinkContext:
     gps_seen: bool | None = None  # a GNSS receiver reported while watching (None: not watched)
     link_host: str = "127.0.0.1"  # its host (UDP/TCP: where it listens or sends to)
     no_gnss: bool = False  # configure --no-gnss: also turn GNSS fusion off (EKF2_GPS_CTRL = 0)
+    odometry_frame: str = "local_frd"  # service.odometry_frame
 
 
 @dataclass(frozen=True, slots=True)
@@ -271,8 +272,10 @@ class _Ekf2Facts:
     magnetometer and whether the companion's link time-syncs."""
 
     ctx: LinkContext
-    odometry: bool  # we send ODOMETRY (LOCAL_FRD)
-    vpe: bool  # we send VISION_POSITION_ESTIMATE (NED)
+    odometry: bool  # we send ODOMETRY in LOCAL_FRD
+    vpe: bool  # we send a NED pose: VISION_POSITION_ESTIMATE or ODOMETRY in LOCAL_NED
+    velocity: bool  # we send ODOMETRY (either frame): it carries our velocity
+    vpe_message: bool  # we send VISION_POSITION_ESTIMATE (no quality field)
     hgt_ref: int | None  # EKF2_HGT_REF
     ev_ctrl: int | None  # EKF2_EV_CTRL
     rng_ctrl: int | None  # EKF2_RNG_CTRL
@@ -287,8 +290,11 @@ def _ekf2_facts(params: Mapping[str, Param], ctx: LinkContext) -> _Ekf2Facts:
     mode = _int_value(params, f"MAV_{inst}_MODE", 0, 13) if inst is not None else None
     return _Ekf2Facts(
         ctx=ctx,
-        odometry=ctx.output in ("odometry", "both"),
-        vpe=ctx.output in ("vision_position_estimate", "both"),
+        odometry=ctx.output in ("odometry", "both") and ctx.odometry_frame != "local_ned",
+        vpe=ctx.output in ("vision_position_estimate", "both")
+        or (ctx.output == "odometry" and ctx.odometry_frame == "local_ned"),
+        velocity=ctx.output in ("odometry", "both"),
+        vpe_message=ctx.output in ("vision_position_estimate", "both"),
         hgt_ref=_int_value(params, "EKF2_HGT_REF", 0, 3),
         ev_ctrl=_int_value(params, "EKF2_EV_CTRL", 0, 15),
         rng_ctrl=_int_value(params, "EKF2_RNG_CTRL", 0, 2),
@@ -367,7 +373,7 @@ def _ev_ctrl_wanted(f: _Ekf2Facts) -> tuple[int, int, bool]:
     """EKF2_EV_CTRL bits required (else nothing is fused), wanted, and whether yaw is needed."""
     required = EV_HPOS | (EV_VPOS if f.hgt_ref == 3 else 0)
     yaw_needed = f.vpe and not f.odometry and f.mag is False
-    want = EV_HPOS | EV_VPOS | (EV_VEL if f.odometry else 0) | (EV_YAW if yaw_needed else 0)
+    want = EV_HPOS | EV_VPOS | (EV_VEL if f.velocity else 0) | (EV_YAW if yaw_needed else 0)
     return required, want, yaw_needed
 
 
@@ -546,7 +552,7 @@ def _floor_judge(lo: float, hi: float, what: str, default: float) -> Callable[[f
 
 def _judge_qmin(f: _Ekf2Facts, v: int) -> Judgement:
     """EKF2_EV_QMIN: VISION_POSITION_ESTIMATE has no quality; ours falls while scale settles."""
-    if f.vpe:
+    if f.vpe_message:
         why = "VISION_POSITION_ESTIMATE has no quality field: PX4 stores 0, so any minimum "
         why += "rejects every sample"
         if v > 0:

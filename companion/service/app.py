@@ -173,6 +173,7 @@ class Service:
         self._ranges: deque[RangeSample] = deque(maxlen=4096)
         self._attitudes: deque[AttitudeSample] = deque(maxlen=4096)
         self._imus: deque[ImuSample] = deque(maxlen=4096)
+        self._recent_poses: deque[PoseEstimate] = deque(maxlen=15)  # for centred ODOMETRY
         self._stop = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -840,11 +841,21 @@ class Service:
         if o in ("odometry", "both"):
             rates = self._attitude_rates
             wire = pose
+            n = self.config.service.odometry_centre_frames
+            if n:
+                self._recent_poses.append(pose)
+                recent = list(self._recent_poses)[-n:]
+                centred = messages.centred_pose(recent) if len(recent) == n else None
+                wire = (
+                    centred
+                    if centred is not None
+                    else dataclasses.replace(pose, velocity_ned_m_s=np.full(3, np.nan))
+                )
             if self.stats.autopilot == "ArduPilot":  # 0 would read "unknown" to AP_VisualOdom
                 wire = dataclasses.replace(
                     pose, quality_pct=ardupilot.ardupilot_quality(pose.quality_pct)
                 )
-            odo = messages.odometry(mav, wire, rates)
+            odo = messages.odometry(mav, wire, rates, frame=self.config.service.odometry_frame)
             if odo is not None:
                 sent |= self.link.send(odo)
         if sent:

@@ -42,7 +42,7 @@ from companion.vo.triangulation import triangulate
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
-Gravity = tuple[NDArray[np.float64], float]  # (down_vo (3,), sigma_rad)
+Gravity = tuple[NDArray[np.float64], float]  # (R_vo correction (3, 3), sigma_rad)
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
@@ -518,23 +518,20 @@ class VisualOdometry:
         """(3,) gravity (down) in the camera frame and its sigma [rad] for the BA's prior.
 
         From the attitude: R_cam_body R_body_world e_z (the VO frame's yaw does not matter:
-        gravity is its +z too), sigma ``gravity_sigma_deg``. From ``gravity`` = (down_vo (3,),
-        sigma_rad), the VO frame's gravity that the caller measured (the accelerometer against
-        our motion, companion/attitude/gravity.py): R_cam_vo down_vo at the current pose. Both:
-        their information-weighted mean (unit vector), sigma 1/sqrt(w1 + w2)."""
-        parts: list[tuple[F64, float]] = []
+        gravity is its +z too), sigma ``gravity_sigma_deg``. With ``gravity`` = (R_vo (3, 3),
+        sigma_rad), the correction of the autopilot's tilt that the caller measured in the VO
+        frame (the accelerometer against our motion, companion/attitude/gravity.py): the
+        attitude's gravity turned by R_vo seen from the camera (R_cam_vo R_vo R_cam_vo^T),
+        sigma_rad. None (and 0) without an attitude or with ``gravity_sigma_deg`` 0."""
         sigma_ap = np.radians(self.opts.gravity_sigma_deg)
-        if R_world_body is not None and sigma_ap > 0:
-            g_ap = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
-            parts.append((g_ap, float(sigma_ap)))
-        if gravity is not None and gravity[1] > 0 and self.opts.gravity_sigma_deg > 0:
-            parts.append((self.T_cam_vo[:3, :3] @ gravity[0], float(gravity[1])))
-        if not parts:
+        if R_world_body is None or sigma_ap <= 0:
             return None, 0.0
-        w = np.array([1.0 / s**2 for _, s in parts])
-        g = np.sum([wi * gi for wi, (gi, _) in zip(w, parts, strict=True)], axis=0)
-        g = np.asarray(g / np.linalg.norm(g), dtype=np.float64)
-        return g, float(1.0 / np.sqrt(w.sum()))
+        g: F64 = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
+        if gravity is None or gravity[1] <= 0:
+            return g, float(sigma_ap)
+        R_cam_vo = self.T_cam_vo[:3, :3]
+        g = R_cam_vo @ (gravity[0] @ (R_cam_vo.T @ g))
+        return g, float(gravity[1])
 
     def _add_keyframe(
         self,
@@ -682,9 +679,9 @@ class VisualOdometry:
         (used to gravity-align the VO frame at initialisation), or None. ``ground``: the
         ground plane in metres when the caller knows it (the vehicle near the ground): while
         not tracking, the map then starts on it at once, metric, without parallax.
-        ``gravity``: (down_vo (3,), sigma_rad), gravity in this VO map's frame as the caller
-        measured it (companion/attitude/gravity.py), fused with the attitude's for the
-        keyframe prior; None: the attitude's alone."""
+        ``gravity``: (R_vo (3, 3), sigma_rad), the correction of the attitude's tilt in this VO
+        map's frame that the caller measured (companion/attitude/gravity.py), applied to the
+        keyframe prior's gravity; None: the attitude's alone."""
         self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
         self.n_frames += 1
         img = frame.image_bgr
