@@ -194,6 +194,10 @@ class Flight(loop.LoopFlight):
         svc["mavlink_url"] = f"tcp:127.0.0.1:{port(1, n)}"
         svc["system_id"] = 1
         svc["output"] = "odometry"
+        # ArduPilot reads ODOMETRY in LOCAL_FRD only; the newest pose with its 150 ms velocity,
+        # as measured for issue 21 (the PX4 loop's config asks for LOCAL_NED, centred)
+        svc["odometry_frame"] = "local_frd"
+        svc["odometry_centre_frames"] = 0
         svc["camera_url"] = f"sitl://127.0.0.1:{CAMERA_PORT + n}"
         svc["status_socket"] = str(self.out / "status.sock")
         svc["report_path"] = str(self.out / "service-report.json")

@@ -3,7 +3,7 @@
 Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM or failure):
 
 1. PX4 SITL (``px4-sitl INSTANCE WORKDIR``) with GPS off and vision on at boot
-   (SENS_EN_GPSSIM=0, SYS_HAS_GPS=0, EKF2_GPS_CTRL=0, EKF2_EV_CTRL=11, EKF2_HGT_REF=3) and
+   (SENS_EN_GPSSIM=0, SYS_HAS_GPS=0, EKF2_GPS_CTRL=0, EKF2_EV_CTRL=15, EKF2_HGT_REF=3) and
    EKF2_RNG_CTRL=0 (PX4's own simulated rangefinder measures SIH's flat ground; EKF2 does not
    use it: our distance sensors go to the companion), EKF2_MAG_DECL=4.7, EKF2_EVP_NOISE=0.03
    (docs/decisions.md, "PX4 SIH in the loop").
@@ -19,7 +19,7 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    our frame), comes back to where the mission started, lands (AUTO.LAND) and waits for the
    disarm. With ``--air-start`` (the take-off before the ground start existed) it arms in
    Altitude mode with EKF2_EV_CTRL=0, climbs to 5 m on the throttle stick watching PX4's own
-   rangefinder, starts the service, sets EKF2_EV_CTRL=11 once the service has tracked for
+   rangefinder, starts the service, sets EKF2_EV_CTRL=15 once the service has tracked for
    6 s and switches to Position mode once EKF2 fuses our position.
 
 Afterwards: ``summary.json``, ``flight.png`` (PX4's estimate, ours as PX4 received it, and the
@@ -66,11 +66,14 @@ BUILD_HELP = (
     "`PX4_SYS_AUTOSTART=10040 PX4_SIM_MODEL=sihsim_quadx build/px4_sitl_default/bin/px4 -i N "
     "-w WORKDIR build/px4_sitl_default/etc` from the launcher (docs/install.md, 'PX4 SITL')."
 )
+EV_CTRL_FLIGHT = 15
 BOOT_PARAMS = {
     "SENS_EN_GPSSIM": "0",
     "SYS_HAS_GPS": "0",
     "EKF2_GPS_CTRL": "0",
-    "EKF2_EV_CTRL": "11",
+    # 15: position, height, velocity (our ODOMETRY carries it: config/px4_sitl.toml) and yaw
+    # (our NED frame's heading, LOCAL_NED); with VISION_POSITION_ESTIMATE bit 2 finds nothing
+    "EKF2_EV_CTRL": str(EV_CTRL_FLIGHT),
     "EKF2_HGT_REF": "3",
     "EKF2_RNG_CTRL": "0",
     # without GPS EKF2 takes the declination from this parameter (default 0): SIH's magnetic
@@ -452,11 +455,11 @@ class Flight(LoopFlight):
         g.pump(2.0)
         # the companion starts in the air (our VO cannot initialise on the ground yet), and
         # its estimate is fused only once the VO has tracked with a scale for a while:
-        # EKF2_EV_CTRL was 0 since arming, 11 then (EKF2 resets its position and height to
+        # EKF2_EV_CTRL was 0 since arming, 15 then (EKF2 resets its position and height to
         # ours); the vehicle drifts meanwhile (Altitude mode has no horizontal position)
         self._start_service()
         self._wait_tracking("the service tracking with a scale", 90)
-        self._set_param_int("EKF2_EV_CTRL", 11)
+        self._set_param_int("EKF2_EV_CTRL", EV_CTRL_FLIGHT)
         self._wait_fused("EKF2 fusing our position", 1.0)
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
