@@ -572,6 +572,19 @@ def test_ev_ctrl_bits_as_ekf2_reads_them() -> None:
     )
     for mask in (3, 11):
         assert _rows({**base, "EKF2_EV_CTRL": mask}, vpe)["EKF2_EV_CTRL"].status is Status.OK
+    # ODOMETRY in LOCAL_NED (the PX4 loop's): NED like VISION_POSITION_ESTIMATE, so the yaw
+    # bit is allowed (needed without a magnetometer), velocity wanted, quality present
+    ned = LinkContext("odometry", odometry_frame="local_ned")
+    for mask in (7, 15):
+        assert _rows({**base, "EKF2_EV_CTRL": mask}, ned)["EKF2_EV_CTRL"].status is Status.OK
+    ned_pos = _rows({**base, "EKF2_EV_CTRL": 11}, ned)["EKF2_EV_CTRL"]
+    assert ned_pos.status is Status.WARN and ned_pos.targets[0].value == 15
+    ned_no_mag = _rows({**base, "EKF2_MAG_TYPE": 5, "EKF2_EV_CTRL": 7}, ned)
+    assert ned_no_mag["EKF2_EV_CTRL"].status is Status.FAIL
+    assert ned_no_mag["EKF2_EV_CTRL"].targets[0].value == 15
+    assert "service.output" not in ned_no_mag  # NED needs no magnetometer to arm: our yaw
+    qmin = _rows({**base, "EKF2_EV_CTRL": 15, "EKF2_EV_QMIN": 10}, ned)["EKF2_EV_QMIN"]
+    assert qmin.status is Status.OK  # ODOMETRY carries a quality
     # EKF2_HGT_REF = vision needs bit 1
     hgt = _rows({**base, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 1}, ctx)
     assert hgt["EKF2_EV_CTRL"].status is Status.FAIL and "height" in hgt["EKF2_EV_CTRL"].why
