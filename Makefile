@@ -65,8 +65,13 @@ lint: venv
 typecheck: venv
 	$(BIN)/mypy
 
+# two pytest-xdist workers (one per core of the 2-core reference machine); tests/conftest.py and
+# tests/peers.py keep the real autopilots on one worker and give every real-time flight the
+# machine to itself (its camera prerendered beside the other worker's tests). PYTEST_WORKERS=0:
+# one process, as before.
+PYTEST_WORKERS ?= 2
 unit: venv sysdeps
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadgroup)
 
 test: lint typecheck unit
 

@@ -32,7 +32,7 @@ import json
 import multiprocessing as mp
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,6 +81,9 @@ class AutopilotOptions:
     armed: bool = False  # report the vehicle armed in HEARTBEAT
     has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
     camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
+    # awaited once the camera is ready (prerendered), before the flight clock starts: a test
+    # run on several workers flies one real-time flight at a time (tests/peers.py)
+    flight_gate: Callable[[], Awaitable[None]] | None = None
 
 
 @dataclass
@@ -620,6 +623,8 @@ class SimAutopilot:
                 # the world is built (and, with prerender, every frame rendered)
                 while not ready.is_set():
                     await asyncio.sleep(0.05)
+                if self.opts.flight_gate is not None:
+                    await self.opts.flight_gate()
                 self.flight_start_ns = time.monotonic_ns() + int(self.opts.warmup_s * 1e9)
                 counters[2] = self.flight_start_ns
                 end_ns = self.flight_start_ns + int(

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
 from functools import cache
+from pathlib import Path
 
 import pytest
+from peers import MACHINE_LOCK_ENV, hold_machine, release_machine
 
 # matplotlib's FreeType module is loaded before anything in this process can load GStreamer:
 # once GStreamer was initialised (its plugins bring the system's libfreetype), the first
@@ -35,3 +38,96 @@ def world() -> Callable[[str, int], World]:
 def default_config() -> Config:
     """The built-in (SITL) configuration."""
     return load_config()
+
+
+# `make test` runs the suite on two workers (pytest-xdist: `-n 2 --dist loadgroup`). Tests that
+# must not run beside each other, or that share an expensive module fixture, go to one worker
+# together as one work unit (run one after the other there):
+# - "autopilots": every test that starts a real PX4 or ArduPilot SITL. They use fixed instance
+#   numbers and ports (PX4 1 and free_instance()'s 5-9, whose probe-then-start would race
+#   between workers; ArduPilot 2, 3, 4 and 10-14), the launchers unpack their runtimes into one
+#   cache on first use, and two autopilot flights at once would share two cores four ways.
+# - a module whose module-scoped fixture is expensive (ArduPilot's fleet of six, calibration
+#   flights, rendered datasets) stays on one worker, so that the fixture is built once.
+# The groups are given here by module (and test) name, through xdist's scheduler hook: xdist's
+# own `xdist_group` marks rename the items' node ids, which pytest >= 9.2 no longer lets a
+# plugin do (the marks are silently ignored there: every test became its own unit).
+_AUTOPILOTS = "autopilots"
+_GROUP_OF_MODULE = {
+    "tests/test_px4_loop.py": _AUTOPILOTS,
+    "tests/test_px4_real.py": _AUTOPILOTS,
+    "tests/test_ardupilot_check.py": _AUTOPILOTS,
+    "tests/test_ardupilot_loop.py": _AUTOPILOTS,
+    "tests/test_ardupilot_service.py": _AUTOPILOTS,
+    "tests/test_calibration.py": "tests/test_calibration.py",
+    "tests/test_dataset.py": "tests/test_dataset.py",
+    "tests/test_evaluation.py": "tests/test_evaluation.py",
+    "tests/test_frame_check.py": "tests/test_frame_check.py",
+}
+_MACHINE_EXCLUSIVE = {"tests/test_px4_loop.py", "tests/test_ardupilot_loop.py"}
+_GROUP_OF_TEST = {
+    "tests/test_statustext.py::test_real_px4_forwards_our_statustext_to_its_ground_station_port": (
+        _AUTOPILOTS
+    ),
+}
+
+
+def xdist_unit(nodeid: str) -> str:
+    """The work unit of a test under `--dist loadgroup`: its group, else the test itself."""
+    return _GROUP_OF_TEST.get(nodeid) or _GROUP_OF_MODULE.get(nodeid.split("::", 1)[0]) or nodeid
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist (absent: nothing calls it)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """Load scheduling by work units (xdist_unit), handed out in the workers' collection order
+    (pytest_collection_modifyitems below puts the long ones first)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByUnit(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_unit(nodeid)
+
+    config.option.loadscopereorder = False  # not by the number of tests: by our order
+    return ByUnit(config, log)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """On an xdist worker: the machine lock (tests/peers.py) in the run's base temp folder,
+    which the workers share (each has its own popen-gwN folder below it)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") and config.option.basetemp:
+        os.environ[MACHINE_LOCK_ENV] = str(Path(config.option.basetemp).parent / "machine.lock")
+
+
+@pytest.hookimpl(tryfirst=True)  # before the test's fixtures (module fixtures render too)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Under xdist (tests/peers.py): every test holds the machine shared, a closed loop with
+    a real autopilot alone; a SITL flight asks for it alone once its camera is prerendered."""
+    hold_machine(exclusive=item.nodeid.split("::", 1)[0] in _MACHINE_EXCLUSIVE)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    try:
+        return (yield)
+    finally:
+        release_machine()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """On xdist workers, the real autopilots first (about 6 min of flights and checks, one
+    after the other on one worker, the longest unit), then the rest in file order, which
+    spreads the SITL flights (test_e2e, test_faults, test_recorder, test_robustness,
+    test_statustext) among the CPU-bound tests that run beside them. The sort is stable and
+    depends on the items alone: every worker collects the same order, as xdist requires, and
+    a module's tests stay together (their module fixtures are built once)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+
+    def rank(item: pytest.Item) -> int:
+        if item.nodeid.split("::", 1)[0] in _MACHINE_EXCLUSIVE:
+            return 0  # at the start: the other worker waits for them once, not mid-test
+        return 1 if xdist_unit(item.nodeid) == _AUTOPILOTS else 2
+
+    items.sort(key=rank)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+import fcntl
+import os
 import shutil
 import socket
 import subprocess
@@ -9,6 +12,72 @@ import time
 from pathlib import Path
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+
+
+# The machine to itself for real time, across the workers of one test run (`make test` runs
+# two pytest-xdist workers). A SITL flight is judged against the wall clock (rates, time sync,
+# VO tracking through frames that arrive on time), and so is a real autopilot's closed loop,
+# whose bridge also renders the camera live at 30 Hz (about a core). Beside another flight or a
+# CPU-bound test they failed (seen: PX4's hover below 99 % fusion and over its p95 bound after
+# VO re-initialisations from late frames, ArduPilot's EKF failsafe, the faults' and the flood's
+# output rates, the recorder's replay). So every test holds the machine shared while it runs,
+# and a flight holds it alone: a SITL flight from the end of its prerendering (which runs beside
+# the other worker's tests) to the end of its test, a real autopilot's closed loop for its whole
+# test. tests/conftest.py names the lock (MACHINE_LOCK_ENV, in the run's shared base temp
+# folder; unset: one process, no lock), takes it before each test and releases it after.
+# A turnstile (a second lock) lets a waiting flight in before the other worker's next test.
+MACHINE_LOCK_ENV = "COMPANION_TEST_MACHINE_LOCK"
+_machine: list[int] = []  # this process's descriptor of the lock while it holds it
+
+
+def _try_lock(path: str, mode: int = fcntl.LOCK_EX) -> int | None:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _unlock(fd: int) -> None:
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    os.close(fd)
+
+
+async def hold_machine_async(exclusive: bool, poll_s: float = 0.1) -> None:
+    """Hold the machine, shared or alone, until release_machine(); a process that holds it
+    shared and asks for it alone lets go first (two upgrades would wait on each other). Polls,
+    so that a test's timeout can interrupt the wait."""
+    base = os.environ.get(MACHINE_LOCK_ENV)
+    if not base:
+        return
+    release_machine()
+    while (turn := _try_lock(base + ".turn")) is None:
+        await asyncio.sleep(poll_s)
+    try:
+        mode = fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH
+        while (fd := _try_lock(base, mode)) is None:
+            await asyncio.sleep(poll_s)
+        _machine.append(fd)
+    finally:
+        _unlock(turn)
+
+
+def hold_machine(exclusive: bool) -> None:
+    """hold_machine_async() from synchronous code (before a test: tests/conftest.py)."""
+    asyncio.run(hold_machine_async(exclusive))
+
+
+async def realtime_gate() -> None:
+    """The SITL autopilot's flight gate (AutopilotOptions.flight_gate): the machine alone."""
+    await hold_machine_async(exclusive=True)
+
+
+def release_machine() -> None:
+    """Let the other worker run (after each test, tests/conftest.py)."""
+    while _machine:
+        _unlock(_machine.pop())
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -70,6 +139,7 @@ def sitl_flight(
         gcs_listen_port=0,
         warmup_s=4.0,
         prerender=True,
+        flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone
         **autopilot,  # type: ignore[arg-type]
     )
     svc = {

@@ -28,7 +28,7 @@ SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "60"))
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(2 * SECONDS + 120)
+@pytest.mark.timeout(2 * SECONDS + 240)  # + waiting for the machine (tests/peers.py)
 def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     cfg, opts = sitl_flight(tmp_path, SECONDS)
 
