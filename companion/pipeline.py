@@ -56,6 +56,9 @@ VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range
 VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
 IMU_BUFFER = 4096  # accelerometer samples kept (80 s at 50 Hz, 16 s at 250 Hz)
 MOTION_BUFFER = 1024  # (time, map, R_vo_body, metric position) of the last frames kept
+# the tilt correction of a 4 s window changes slowly: recomputed at most this often (~1 ms
+# of Python per computation on the 2-core machine, docs/BENCHMARKS.md)
+GRAVITY_REFRESH_US = 250_000
 
 
 class Pipeline:
@@ -91,6 +94,7 @@ class Pipeline:
         self.gravity: GravityEstimate | None = None  # the last window's gravity
         self.gravity_correction: AttitudeCorrection | None = None  # given to the VO
         self.gravity_used = 0  # frames that had one
+        self._gravity_at: tuple[int, int] | None = None  # (time, VO map) of the last computation
         self.ranges = RangeHistory()
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
         methods = make_methods(self.camera, config.scale, sensor_study)
@@ -199,8 +203,7 @@ class Pipeline:
         plane = None
         if self.vo.state != VoState.TRACKING and self.config.vo.ground_init:
             plane = self.ground_plane(frame.time_us, R_world_body)
-        self.gravity_correction = self._imu_gravity(frame.time_us)
-        c = self.gravity_correction
+        c = self._gravity_correction(frame.time_us)
         g = None if c is None else (c.R_vo, c.sigma_rad)
         self.gravity_used += g is not None
         self.vo_output = out = self.vo.process(frame, R_world_body, plane, g)
@@ -379,6 +382,20 @@ class Pipeline:
             return
         seg = (self.vo.resets, self.trajectories[self.method_name].reset_counter)
         self._motion.append((time_us, seg, R, np.array(p, dtype=np.float64), R_world_body))
+
+    def _gravity_correction(self, time_us: int) -> AttitudeCorrection | None:
+        """:meth:`_imu_gravity`, recomputed every GRAVITY_REFRESH_US of one VO map (the last
+        one kept in between); kept in ``gravity_correction``."""
+        last = self._gravity_at
+        fresh = (
+            last is not None
+            and last[1] == self.vo.resets
+            and 0 <= time_us - last[0] < GRAVITY_REFRESH_US
+        )
+        if not fresh:
+            self.gravity_correction = self._imu_gravity(time_us)
+            self._gravity_at = (time_us, self.vo.resets)
+        return self.gravity_correction
 
     def _imu_gravity(self, time_us: int) -> AttitudeCorrection | None:
         """The correction of the autopilot's gravity from the accelerometer samples and our
