@@ -17,6 +17,11 @@ Definitions (docs/RESULTS.md, "PX4 in the loop"):
 - PX4's estimate: ``vehicle_local_position`` from the log at its ``timestamp_sample``, PX4's
   clock mapped to ours by a line through the smallest LOCAL_POSITION_NED arrival delays (SIH's
   clock drifts against ours); without a log, LOCAL_POSITION_NED stamped on arrival.
+- ``heading_offset_deg``: SIH's true yaw minus PX4's (``vehicle_attitude`` against
+  ``vehicle_attitude_groundtruth``, both PX4's clock), the median over the 10 s before the
+  compared span (on the ground: PX4's compass heading, which our VO's frame took at its start);
+  ``horizontal_error_m_p95_px4_axes``: the horizontal p95 with PX4's estimate turned by it (in
+  PX4's own axes, as the ArduPilot loop reports EKF3's), beside the north-aligned figure.
 - ``ev_pos_fused_pct``: the share of the airborne time after the first fusion during which
   EKF2's ``cs_ev_pos`` was set; ``airborne_before_fusion_s`` is the climb before it.
 """
@@ -53,6 +58,8 @@ TOPICS = {
     "vehicle_land_detected",
     "vehicle_status",
     "vehicle_local_position",
+    "vehicle_attitude",
+    "vehicle_attitude_groundtruth",
 }
 
 
@@ -252,7 +259,37 @@ def _position_errors(
     s["px4_position_resets"] = int(len(np.unique(seg)) - 1)
     offset = segment_errors(s, est_p, gt, seg)
     s["frame_offset_m"] = [float(v) for v in offset]
+    dpsi = _heading_offset(ulog, ours, t_cmp)
+    if dpsi is not None:
+        s["heading_offset_deg"] = float(np.degrees(dpsi))
+        c, sn = np.cos(dpsi), np.sin(dpsi)
+        turned = est_p @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
+        own: dict[str, Any] = {}
+        segment_errors(own, turned, gt, seg)
+        s["horizontal_error_m_p95_px4_axes"] = own["horizontal_error_m_p95"]
     return offset
+
+
+def _heading_offset(ulog: dict[str, np.ndarray], ours: Any, t_cmp: Any) -> float | None:
+    """SIH's true yaw minus PX4's [rad], the median over the 10 s before ``t_cmp`` (our clock
+    [ns]); None without both topics there."""
+    if "vehicle_attitude" not in ulog or "vehicle_attitude_groundtruth" not in ulog:
+        return None
+    va, vg = ulog["vehicle_attitude"], ulog["vehicle_attitude_groundtruth"]
+    t_a = ours(va["timestamp_sample"])
+    near = (t_a < t_cmp) & (t_a > t_cmp - 10e9)
+    if near.sum() < 10:
+        return None
+
+    def yaw(q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, dtype=np.float64)
+        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+    t_g = ours(vg["timestamp"])
+    y_true = np.interp(t_a[near], t_g, np.unwrap(yaw(vg["q"])))
+    d = y_true - yaw(va["q"][near])
+    return float(np.median(np.arctan2(np.sin(d), np.cos(d))))
 
 
 def _px4_vision_age(s: dict[str, Any], ulog: dict[str, np.ndarray]) -> None:
