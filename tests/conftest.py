@@ -40,9 +40,9 @@ def default_config() -> Config:
     return load_config()
 
 
-# `make test` runs the suite on two workers (pytest-xdist: `-n 2 --dist loadgroup`). Tests that
-# must not run beside each other, or that share an expensive module fixture, go to one worker
-# together as one work unit (run one after the other there):
+# `make test PYTEST_WORKERS=2` runs the suite on two pytest-xdist workers (`--dist loadgroup`).
+# Tests that must not run beside each other, or that share an expensive module fixture, go to
+# one worker together as one work unit (run one after the other there):
 # - "autopilots": every test that starts a real PX4 or ArduPilot SITL. They use fixed instance
 #   numbers and ports (PX4 1 and free_instance()'s 5-9, whose probe-then-start would race
 #   between workers; ArduPilot 2, 3, 4 and 10-14), the launchers unpack their runtimes into one

@@ -14,18 +14,19 @@ from pathlib import Path
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 
 
-# The machine to itself for real time, across the workers of one test run (`make test` runs
-# two pytest-xdist workers). A SITL flight is judged against the wall clock (rates, time sync,
-# VO tracking through frames that arrive on time), and so is a real autopilot's closed loop,
-# whose bridge also renders the camera live at 30 Hz (about a core). Beside another flight or a
-# CPU-bound test they failed (seen: PX4's hover below 99 % fusion and over its p95 bound after
-# VO re-initialisations from late frames, ArduPilot's EKF failsafe, the faults' and the flood's
-# output rates, the recorder's replay). So every test holds the machine shared while it runs,
-# and a flight holds it alone: a SITL flight from the end of its prerendering (which runs beside
-# the other worker's tests) to the end of its test, a real autopilot's closed loop for its whole
-# test. tests/conftest.py names the lock (MACHINE_LOCK_ENV, in the run's shared base temp
-# folder; unset: one process, no lock), takes it before each test and releases it after.
-# A turnstile (a second lock) lets a waiting flight in before the other worker's next test.
+# The machine to itself for real time, across the workers of one test run (`make test
+# PYTEST_WORKERS=2`: two pytest-xdist workers). A SITL flight is judged against the wall clock
+# (rates, time sync, VO tracking through frames that arrive on time), and so is a real
+# autopilot's closed loop, whose bridge also renders the camera live at 30 Hz (about a core).
+# Beside another flight or a CPU-bound test they failed (seen: PX4's hover below 99 % fusion
+# and over its p95 bound after VO re-initialisations from late frames, ArduPilot's EKF
+# failsafe, the faults' and the flood's output rates, the recorder's replay). So every test
+# holds the machine shared while it runs, and a flight holds it alone: a SITL flight from the
+# end of its prerendering (which runs beside the other worker's tests) to the end of its test,
+# a real autopilot's closed loop for its whole test. tests/conftest.py names the lock
+# (MACHINE_LOCK_ENV, in the run's shared base temp folder; unset: one process, no lock), takes
+# it before each test and releases it after. A turnstile (a second lock) lets a waiting flight
+# in before the other worker's next test.
 MACHINE_LOCK_ENV = "COMPANION_TEST_MACHINE_LOCK"
 _machine: list[int] = []  # this process's descriptor of the lock while it holds it
 
