@@ -134,6 +134,7 @@ class Dataset:
     meta: dict[str, Any] = field(default_factory=dict)
     imus: list[ImuSample] = field(default_factory=list)
     imu_fed: I64 | None = None
+    frame_held: NDArray[np.bool_] | None = None  # (F,) frames the service held from its VO
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -194,7 +195,8 @@ class Dataset:
             while ri < len(self.ranges) and range_frame[ri] == k:
                 yield self.ranges[ri]
                 ri += 1
-            yield self.load_frame(k)
+            if self.frame_held is None or not self.frame_held[k]:
+                yield self.load_frame(k)
 
     def gt_pose_at(self, time_us: int) -> F64:
         """Ground-truth T_world_body interpolated at ``time_us`` (clamped to the recording)."""
@@ -361,6 +363,7 @@ def _read_ours(path: Path) -> Dataset:
     frames, paths = frames[:n], paths[:n]
     times = np.array([int(r["time_us"]) for r in frames], dtype=np.int64)
     seqs = np.array([int(r["seq"]) for r in frames], dtype=np.int64)
+    held = np.array([r.get("held", "0") == "1" for r in frames], dtype=bool)
     range_rows = _read_csv(path / "ranges.csv", optional=True)
     att_rows = _read_csv(path / "attitude.csv", optional=True)
     fed_r = _fed_column(range_rows, "ranges.csv")
@@ -436,6 +439,7 @@ def _read_ours(path: Path) -> Dataset:
         fed_before=fed,
         imus=imus,
         imu_fed=fed_i,
+        frame_held=held if held.any() else None,
         frames_checked=bool(meta.get("frames_checked", False)),
         published=published,
         complete=complete,
@@ -705,7 +709,7 @@ class DatasetWriter:
             for name in ("frames.csv", "ranges.csv", "attitude.csv", "imu.csv", "published.csv")
         }
         self._csv = {name: csv.writer(fh, lineterminator="\n") for name, fh in self._files.items()}
-        self._row("frames.csv", ["time_us", "seq", "filename"])
+        self._row("frames.csv", ["time_us", "seq", "filename", "held"])
         self._row("ranges.csv", [*RANGE_COLUMNS, FED])
         self._row("attitude.csv", [*ATTITUDE_COLUMNS, FED])
         self._row("imu.csv", [*IMU_COLUMNS, FED])
@@ -744,8 +748,11 @@ class DatasetWriter:
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
         imus: Sequence[ImuSample] = (),
+        held: bool = False,
     ) -> None:
-        """Append one frame with the samples fed before it (in the order they were fed)."""
+        """Append one frame with the samples fed before it (in the order they were fed).
+        ``held``: the service held the frame from its VO (it waited for the autopilot's
+        attitude): a replay feeds its samples but not the frame."""
         k = self.frames
         name = f"images/{k:06d}.{self.image_format}"
         with (self.path / name).open("wb") as fh:
@@ -774,7 +781,7 @@ class DatasetWriter:
         self._files["attitude.csv"].flush()
         self._files["imu.csv"].flush()
         self._files["ranges.csv"].flush()
-        self._row("frames.csv", [frame.time_us, frame.seq, name])
+        self._row("frames.csv", [frame.time_us, frame.seq, name, int(held)])
         self._files["frames.csv"].flush()
         self.frames += 1
 

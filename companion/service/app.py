@@ -752,14 +752,17 @@ class Service:
         """Worker thread: feed the queued samples, then the frame."""
         p = self.pipeline
         imus = imus or []
-        self.recorder.frame(frame, ranges, atts, imus)  # a reference into its queue
         for a in atts:
             p.feed_attitude(a)
         for m in imus:
             p.feed_imu(m)
         for r in ranges:
             p.feed_range(r)
-        if self._wait_for_attitude(frame):
+        held = self._wait_for_attitude(frame)
+        # recorded with whether it reached the VO: a replay then holds the same frames (the
+        # wait depends on when the autopilot's HEARTBEAT came, which a replay does not have)
+        self.recorder.frame(frame, ranges, atts, imus, held)  # a reference into its queue
+        if held:
             return None
         pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
         self.pipeline_status = p.status()  # a new frozen snapshot: the loop reads only this

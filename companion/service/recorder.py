@@ -41,7 +41,13 @@ CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 
 Item = (
-    tuple[CameraFrame, Sequence[RangeSample], Sequence[AttitudeSample], Sequence[ImuSample]]
+    tuple[
+        CameraFrame,
+        Sequence[RangeSample],
+        Sequence[AttitudeSample],
+        Sequence[ImuSample],
+        bool,
+    ]
     | PoseEstimate
 )
 
@@ -149,9 +155,11 @@ class Recorder:
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
         imus: Sequence[ImuSample] = (),
+        held: bool = False,
     ) -> None:
-        """The frame the pipeline is about to take, with the samples it is fed first (in the
-        order it is fed them). Never blocks; a full queue stops the recording."""
+        """The frame the pipeline took, with the samples it was fed first (in the order it was
+        fed them); ``held``: the frame was held from the VO (a replay feeds its samples only).
+        Never blocks; a full queue stops the recording."""
         if self.state != "recording":
             if self.enabled:
                 self._not_recorded(1)
@@ -167,7 +175,7 @@ class Recorder:
                 "waiting); the flight output is not affected"
             )
             return
-        self._queue.put((frame, list(ranges), list(attitudes), list(imus)))
+        self._queue.put((frame, list(ranges), list(attitudes), list(imus), held))
 
     def pose(self, pose: PoseEstimate) -> None:
         """A pose the service sent to the autopilot (the wire's reset_counter)."""
@@ -235,6 +243,7 @@ class Recorder:
         ranges: Sequence[RangeSample],
         attitudes: Sequence[AttitudeSample],
         imus: Sequence[ImuSample] = (),
+        held: bool = False,
     ) -> bool:
         """Encode and append one frame; False (and stopped) when it would break the budget."""
         encoded = writer.encode(frame.image_bgr)
@@ -249,7 +258,7 @@ class Recorder:
             self._stop(f"less than {o.min_free_mb:g} MB free on the disk (record.min_free_mb)")
             self._not_recorded(1)
             return False
-        writer.write_frame(frame, encoded, ranges, attitudes, imus)
+        writer.write_frame(frame, encoded, ranges, attitudes, imus, held)
         self._frames += 1
         return True
 
