@@ -4,7 +4,7 @@ The VO frame is gravity-aligned at initialisation and its local bundle adjustmen
 with a prior on each keyframe's gravity direction. Taking that direction from the autopilot's
 attitude makes our frame inherit the autopilot's tilt error, and an autopilot without GNSS
 estimates its tilt only as well as its velocity aiding allows: PX4's EKF2 on SIH, aided by our
-position alone, was 1.3 deg RMS off in tilt (docs/RESULTS.md). The accelerometer measures the
+position alone, was 1.1-1.7 deg RMS off in tilt (docs/RESULTS.md). The accelerometer measures the
 specific force f = R_body_world (a - g) in the body frame (FRD) [m/s^2]; over a window
 [t0, t1] of T seconds, with the body rotation R_vo_body from the VO and the metric velocity
 v(t) from our published positions,
@@ -14,9 +14,9 @@ v(t) from our published positions,
 is gravity in the VO frame (a loosely coupled visual-inertial gravity estimate: the mean
 acceleration over the window is the velocity change, so no double differentiation). Its
 direction is what the BA's prior needs; any tilt of the VO frame is in R_vo_body and v alike,
-so (1) measures the frame's tilt against true gravity. Measured on a recorded PX4 SIH square
-(accelerometer at 50 Hz, our positions as PX4 received them): 0.39 deg RMS with T = 4 s,
-against PX4's own 1.27 deg.
+so (1) measures the frame's tilt against true gravity. Measured in PX4 SIH squares (SCALED_IMU
+at 50 Hz, our own rotations and positions): 0.55 deg RMS airborne with T = 4 s, against PX4's
+own attitude's 1.1-1.7 deg (docs/decisions.md, "Gravity from the accelerometer").
 
 How it is used (:func:`attitude_correction`): not as each keyframe's gravity on its own. The
 window's estimate says where the VO frame's down is on average over seconds; a keyframe's own
