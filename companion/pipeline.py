@@ -440,15 +440,12 @@ class Pipeline:
         )
         if est is None:
             return None
-        inside = [r for r in rows if est.t0_us <= r[0] <= est.t1_us and r[4] is not None]
-        if len(inside) < 3:
+        # (our rotation, the autopilot's attitude) of the window's frames that had one
+        pairs = [(r[2], r[4]) for r in rows if est.t0_us <= r[0] <= est.t1_us and r[4] is not None]
+        if len(pairs) < 3:
             return None
-        return attitude_correction(
-            est.down_vo,
-            est.sigma_rad,
-            np.stack([r[2] for r in inside]),
-            np.stack([r[4] for r in inside if r[4] is not None]),
-        )
+        R_vo_body, R_world_body = (np.stack(x) for x in zip(*pairs, strict=True))
+        return attitude_correction(est.down_vo, est.sigma_rad, R_vo_body, R_world_body)
 
     def _tilt(self, time_us: int, range_m: dict[int, float]) -> TiltStep | None:
         """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
