@@ -88,7 +88,54 @@ def test_serial_driver_over_a_pty_pair() -> None:
     assert len(got) == 200 and all(s.is_valid for s in got)
     assert 999 not in [round(s.distance_m * 100) for s in got]
     assert drv.parser.bad_checksums >= 1
-    assert all(t0 - 1000 <= s.time_us <= time.monotonic_ns() // 1000 for s in got)
+    # a frame is stamped back by the wire time of the bytes read after it (115200 baud), so
+    # the burst written at once reaches back at most its own wire time before the write
+    burst_us = len(data) * 10 / 115200 * 1e6 + 1000
+    assert all(t0 - burst_us <= s.time_us <= time.monotonic_ns() // 1000 for s in got)
+
+
+def test_each_frame_gets_its_own_stamp_as_it_arrives() -> None:
+    """A TFmini streams a frame every 20 ms: each sample is stamped when its frame came, not
+    when a buffer filled. ``read(256)`` with a 100 ms timeout handed five frames over at once
+    under one stamp, up to 80 ms late (the PX4 loop's climb scale, docs/RESULTS.md); a burst
+    written at once is spaced by the frames' wire time (9 bytes at 115200 baud: 781 us)."""
+    master, slave = os.openpty()
+    got: list = []
+    done = threading.Event()
+
+    def on_sample(s) -> None:
+        got.append(s)
+        if len(got) >= 45:
+            done.set()
+
+    tty.setraw(slave)
+    drv = TfminiSerial(os.ttyname(slave), 2, 0.1, 12.0, on_sample)
+    drv.start()
+    assert drv.opened.wait(5.0)
+    written_us = []
+    try:
+        for d in range(100, 140):  # 40 frames, one every 20 ms
+            written_us.append(time.monotonic_ns() // 1000)
+            os.write(master, tfmini_frame(d, 800))
+            time.sleep(0.02)
+        burst_us = time.monotonic_ns() // 1000
+        os.write(master, stream(range(500, 505)))  # five frames in one write
+        assert done.wait(5.0)
+    finally:
+        drv.close()
+        os.close(master)
+        os.close(slave)
+    t = np.array([s.time_us for s in got], dtype=np.int64)
+    assert [round(s.distance_m * 100) for s in got] == [*range(100, 140), *range(500, 505)]
+    assert np.all(np.diff(t) > 0), "every frame its own, increasing stamp"
+    # stamped no earlier than written (less the frame's own wire time, 781 us) ...
+    wire_us = drv._frame_us
+    assert np.all(t[:40] >= np.array(written_us) - wire_us - 1), t[:40] - written_us
+    # ... and one by one: the stamps are spaced as they were written (a batching read gives
+    # four of every five gaps under 1 ms, so its median gap is 0.8 ms)
+    assert float(np.median(np.diff(t[:40]))) >= 10_000, np.diff(t[:40])
+    # the burst: the wire time apart if read together, more if read apart
+    assert np.all(np.diff(t[40:]) >= wire_us - 1) and t[40] >= burst_us - 5 * wire_us - 1
 
 
 def test_the_service_reads_a_tfmini_wired_to_the_companion(tmp_path) -> None:
