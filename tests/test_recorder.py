@@ -235,7 +235,7 @@ def fly_recording(tmp_path: Path, **record: object) -> Any:
     from companion.service.app import Service
     from sitl.autopilot import SimAutopilot
 
-    cfg, opts = sitl_flight(tmp_path, FLIGHT_S)
+    cfg, opts = sitl_flight(tmp_path, FLIGHT_S, small=True)  # the 320x240 camera
     cfg = with_record(cfg, tmp_path / "rec", **record)
 
     async def fly() -> Service:
@@ -302,7 +302,7 @@ def test_the_disk_budget_ends_the_recording_mid_flight_not_the_output(tmp_path: 
     """A budget of about a third of the flight: the recording stops cleanly (said in the
     service's warnings and status), the service keeps publishing after it, and the recording
     replays exactly up to its last frame."""
-    budget_mb = 0.74 * 30 * FLIGHT_S / 3  # PNG frames of the SITL camera: ~0.74 MB each
+    budget_mb = 0.185 * 30 * FLIGHT_S / 3  # PNG frames of the 320x240 camera: ~0.185 MB each
     service = fly_recording(tmp_path, max_mb=budget_mb, queue_frames=int(FLIGHT_S * 30) + 60)
     summary = service.summary()
     rec = summary["recorder"]

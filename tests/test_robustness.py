@@ -530,7 +530,7 @@ def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> None:
-    """A SITL flight; from 15 s to 35 s another process floods the service's port with 5,000
+    """A SITL flight; from 12 s to 27 s another process floods the service's port with 5,000
     datagrams/s (garbage, another system's frames, spoofed autopilot frames) from its own
     address. Before the fix the output stopped for ~45 s. Asserted at any load: the rate in
     the flood is >= 80 % of the rate before it (and >= half the camera rate), no VO reset,
@@ -540,8 +540,8 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
 
     from sitl.autopilot import SimAutopilot
 
-    seconds, flood_s = 45.0, (15.0, 35.0)
-    cfg, opts = sitl_flight(tmp_path, seconds)
+    seconds, flood_s = 30.0, (12.0, 27.0)
+    cfg, opts = sitl_flight(tmp_path, seconds, small=True)  # the 320x240 camera
     port = int(cfg.service.mavlink_url.rsplit(":", 1)[1])
 
     async def fly() -> tuple[SimAutopilot, dict, dict, dict]:
@@ -584,7 +584,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     def rate(lo: float, hi: float) -> float:
         return float(((t_pose >= lo) & (t_pose < hi)).sum() / (hi - lo))
 
-    before, during = rate(8.0, flood_s[0]), rate(flood_s[0] + 1.0, flood_s[1] - 1.0)
+    before, during = rate(6.0, flood_s[0]), rate(flood_s[0] + 1.0, flood_s[1] - 1.0)
     print(f"poses/s before {before:.1f}, in the flood {during:.1f}", extra, summary)
     assert extra["flood"]["rate"] >= 2500, extra["flood"]  # the attacker really flooded
     assert extra["link"]["rx_other_address"] >= 0.5 * extra["flood"]["sent"]

@@ -515,6 +515,7 @@ def test_sitl_stub_receives_and_forwards_camera_and_vo_statustexts(tmp_path) -> 
     cfg, opts = sitl_flight(
         tmp_path,
         26.0,
+        small=True,  # the 320x240 camera: the messages are the service's
         faults=(Fault("camera_unplug", 14.0, 3.0),),
         armed=True,
     )
