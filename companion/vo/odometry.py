@@ -522,7 +522,10 @@ class VisualOdometry:
         sigma_rad), the correction of the autopilot's tilt that the caller measured in the VO
         frame (the accelerometer against our motion, companion/attitude/gravity.py): the
         attitude's gravity turned by R_vo seen from the camera (R_cam_vo R_vo R_cam_vo^T),
-        sigma_rad. None (and 0) without an attitude or with ``gravity_sigma_deg`` 0."""
+        sigma hypot(``gravity_sigma_deg``, sigma_rad): the correction removes the attitude's
+        error averaged over its window, not its fast part (a keyframe's own error), so the
+        attitude's sigma stays in. None (and 0) without an attitude or with
+        ``gravity_sigma_deg`` 0."""
         sigma_ap = np.radians(self.opts.gravity_sigma_deg)
         if R_world_body is None or sigma_ap <= 0:
             return None, 0.0
@@ -531,7 +534,7 @@ class VisualOdometry:
             return g, float(sigma_ap)
         R_cam_vo = self.T_cam_vo[:3, :3]
         g = R_cam_vo @ (gravity[0] @ (R_cam_vo.T @ g))
-        return g, float(gravity[1])
+        return g, float(np.hypot(sigma_ap, gravity[1]))
 
     def _add_keyframe(
         self,
