@@ -1,5 +1,5 @@
 """End to end, in real time over loopback: the SITL autopilot (its own process for the camera)
-and the service, on the default scenario (hills, lawnmower; 40 s here, 60 s in `make demo`).
+and the service, on the default scenario (hills, lawnmower; 30 s here, 60 s in `make demo`).
 
 What is asserted holds at any load (a busy laptop, CI beside another test run; issue 16): every
 camera frame is accounted for, what the service sent is what the autopilot decoded, the time
@@ -24,7 +24,7 @@ from companion.service.app import Service
 from drivers.status import read_status
 from sitl.autopilot import SimAutopilot
 
-SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "40"))
+SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "30"))
 
 
 @pytest.mark.slow

@@ -34,7 +34,7 @@ from companion.service.recorder import Recorder, recording_dir
 from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
 from drivers.dataset import DatasetWriter, open_dataset, read_poses_csv
 
-FLIGHT_S = float(os.environ.get("COMPANION_RECORDER_SECONDS", "20"))
+FLIGHT_S = float(os.environ.get("COMPANION_RECORDER_SECONDS", "14"))
 
 
 def with_record(cfg: Config, folder: Path, **options: object) -> Config:

@@ -502,7 +502,7 @@ def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_sitl_stub_receives_and_forwards_camera_and_vo_statustexts(tmp_path) -> None:
-    """The SITL flight (hills), the stub armed, the camera stream unplugged for 3 s at 14 s:
+    """The SITL flight (hills), the stub armed, the camera stream unplugged for 3 s at 10 s:
     the stub receives VO tracking and the scale ready, then the camera lost (CRITICAL) and
     back, the VO lost and tracking again, the pose reset; its ground-station endpoint
     forwards them as received (our system and component ids), as PX4 does with -f."""
@@ -514,9 +514,9 @@ def test_sitl_stub_receives_and_forwards_camera_and_vo_statustexts(tmp_path) -> 
     gcs.setblocking(False)
     cfg, opts = sitl_flight(
         tmp_path,
-        26.0,
+        20.0,
         small=True,  # the 320x240 camera: the messages are the service's
-        faults=(Fault("camera_unplug", 14.0, 3.0),),
+        faults=(Fault("camera_unplug", 10.0, 3.0),),
         armed=True,
     )
     opts = dataclasses.replace(  # type: ignore[type-var]
