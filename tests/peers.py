@@ -125,12 +125,17 @@ SMALL_CAMERA_CONFIG = "config/px4_sitl.toml"
 
 
 def small_camera() -> dict:
-    """The [camera], [vo] and [scale] tables of SMALL_CAMERA_CONFIG, as config overrides."""
+    """SMALL_CAMERA_CONFIG's [camera] table and the pixel-sized keys of its [vo] and [scale]
+    tables (``*_px``), as config overrides: the image's size, not that file's tuning for
+    PX4 (its gravity prior, for one), so the flights keep their own scenario's settings."""
     import tomllib
 
     with open(SMALL_CAMERA_CONFIG, "rb") as fh:
         data = tomllib.load(fh)
-    return {k: data[k] for k in ("camera", "vo", "scale")}
+    out: dict = {"camera": data["camera"]}
+    for table in ("vo", "scale"):
+        out[table] = {k: v for k, v in data[table].items() if k.endswith("_px")}
+    return out
 
 
 def sitl_flight(
