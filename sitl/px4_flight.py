@@ -30,7 +30,6 @@ logged, the GCS telemetry and PX4's .ulg log (copied into the output folder).
 from __future__ import annotations
 
 import os
-import re
 import struct
 import subprocess
 import sys
@@ -42,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from companion.errors import SitlError
+from drivers.px4_shell_text import parse_listener
 from sitl.loop_common import (
     REPO,
     GcsBase,
@@ -86,7 +86,6 @@ BOOT_PARAMS = {
 }
 SERIAL_CONTROL_DEV_SHELL = 10
 SERIAL_CONTROL_FLAG_RESPOND, SERIAL_CONTROL_FLAG_EXCLUSIVE = 2, 4
-_BEFORE_TIMESTAMP = re.compile(r"timestamp_sample:\s*\d+\s*\((-?\d+)\s+us before timestamp\)")
 TIMESYNC_WAIT_S = 120.0  # PX4 needs ~500 TIMESYNC answers (~50 s at 10 Hz) after we start
 # PX4 custom modes (main mode << 16 | sub mode << 24)
 MODE_ALTCTL, MODE_POSCTL, MODE_AUTO, MODE_OFFBOARD = 2, 3, 4, 6
@@ -205,8 +204,9 @@ class Gcs(GcsBase):
         vehicle_visual_odometry``: a converted stamp lies some latency before the message's
         arrival; before PX4's filter converges, after ~500 TIMESYNC answers, it stamps our
         samples with their arrival: "0 us before timestamp"). None: no answer."""
-        found = _BEFORE_TIMESTAMP.search(self.shell("listener vehicle_visual_odometry -n 1"))
-        return None if found is None else int(found.group(1)) != 0
+        fields = parse_listener(self.shell("listener vehicle_visual_odometry -n 1"))
+        before = None if fields is None else fields.get("timestamp_sample_before_timestamp_us")
+        return None if not isinstance(before, int) else before != 0
 
     def set_mode(self, main: int, sub: int = 0) -> None:
         self.command(176, 1, main, sub)  # MAV_CMD_DO_SET_MODE, custom

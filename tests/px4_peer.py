@@ -173,7 +173,7 @@ class Px4Sitl:
 
     def listener(self, topic: str) -> dict[str, Any] | None:
         """The last message of a uORB topic, parsed as ``companion px4 check`` parses it."""
-        from companion.px4.shell import parse_listener
+        from drivers.px4_shell_text import parse_listener
 
         return parse_listener(self.console("listener", topic))
 

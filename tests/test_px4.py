@@ -472,7 +472,7 @@ PX4_FLAGS = (
 
 def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
     from companion.px4.fusion import sample_age_ms
-    from companion.px4.shell import number, parse_listener, parse_uorb_top
+    from drivers.px4_shell_text import number, parse_listener, parse_uorb_top
 
     f = parse_listener(PX4_LISTENER)
     assert f is not None
@@ -515,7 +515,7 @@ def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
 
 def test_the_stub_prints_listener_output_in_px4s_format() -> None:
     from companion.px4.fusion import sample_age_ms
-    from companion.px4.shell import parse_listener
+    from drivers.px4_shell_text import parse_listener
     from sitl.ekf_fusion import Topic
     from sitl.px4_shell import format_listener
 

@@ -22,8 +22,8 @@ from companion.px4.fusion import Observations, ShellView, Verdict, diagnose
 from companion.px4.link import Px4Link, mavsdk_url
 from companion.px4.options import Px4Options
 from companion.px4.rules import LinkContext, Row, Status, evaluate
-from companion.px4.shell import parse_listener, parse_uorb_top
 from drivers.mavlink import LinkUrl
+from drivers.px4_shell_text import parse_listener, parse_uorb_top
 from drivers.status import StatusError, find_status_socket, read_status
 
 SHELL_TOPICS = (

@@ -21,8 +21,8 @@ from typing import Any, TypeVar
 
 from companion.errors import AutopilotUnreachableError, Px4Error
 from companion.px4.rules import Param, Target
-from companion.px4.shell import clean
 from drivers.mavlink import LinkUrl
+from drivers.px4_shell_text import clean
 
 log = logging.getLogger("companion.px4")
 T = TypeVar("T")

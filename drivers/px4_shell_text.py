@@ -1,4 +1,5 @@
-"""PX4's MAVLink shell (nsh over SERIAL_CONTROL): command output parsers.
+"""PX4's MAVLink shell (nsh over SERIAL_CONTROL): command output parsers (the text
+PX4 prints; `companion px4 check` reads it, and so does the PX4 SIH loop in sitl/).
 
 ``listener <topic>`` prints the last message of a uORB topic as PX4's
 ``orb_print_message_internal`` formats it (PX4's listener_main.cpp and uORB.cpp)::
