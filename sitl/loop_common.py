@@ -38,6 +38,9 @@ REPO = Path(__file__).resolve().parent.parent
 # SET_POSITION_TARGET_LOCAL_NED type_mask: position + velocity; no acceleration, no yaw, no
 # yaw rate
 POS_VEL_TYPE_MASK = 0b0000_1101_1100_0000
+# the mission's end: the autopilot's position within SETTLE_M [m] of the last waypoint for
+# SETTLE_S [s] before the landing (at most SETTLE_TIMEOUT_S [s] of waiting)
+SETTLE_M, SETTLE_S, SETTLE_TIMEOUT_S = 0.15, 1.0, 20.0
 
 
 class Procs:
@@ -464,10 +467,32 @@ class LoopFlight:
         self._phase(f"mission {o.mission}")
         if o.mission == "hover":
             self.gcs.pump(o.hover_s)
+            self.gcs.pump(2.0)
         else:
-            self._follow(mission_path(o.mission, start, o.square_m), o.speed_m_s)
-        self.gcs.pump(2.0)
+            pts = mission_path(o.mission, start, o.square_m)
+            self._follow(pts, o.speed_m_s)
+            self._settle_over(pts[-1])
         self._phase("landing")
+
+    def _settle_over(self, target: np.ndarray) -> None:
+        """Hold the last waypoint until the autopilot's own position has stayed within
+        SETTLE_M of it horizontally for SETTLE_S (a mission's end, as a return-to-home waits
+        over home before it descends: the landing then starts where the mission ended, not
+        where the braking overshoot put the vehicle); at most SETTLE_TIMEOUT_S, then a note."""
+        g = self.gcs
+        g.setpoint = (target.copy(), np.zeros(3))
+        end = time.monotonic() + SETTLE_TIMEOUT_S
+        while time.monotonic() < end:
+            g.pump(0.1)
+            self._check_alive()
+            t_from = time.monotonic_ns() - int(SETTLE_S * 1e9)
+            recent = [r for r in self.tel.lpos if r[0] >= t_from]
+            if not recent or recent[0][0] - t_from > 0.2e9:
+                continue  # not a whole SETTLE_S of positions yet
+            off = np.array([r[2:4] for r in recent]) - target[:2]
+            if float(np.max(np.hypot(off[:, 0], off[:, 1]))) <= SETTLE_M:
+                return
+        self.notes.append(f"did not settle within {SETTLE_M} m of the mission's end")
 
     def _wait_disarmed(self) -> None:
         self._until("disarmed after landing", lambda: not self.tel.armed, 90)
