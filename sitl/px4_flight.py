@@ -88,7 +88,8 @@ BOOT_PARAMS = {
     # without GNSS the bias is unobservable on the ground, and at the take-off EKF2 learnt our
     # climb's velocity errors (0.1-0.2 m/s) as 0.15-0.2 m/s^2 of bias, a 1 deg tilt error that
     # lasted the flight; SIH's accelerometer has none to speak of (its SCALED_IMU against the
-    # truth: < 0.02 m/s^2). With 0.05: PX4's tilt error 1.03 deg RMS (1.34-1.44 with 0.2)
+    # truth: < 0.02 m/s^2). With 0.05, six missions: PX4's tilt error 1.01-1.10 deg RMS
+    # against SIH's truth, 1.05-1.42 with 0.2 (docs/RESULTS.md, session 11)
     "EKF2_ABIAS_INIT": "0.05",
 }
 SERIAL_CONTROL_DEV_SHELL = 10
