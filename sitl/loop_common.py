@@ -481,13 +481,13 @@ class LoopFlight:
         where the braking overshoot put the vehicle); at most SETTLE_TIMEOUT_S, then a note."""
         g = self.gcs
         g.setpoint = (target.copy(), np.zeros(3))
-        end = time.monotonic() + SETTLE_TIMEOUT_S
-        while time.monotonic() < end:
+        end_s = time.monotonic() + SETTLE_TIMEOUT_S
+        while time.monotonic() < end_s:
             g.pump(0.1)
             self._check_alive()
-            t_from = time.monotonic_ns() - int(SETTLE_S * 1e9)
-            recent = [r for r in self.tel.lpos if r[0] >= t_from]
-            if not recent or recent[0][0] - t_from > 0.2e9:
+            since_ns = time.monotonic_ns() - int(SETTLE_S * 1e9)
+            recent = [r for r in self.tel.lpos if r[0] >= since_ns]  # (arrival ns, ..., x, y, z)
+            if not recent or recent[0][0] - since_ns > 0.2e9:
                 continue  # not a whole SETTLE_S of positions yet
             off = np.array([r[2:4] for r in recent]) - target[:2]
             if float(np.max(np.hypot(off[:, 0], off[:, 1]))) <= SETTLE_M:
