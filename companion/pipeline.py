@@ -26,6 +26,7 @@ from companion.attitude.gravity import (
 )
 from companion.config import Config
 from companion.dpose.estimator import Dpose
+from companion.dpose.offset import DposeOffset
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.scale.laser import RangeHistory, laser_point_cam
@@ -120,9 +121,8 @@ class Pipeline:
         self.dpose: Dpose | None = None
         if config.dpose.enabled and len(self.specs) == 4:
             self.dpose = Dpose(self.camera, self.T_body_cam, self.specs)
-        self.dpose_offset_m = np.zeros(3)
-        self.dpose_resets = 0  # corrections applied at once (each a new reset_counter)
-        self.dpose_used = 0  # d-Pose poses that corrected the published position
+        d = config.dpose
+        self.dpose_offset = DposeOffset(d.vo_drift_per_m, d.vo_drift_m_per_s, d.reset_m)
         self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
         # d-Pose arming: (time [us], the pose and autopilot attitude at the window's start,
         # the four ranges [m] of every frame since)
@@ -251,10 +251,11 @@ class Pipeline:
         metric and drift-free). Armed ``dpose.arm_after_s`` after the first frame,
         with the four lasers' readings then (the marks are left where they hit) and the
         published pose then as the pattern's place in the world. Afterwards every d-Pose
-        pose (marks in view, translation sigma <= ``dpose.max_sigma_m``) moves the offset
-        added to the VO's position towards d-Pose minus VO: by ``dpose.blend`` of the gap when
-        it is small, at once and with a new reset_counter when it exceeds ``dpose.reset_m``
-        (EKF2 re-anchors its vision frame instead of fusing a jump)."""
+        pose (marks in view, translation sigma <= ``dpose.max_sigma_m``) updates the offset
+        added to the VO's position towards d-Pose minus VO (companion/dpose/offset.py): with
+        a gain from the VO's drift since the last one and d-Pose's sigma, at once and with a
+        new reset_counter when the gap exceeds ``dpose.reset_m`` (EKF2 re-anchors its vision
+        frame instead of fusing a jump)."""
         assert self.dpose is not None
         o = self.config.dpose
         R_ap = self.attitude_at(frame.time_us)
@@ -265,22 +266,35 @@ class Pipeline:
                 self._arm_dpose(frame.time_us, pose, R_ap, range_m)
         else:
             res = self.dpose.step(frame.time_us, frame.image_bgr, R_ap, range_m or None)
-            if res is not None and np.sqrt(np.max(np.diag(res.cov_6x6)[3:])) <= o.max_sigma_m:
-                target = res.T_world_body[:3, 3] - pose.position_ned_m
-                gap = target - self.dpose_offset_m
-                if float(np.linalg.norm(gap)) > o.reset_m:
-                    self.dpose_offset_m = target
-                    self.dpose_resets += 1
-                else:
-                    self.dpose_offset_m = self.dpose_offset_m + o.blend * gap
-                self.dpose_used += 1
-        if not self.dpose_resets and not np.any(self.dpose_offset_m):
+            if res is not None:
+                sigma_m = float(np.sqrt(np.max(np.diag(res.cov_6x6)[3:])))
+                if sigma_m <= o.max_sigma_m:
+                    self.dpose_offset.update(
+                        pose.time_us, pose.position_ned_m, res.T_world_body[:3, 3], sigma_m
+                    )
+        off = self.dpose_offset
+        if not off.resets and not np.any(off.offset_m):
             return pose
         return dataclasses.replace(
             pose,
-            position_ned_m=pose.position_ned_m + self.dpose_offset_m,
-            reset_counter=pose.reset_counter + self.dpose_resets,
+            position_ned_m=pose.position_ned_m + off.offset_m,
+            reset_counter=pose.reset_counter + off.resets,
         )
+
+    @property
+    def dpose_offset_m(self) -> F64:
+        """(3,) [m] what d-Pose adds to the VO's position (companion/dpose/offset.py)."""
+        return self.dpose_offset.offset_m
+
+    @property
+    def dpose_resets(self) -> int:
+        """Corrections applied at once (each a new reset_counter)."""
+        return self.dpose_offset.resets
+
+    @property
+    def dpose_used(self) -> int:
+        """d-Pose poses that corrected the published position."""
+        return self.dpose_offset.updates
 
     def _arm_dpose(
         self, time_us: int, pose: PoseEstimate, R_ap: F64, range_m: dict[int, float]
@@ -303,8 +317,15 @@ class Pipeline:
         if (time_us - w[0]) * 1e-6 < o.arm_window_s:
             return
         mean_range_m = {s: float(np.mean([r[s] for r in w[3]])) for s in range_m}
-        T_world_body = se3.from_quat(w[1].quat_wxyz_ned_frd, w[1].position_ned_m)
+        # the pattern's place: the published position and heading, the autopilot's roll and
+        # pitch (drift-free; the published tilt carries the VO frame's, 0.76 deg in
+        # config/pad.toml's seed 1, which tilted every d-Pose displacement from the pad's
+        # centre: 1.6 cm of height 1.2 m off it; docs/decisions.md, "d-Pose's pattern tilt")
+        roll, pitch, _ = so3.matrix_to_rpy(w[2])
+        _, _, yaw = so3.matrix_to_rpy(so3.quat_to_matrix(w[1].quat_wxyz_ned_frd))
+        T_world_body = se3.make(so3.rpy_to_matrix(roll, pitch, yaw), w[1].position_ned_m)
         self.dpose.arm(mean_range_m, T_world_body, w[2])
+        self.dpose_offset.arm(w[1].time_us, w[1].position_ned_m)
         self._dpose_window = None
 
     def ground_plane(self, time_us: int, R_world_body: F64 | None) -> GroundPlane | None:

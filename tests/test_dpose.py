@@ -170,3 +170,51 @@ def test_the_shipped_beams_are_what_design_finds() -> None:
     assert beams == DPOSE_BEAMS
     assert margin == pytest.approx(similarity_margin(ground_marks(DPOSE_BEAMS)))
     assert margin > 0.4
+
+
+def test_the_offset_takes_a_stale_gap_at_once_and_averages_at_rest() -> None:
+    """companion/dpose/offset.py: after 50 m of VO path the offset is stale (sigma 0.25 m)
+    and a 4 cm gap is taken almost whole (the published position is d-Pose's on the first
+    frame back); hovering, the gain falls below 10 % and 1 cm noise is averaged down; a gap
+    over reset_m is taken whole and counted."""
+    from companion.dpose.offset import DposeOffset
+
+    off = DposeOffset(drift_per_m=0.005, drift_m_per_s=0.001, reset_m=0.05)
+    with pytest.raises(ValueError):
+        off.update(0, np.zeros(3), np.zeros(3), 0.01)
+    off.arm(0, np.zeros(3))
+    vo = np.array([0.3, -0.2, 0.0])  # back over the pad after a 50 m flight in 20 s
+    off._at = (0, np.array([50.0, 0.0, 0.0]))  # the path's last update far away
+    assert off.predicted_sigma_m(20_000_000, vo) > 0.2
+    truth_offset = np.array([0.03, -0.02, 0.015])
+    assert not off.update(20_000_000, vo, vo + truth_offset, 0.011)
+    assert np.linalg.norm(off.offset_m - truth_offset) < 0.001
+    # hovering at 30 Hz: noisy d-Pose poses about the same offset
+    rng = np.random.default_rng(3)
+    gains = []
+    for k in range(1, 300):
+        before = off.offset_m.copy()
+        noise = 0.011 * rng.standard_normal(3)
+        off.update(20_000_000 + k * 33_333, vo, vo + truth_offset + noise, 0.011)
+        gains.append(
+            np.linalg.norm(off.offset_m - before) / np.linalg.norm(truth_offset + noise - before)
+        )
+    assert np.median(gains[-100:]) < 0.1
+    assert np.linalg.norm(off.offset_m - truth_offset) < 0.005  # 1.1 cm per pose averaged
+    assert off.resets == 0 and off.updates == 300
+    # a 6 cm jump (the VO re-initialised under us): taken whole, a reset
+    assert off.update(31_000_000, vo - 0.06, vo + truth_offset, 0.011)
+    assert off.resets == 1 and np.allclose(off.offset_m, truth_offset + 0.06)
+    assert off.sigma_m == pytest.approx(0.011)
+
+
+def test_a_mark_cut_by_the_image_edge_is_not_reported() -> None:
+    """A dot half outside the image has its centroid pulled inwards by ~its radius: it is
+    left out (d-Pose then waits for the four whole marks) rather than biasing the pose."""
+    img = np.full((120, 160, 3), 90, np.uint8)
+    yy, xx = np.mgrid[0:120, 0:160]
+    for cx, cy in ((40.0, 60.0), (100.0, 1.0), (158.5, 80.0)):  # whole, top edge, right edge
+        spot = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 2.0**2))
+        img[..., 2] = np.maximum(img[..., 2], (90 + 165 * spot).astype(np.uint8))
+    found = detect_marks(img)
+    assert len(found) == 1 and np.allclose(found[0], (40.0, 60.0), atol=0.05)

@@ -217,6 +217,9 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     assert p.dpose is not None and p.dpose.armed and in_view.sum() >= 60
     e_pub, e_own = err(pub)[in_view], err(own)[in_view]
     assert float(np.sqrt(np.mean(e_pub**2))) <= 0.02, e_pub
+    # issue 18: every pose while the marks are in view, the first frames back included (the
+    # vehicle still braking from 1.8 m/s: 1.98 cm at most on seeds 1-3 of config/pad.toml)
+    assert float(np.max(e_pub)) <= 0.02, e_pub
     assert np.mean(e_pub) < np.mean(e_own)  # the drift the VO had is gone
     resets = {r[1].reset_counter for r in rows}
     assert 1 <= p.dpose_resets <= 5 and len(resets) == p.dpose_resets + 1

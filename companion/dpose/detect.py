@@ -50,6 +50,8 @@ def detect_marks(image_bgr: U8, opts: DetectOptions | None = None) -> F64:
             continue
         x0, y0 = int(stats[k, cv2.CC_STAT_LEFT]), int(stats[k, cv2.CC_STAT_TOP])
         w, h = int(stats[k, cv2.CC_STAT_WIDTH]), int(stats[k, cv2.CC_STAT_HEIGHT])
+        if x0 == 0 or y0 == 0 or x0 + w == red.shape[1] or y0 + h == red.shape[0]:
+            continue  # cut by the image's edge: its centroid is pulled inwards
         sub = red[y0 : y0 + h, x0 : x0 + w].astype(np.float64)
         lab = labels[y0 : y0 + h, x0 : x0 + w] == k
         peak = float(sub[lab].max())

@@ -30,7 +30,16 @@ class DposeOptions:
         "smaller ones are blended in without one",
         gt=0,
     )
-    blend: float = opt(0.3, "share of a small correction applied per d-Pose frame", gt=0, le=1)
+    vo_drift_per_m: float = opt(
+        0.005,
+        "the VO's position drift per metre travelled since the last d-Pose pose [m/m]: how "
+        "far the offset may have gone stale (with d-Pose's own sigma, it sets how much of a "
+        "correction is taken at once)",
+        ge=0,
+    )
+    vo_drift_m_per_s: float = opt(
+        0.001, "the VO's position drift per second, also at rest [m/s]", ge=0
+    )
     max_sigma_m: float = opt(
         0.05, "d-Pose poses with a larger translation sigma are not used [m]", gt=0
     )
