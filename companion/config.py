@@ -13,6 +13,7 @@ top towards the nose (DESIGN.md section 2). A range sensor's beam is +z of its o
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import tomllib
 import types
@@ -293,6 +294,7 @@ class Config:
 # --------------------------------------------------------------------------- loading
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 def _short(value: Any, limit: int = 60) -> str:
@@ -371,13 +373,22 @@ def _check_bounds(f: dataclasses.Field[Any], value: Any, key: str) -> None:
                 raise ConfigError(f"{key}: must be {text} {f.metadata[name]}, got {v!r}")
 
 
+# Options that were removed: a config (or a recording's copy of the config it ran with) that
+# still sets one loads, with a warning, instead of failing as an unknown key would
+RETIRED_KEYS = {
+    "dpose.blend": "the d-Pose offset's gain comes from dpose.vo_drift_per_m and _m_per_s",
+}
+
+
 def from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     """Build dataclass ``cls`` from a TOML table; unknown keys and bad values raise ConfigError."""
     assert dataclasses.is_dataclass(cls)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for k in data:
-        if k not in fields:
+        if k not in fields and f"{prefix}{k}" in RETIRED_KEYS:
+            log.warning("%s%s: no longer used (%s); ignored", prefix, k, RETIRED_KEYS[prefix + k])
+        elif k not in fields:
             known = ", ".join(sorted(fields))
             raise ConfigError(f"{prefix}{k}: unknown key (known: {known})")
     kwargs: dict[str, Any] = {}

@@ -69,6 +69,17 @@ def test_bad_values_name_their_key(overrides: dict, message: str) -> None:
     assert message in str(e.value)
 
 
+def test_a_retired_key_loads_with_a_warning_and_a_typo_still_fails(caplog) -> None:
+    """A recording's config.toml carries every option it ran with; one removed since (here
+    dpose.blend, session 12) must not make the recording unreadable."""
+    with caplog.at_level("WARNING"):
+        cfg = load_config(overrides={"dpose": {"blend": 0.3, "reset_m": 0.04}})
+    assert cfg.dpose.reset_m == 0.04
+    assert "dpose.blend: no longer used" in caplog.text
+    with pytest.raises(ConfigError, match="dpose.blendd: unknown key"):
+        load_config(overrides={"dpose": {"blendd": 0.3}})
+
+
 def test_describe_walks_every_field() -> None:
     lines = describe(load_config())
     assert any(line.startswith("camera.fx = 460.0  # focal length") for line in lines)
