@@ -76,7 +76,7 @@ def test_a_retired_key_loads_with_a_warning_and_a_typo_still_fails(caplog) -> No
         cfg = load_config(overrides={"dpose": {"blend": 0.3, "reset_m": 0.04}})
     assert cfg.dpose.reset_m == 0.04
     assert "dpose.blend: no longer used" in caplog.text
-    with pytest.raises(ConfigError, match="dpose.blendd: unknown key"):
+    with pytest.raises(ConfigError, match=r"dpose\.blendd: unknown key"):
         load_config(overrides={"dpose": {"blendd": 0.3}})
 
 
