@@ -266,12 +266,13 @@ class Pipeline:
                 self._arm_dpose(frame.time_us, pose, R_ap, range_m)
         else:
             res = self.dpose.step(frame.time_us, frame.image_bgr, R_ap, range_m or None)
-            if res is not None:
-                sigma_m = float(np.sqrt(np.max(np.diag(res.cov_6x6)[3:])))
-                if sigma_m <= o.max_sigma_m:
-                    self.dpose_offset.update(
-                        pose.time_us, pose.position_ned_m, res.T_world_body[:3, 3], sigma_m
-                    )
+            sigma_m = np.inf if res is None else float(np.sqrt(np.max(np.diag(res.cov_6x6)[3:])))
+            if res is not None and sigma_m <= o.max_sigma_m:
+                self.dpose_offset.update(
+                    pose.time_us, pose.position_ned_m, res.T_world_body[:3, 3], sigma_m
+                )
+            else:
+                self.dpose_offset.move(pose.time_us, pose.position_ned_m)
         off = self.dpose_offset
         if not off.resets and not np.any(off.offset_m):
             return pose

@@ -183,9 +183,14 @@ def test_the_offset_takes_a_stale_gap_at_once_and_averages_at_rest() -> None:
     with pytest.raises(ValueError):
         off.update(0, np.zeros(3), np.zeros(3), 0.01)
     off.arm(0, np.zeros(3))
-    vo = np.array([0.3, -0.2, 0.0])  # back over the pad after a 50 m flight in 20 s
-    off._at = (0, np.array([50.0, 0.0, 0.0]))  # the path's last update far away
-    assert off.predicted_sigma_m(20_000_000, vo) > 0.2
+    # a 12 m square at 30 Hz for 20 s, back to 0.36 m from the start: the path counts (48 m)
+    corners = np.array([[0, 0, 0], [12, 0, 0], [12, 12, 0], [0, 12, 0], [0.3, -0.2, 0]], float)
+    for k in range(1, 601):
+        u = 4 * k / 600
+        i = min(int(u), 3)
+        off.move(k * 33_333, corners[i] + (u - i) * (corners[i + 1] - corners[i]))
+    vo = corners[-1]
+    assert off.predicted_sigma_m(20_000_000, vo) > 0.2  # 0.5 % of 48 m + 20 mm
     truth_offset = np.array([0.03, -0.02, 0.015])
     assert not off.update(20_000_000, vo, vo + truth_offset, 0.011)
     assert np.linalg.norm(off.offset_m - truth_offset) < 0.001

@@ -4,7 +4,10 @@ The published position is p_pub = p_vo + offset (3,) [m], both in the published 
 Each d-Pose position p_dp with its sigma s_dp [m] measures the offset as p_dp - p_vo. The
 offset's own sigma s grows between d-Pose poses with the VO's drift,
 
-    s <- s + drift_per_m * |p_vo - p_vo_last| + drift_m_per_s * dt        (linear: a bias)
+    s <- s + drift_per_m * path + drift_m_per_s * dt        (linear: a bias)
+
+(path: the VO's path length since the last d-Pose pose, summed frame by frame: a square flown
+back to the pad has its whole length, not its end-to-end distance)
 
 and each measurement is taken with the scalar Kalman gain K = s^2 / (s^2 + s_dp^2) on every
 axis (s^2 <- (1 - K) s^2). Back over the pad after a flight, s is tens of centimetres and
@@ -36,21 +39,34 @@ class DposeOffset:
         self.sigma_m = 0.0
         self.resets = 0
         self.updates = 0
-        self._at: tuple[int, F64] | None = None  # (time [us], VO position [m]) of sigma_m
+        self._at: tuple[int, F64] | None = None  # (time [us], VO position [m]) last seen
+        self._since_us: int | None = None  # time of sigma_m (the last update or arming)
+        self._path_m = 0.0  # the VO's path since then [m]
 
     def arm(self, time_us: int, vo_m: F64) -> None:
         """Start at the arming pose: offset 0, sigma 0, at the VO position ``vo_m`` (3,)."""
         self.offset_m = np.zeros(3)
         self.sigma_m = 0.0
         self._at = (time_us, np.asarray(vo_m, dtype=np.float64).copy())
+        self._since_us = time_us
+        self._path_m = 0.0
+
+    def move(self, time_us: int, vo_m: F64) -> None:
+        """The VO's position ``vo_m`` (3,) [m] at a frame: adds to the path (every published
+        pose; a no-op before arming)."""
+        if self._at is None:
+            return
+        vo = np.asarray(vo_m, dtype=np.float64)
+        self._path_m += float(np.linalg.norm(vo - self._at[1]))
+        self._at = (time_us, vo.copy())
 
     def predicted_sigma_m(self, time_us: int, vo_m: F64) -> float:
         """The offset's sigma [m] at ``time_us`` with the VO at ``vo_m`` (3,): grown by the
-        VO's drift over the path and the time since the last update."""
-        if self._at is None:
+        VO's drift over its path and the time since the last update."""
+        if self._at is None or self._since_us is None:
             raise ValueError("the offset is not armed")
-        path_m = float(np.linalg.norm(np.asarray(vo_m) - self._at[1]))
-        dt_s = max(time_us - self._at[0], 0) * 1e-6
+        path_m = self._path_m + float(np.linalg.norm(np.asarray(vo_m) - self._at[1]))
+        dt_s = max(time_us - self._since_us, 0) * 1e-6
         return self.sigma_m + self.drift_per_m * path_m + self.drift_m_per_s * dt_s
 
     def update(self, time_us: int, vo_m: F64, dpose_m: F64, dpose_sigma_m: float) -> bool:
@@ -69,5 +85,7 @@ class DposeOffset:
             self.offset_m = self.offset_m + gain * gap
             self.sigma_m = float(np.sqrt(1.0 - gain) * sigma)
         self._at = (time_us, vo.copy())
+        self._since_us = time_us
+        self._path_m = 0.0
         self.updates += 1
         return reset
