@@ -272,7 +272,7 @@ class Pipeline:
                     pose.time_us, pose.position_ned_m, res.T_world_body[:3, 3], sigma_m
                 )
             else:
-                self.dpose_offset.move(pose.time_us, pose.position_ned_m)
+                self.dpose_offset.move(pose.position_ned_m)
         off = self.dpose_offset
         if not off.resets and not np.any(off.offset_m):
             return pose

@@ -188,7 +188,7 @@ def test_the_offset_takes_a_stale_gap_at_once_and_averages_at_rest() -> None:
     for k in range(1, 601):
         u = 4 * k / 600
         i = min(int(u), 3)
-        off.move(k * 33_333, corners[i] + (u - i) * (corners[i + 1] - corners[i]))
+        off.move(corners[i] + (u - i) * (corners[i + 1] - corners[i]))
     vo = corners[-1]
     assert off.predicted_sigma_m(20_000_000, vo) > 0.2  # 0.5 % of 48 m + 20 mm
     truth_offset = np.array([0.03, -0.02, 0.015])

@@ -39,7 +39,7 @@ class DposeOffset:
         self.sigma_m = 0.0
         self.resets = 0
         self.updates = 0
-        self._at: tuple[int, F64] | None = None  # (time [us], VO position [m]) last seen
+        self._last_vo_m: F64 | None = None  # the VO position last seen [m] (None: not armed)
         self._since_us: int | None = None  # time of sigma_m (the last update or arming)
         self._path_m = 0.0  # the VO's path since then [m]
 
@@ -47,25 +47,25 @@ class DposeOffset:
         """Start at the arming pose: offset 0, sigma 0, at the VO position ``vo_m`` (3,)."""
         self.offset_m = np.zeros(3)
         self.sigma_m = 0.0
-        self._at = (time_us, np.asarray(vo_m, dtype=np.float64).copy())
+        self._last_vo_m = np.asarray(vo_m, dtype=np.float64).copy()
         self._since_us = time_us
         self._path_m = 0.0
 
-    def move(self, time_us: int, vo_m: F64) -> None:
+    def move(self, vo_m: F64) -> None:
         """The VO's position ``vo_m`` (3,) [m] at a frame: adds to the path (every published
         pose; a no-op before arming)."""
-        if self._at is None:
+        if self._last_vo_m is None:
             return
         vo = np.asarray(vo_m, dtype=np.float64)
-        self._path_m += float(np.linalg.norm(vo - self._at[1]))
-        self._at = (time_us, vo.copy())
+        self._path_m += float(np.linalg.norm(vo - self._last_vo_m))
+        self._last_vo_m = vo.copy()
 
     def predicted_sigma_m(self, time_us: int, vo_m: F64) -> float:
         """The offset's sigma [m] at ``time_us`` with the VO at ``vo_m`` (3,): grown by the
         VO's drift over its path and the time since the last update."""
-        if self._at is None or self._since_us is None:
+        if self._last_vo_m is None or self._since_us is None:
             raise ValueError("the offset is not armed")
-        path_m = self._path_m + float(np.linalg.norm(np.asarray(vo_m) - self._at[1]))
+        path_m = self._path_m + float(np.linalg.norm(np.asarray(vo_m) - self._last_vo_m))
         dt_s = max(time_us - self._since_us, 0) * 1e-6
         return self.sigma_m + self.drift_per_m * path_m + self.drift_m_per_s * dt_s
 
@@ -84,7 +84,7 @@ class DposeOffset:
             gain = sigma**2 / (sigma**2 + dpose_sigma_m**2) if sigma > 0 else 0.0
             self.offset_m = self.offset_m + gain * gap
             self.sigma_m = float(np.sqrt(1.0 - gain) * sigma)
-        self._at = (time_us, vo.copy())
+        self._last_vo_m = vo.copy()
         self._since_us = time_us
         self._path_m = 0.0
         self.updates += 1
