@@ -120,6 +120,7 @@ class VisualOdometry:
         self.keyframes: list[Keyframe] = []
         self._next_pid = 0
         self._next_kf = 0
+        self.axial_keyframes = 0  # keyframes that took the axial prior (_axial, _gravity_cam)
         self.T_cam_vo = np.eye(4)
         self._T_prev = np.eye(4)
         self._prev_time_us: int | None = None  # the last frame given to process()
@@ -512,8 +513,23 @@ class VisualOdometry:
         return self._frames_since_kf >= self.opts.kf_max_frames
 
     # ------------------------------------------------------------------ keyframes
+    def _axial(self) -> bool:
+        """Whether the camera reached this pose moving along its optical axis (within
+        ``axial_max_angle_deg``) since the last keyframe: a climb or descent over the ground,
+        where a tilt and a sideways move look alike in the images (ba.py)."""
+        if not self.keyframes:
+            return False
+        T_prev = self.keyframes[-1].T_cam_vo
+        c_prev = -T_prev[:3, :3].T @ T_prev[:3, 3]
+        c_now = -self.T_cam_vo[:3, :3].T @ self.T_cam_vo[:3, 3]
+        d_cam = self.T_cam_vo[:3, :3] @ (c_now - c_prev)
+        n = float(np.linalg.norm(d_cam))
+        if n <= 0.0 or not np.isfinite(n):
+            return False
+        return bool(abs(float(d_cam[2])) >= n * np.cos(np.radians(self.opts.axial_max_angle_deg)))
+
     def _gravity_cam(
-        self, R_world_body: F64 | None, gravity: Gravity | None = None
+        self, R_world_body: F64 | None, gravity: Gravity | None = None, axial: bool = False
     ) -> tuple[F64 | None, float]:
         """(3,) gravity (down) in the camera frame and its sigma [rad] for the BA's prior.
 
@@ -524,12 +540,17 @@ class VisualOdometry:
         attitude's gravity turned by R_vo seen from the camera (R_cam_vo R_vo R_cam_vo^T),
         sigma hypot(``gravity_sigma_deg``, sigma_rad): the correction removes the attitude's
         error averaged over its window, not its fast part (a keyframe's own error), so the
-        attitude's sigma stays in. None (and 0) without an attitude or with
-        ``gravity_sigma_deg`` 0."""
+        attitude's sigma stays in. ``axial`` (:meth:`_axial`, a climb or a descent): the
+        attitude's gravity alone at ``axial_gravity_sigma_deg`` (when > 0), tighter than the
+        cruise's: there the images leave the tilt free (ba.py) and the accelerometer's window
+        straddles the lift-off. None (and 0) without an attitude or with ``gravity_sigma_deg``
+        0."""
         sigma_ap = np.radians(self.opts.gravity_sigma_deg)
         if R_world_body is None or sigma_ap <= 0:
             return None, 0.0
         g: F64 = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
+        if axial and self.opts.axial_gravity_sigma_deg > 0:
+            return g, float(np.radians(self.opts.axial_gravity_sigma_deg))
         if gravity is None or gravity[1] <= 0:
             return g, float(sigma_ap)
         R_cam_vo = self.T_cam_vo[:3, :3]
@@ -543,7 +564,9 @@ class VisualOdometry:
         R_world_body: F64 | None = None,
         gravity: Gravity | None = None,
     ) -> None:
-        g_cam, g_sigma = self._gravity_cam(R_world_body, gravity)
+        axial = self._axial()
+        self.axial_keyframes += axial and self.opts.axial_gravity_sigma_deg > 0
+        g_cam, g_sigma = self._gravity_cam(R_world_body, gravity, axial)
         kf = Keyframe(
             self._next_kf,
             time_us,

@@ -39,6 +39,20 @@ class VoOptions:
         "0 = images only",
         ge=0,
     )
+    axial_gravity_sigma_deg: float = opt(
+        0.5,
+        "the prior's sigma on keyframes reached by moving along the optical axis (a take-off's "
+        "climb, a landing: the images cannot tell a tilt from a sideways move there) [deg]; "
+        "0 = gravity_sigma_deg",
+        ge=0,
+    )
+    axial_max_angle_deg: float = opt(
+        30.0,
+        "a keyframe is axial when the camera moved within this angle of its optical axis "
+        "since the previous keyframe [deg]",
+        gt=0,
+        le=90,
+    )
     imu_gravity_window_s: float = opt(
         4.0,
         "gravity for the BA's prior also from the autopilot's accelerometer against our own "
