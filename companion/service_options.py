@@ -140,6 +140,13 @@ class ServiceOptions:
         ge=0,
         le=1000,
     )
+    px4_timesync_rate_hz: float = opt(
+        50.0,
+        "TIMESYNC request rate asked from a PX4 autopilot [Hz]: PX4 converts our time stamps "
+        "only after ~500 of our answers (10 s at 50 Hz, 50 s at its own 10 Hz); 0 = not asked",
+        ge=0,
+        le=100,
+    )
     timesync_rate_hz: float = opt(2.0, "our own TIMESYNC requests [Hz]", gt=0, le=50)
     stale_frame_ms: float = opt(
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0

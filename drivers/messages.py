@@ -23,6 +23,7 @@ from companion.types import AttitudeSample, ImuSample, PoseEstimate, RangeSample
 MSG_ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 MSG_ID_SCALED_IMU = mavlink.MAVLINK_MSG_ID_SCALED_IMU
 MSG_ID_DISTANCE_SENSOR = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
+MSG_ID_TIMESYNC = mavlink.MAVLINK_MSG_ID_TIMESYNC  # 111: PX4 sends its requests as a stream
 MAV_CMD_SET_MESSAGE_INTERVAL = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
 # names for the numbers the service puts on the wire or compares with
 MAV_COMP_ID_AUTOPILOT1 = mavlink.MAV_COMP_ID_AUTOPILOT1  # 1: the autopilot's own component
@@ -31,6 +32,7 @@ MAV_TYPE_ONBOARD_CONTROLLER = mavlink.MAV_TYPE_ONBOARD_CONTROLLER  # 18: our HEA
 MAV_STATE_STANDBY = mavlink.MAV_STATE_STANDBY  # 3: not tracking
 MAV_STATE_ACTIVE = mavlink.MAV_STATE_ACTIVE  # 4: tracking, poses going out
 MAV_RESULT_ACCEPTED = mavlink.MAV_RESULT_ACCEPTED  # 0
+MAV_RESULT_IN_PROGRESS = mavlink.MAV_RESULT_IN_PROGRESS  # 5: not an answer yet
 MAV_MODE_FLAG_SAFETY_ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # 128: HEARTBEAT.base_mode
 STATUSTEXT_CHARS = 50  # text bytes in one STATUSTEXT
 STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut to 4 chunks (200 characters)
@@ -39,7 +41,7 @@ STATUSTEXT_MAX_CHUNKS = 4  # a longer text is cut to 4 chunks (200 characters)
 SERVICE_INPUTS = frozenset(
     {
         mavlink.MAVLINK_MSG_ID_HEARTBEAT,
-        mavlink.MAVLINK_MSG_ID_TIMESYNC,
+        MSG_ID_TIMESYNC,
         mavlink.MAVLINK_MSG_ID_COMMAND_ACK,
         MSG_ID_DISTANCE_SENSOR,
         MSG_ID_ATTITUDE,
@@ -122,6 +124,18 @@ def set_message_interval(mav: Any, target_system: int, msg_id: int, rate_hz: flo
     return mav.command_long_encode(
         target_system, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / rate_hz, 0, 0, 0, 0, 0
     )
+
+
+def message_name(msg_id: int) -> str:
+    """A message id's name in the common dialect (TIMESYNC), or the number itself."""
+    known = mavlink.mavlink_map.get(msg_id)
+    return str(known.msgname) if known is not None else str(msg_id)
+
+
+def result_name(result: int) -> str:
+    """A COMMAND_ACK result's name (MAV_RESULT_FAILED), or the number itself."""
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return str(entry.name) if entry is not None else str(result)
 
 
 def is_finite_pose(pose: PoseEstimate) -> bool:

@@ -2,8 +2,10 @@
 
 Protocol (MAVLink common TIMESYNC, as PX4's Timesync.cpp uses it): a request carries tc1 = 0
 and ts1 = the sender's clock [ns]; the answer carries tc1 = the answerer's clock [ns] and ts1
-echoed. PX4 sends requests at 10 Hz on an onboard link and converts our time_usec only after
-its own filter has converged on our answers, so :func:`reply_for` must be answered at once.
+echoed. PX4 sends requests as a stream (10 Hz on an onboard link unless asked for another rate:
+the service asks for ``service.px4_timesync_rate_hz``, 50 Hz) and converts our time_usec only
+after its own filter has converged on ~500 of our answers, so :func:`reply_for` must be
+answered at once.
 
 We also keep our own estimate of the autopilot clock (its time_boot_ms / time_usec) so that
 DISTANCE_SENSOR and ATTITUDE samples can be moved into the companion's monotonic clock. From our

@@ -7,12 +7,16 @@ simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
 - Clock: its own boot clock, ``time_boot = (t_mono - t_boot) * (1 + drift_ppm 1e-6)``, started
   ``boot_offset_s`` before the process and drifting against the companion's monotonic clock, so
   that time sync is really needed.
-- TIMESYNC: requests at 10 Hz (tc1 = 0, ts1 = its clock in ns); the companion's answers feed a
+- TIMESYNC: requests (tc1 = 0, ts1 = its clock in ns) as a stream, 10 Hz until asked for
+  another rate (PX4's TIMESYNC stream on an onboard link); the companion's answers feed a
   :class:`ClockSync` (PX4's filter does the same: rtt gate, converging gain, reset after
   successive outliers); requests from the companion are answered at once.
 - Streams: HEARTBEAT 1 Hz, ATTITUDE (truth + 0.1 deg noise) and DISTANCE_SENSOR for every
   sensor (cm, orientation 25, its id, the world's noise model), each at 10 Hz until the
-  companion asks for another rate with MAV_CMD_SET_MESSAGE_INTERVAL (answered by COMMAND_ACK).
+  companion asks for another rate.
+- MAV_CMD_SET_MESSAGE_INTERVAL as PX4's receiver answers it (COMMAND_ACK): for a stream it
+  has (TIMESYNC, ATTITUDE, DISTANCE_SENSOR) ACCEPTED, the interval in us setting the rate (0:
+  its default rate, < 0: stopped); for HEARTBEAT or a message it does not stream FAILED.
 - Camera: a child process renders the flight ahead of time and releases frame k at its
   exposure time plus ``readout_ms`` (a real camera delivers a frame after its readout); a
   frame that is not ready in time is dropped and counted, as a camera would drop it.
@@ -53,8 +57,13 @@ from drivers.timesync import ClockSync, reply_for
 from sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
 MSG_ATTITUDE = 30
+MSG_TIMESYNC = 111
 MSG_DISTANCE_SENSOR = 132
+# the streams whose rate MAV_CMD_SET_MESSAGE_INTERVAL sets, at their default rates [Hz] (PX4's
+# onboard link: TIMESYNC at 10 Hz, mavlink_main.cpp's configure_stream_local)
+DEFAULT_RATES_HZ = {MSG_ATTITUDE: 10.0, MSG_TIMESYNC: 10.0, MSG_DISTANCE_SENSOR: 10.0}
 
 
 @dataclass(frozen=True, slots=True)
@@ -323,7 +332,7 @@ class SimAutopilot:
         now = time.monotonic_ns()
         self.boot_ns = now - int(self.opts.boot_offset_s * 1e9)
         self.flight_start_ns = now + int(self.opts.warmup_s * 1e9)
-        self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
+        self.rates_hz = dict(DEFAULT_RATES_HZ)  # 0: stopped
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
         from sitl.px4_services import Px4Services
@@ -383,14 +392,11 @@ class SimAutopilot:
             self.stats.heartbeats_from_companion += 1
         elif kind == "COMMAND_LONG" and msg.command == MAV_CMD_SET_MESSAGE_INTERVAL:
             self.stats.rate_requests_s.append(self.t_sim_of_mono(rx_ns))
-            msg_id, interval_us = int(msg.param1), float(msg.param2)
-            ok = msg_id in self.rates_hz and interval_us > 0
-            if ok:
-                self.rates_hz[msg_id] = 1e6 / interval_us
-                self.stats.rates_set[msg_id] = self.rates_hz[msg_id]
+            msg_id = int(msg.param1 + 0.5)
+            ok = self.set_message_interval(msg_id, float(msg.param2))
             ack = self.mav.command_ack_encode(
                 MAV_CMD_SET_MESSAGE_INTERVAL,
-                0 if ok else 3,
+                MAV_RESULT_ACCEPTED if ok else MAV_RESULT_FAILED,
                 0,
                 msg_id,
                 msg.get_srcSystem(),
@@ -403,6 +409,27 @@ class SimAutopilot:
             text = (rx_ns, int(msg.severity), str(msg.text), int(msg.id), int(msg.chunk_seq))
             self.stats.statustexts.append(text)
             self.px4.forward_gcs(msg)
+
+    def set_message_interval(self, msg_id: int, interval_us: float) -> bool:
+        """PX4's MavlinkReceiver::set_message_interval for the streams we have: the interval
+        [us] sets the rate, 0 the default rate, < 0 stops the stream. False (FAILED): HEARTBEAT
+        or a message we do not stream."""
+        if msg_id not in self.rates_hz:
+            return False
+        if interval_us > 1e-5:
+            rate = 1e6 / interval_us
+        elif interval_us < -1e-5:
+            rate = 0.0
+        else:
+            rate = DEFAULT_RATES_HZ[msg_id]
+        self.rates_hz[msg_id] = rate
+        self.stats.rates_set[msg_id] = rate
+        return True
+
+    def _period_s(self, msg_id: int) -> float | None:
+        """A stream's period [s]; None while it is stopped."""
+        rate = self.rates_hz[msg_id]
+        return 1.0 / rate if rate > 0 else None
 
     def _on_pose(self, msg: Any, kind: str, rx_ns: int) -> None:
         self.px4.on_vision(msg, kind, rx_ns)  # what PX4 and EKF2 make of it
@@ -469,15 +496,27 @@ class SimAutopilot:
     def _heartbeat(self) -> None:
         self.send(self.mav.heartbeat_encode(2, 12, self.px4.base_mode(), 0, 4))  # QUADROTOR, PX4
 
-    def _timesync(self) -> None:
-        self.send(self.mav.timesync_encode(0, self.clock_ns(time.monotonic_ns())))
+    async def _timesync_loop(self) -> None:
+        """TIMESYNC requests at the stream's rate (a new rate acts from the next request). As
+        a PX4 stream, one late request is sent, never a burst to catch up after a stall."""
+        next_t = time.monotonic()
+        while True:
+            period = self._period_s(MSG_TIMESYNC)
+            now = time.monotonic()
+            if period is None:  # stopped: look again later
+                next_t = now + 0.1
+            else:
+                self.send(self.mav.timesync_encode(0, self.clock_ns(time.monotonic_ns())))
+                next_t = next_t + period if next_t + period > now else now + period
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
 
     async def _attitude_loop(self) -> None:
         noise = np.radians(0.1)
         while True:
             now = time.monotonic_ns()
             t = self.t_sim_of_mono(now)
-            if 0.0 <= t <= self.cfg.sitl.seconds:
+            period = self._period_s(MSG_ATTITUDE)
+            if period is not None and 0.0 <= t <= self.cfg.sitl.seconds:
                 s = self.trajectory.sample(np.array([t]))
                 R = s.R_world_body[0] @ so3.exp(noise * self._rng.standard_normal(3))
                 r, p, y = so3.matrix_to_rpy(R)
@@ -493,7 +532,7 @@ class SimAutopilot:
                         float(w[2]),
                     )
                 )
-            await asyncio.sleep(1.0 / self.rates_hz[MSG_ATTITUDE])
+            await asyncio.sleep(period or 0.1)  # stopped: look again later
 
     async def _distance_loop(self) -> None:
         """Every sensor's readings at their own times; decimated to the stream rate."""
@@ -501,8 +540,10 @@ class SimAutopilot:
         last_sent: dict[int, float] = {}
         while True:
             t = self.t_sim_of_mono(time.monotonic_ns())
-            if 0.0 <= t <= self.cfg.sitl.seconds and t > last_t:
-                period = 1.0 / self.rates_hz[MSG_DISTANCE_SENSOR]
+            period = self._period_s(MSG_DISTANCE_SENSOR)
+            if period is None:  # stopped: the readings meanwhile are not sent later
+                last_t = max(last_t, t)
+            elif 0.0 <= t <= self.cfg.sitl.seconds and t > last_t:
                 for r in self.ranges.between(last_t, t):
                     smp = r.sample
                     if smp is None:
@@ -562,7 +603,7 @@ class SimAutopilot:
             else:  # back from a reboot: a new boot clock, time sync and default rates
                 self.boot_ns = time.monotonic_ns()
                 self.sync = ClockSync()
-                self.rates_hz = {MSG_ATTITUDE: 10.0, MSG_DISTANCE_SENSOR: 10.0}
+                self.rates_hz = dict(DEFAULT_RATES_HZ)
                 self.stats.reboots += 1
 
     async def _watch_camera(self, camera: Any) -> None:
@@ -611,7 +652,7 @@ class SimAutopilot:
             async with asyncio.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(self._every(1.0, self._heartbeat)),
-                    tg.create_task(self._every(0.1, self._timesync)),
+                    tg.create_task(self._timesync_loop()),
                     tg.create_task(self._attitude_loop()),
                     tg.create_task(self._distance_loop()),
                     tg.create_task(self._every(5.0, self._log_live)),

@@ -29,7 +29,8 @@ Two stages, as in PX4 (DESIGN.md section 6; PX4's ``mavlink_receiver.cpp`` and E
    the magnetometer's heading; in NED it aligns EKF2's heading, in FRD it never does (the
    heading stays unaligned and PX4 refuses to arm), as the real PX4 SITL (main, 2026-03) shows.
    PX4's time sync converts our stamps only after ``timesync_window`` answers (PX4: ~500,
-   about 50 s; 0 here by default so that fast tests need not wait), arrival time before that.
+   ~10 s at the 50 Hz the service asks for, ~50 s at PX4's own 10 Hz; 0 here by default so
+   that fast tests need not wait), arrival time before that.
 
 What is not emulated: innovations and their gates (``EKF2_EVP_GATE``: every sample that reaches
 the filter is accepted), the estimator states themselves (the local position published is the
@@ -181,7 +182,8 @@ class EvFusion:
         }
         self.ev_yaw_frame = POSE_FRAME_UNKNOWN  # the frame of the last sample with our yaw
         # PX4's time sync converts our stamps only after this many TIMESYNC answers (PX4:
-        # ~500, ~50 s at 10 Hz); 0: as soon as the stub's own filter has converged (fast tests)
+        # ~500: ~10 s at the service's 50 Hz, ~50 s at PX4's own 10 Hz); 0: as soon as the
+        # stub's own filter has converged (fast tests)
         self.timesync_window = 0
         self.last_aiding_us = 0  # last horizontal aiding (EV position or velocity)
         self.control_status_changes = 0

@@ -43,6 +43,7 @@ from sitl.loop_results import (
     percentile,
     plot_side,
     plot_top,
+    read_json,
     read_truth,
     segment_errors,
     touchdown,
@@ -80,6 +81,11 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         "armed_mode": getattr(flight, "armed_mode", None),
         "timesync_converged_at_arming": getattr(flight, "timesync_converged", None),
         "timesync_wait_s": getattr(flight, "timesync_wait_s", None),
+        # how long EKF2 had fused our position on the ground when PX4 armed (ground start)
+        "ev_fused_s_before_arming": _between(tel.phases, "ev fused", "armed"),
+        # the message rates PX4 acknowledged to the service (its exit report): TIMESYNC (111)
+        # among them once PX4 took our faster time sync (service.px4_timesync_rate_hz)
+        "rates_acknowledged": read_json(out / "service-report.json").get("rates_acknowledged"),
         "configure_exit": getattr(flight, "configure_exit", None),
         "notes": list(flight.notes),
     }
@@ -114,6 +120,13 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     except Exception as e:  # plots are a by-product: never lose the summary for them
         s["notes"].append(f"plot failed: {e!r}")
     return s
+
+
+def _between(phases: dict[str, float], first: str, then: str) -> float | None:
+    """Seconds from phase ``first`` to phase ``then``; None unless both were reached."""
+    if first not in phases or then not in phases:
+        return None
+    return float(phases[then] - phases[first])
 
 
 def _read_log(out: Path, notes: list[str]) -> dict[str, np.ndarray]:

@@ -64,7 +64,10 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     rate = cfg.camera.rate_hz
     assert 0.5 * rate <= seen["camera"]["fps"] <= 1.2 * rate
     assert seen["autopilot"]["timesync_converged"] and seen["autopilot"]["system_id"] == 1
-    assert sorted(seen["autopilot"]["rates_acknowledged"]) == [30, 132]
+    # ATTITUDE, TIMESYNC (PX4's time sync asked faster) and DISTANCE_SENSOR; SCALED_IMU is
+    # refused (FAILED, as PX4 answers for a message it does not stream: the stub has no IMU)
+    assert seen["autopilot"]["rates_acknowledged"] == [30, 111, 132]
+    assert seen["autopilot"]["rates_refused"] == [26]
     assert seen["scale"]["value"] > 0 and seen["output"]["rate_hz"] > 0.5 * rate
     rates = seen["scale"]["match_rate"]  # per sensor: 35-50 % of frames match on hills
     assert len(rates) == 4 and min(rates.values()) > 0.1, rates

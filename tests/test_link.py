@@ -1,11 +1,14 @@
 """The autopilot link against senders that are not the autopilot (issue 16): a spoofer on
 another UDP address, TIMESYNC requests of other systems, a forged COMMAND_ACK, and the cheap
-first look that skips what nobody reads. A real Service on loopback, real pymavlink peers."""
+first look that skips what nobody reads; the message rates asked of the autopilot, one of them
+refused. A real Service on loopback, real pymavlink peers."""
 
 from __future__ import annotations
 
 import asyncio
+import copy
 import socket
+import time
 from typing import Any
 
 from peers import free_port, service_config
@@ -134,6 +137,104 @@ def test_the_autopilot_moves_port_only_with_its_own_heartbeat_after_silence(tmp_
     first, kept, still, moved, old_addr, new_addr, changes = asyncio.run(main())
     assert first == kept == still == old_addr
     assert moved == new_addr and changes == 1
+
+
+MAV_AUTOPILOT_PX4, MAV_AUTOPILOT_ARDUPILOTMEGA = 12, 3
+
+
+async def fake_autopilot(
+    autopilot: Sender,
+    seconds: float,
+    refuse: frozenset[int],
+    asked: list[int],
+    kind: int = MAV_AUTOPILOT_PX4,
+) -> None:
+    """An autopilot (PX4 unless ``kind`` says otherwise) for ``seconds``: HEARTBEAT every
+    0.1 s, each MAV_CMD_SET_MESSAGE_INTERVAL (its message id appended to ``asked``) answered at
+    once with a COMMAND_ACK that, like PX4's, does not say which message it was for: FAILED
+    for the ids in ``refuse``, else ACCEPTED."""
+    end = time.monotonic() + seconds
+    seen = 0
+    while time.monotonic() < end:
+        autopilot.send(autopilot.mav.heartbeat_encode(2, kind, 0, 0, 4))  # a QUADROTOR
+        got = autopilot.drain()
+        for m in got[seen:]:
+            if m.get_type() == "COMMAND_LONG" and m.command == 511:
+                asked.append(int(m.param1))
+                result = 4 if int(m.param1) in refuse else 0  # MAV_RESULT_FAILED / ACCEPTED
+                autopilot.send(autopilot.mav.command_ack_encode(511, result, 0, 0, 1, 197))
+        seen = len(got)
+        await asyncio.sleep(0.1)
+
+
+def test_a_refused_rate_is_said_once_and_blocks_none_of_the_others(tmp_path) -> None:
+    """The rates are asked one at a time until acknowledged, TIMESYNC first from PX4. One the
+    autopilot refuses (COMMAND_ACK FAILED: PX4 for a message it cannot stream) is warned about
+    once and not asked again, so the others after it are asked and acknowledged (before, the
+    service asked a refused rate again every 0.3 s for ever and never the ones after it); once
+    the autopilot was silent for 3 s (a reboot) everything is asked again."""
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+    timesync = messages.MSG_ID_TIMESYNC
+    others = [messages.MSG_ID_DISTANCE_SENSOR, messages.MSG_ID_ATTITUDE, messages.MSG_ID_SCALED_IMU]
+
+    async def main() -> tuple[list[int], list[int], Any, dict[str, Any], list[str]]:
+        async with Service(cfg) as service:
+            autopilot = Sender(port)
+            first: list[int] = []
+            await fake_autopilot(autopilot, 3.0, frozenset({timesync}), first)
+            stats = copy.deepcopy(service.stats)
+            status = service.status()["autopilot"]
+            await asyncio.sleep(3.5)  # silent: the service forgets what was acknowledged
+            again: list[int] = []
+            await fake_autopilot(autopilot, 2.5, frozenset(), again)
+            autopilot.close()
+            return first, again, stats, status, list(service.stats.warnings)
+
+    first, again, stats, status, warnings = asyncio.run(main())
+    assert list(dict.fromkeys(first)) == [timesync, *others], first  # in this order, all asked
+    assert first.count(timesync) <= 2, first  # not again after the refusal (0.3 s apart)
+    assert stats.rates_refused == {timesync} and stats.rates_acknowledged == set(others)
+    assert status["rates_refused"] == [timesync]
+    assert status["rates_acknowledged"] == sorted(others)
+    refused = [w for w in warnings if "refused" in w]
+    assert len(refused) == 1 and "TIMESYNC (111)" in refused[0], warnings
+    assert "MAV_RESULT_FAILED" in refused[0]
+    assert list(dict.fromkeys(again)) == [timesync, *others], again  # back: asked again
+
+
+def test_px4s_timesync_rate_is_left_alone_at_0_and_never_asked_of_ardupilot(tmp_path) -> None:
+    """service.px4_timesync_rate_hz 0 leaves PX4's own TIMESYNC rate; ArduPilot (whose
+    TIMESYNC is no stream) is never asked for it."""
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}", px4_timesync_rate_hz=0.0)
+
+    async def main() -> list[int]:
+        async with Service(cfg) as service:
+            autopilot = Sender(port)
+            asked: list[int] = []
+            await fake_autopilot(autopilot, 2.0, frozenset(), asked)
+            assert service.stats.rates_refused == set()
+            autopilot.close()
+            return asked
+
+    asked = asyncio.run(main())
+    assert messages.MSG_ID_TIMESYNC not in asked and messages.MSG_ID_ATTITUDE in asked, asked
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+
+    async def ardupilot_main() -> list[int]:
+        async with Service(cfg):
+            autopilot = Sender(port)
+            asked: list[int] = []
+            await fake_autopilot(
+                autopilot, 2.0, frozenset(), asked, kind=MAV_AUTOPILOT_ARDUPILOTMEGA
+            )
+            autopilot.close()
+            return asked
+
+    asked = asyncio.run(ardupilot_main())
+    assert messages.MSG_ID_TIMESYNC not in asked and messages.MSG_ID_ATTITUDE in asked, asked
 
 
 def test_frames_nobody_reads_are_skipped_by_their_header() -> None:

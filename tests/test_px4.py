@@ -415,6 +415,68 @@ def test_fusion_reported_only_when_our_output_meets_the_rules(tmp_path: Path, ca
         assert ev.status is Status.FAIL and ev.targets[0].value == 11, ev
 
 
+@pytest.mark.timeout(60)
+def test_the_stubs_timesync_is_a_stream_whose_rate_is_set_as_px4s(tmp_path: Path) -> None:
+    """PX4 sends its TIMESYNC requests as a stream (10 Hz on an onboard link) and answers
+    MAV_CMD_SET_MESSAGE_INTERVAL for it as for any stream (MavlinkReceiver::set_message_interval):
+    ACCEPTED, the interval [us] setting the rate, 0 its default, < 0 stopping it; FAILED for
+    HEARTBEAT or a message it does not stream. The stub does the same, so the service's ask
+    (service.px4_timesync_rate_hz, 50 Hz) gives it ~500 answers in ~10 s, not ~50 s, as PX4."""
+    requests: list[int] = []  # reception times [ns] of the stub's TIMESYNC requests
+    acks: list[int] = []
+    link: MavlinkLink
+
+    def on_message(msg: Any, rx_ns: int) -> None:
+        if msg.get_type() == "TIMESYNC" and msg.tc1 == 0:
+            requests.append(rx_ns)
+            link.send(link.mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+        elif msg.get_type() == "COMMAND_ACK" and msg.command == 511:
+            acks.append(int(msg.result))
+
+    async def rate_over(seconds: float) -> float:
+        await asyncio.sleep(0.3)  # the new rate acts from the next request
+        start = len(requests)
+        await asyncio.sleep(seconds)
+        return (len(requests) - start) / seconds
+
+    async def ask(msg_id: int, interval_us: float) -> int:
+        n = len(acks)
+        link.send(link.mav.command_long_encode(1, 1, 511, 0, msg_id, interval_us, 0, 0, 0, 0, 0))
+        await until(lambda: len(acks) > n)
+        return acks[n]
+
+    async def scenario() -> dict[str, Any]:
+        nonlocal link
+        got: dict[str, Any] = {}
+        async with sitl(tmp_path) as s:
+            link = MavlinkLink(f"udpin:127.0.0.1:{s.stub.opts.companion_port}", 1, 197, on_message)
+            async with link:
+                got["default_hz"] = await rate_over(1.5)
+                got["ack_50"] = await ask(messages.MSG_ID_TIMESYNC, 20_000)
+                got["fast_hz"] = await rate_over(1.5)
+                got["ack_stop"] = await ask(messages.MSG_ID_TIMESYNC, -1)
+                got["stopped_hz"] = await rate_over(1.0)
+                got["ack_default"] = await ask(messages.MSG_ID_TIMESYNC, 0)
+                got["back_hz"] = await rate_over(1.5)
+                got["ack_heartbeat"] = await ask(0, 20_000)
+                got["ack_unstreamed"] = await ask(messages.MSG_ID_SCALED_IMU, 20_000)
+                got["rates_hz"] = dict(s.stub.rates_hz)
+                got["answers"] = s.stub.sync.samples
+        return got
+
+    got = asyncio.run(scenario())
+    accepted, failed = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
+    assert got["ack_50"] == got["ack_stop"] == got["ack_default"] == accepted, got
+    assert got["ack_heartbeat"] == got["ack_unstreamed"] == failed, got
+    # the request rates (an asyncio timer: a loaded machine may lag, never run ahead)
+    assert 7.0 <= got["default_hz"] <= 11.0, got
+    assert 35.0 <= got["fast_hz"] <= 52.0, got
+    assert got["stopped_hz"] == 0.0, got
+    assert 7.0 <= got["back_hz"] <= 11.0, got
+    assert got["rates_hz"][messages.MSG_ID_TIMESYNC] == 10.0
+    assert got["answers"] >= 60, got  # each answer fed the stub's time sync
+
+
 # ---------------------------------------------------------------------------------------------
 # the pure parts: encoding, PX4 shell output, rules, diagnosis
 # ---------------------------------------------------------------------------------------------

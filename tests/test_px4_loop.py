@@ -3,7 +3,10 @@
 PX4 SITL, the bridge (sitl/px4_bridge.py: SIH truth -> our camera stream and TFmini ptys) and
 the service (`companion run`, a subprocess) run for real; nothing is mocked. PX4 instance 1
 (ports 18571, 14581/14541, 19451/19411; camera stream on TCP 15601) so that a `make demo-px4`
-on instance 0 can run beside it. About 90 s of wall time.
+on instance 0 can run beside it. About 105 s of wall time: PX4's time sync converges ~11 s
+after the service starts (it asks PX4 for TIMESYNC at 50 Hz), but the flight keeps EKF2 fusing
+our position on the ground for 45 s before arming (FlightOptions.ground_hold_s: armed 5 s after
+the fusion began, this hover drifted 0.8 m in the climb; docs/decisions.md).
 """
 
 from __future__ import annotations
@@ -45,6 +48,9 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
     # armed only once PX4 converted our stamps through its time sync (its shell said so:
     # `listener vehicle_visual_odometry`, a stamp some latency before arrival)
     assert s["timesync_converged_at_arming"] is True, detail
+    # PX4 took the TIMESYNC rate the service asks for (service.px4_timesync_rate_hz): its time
+    # sync converges ~10 s after the service starts, not ~50 s
+    assert 111 in (s["rates_acknowledged"] or []), detail
     assert s["ev_pos_fused_pct"] >= 99.0, detail
     # the ground start: PX4 armed in Position mode on our estimate, so it is fused over the
     # whole airborne time and the vehicle comes down where it took off (0.18-0.42 m measured

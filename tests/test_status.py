@@ -24,7 +24,8 @@ SAMPLE = {
         "timesync_converged": True,
         "timesync_offset_ms": 10608.123,
         "timesync_rtt_ms": 0.21,
-        "rates_acknowledged": [30, 132],
+        "rates_acknowledged": [26, 30, 111, 132],  # PX4: SCALED_IMU, ATTITUDE, TIMESYNC, ...
+        "rates_refused": [],
         "rx_messages": 1000,
         "rx_bad": 2,
     },

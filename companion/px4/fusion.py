@@ -258,9 +258,10 @@ def _headline(
 
 def timesync_converged(sh: ShellView) -> bool | None:
     """Whether PX4's time sync converts our stamps: once its filter converged (~500 TIMESYNC
-    answers, ~50 s at 10 Hz) it moves our time_usec into its clock; before that it stamps each
-    sample with its arrival time, so ``timestamp_sample`` equals ``timestamp`` exactly (a
-    converted stamp has microseconds of its own). None: no fresh sample or no TIMESYNC."""
+    answers: ~10 s at the 50 Hz the service asks for, ~50 s at PX4's own 10 Hz) it moves our
+    time_usec into its clock; before that it stamps each sample with its arrival time, so
+    ``timestamp_sample`` equals ``timestamp`` exactly (a converted stamp has microseconds of
+    its own). None: no fresh sample or no TIMESYNC."""
     v = sh.visual
     if not _fresh(v) or not _fresh(sh.timesync):
         return None
@@ -588,8 +589,9 @@ def _timesync_evidence(sh: ShellView, evidence: list[str], warnings: list[str]) 
     if converged is False:
         warnings.append(
             "PX4's time sync has not converged yet: it stamps our samples with their arrival "
-            "time, so the latency is not compensated (PX4's filter needs ~500 TIMESYNC answers, "
-            "~50 s at 10 Hz, after PX4 or the service starts; check again then)"
+            "time, so the latency is not compensated (PX4's filter needs ~500 TIMESYNC answers: "
+            "~10 s after the service starts, which asks PX4 for TIMESYNC at 50 Hz, ~50 s at "
+            "PX4's own 10 Hz; check again then)"
         )
 
 

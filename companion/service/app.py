@@ -110,6 +110,8 @@ class ServiceStats:
     autopilot: str = ""  # who flies, from its HEARTBEAT: PX4, ArduPilot, ...
     autopilot_armed: bool = False  # its HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED
     rates_acknowledged: set[int] = field(default_factory=set)
+    # refused (COMMAND_ACK not ACCEPTED): not asked again until the autopilot comes back
+    rates_refused: set[int] = field(default_factory=set)
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     process_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     publish_times_ns: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
@@ -342,10 +344,13 @@ class Service:
                 and getattr(msg, "target_system", 0) in (0, self.link.mav.srcSystem)
                 and getattr(msg, "target_component", 0) in (0, self.link.mav.srcComponent)
                 and msg.command == messages.MAV_CMD_SET_MESSAGE_INTERVAL
-                and msg.result == messages.MAV_RESULT_ACCEPTED
+                and msg.result != messages.MAV_RESULT_IN_PROGRESS
                 and self._rate_pending is not None
             ):
-                self.stats.rates_acknowledged.add(self._rate_pending)
+                if msg.result == messages.MAV_RESULT_ACCEPTED:
+                    self.stats.rates_acknowledged.add(self._rate_pending)
+                else:  # refused: asked again only once the autopilot is back (it rebooted)
+                    self._rate_refused(self._rate_pending, int(msg.result))
                 self._rate_pending = None
             return
         if kind == "DISTANCE_SENSOR":
@@ -412,16 +417,29 @@ class Service:
             self.link.send(self.link.mav.timesync_encode(0, ts1))
             await self._sleep(period)
 
+    def _rate_refused(self, msg_id: int, result: int) -> None:
+        """The autopilot refused a message rate: said once, left at the autopilot's own."""
+        if msg_id not in self.stats.rates_refused:
+            self.stats.rates_refused.add(msg_id)
+            self._warn(
+                f"autopilot refused our rate for {messages.message_name(msg_id)} ({msg_id}): "
+                f"COMMAND_ACK {messages.result_name(result)}; left at its own rate"
+            )
+
     async def _rates_loop(self) -> None:
-        """Ask for DISTANCE_SENSOR and ATTITUDE rates, one request in flight at a time (PX4's
-        COMMAND_ACK does not say which message it was for); again after 3 s of autopilot
-        silence (it may have rebooted)."""
+        """Ask for the message rates (PX4: TIMESYNC first, the longest wait, then
+        DISTANCE_SENSOR, ATTITUDE, SCALED_IMU), one request in flight at a time (PX4's
+        COMMAND_ACK does not say which message it was for), each until acknowledged or refused
+        (a refused one is not asked again, so it blocks none of the others); all again after 3 s
+        of autopilot silence or a jump of its clock (it may have rebooted)."""
         o = self.config.service
         while not self._stop.is_set():
-            wanted = {
-                messages.MSG_ID_DISTANCE_SENSOR: o.distance_sensor_rate_hz,
-                messages.MSG_ID_ATTITUDE: o.attitude_rate_hz,
-            }
+            wanted: dict[int, float] = {}
+            if self.stats.autopilot == "PX4" and o.px4_timesync_rate_hz > 0:
+                # PX4 converts our stamps after ~500 TIMESYNC answers: 50 s at its own 10 Hz
+                wanted[messages.MSG_ID_TIMESYNC] = o.px4_timesync_rate_hz
+            wanted[messages.MSG_ID_DISTANCE_SENSOR] = o.distance_sensor_rate_hz
+            wanted[messages.MSG_ID_ATTITUDE] = o.attitude_rate_hz
             if (
                 self.stats.autopilot == "PX4"
                 and o.imu_rate_hz > 0
@@ -440,7 +458,9 @@ class Service:
             if silent or self.sync.resets != self._sync_resets:  # gone, or its clock jumped
                 self._sync_resets = self.sync.resets
                 self.stats.rates_acknowledged.clear()
-            missing = [m for m in wanted if m not in self.stats.rates_acknowledged]
+                self.stats.rates_refused.clear()
+            done = self.stats.rates_acknowledged | self.stats.rates_refused
+            missing = [m for m in wanted if m not in done]
             if hb and missing:
                 self._rate_pending = missing[0]
                 self.link.send(
@@ -907,6 +927,8 @@ class Service:
             "imu_gravity_frames": self.pipeline.gravity_used,
             "timesync_replies": s.timesync_replies,
             "timesync_converged": self.sync.converged,
+            "rates_acknowledged": sorted(s.rates_acknowledged),
+            "rates_refused": sorted(s.rates_refused),
             "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
             "stale": s.stale,
@@ -995,6 +1017,7 @@ class Service:
             "timesync_offset_ms": self.sync.offset_at(now) * 1e-6 if self.sync.converged else None,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
             "rates_acknowledged": sorted(s.rates_acknowledged),
+            "rates_refused": sorted(s.rates_refused),
             "rx_messages": link.rx_messages,
             "rx_bad": link.rx_bad,
             "handler_errors": link.handler_errors,
