@@ -277,6 +277,7 @@ def test_vo_calls_a_keyframe_axial_when_the_camera_moved_along_its_optical_axis(
         (0.1 * axis_vo + 0.04 * side_vo, True),  # descending, drifting 22 deg off the axis
         (0.1 * axis_vo + 0.07 * side_vo, False),  # 35 deg off the axis
         (0.2 * side_vo, False),  # cruising
+        (0.02 * axis_vo, False),  # along the axis but short: its direction is noise
         (np.zeros(3), False),  # hovering
     ]:
         vo.T_cam_vo = at(c0 + move)

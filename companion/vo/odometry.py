@@ -40,6 +40,11 @@ from companion.vo.options import VoOptions
 from companion.vo.pose import estimate_pose
 from companion.vo.triangulation import triangulate
 
+# an axial keyframe must have moved at least this share of vo.kf_translation_ratio (of the
+# median depth): a short move's direction is noise (a low urban flight at 12 m/s had one
+# "axial" keyframe while flying level, 0.03 of the depth)
+AXIAL_MIN_MOVE = 0.5
+
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 Gravity = tuple[NDArray[np.float64], float]  # (R_vo correction (3, 3), sigma_rad)
@@ -524,7 +529,8 @@ class VisualOdometry:
         c_now = -self.T_cam_vo[:3, :3].T @ self.T_cam_vo[:3, 3]
         d_cam = self.T_cam_vo[:3, :3] @ (c_now - c_prev)
         n = float(np.linalg.norm(d_cam))
-        if n <= 0.0 or not np.isfinite(n):
+        min_move = AXIAL_MIN_MOVE * self.opts.kf_translation_ratio * self._median_depth()
+        if not np.isfinite(n) or n < min_move:  # a keyframe taken for coverage, not distance
             return False
         return bool(abs(float(d_cam[2])) >= n * np.cos(np.radians(self.opts.axial_max_angle_deg)))
 
