@@ -570,8 +570,8 @@ class VisualOdometry:
         R_world_body: F64 | None = None,
         gravity: Gravity | None = None,
     ) -> None:
-        axial = self._axial()
-        self.axial_keyframes += axial and self.opts.axial_gravity_sigma_deg > 0
+        axial = self.opts.axial_gravity_sigma_deg > 0 and self._axial()  # off: not worked out
+        self.axial_keyframes += axial
         g_cam, g_sigma = self._gravity_cam(R_world_body, gravity, axial)
         kf = Keyframe(
             self._next_kf,
