@@ -203,6 +203,43 @@ def test_a_refused_rate_is_said_once_and_blocks_none_of_the_others(tmp_path) -> 
     assert list(dict.fromkeys(again)) == [timesync, *others], again  # back: asked again
 
 
+def test_the_rates_the_autopilot_acknowledged_go_back_to_its_defaults_when_we_stop(
+    tmp_path,
+) -> None:
+    """A stopped service leaves no stream at our rates: for every rate the autopilot
+    acknowledged, MAV_CMD_SET_MESSAGE_INTERVAL with interval 0 (MAVLink's default rate), sent
+    on the way out; none for a refused one (it was never changed), none while running."""
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+    timesync = messages.MSG_ID_TIMESYNC
+    autopilot = Sender(port)
+
+    async def main() -> tuple[set[int], int]:
+        async with Service(cfg) as service:
+            await fake_autopilot(autopilot, 3.0, frozenset({timesync}), [])
+            acknowledged = set(service.stats.rates_acknowledged)
+            n_before = len(autopilot.drain())
+        return acknowledged, n_before
+
+    acknowledged, n_before = asyncio.run(main())
+    time.sleep(0.2)
+    got = autopilot.drain()
+    autopilot.close()
+    assert acknowledged == {
+        messages.MSG_ID_DISTANCE_SENSOR,
+        messages.MSG_ID_ATTITUDE,
+        messages.MSG_ID_SCALED_IMU,
+    }
+
+    def defaults(msgs: list[Any]) -> list[int]:
+        return [
+            int(m.param1) for m in kinds(msgs, "COMMAND_LONG") if m.command == 511 and m.param2 == 0
+        ]
+
+    assert defaults(got[:n_before]) == []  # never while running
+    assert sorted(defaults(got[n_before:])) == sorted(acknowledged), got[n_before:]
+
+
 def test_px4s_timesync_rate_is_left_alone_at_0_and_never_asked_of_ardupilot(tmp_path) -> None:
     """service.px4_timesync_rate_hz 0 leaves PX4's own TIMESYNC rate; ArduPilot (whose
     TIMESYNC is no stream) is never asked for it."""

@@ -288,6 +288,8 @@ class Service:
         self.camera.close()
         for task in self._tasks:
             task.cancel()
+        if self._stack is not None:
+            self._restore_rates()  # the link is still open
         if self._stack is not None and self.config.service.statustext.enabled:
             self._last_statustexts()  # the link is still open
         if self._stack is not None:
@@ -425,6 +427,15 @@ class Service:
                 f"autopilot refused our rate for {messages.message_name(msg_id)} ({msg_id}): "
                 f"COMMAND_ACK {messages.result_name(result)}; left at its own rate"
             )
+
+    def _restore_rates(self) -> None:
+        """On the way out: every rate the autopilot acknowledged back to its own default, so
+        that a stopped companion leaves no 50 Hz TIMESYNC, ATTITUDE or IMU stream on the
+        link (a telemetry radio's or a serial port's bandwidth). Not waited for: a restarted
+        service asks again."""
+        sysid = self.stats.autopilot_system_id
+        for msg_id in sorted(self.stats.rates_acknowledged):
+            self.link.send(messages.set_message_interval(self.link.mav, sysid, msg_id, None))
 
     async def _rates_loop(self) -> None:
         """Ask for the message rates (PX4: TIMESYNC first, the longest wait, then
