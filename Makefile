@@ -65,11 +65,12 @@ lint: venv
 typecheck: venv
 	$(BIN)/mypy
 
-# PYTEST_WORKERS=2: two pytest-xdist workers; tests/conftest.py and tests/peers.py then keep the
-# real autopilots on one worker and give every real-time flight the machine to itself (its
-# camera prerendered beside the other worker's tests). Not the default: with other flights on
-# the machine it was not faster and the closed loops still failed (docs/BENCHMARKS.md, session 9).
-PYTEST_WORKERS ?= 0
+# Two pytest-xdist workers by default (PYTEST_WORKERS=0: serial). tests/conftest.py and
+# tests/peers.py keep the real autopilots on one worker and give every real-time flight the
+# machine to itself (its camera prerendered beside the other worker's tests), so the second
+# core runs the CPU-bound tests while no flight is on: 14:55 against 20:38 serial on this
+# 2-core machine (docs/BENCHMARKS.md, session 14; docs/decisions.md, "Two test workers").
+PYTEST_WORKERS ?= 2
 unit: venv sysdeps
 	$(BIN)/python -m pytest $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadgroup)
 
