@@ -8,6 +8,7 @@ following Picamera2's documented API)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import socket
 import subprocess
@@ -298,7 +299,9 @@ def test_the_sitl_stream_is_checked_against_the_intrinsics() -> None:
 
         def run() -> None:
             conn, _ = server.accept()
-            with conn:
+            # a refused stream is closed at its first frame: the rest may meet a closed socket
+            # (BrokenPipe / reset on a loaded machine, where the refusal comes before them)
+            with conn, contextlib.suppress(BrokenPipeError, ConnectionResetError):
                 for f in frames:
                     conn.sendall(encode_frame(f))
                 time.sleep(0.5)
