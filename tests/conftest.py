@@ -40,7 +40,8 @@ def default_config() -> Config:
     return load_config()
 
 
-# `make test PYTEST_WORKERS=2` runs the suite on two pytest-xdist workers (`--dist loadgroup`).
+# `make test` runs the suite on two pytest-xdist workers (`--dist loadgroup`; `make test
+# PYTEST_WORKERS=0`: serial).
 # Tests that must not run beside each other, or that share an expensive module fixture, go to
 # one worker together as one work unit (run one after the other there):
 # - "autopilots": every test that starts a real PX4 or ArduPilot SITL. They use fixed instance

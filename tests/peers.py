@@ -14,8 +14,8 @@ from pathlib import Path
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 
 
-# The machine to itself for real time, across the workers of one test run (`make test
-# PYTEST_WORKERS=2`: two pytest-xdist workers). A SITL flight is judged against the wall clock
+# The machine to itself for real time, across the workers of one test run (`make test`: two
+# pytest-xdist workers). A SITL flight is judged against the wall clock
 # (rates, time sync, VO tracking through frames that arrive on time), and so is a real
 # autopilot's closed loop, whose bridge also renders the camera live at 30 Hz (about a core).
 # Beside another flight or a CPU-bound test they failed (seen: PX4's hover below 99 % fusion
