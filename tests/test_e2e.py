@@ -98,7 +98,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)  # 40 s of flight + prerendering + waiting for the machine
 def test_dpose_corrects_what_the_autopilot_receives_over_the_pad(tmp_path) -> None:
     """d-Pose through the running service (config/pad.toml, 40 s): armed on the hover over
     the pad, the marks left there; after a 12 m square out of their view, over the pad again
