@@ -121,8 +121,8 @@ def imu_from_scaled(msg: Any, time_us: int) -> ImuSample | None:
 
 def set_message_interval(mav: Any, target_system: int, msg_id: int, rate_hz: float | None) -> Any:
     """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL asking for msg_id at rate_hz; None: back to
-    the autopilot's default rate (interval 0, MAVLink's "default rate": PX4's and ArduPilot's
-    receivers both read it so)."""
+    the autopilot's default rate (interval 0, MAVLink's "default rate": PX4 SITL measured so,
+    ArduPilot's documentation says the same)."""
     interval_us = 0.0 if rate_hz is None else 1e6 / rate_hz
     return mav.command_long_encode(
         target_system, 1, MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0
