@@ -288,11 +288,10 @@ class Service:
         self.camera.close()
         for task in self._tasks:
             task.cancel()
-        if self._stack is not None:
-            self._restore_rates()  # the link is still open
-        if self._stack is not None and self.config.service.statustext.enabled:
-            self._last_statustexts()  # the link is still open
-        if self._stack is not None:
+        if self._stack is not None:  # the link is still open: the last words on it
+            self._restore_rates()
+            if self.config.service.statustext.enabled:
+                self._last_statustexts()
             stack, self._stack = self._stack, None
             await stack.__aexit__(*exc)
 
