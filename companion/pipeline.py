@@ -24,6 +24,7 @@ from companion.attitude.gravity import (
     attitude_correction,
     gravity_from_motion,
 )
+from companion.attitude.pad import PadLevel
 from companion.config import Config
 from companion.dpose.estimator import Dpose
 from companion.dpose.offset import DposeOffset
@@ -43,7 +44,7 @@ from companion.types import (
     VoState,
 )
 from companion.vo.frame_check import FrameCheck, FrameProblem
-from companion.vo.odometry import VisualOdometry
+from companion.vo.odometry import Down, VisualOdometry
 
 F64 = NDArray[np.float64]
 
@@ -60,6 +61,14 @@ MOTION_BUFFER = 1024  # (time, map, R_vo_body, metric position) of the last fram
 # the tilt correction of a 4 s window changes slowly: recomputed at most this often (~1 ms
 # of Python per computation on the 2-core machine, docs/BENCHMARKS.md)
 GRAVITY_REFRESH_US = 250_000
+# the take-off pad's gravity (companion/attitude/pad.py): a plane of the readings every 10 ms
+# (the TFmini's rate) while over the pad; at rest means still readings with the body at most
+# PAD_REST_HEIGHT_M over their plane (a landing gear), and a sample further than
+# PAD_MAX_ERROR_DEG from the autopilot's tilt is refused (a hit off the pad)
+PAD_STEP_US = 10_000
+PAD_REST_HEIGHT_M = 0.6
+PAD_MAX_ERROR_DEG = 5.0
+PAD_SIGMA_FLOOR_DEG = 0.1
 
 
 class Pipeline:
@@ -97,6 +106,15 @@ class Pipeline:
         self.gravity_used = 0  # frames that had one
         self._gravity_at: tuple[int, int] | None = None  # (time, VO map) of the last computation
         self.ranges = RangeHistory()
+        o = config.vo
+        self.pad: PadLevel | None = None  # the take-off pad's gravity for the VO's prior
+        if o.pad_gravity_sigma_deg > 0:
+            self.pad = PadLevel(
+                int(o.pad_window_s * 1e6),
+                float(np.radians(max(o.pad_gravity_sigma_deg, PAD_SIGMA_FLOOR_DEG))),
+                float(np.radians(PAD_MAX_ERROR_DEG)),
+            )
+        self._pad_sampled_us = 0  # the last plane sampled over the pad
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
         methods = make_methods(self.camera, config.scale, sensor_study)
         self.method_name = config.scale.method
@@ -206,7 +224,8 @@ class Pipeline:
         c = self._gravity_correction(frame.time_us)
         g = None if c is None else (c.R_vo, c.sigma_rad)
         self.gravity_used += g is not None
-        self.vo_output = out = self.vo.process(frame, R_world_body, plane, g)
+        down = self._pad_gravity(frame.time_us, R_world_body)
+        self.vo_output = out = self.vo.process(frame, R_world_body, plane, g, down)
         if out.state != VoState.TRACKING:
             return None
         t0 = time.perf_counter()
@@ -333,15 +352,33 @@ class Pipeline:
         """The ground under the camera in metres, or None (DESIGN.md section 4 reconstructs
         the plane from three sensors for roll/pitch; here it starts the VO map).
 
+        The plane of the readings at rest (:meth:`rest_plane_body`) when the camera is within
+        ``vo.ground_max_height_m`` of it. When >= 3 sensors read below their minimum instead
+        (too close: on the ground), the plane is level at ``vo.landed_camera_height_m`` under
+        the autopilot's attitude, if that height is configured."""
+        o = self.config.vo
+        rest = self.rest_plane_body(time_us)
+        if rest is not None:
+            return self._plane_in_camera(*rest, "ranges")
+        t0 = time_us - int(o.ground_window_ms * 1e3)
+        too_close = [s for s, t in self.ranges.too_close_us.items() if t >= t0]
+        if len(too_close) >= 3 and o.landed_camera_height_m > 0 and R_world_body is not None:
+            n_body = R_world_body.T @ np.array([0.0, 0.0, 1.0])  # level ground: gravity
+            h_cam = o.landed_camera_height_m
+            h_body = h_cam + float(n_body @ self.T_body_cam[:3, 3])
+            return self._plane_in_camera(n_body, h_body, LANDED_HEIGHT_SIGMA_M, "landed")
+        return None
+
+    def rest_plane_body(self, time_us: int) -> tuple[F64, float, float] | None:
+        """The ground plane of the readings at rest: (its downward normal (3,) in the body
+        frame, the body origin's distance to it [m], that distance's sigma [m]), or None.
+
         From the readings of the last ``vo.ground_window_ms`` of each sensor (their median;
         none when any sensor's readings spread more than 3 sigma or 2 cm: the vehicle is not at
         rest, e.g. low over a roof edge), >= 3 sensors: the least-squares plane through
         their hit points in the body frame, refused unless it fits them within
-        ``vo.ground_max_rms_m`` and the camera is within ``vo.ground_max_height_m`` of it.
-        Its distance sigma propagates each median's sigma (reading sigma / sqrt(n)) through
-        the fit. When >= 3 sensors read below their minimum instead (too close: on the
-        ground), the plane is level at ``vo.landed_camera_height_m`` under the autopilot's
-        attitude, if that height is configured."""
+        ``vo.ground_max_rms_m``. The distance's sigma propagates each median's sigma (reading
+        sigma / sqrt(n)) through the fit."""
         o = self.config.vo
         t0 = time_us - int(o.ground_window_ms * 1e3)
         ids, med, sig = [], [], []
@@ -357,25 +394,62 @@ class Pipeline:
             ids.append(sid)
             med.append(m)
             sig.append(sigma * 1.25 / np.sqrt(len(d)))
-        if len(ids) >= 3:
-            T = np.stack([self.specs[s].T_body_rf for s in ids])
-            origins, beams = ground_fit.beams_body(T)
-            pts = ground_fit.ground_points_body(origins, beams, np.array(med))
-            (a, b, c), M = ground_fit.plane_fit(pts)
-            rms = float(np.sqrt(np.mean((pts[:, 2] - (a + b * pts[:, 0] + c * pts[:, 1])) ** 2)))
-            if rms > o.ground_max_rms_m or ground_fit.spread_m(pts) < 0.05:
-                return None
-            n_body = ground_fit.normal_of(b, c)
-            h_body = float(n_body @ np.array([0.0, 0.0, a]))  # the body origin's distance
-            sigma_a = float(np.sqrt(np.sum((M[0] * np.array(sig)) ** 2)))
-            return self._plane_in_camera(n_body, h_body, max(sigma_a, 1e-3), "ranges")
-        too_close = [s for s, t in self.ranges.too_close_us.items() if t >= t0]
-        if len(too_close) >= 3 and o.landed_camera_height_m > 0 and R_world_body is not None:
-            n_body = R_world_body.T @ np.array([0.0, 0.0, 1.0])  # level ground: gravity
-            h_cam = o.landed_camera_height_m
-            h_body = h_cam + float(n_body @ self.T_body_cam[:3, 3])
-            return self._plane_in_camera(n_body, h_body, LANDED_HEIGHT_SIGMA_M, "landed")
-        return None
+        if len(ids) < 3:
+            return None
+        fit = self._range_plane(ids, np.array(med))
+        if fit is None:
+            return None
+        n_body, h_body, M = fit
+        sigma_a = float(np.sqrt(np.sum((M[0] * np.array(sig)) ** 2)))
+        return n_body, h_body, max(sigma_a, 1e-3)
+
+    def _range_plane(self, ids: list[int], range_m: F64) -> tuple[F64, float, F64] | None:
+        """The plane through the hits of sensors ``ids`` at ``range_m`` (K,): (downward normal
+        (3,), body origin's distance [m], the fit's (3, K) matrix), in the body frame; None
+        when the hits are nearly on a line or fit no plane within ``vo.ground_max_rms_m``."""
+        T = np.stack([self.specs[s].T_body_rf for s in ids])
+        origins, beams = ground_fit.beams_body(T)
+        pts = ground_fit.ground_points_body(origins, beams, range_m)
+        (a, b, c), M = ground_fit.plane_fit(pts)
+        rms = float(np.sqrt(np.mean((pts[:, 2] - (a + b * pts[:, 0] + c * pts[:, 1])) ** 2)))
+        if rms > self.config.vo.ground_max_rms_m or ground_fit.spread_m(pts) < 0.05:
+            return None
+        n_body = ground_fit.normal_of(b, c)
+        return n_body, float(n_body @ np.array([0.0, 0.0, a])), M
+
+    def _pad_gravity(self, time_us: int, R_world_body: F64 | None) -> Down | None:
+        """The take-off pad's gravity for this frame's keyframe (companion/attitude/pad.py),
+        or None (off, no attitude, not over the pad, too few samples yet). At rest on the
+        pad it measures the pad; at rest and over it (within ``vo.pad_radius_m`` of the rest,
+        the last frame's position) it samples the readings' plane every PAD_STEP_US since the
+        last frame against the autopilot's attitude at that instant."""
+        pad = self.pad
+        if pad is None or R_world_body is None:
+            return None
+        position = self.metric_positions.get(self.method_name)
+        segment = (self.vo.resets, self.trajectories[self.method_name].reset_counter)
+        rest = self.rest_plane_body(time_us)
+        if rest is not None and rest[1] <= PAD_REST_HEIGHT_M:
+            pad.at_rest(time_us, rest[0], R_world_body, position, segment)
+        elif not pad.near(position, segment, self.config.vo.pad_radius_m):
+            self._pad_sampled_us = time_us
+            return None
+        opts = self.config.scale
+        t = max(self._pad_sampled_us, time_us - int(self.config.vo.pad_window_s * 1e6))
+        while t + PAD_STEP_US <= time_us:
+            t += PAD_STEP_US
+            ids, range_m = [], []
+            for sid in sorted(self.specs):
+                d = self.ranges.at(sid, t, opts.max_range_gap_us, opts.max_range_age_us)
+                if d is not None:
+                    ids.append(sid)
+                    range_m.append(d)
+            R = self.attitude_at(t)
+            fit = self._range_plane(ids, np.array(range_m)) if len(ids) >= 3 else None
+            if fit is not None and R is not None:
+                pad.sample(t, fit[0], R)
+        self._pad_sampled_us = t
+        return pad.down_body(time_us, R_world_body)
 
     def _plane_in_camera(
         self, n_body: F64, h_body: float, sigma_m: float, source: str

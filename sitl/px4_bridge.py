@@ -8,7 +8,10 @@ PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stan
   attitude quaternion (body FRD -> NED, wxyz).
 - World: our seeded terrain (sitl/world.py) with its heights clipped to <= 0 (the home level,
   h(0, 0) = 0): SIH's ground is flat at the home altitude, so the vehicle never flies into one
-  of our hills and lands on our ground where it lands on SIH's. SIH's body origin rests on its
+  of our hills and lands on our ground where it lands on SIH's. Around home it is flat, as
+  SIH's is (a pad of PAD_FLAT_M, eased into the terrain over PAD_EASE_M more): clipped alone,
+  home sat on the edge of a slope, and our sensors saw a 6 deg slope where SIH's vehicle stood
+  level on its flat ground. SIH's body origin rests on its
   ground; ours rests ``gear_m`` above it (legs): the body is placed at truth NED - gear_m up,
   and never lower than that (SIH's vehicle sank below its start altitude at touch-down in some
   flights of this build; our ground stays solid).
@@ -59,6 +62,10 @@ from sitl.world import World, make_world
 F64 = NDArray[np.float64]
 
 EARTH_RADIUS_M = 6371000.0  # PX4's CONSTANTS_RADIUS_OF_EARTH (map projection)
+# our ground is flat (the home level, as SIH's) within PAD_FLAT_M of home, then eased into
+# the clipped terrain over PAD_EASE_M: the take-off and the landing over one plane
+PAD_FLAT_M = 3.0
+PAD_EASE_M = 3.0
 TRUTH_WAIT_MAX_S = 0.012  # no truth sample after an exposure this long: extrapolate (<= 2 mm)
 LATE_MAX_NS = (
     60_000_000  # a frame not out 60 ms after its exposure is dropped (service.frame_wait_ms)
@@ -81,13 +88,20 @@ def ned_of(lat_e7: int, lon_e7: int, alt_mm: int, home: tuple[int, int, int]) ->
 
 
 def clipped_world(cfg: Config) -> World:
-    """The configured terrain with its ground clipped to the home level (h <= 0) and no
-    buildings: SIH's own ground is flat at the home altitude (see the module docstring)."""
+    """The configured terrain with its ground clipped to the home level (h <= 0), flat around
+    home (PAD_FLAT_M, eased over PAD_EASE_M) and no buildings: SIH's own ground is flat at the
+    home altitude (see the module docstring)."""
     s = cfg.sitl
     w = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
-    if w.h_max <= 0.0 and len(w.boxes) == 0:
+    if w.h_max <= 0.0 and w.h_min >= 0.0 and len(w.boxes) == 0:
         return w
-    heights = np.minimum(w.heights, np.float32(0.0))
+    rows, cols = w.heights.shape  # rows along east (y), columns along north (x)
+    east = w.y0 + w.res_m * np.arange(rows, dtype=np.float64)
+    north = w.x0 + w.res_m * np.arange(cols, dtype=np.float64)
+    r = np.hypot(*np.meshgrid(east, north, indexing="ij"))
+    u = np.clip((r - PAD_FLAT_M) / PAD_EASE_M, 0.0, 1.0)
+    ease = u * u * (3.0 - 2.0 * u)  # 0 on the pad, 1 beyond its ease (smoothstep)
+    heights = (np.minimum(w.heights, 0.0) * ease).astype(np.float32)
     return World(w.name, w.seed, w.size_m, heights, w.res_m, np.zeros((0, 6)), w.default_altitude_m)
 
 

@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
 
 import pytest
-from peers import MACHINE_LOCK_ENV, hold_machine, release_machine
+from peers import (
+    AUTOPILOTS_LOCK_ENV,
+    MACHINE_LOCK_ENV,
+    hold_autopilots,
+    hold_machine,
+    release_autopilots,
+    release_machine,
+)
 
 # matplotlib's FreeType module is loaded before anything in this process can load GStreamer:
 # once GStreamer was initialised (its plugins bring the system's libfreetype), the first
@@ -95,16 +103,22 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """On an xdist worker: the machine lock (tests/peers.py) in the run's base temp folder,
-    which the workers share (each has its own popen-gwN folder below it)."""
-    if os.environ.get("PYTEST_XDIST_WORKER") and config.option.basetemp:
-        os.environ[MACHINE_LOCK_ENV] = str(Path(config.option.basetemp).parent / "machine.lock")
+    """The machine's locks (tests/peers.py): one pair per machine and user, in the system's
+    temp folder, so that the workers of this run and any other run of the suite on this
+    machine share them (an environment that sets them already keeps its own)."""
+    folder = Path(tempfile.gettempdir()) / f"companion-tests-{os.getuid()}"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    os.environ.setdefault(MACHINE_LOCK_ENV, str(folder / "machine.lock"))
+    os.environ.setdefault(AUTOPILOTS_LOCK_ENV, str(folder / "autopilots.lock"))
 
 
 @pytest.hookimpl(tryfirst=True)  # before the test's fixtures (module fixtures render too)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """Under xdist (tests/peers.py): every test holds the machine shared, a closed loop with
-    a real autopilot alone; a SITL flight asks for it alone once its camera is prerendered."""
+    """Every test holds the machine shared, a closed loop with a real autopilot alone; a SITL
+    flight asks for it alone once its camera is prerendered (tests/peers.py). The real
+    autopilots' tests first hold their instance numbers against another run of the suite."""
+    if xdist_unit(item.nodeid) == _AUTOPILOTS:
+        hold_autopilots()
     hold_machine(exclusive=item.nodeid.split("::", 1)[0] in _MACHINE_EXCLUSIVE)
 
 
@@ -114,6 +128,8 @@ def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> 
         return (yield)
     finally:
         release_machine()
+        if nextitem is None or xdist_unit(nextitem.nodeid) != _AUTOPILOTS:
+            release_autopilots()  # the autopilots' module fixtures were torn down above
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -6,6 +6,7 @@ import asyncio
 import fcntl
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -14,8 +15,9 @@ from pathlib import Path
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 
 
-# The machine to itself for real time, across the workers of one test run (`make test`: two
-# pytest-xdist workers). A SITL flight is judged against the wall clock
+# The machine to itself for real time, across the workers of a test run (`make test`: two
+# pytest-xdist workers) and across test runs on one machine (two clones' `make test` at once).
+# A SITL flight is judged against the wall clock
 # (rates, time sync, VO tracking through frames that arrive on time), and so is a real
 # autopilot's closed loop, whose bridge also renders the camera live at 30 Hz (about a core).
 # Beside another flight or a CPU-bound test they failed (seen: PX4's hover below 99 % fusion
@@ -24,11 +26,17 @@ MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 # holds the machine shared while it runs, and a flight holds it alone: a SITL flight from the
 # end of its prerendering (which runs beside the other worker's tests) to the end of its test,
 # a real autopilot's closed loop for its whole test. tests/conftest.py names the lock
-# (MACHINE_LOCK_ENV, in the run's shared base temp folder; unset: one process, no lock), takes
+# (MACHINE_LOCK_ENV: one file per machine, in the system's temp folder; unset: no lock), takes
 # it before each test and releases it after. A turnstile (a second lock) lets a waiting flight
 # in before the other worker's next test.
+# The real autopilots listen on fixed instance numbers and ports (tests/conftest.py), which a
+# second run on the machine would take too: a run's autopilot tests hold AUTOPILOTS_LOCK_ENV
+# (another file per machine) from the first of them to the end of the last, taken before the
+# machine lock (a run waiting for it holds nothing the other run needs).
 MACHINE_LOCK_ENV = "COMPANION_TEST_MACHINE_LOCK"
+AUTOPILOTS_LOCK_ENV = "COMPANION_TEST_AUTOPILOTS_LOCK"
 _machine: list[int] = []  # this process's descriptor of the lock while it holds it
+_autopilots: list[int] = []  # the same for the autopilots' lock
 
 
 def _try_lock(path: str, mode: int = fcntl.LOCK_EX) -> int | None:
@@ -46,14 +54,25 @@ def _unlock(fd: int) -> None:
     os.close(fd)
 
 
+def _not_counted(since: float) -> None:
+    """Give the running test back the time it waited for a lock since ``since`` (monotonic):
+    pytest-timeout's alarm (its signal method, ITIMER_REAL) moves on by as much, so that a
+    test's limit counts its own work, not the other tests' (of this run or another run)."""
+    remaining_s, interval_s = signal.getitimer(signal.ITIMER_REAL)
+    if remaining_s > 0:
+        signal.setitimer(signal.ITIMER_REAL, remaining_s + time.monotonic() - since, interval_s)
+
+
 async def hold_machine_async(exclusive: bool, poll_s: float = 0.1) -> None:
     """Hold the machine, shared or alone, until release_machine(); a process that holds it
     shared and asks for it alone lets go first (two upgrades would wait on each other). Polls,
-    so that a test's timeout can interrupt the wait."""
+    so that a test's timeout can interrupt the wait; the wait is not counted in that timeout
+    (_not_counted)."""
     base = os.environ.get(MACHINE_LOCK_ENV)
     if not base:
         return
     release_machine()
+    since = time.monotonic()
     while (turn := _try_lock(base + ".turn")) is None:
         await asyncio.sleep(poll_s)
     try:
@@ -63,6 +82,7 @@ async def hold_machine_async(exclusive: bool, poll_s: float = 0.1) -> None:
         _machine.append(fd)
     finally:
         _unlock(turn)
+        _not_counted(since)
 
 
 def hold_machine(exclusive: bool) -> None:
@@ -79,6 +99,25 @@ def release_machine() -> None:
     """Let the other worker run (after each test, tests/conftest.py)."""
     while _machine:
         _unlock(_machine.pop())
+
+
+def hold_autopilots(poll_s: float = 0.5) -> None:
+    """Hold the real autopilots' instance numbers and ports until release_autopilots() (kept
+    across the tests of the run's autopilots; waits while another run on the machine has them)."""
+    path = os.environ.get(AUTOPILOTS_LOCK_ENV)
+    if not path or _autopilots:
+        return
+    since = time.monotonic()
+    while (fd := _try_lock(path)) is None:
+        time.sleep(poll_s)
+    _autopilots.append(fd)
+    _not_counted(since)
+
+
+def release_autopilots() -> None:
+    """After the run's last autopilot test (its module fixtures' processes stopped)."""
+    while _autopilots:
+        _unlock(_autopilots.pop())
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:

@@ -48,6 +48,8 @@ AXIAL_MIN_MOVE = 0.5
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 Gravity = tuple[NDArray[np.float64], float]  # (R_vo correction (3, 3), sigma_rad)
+Down = tuple[NDArray[np.float64], float]  # (gravity (down, unit) in the body frame (3,), sigma_rad)
+Pending = tuple[NDArray[np.uint8], int, NDArray[np.float64] | None, Gravity | None, Down | None]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
@@ -126,14 +128,16 @@ class VisualOdometry:
         self._next_pid = 0
         self._next_kf = 0
         self.axial_keyframes = 0  # keyframes that took the axial prior (_axial, _gravity_cam)
+        self.pad_keyframes = 0  # keyframes whose gravity the caller measured (``down``)
         self.T_cam_vo = np.eye(4)
         self._T_prev = np.eye(4)
         self._prev_time_us: int | None = None  # the last frame given to process()
         self._velocity_dt_us: int | None = None  # the interval _T_prev -> T_cam_vo spans
         self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self._frames_since_kf = 0
-        # (gray, time_us, R_world_body) of the frame whose keyframe is still to be built
-        self._pending_keyframe: tuple[U8, int, F64 | None, Gravity | None] | None = None
+        # (gray, time_us, R_world_body, gravity, down) of the frame whose keyframe is still
+        # to be built
+        self._pending_keyframe: Pending | None = None
         self._keyframe_added = False  # a keyframe was built since the last output
         self._ref_time_us = 0
         self._ref_frames = 0
@@ -535,7 +539,11 @@ class VisualOdometry:
         return bool(abs(float(d_cam[2])) >= n * np.cos(np.radians(self.opts.axial_max_angle_deg)))
 
     def _gravity_cam(
-        self, R_world_body: F64 | None, gravity: Gravity | None = None, axial: bool = False
+        self,
+        R_world_body: F64 | None,
+        gravity: Gravity | None = None,
+        axial: bool = False,
+        down: Down | None = None,
     ) -> tuple[F64 | None, float]:
         """(3,) gravity (down) in the camera frame and its sigma [rad] for the BA's prior.
 
@@ -549,11 +557,15 @@ class VisualOdometry:
         attitude's sigma stays in. ``axial`` (:meth:`_axial`, a climb or a descent): the
         attitude's gravity alone at ``axial_gravity_sigma_deg`` (when > 0), tighter than the
         cruise's: there the images leave the tilt free (ba.py) and the accelerometer's window
-        straddles the lift-off. None (and 0) without an attitude or with ``gravity_sigma_deg``
-        0."""
+        straddles the lift-off. ``down``: a gravity the caller measured at this frame (body
+        frame, with its sigma: the distance sensors over the take-off pad,
+        companion/attitude/pad.py) replaces all of these. None (and 0) without an attitude or
+        with ``gravity_sigma_deg`` 0."""
         sigma_ap = np.radians(self.opts.gravity_sigma_deg)
         if R_world_body is None or sigma_ap <= 0:
             return None, 0.0
+        if down is not None:
+            return self.T_body_cam[:3, :3].T @ down[0], float(down[1])
         g: F64 = self.T_body_cam[:3, :3].T @ (R_world_body.T @ np.array([0.0, 0.0, 1.0]))
         if axial and self.opts.axial_gravity_sigma_deg > 0:
             return g, float(np.radians(self.opts.axial_gravity_sigma_deg))
@@ -569,10 +581,12 @@ class VisualOdometry:
         time_us: int,
         R_world_body: F64 | None = None,
         gravity: Gravity | None = None,
+        down: Down | None = None,
     ) -> None:
         axial = self.opts.axial_gravity_sigma_deg > 0 and self._axial()  # off: not worked out
-        self.axial_keyframes += axial
-        g_cam, g_sigma = self._gravity_cam(R_world_body, gravity, axial)
+        self.axial_keyframes += axial and down is None
+        self.pad_keyframes += down is not None and R_world_body is not None
+        g_cam, g_sigma = self._gravity_cam(R_world_body, gravity, axial, down)
         kf = Keyframe(
             self._next_kf,
             time_us,
@@ -706,6 +720,7 @@ class VisualOdometry:
         R_world_body: F64 | None = None,
         ground: GroundPlane | None = None,
         gravity: Gravity | None = None,
+        down: Down | None = None,
     ) -> VoOutput:
         """One frame in, one VoOutput out. ``R_world_body``: the attitude at the frame time
         (used to gravity-align the VO frame at initialisation), or None. ``ground``: the
@@ -713,7 +728,9 @@ class VisualOdometry:
         not tracking, the map then starts on it at once, metric, without parallax.
         ``gravity``: (R_vo (3, 3), sigma_rad), the correction of the attitude's tilt in this VO
         map's frame that the caller measured (companion/attitude/gravity.py), applied to the
-        keyframe prior's gravity; None: the attitude's alone."""
+        keyframe prior's gravity; None: the attitude's alone. ``down``: (gravity in the body
+        frame (3,), sigma_rad) measured by the caller at this frame, which replaces the
+        attitude's for this frame's keyframe (the take-off pad's, companion/attitude/pad.py)."""
         self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
         self.n_frames += 1
         img = frame.image_bgr
@@ -752,7 +769,7 @@ class VisualOdometry:
             self._check_candidates()
             self._frames_since_kf += 1
             if self._need_keyframe():  # built after this frame's output (finish_pending)
-                self._pending_keyframe = (gray, frame.time_us, R_world_body, gravity)
+                self._pending_keyframe = (gray, frame.time_us, R_world_body, gravity, down)
         self._prev_gray = gray
         self._T_pred = None
         if self.state == VoState.TRACKING and self._prev_time_us is not None:

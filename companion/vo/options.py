@@ -54,6 +54,20 @@ class VoOptions:
         gt=0,
         le=90,
     )
+    pad_gravity_sigma_deg: float = opt(
+        0.0,
+        "gravity for the BA's prior from the distance sensors while over the take-off pad (its "
+        "plane measured at rest with the autopilot's attitude, companion/attitude/pad.py), at "
+        "least this sigma [deg]; 0 = off. Assumes the pad is one plane under the sensors' hits "
+        "up to the climb's top (a floor, a landing mat): docs/decisions.md",
+        ge=0,
+    )
+    pad_radius_m: float = opt(
+        1.5, "the pad's gravity only within this horizontal distance of the rest [m]", gt=0
+    )
+    pad_window_s: float = opt(
+        0.5, "the pad's gravity: the autopilot's tilt error averaged over this long [s]", gt=0
+    )
     imu_gravity_window_s: float = opt(
         4.0,
         "gravity for the BA's prior also from the autopilot's accelerometer against our own "
