@@ -116,6 +116,7 @@ class Pipeline:
             )
         self._pad_sampled_us = 0  # the last plane sampled over the pad
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
+        self._beams_of: dict[tuple[int, ...], tuple[F64, F64]] = {}  # by sensor ids: origins, beams
         methods = make_methods(self.camera, config.scale, sensor_study)
         self.method_name = config.scale.method
         self.methods = methods if all_methods else {self.method_name: methods[self.method_name]}
@@ -175,9 +176,14 @@ class Pipeline:
         one within ATTITUDE_MAX_GAP_US), None when there is none close enough."""
         if not self._attitude:
             return None
-        samples = self._attitude
-        after = next((a for a in samples if a.time_us >= time_us), None)
-        before = next((a for a in reversed(samples) if a.time_us <= time_us), None)
+        # from the newest end: the times asked for are the last few frames' (a scan of the
+        # whole buffer from its oldest end cost ~0.3 ms a call on a slow board)
+        before = after = None
+        for a in reversed(self._attitude):
+            if a.time_us <= time_us:
+                before = a
+                break
+            after = a
         if before is not None and after is not None and after.time_us > before.time_us:
             alpha = (time_us - before.time_us) / (after.time_us - before.time_us)
             R0 = so3.quat_to_matrix(before.quat_wxyz)
@@ -407,8 +413,12 @@ class Pipeline:
         """The plane through the hits of sensors ``ids`` at ``range_m`` (K,): (downward normal
         (3,), body origin's distance [m], the fit's (3, K) matrix), in the body frame; None
         when the hits are nearly on a line or fit no plane within ``vo.ground_max_rms_m``."""
-        T = np.stack([self.specs[s].T_body_rf for s in ids])
-        origins, beams = ground_fit.beams_body(T)
+        key = tuple(ids)
+        beams_of = self._beams_of.get(key)
+        if beams_of is None:
+            T = np.stack([self.specs[s].T_body_rf for s in ids])
+            beams_of = self._beams_of[key] = ground_fit.beams_body(T)
+        origins, beams = beams_of
         pts = ground_fit.ground_points_body(origins, beams, range_m)
         (a, b, c), M = ground_fit.plane_fit(pts)
         rms = float(np.sqrt(np.mean((pts[:, 2] - (a + b * pts[:, 0] + c * pts[:, 1])) ** 2)))

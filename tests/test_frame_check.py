@@ -101,10 +101,25 @@ def test_one_bad_frame_is_skipped_without_a_reset(steps: list[object]) -> None:
 
 
 def test_a_gap_without_frames_resets(steps: list[object]) -> None:
-    pipe, poses = _run(steps, dict.fromkeys(range(210, 225)))  # 0.5 s unplugged
+    pipe, poses = _run(steps, dict.fromkeys(range(210, 255)))  # 1.5 s unplugged
     assert pipe.gaps == 1
-    back = [p for p in poses[225:] if p is not None]
+    back = [p for p in poses[255:] if p is not None]
     assert back and all(p.reset_counter == 1 for p in back)
+
+
+def test_gaps_shorter_than_max_gap_are_tracked_across(steps: list[object]) -> None:
+    """A busy machine's camera path loses runs of frames: the PX4 loop on a slow 2-core host
+    (session 16) had gaps of up to 433 ms, and each one over the old 250 ms limit re-initialised
+    the VO in the air. 0.8 s without frames every 3 s of a lawnmower over hills: no reset, and
+    the positions stay within 0.1 m of the flight without gaps (6.6 cm measured)."""
+    gaps = {k for k in range(120, len(steps)) if (k - 120) % 90 < 24}  # 24 frames = 0.8 s
+    pipe, poses = _run(steps, dict.fromkeys(gaps))
+    assert pipe.gaps == 0 and pipe.vo.resets == 0
+    _, ref = _run(steps, {})
+    both = [k for k in range(len(steps)) if poses[k] is not None and ref[k] is not None]
+    assert len(both) > 250 and all(k not in gaps for k in both)
+    dev = [np.linalg.norm(poses[k].position_ned_m - ref[k].position_ned_m) for k in both]
+    assert max(dev) < 0.1, max(dev)
 
 
 def test_skipped_frames_do_not_lose_tracking(steps: list[object]) -> None:

@@ -135,3 +135,28 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
     assert p.pad.refused <= 5
     assert max(tilt_deg) <= 3.0, (max(tilt_deg), seed)
     assert np.mean(tilt_deg[-15:]) <= 0.7, (tilt_deg[-15:], seed)
+
+
+def test_the_pads_normal_is_the_mean_of_the_settled_planes_of_the_current_rest() -> None:
+    """``at_rest`` keeps a running sum (a rest is ~30 planes a second): at every step its
+    normal equals the mean, recomputed from scratch, of the current rest's planes older than
+    the guard and within the window; a pause longer than the guard starts a new rest."""
+    rng = np.random.default_rng(11)
+    window_us, guard_us = 2_000_000, 300_000
+    pad = PadLevel(500_000, 0.001, 0.09, rest_window_us=window_us, rest_guard_us=guard_us)
+    seen: list[tuple[int, np.ndarray]] = []
+    t = 0
+    for k in range(900):
+        t += int(rng.integers(5_000, 40_000)) + (1_000_000 if k == 500 else 0)  # one new rest
+        if seen and t - seen[-1][0] > guard_us:
+            seen = []
+        R = so3.exp(rng.normal(0.0, 0.05, 3))
+        n_body = _noisy(E_Z, rng, 2.0)
+        seen.append((t, R @ n_body))
+        pad.at_rest(t, n_body, R, None, "map 0")
+        settled = [v for s, v in seen if guard_us <= t - s <= window_us]
+        if settled and k != 500:  # just after the new rest, none has settled yet
+            m = np.mean(settled, axis=0)
+            assert pad.n_pad is not None
+            assert np.allclose(pad.n_pad, m / np.linalg.norm(m), atol=1e-12), k
+    assert len(seen) > 100  # the window was full many times over

@@ -226,3 +226,32 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     # vo.axial_gravity_sigma_deg 0.5, not the default, it came back within 2.1-2.7 cm and
     # needed none)
     assert 1 <= p.dpose_resets <= 5 and len(resets) == p.dpose_resets + 1
+
+
+def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
+    """Pipeline.attitude_at searches from the newest sample: at, between, before and after the
+    samples it gives the rotation between the bracketing two (the geodesic at the time's
+    fraction), the nearest one within ATTITUDE_MAX_GAP_US past either end, else None."""
+    from companion.pipeline import ATTITUDE_MAX_GAP_US
+
+    rng = np.random.default_rng(8)
+    pipe = Pipeline(load_config(None))
+    times = np.cumsum(rng.integers(2_000, 20_000, 600)) + 1_000_000
+    Rs = [so3.rpy_to_matrix(*rng.normal(0.0, 0.3, 3)) for _ in times]
+    for t, R in zip(times, Rs, strict=True):
+        pipe.feed_attitude(AttitudeSample(int(t), so3.matrix_to_quat(R), np.zeros(3)))
+    kept = times[-512:]  # the buffer holds the last 512
+    R_kept = Rs[-512:]
+    for _ in range(200):
+        i = int(rng.integers(0, len(kept) - 1))
+        a = float(rng.choice([0.0, rng.uniform(), 1.0]))
+        t = int(round(kept[i] + a * (kept[i + 1] - kept[i])))
+        a = (t - kept[i]) / (kept[i + 1] - kept[i])
+        want = R_kept[i] @ so3.exp(a * so3.log(R_kept[i].T @ R_kept[i + 1]))
+        got = pipe.attitude_at(t)
+        assert got is not None and np.allclose(got, want, atol=1e-9), (i, a)
+    after = pipe.attitude_at(int(kept[-1]) + ATTITUDE_MAX_GAP_US)
+    assert after is not None and np.allclose(after, R_kept[-1], atol=1e-9)
+    assert pipe.attitude_at(int(kept[-1]) + ATTITUDE_MAX_GAP_US + 1) is None
+    before = pipe.attitude_at(int(kept[0]) - 5_000)
+    assert before is not None and np.allclose(before, R_kept[0], atol=1e-9)

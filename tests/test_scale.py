@@ -295,3 +295,25 @@ def test_pipeline_ignores_and_counts_bad_ranges(bad: RangeSample) -> None:
     pipe = Pipeline(load_config())
     pipe.feed_range(bad)
     assert pipe.ranges.rejected == 1 and pipe.ranges.sensors() == []
+
+
+def test_the_range_history_window_and_lookup_agree_with_a_scan_of_every_reading() -> None:
+    """RangeHistory.window scans from the newest end and stops at the window's start: the
+    same readings, in time order, as filtering all of them."""
+    from companion.scale.laser import RangeHistory
+    from companion.types import RangeSample
+
+    rng = np.random.default_rng(5)
+    hist = RangeHistory(maxlen=64)
+    kept: list[tuple[int, float]] = []
+    t = 0
+    for _ in range(300):
+        t += int(rng.integers(1_000, 30_000))
+        d = float(rng.uniform(0.5, 8.0))
+        if hist.add(RangeSample(t, 0, d, 0.1, 12.0, 100)):
+            kept = (kept + [(t, d)])[-64:]
+        t0 = t - int(rng.integers(0, 600_000))
+        t1 = t - int(rng.integers(0, 100_000))
+        want = [v for s, v in kept if t0 <= s <= t1]
+        assert hist.window(0, t0, t1).tolist() == want
+    assert hist.window(1, 0, t).size == 0  # a sensor never seen

@@ -71,7 +71,11 @@ class PadLevel:
         self.min_samples = min_samples
         self.rest_window_us = rest_window_us
         self.rest_guard_us = rest_guard_us
-        self._rest: deque[tuple[int, F64]] = deque()  # (time, n_world) of the current rest
+        # (time, n_world) of the current rest: the last rest_guard_us, and the settled ones
+        # before (their sum kept as they come and go: a rest is ~30 planes a second)
+        self._rest: deque[tuple[int, F64]] = deque()
+        self._settled: deque[tuple[int, F64]] = deque()
+        self._settled_sum = np.zeros(3)
         self._air: deque[tuple[int, F64]] = deque()  # (time, e) of the flight over the pad
         self.n_pad: F64 | None = None  # the pad's downward normal (world)
         self.centre_m: F64 | None = None  # where the body rested (caller's frame)
@@ -85,14 +89,21 @@ class PadLevel:
         R_world_body n_body over its last ``rest_window_us`` but the last ``rest_guard_us``
         (a rest is called over a window of readings, so it is still called in the lift-off's
         first moments, when the autopilot's attitude is already the air's)."""
-        if self._rest and time_us - self._rest[-1][0] > self.rest_guard_us:
-            self._rest.clear()  # a new rest (landed elsewhere, or moved by hand)
+        last = self._rest[-1][0] if self._rest else self._settled[-1][0] if self._settled else None
+        if last is not None and time_us - last > self.rest_guard_us:
+            # a new rest (landed elsewhere, or moved by hand)
+            self._rest.clear()
+            self._settled.clear()
+            self._settled_sum = np.zeros(3)
         self._rest.append((time_us, R_world_body @ n_body))
-        while time_us - self._rest[0][0] > self.rest_window_us:
-            self._rest.popleft()
-        settled = [v for t, v in self._rest if time_us - t >= self.rest_guard_us]
-        if settled:
-            n = np.mean(settled, axis=0)
+        while self._rest and time_us - self._rest[0][0] >= self.rest_guard_us:
+            t, v = self._rest.popleft()
+            self._settled.append((t, v))
+            self._settled_sum += v
+        while self._settled and time_us - self._settled[0][0] > self.rest_window_us:
+            self._settled_sum -= self._settled.popleft()[1]
+        if self._settled:
+            n = self._settled_sum / len(self._settled)
             self.n_pad = np.asarray(n / np.linalg.norm(n), dtype=np.float64)
         if position_m is not None:
             self.centre_m = np.array(position_m, dtype=np.float64)

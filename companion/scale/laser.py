@@ -56,8 +56,14 @@ class RangeHistory:
 
     def window(self, sensor_id: int, t0_us: int, t1_us: int) -> F64:
         """(K,) the sensor's valid readings [m] stamped in [t0_us, t1_us]."""
-        buf = self._buf.get(sensor_id, ())
-        return np.array([d for t, d in buf if t0_us <= t <= t1_us], dtype=np.float64)
+        out: list[float] = []
+        for t, d in reversed(self._buf.get(sensor_id, ())):  # newest first (times increase)
+            if t < t0_us:
+                break
+            if t <= t1_us:
+                out.append(d)
+        out.reverse()
+        return np.array(out, dtype=np.float64)
 
     def sensors(self) -> list[int]:
         """Ids of the sensors seen so far."""

@@ -82,7 +82,10 @@ class VoOptions:
         25.0, "a larger rotation between frames is a failure (LOST)", gt=0
     )
     max_gap_ms: float = opt(
-        250.0, "a longer gap between usable frames loses tracking (new VO map) [ms]", gt=0
+        1000.0,
+        "a longer gap between usable frames loses tracking (new VO map) [ms]; a shorter one "
+        "is tracked across with the motion predicted over it",
+        gt=0,
     )
     ground_init: bool = opt(
         True, "initialise metrically on the ground plane the distance sensors see (no parallax)"
