@@ -212,9 +212,19 @@ def _ev_fusion(
             s["airborne_before_fusion_s"] = float((t_first - air_t0) * 1e-9)
             s["ev_pos_fused_pct"] = float(100.0 * fused[k0:].mean())
             s["ev_pos_fused_pct_whole_airborne"] = float(100.0 * fused.mean())
+            s["ev_pos_unfused_max_s"] = _longest_false_s(fused[k0:], 10e-3)
         else:
             s["ev_pos_fused_pct"] = 0.0
     return t_first
+
+
+def _longest_false_s(flags: np.ndarray, step_s: float) -> float:
+    """The longest run of False in ``flags`` (N,) sampled every ``step_s`` [s], in seconds:
+    how long EKF2 went without fusing our position at a stretch."""
+    off = np.concatenate([[0], (~flags.astype(bool)).astype(np.int8), [0]])
+    edges = np.flatnonzero(np.diff(off))
+    runs = edges[1::2] - edges[::2]
+    return float(runs.max() * step_s) if len(runs) else 0.0
 
 
 def _px4_estimate(

@@ -311,7 +311,7 @@ def test_the_range_history_window_and_lookup_agree_with_a_scan_of_every_reading(
         t += int(rng.integers(1_000, 30_000))
         d = float(rng.uniform(0.5, 8.0))
         if hist.add(RangeSample(t, 0, d, 0.1, 12.0, 100)):
-            kept = (kept + [(t, d)])[-64:]
+            kept = [*kept, (t, d)][-64:]
         t0 = t - int(rng.integers(0, 600_000))
         t1 = t - int(rng.integers(0, 100_000))
         want = [v for s, v in kept if t0 <= s <= t1]
