@@ -709,6 +709,9 @@ class SimAutopilot:
         if len(rtt):
             out["timesync_rtt_ms_p50"] = float(np.percentile(rtt, 50))
             out["timesync_rtt_ms_p99"] = float(np.percentile(rtt, 99))
+            # the slowest round trip the filter took: one sample's offset is off by at most
+            # half of it (an asymmetric path), so the estimate is never further off than that
+            out["timesync_rtt_ms_max"] = float(np.max(rtt))
         if len(rec) < 10:
             out["error"] = "fewer than 10 pose messages received"
             return out

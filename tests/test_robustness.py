@@ -588,7 +588,10 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     print(f"poses/s before {before:.1f}, in the flood {during:.1f}", extra, summary)
     assert extra["flood"]["rate"] >= 2500, extra["flood"]  # the attacker really flooded
     assert extra["link"]["rx_other_address"] >= 0.5 * extra["flood"]["sent"]
-    assert during >= 0.8 * before and during >= 0.5 * cfg.camera.rate_hz, (before, during)
+    # at least half of what the machine let the pipeline do, up to the camera's rate (a slow
+    # host turned a frame over in 60-80 ms in session 16)
+    keep_up = min(cfg.camera.rate_hz, summary["pipeline_capacity_hz"])
+    assert during >= 0.8 * before and during >= 0.5 * keep_up, (before, during, keep_up)
     assert report["resets"] <= summary["vo_gaps"]
     assert summary["pipeline_errors"] == 0 and summary["link"]["handler_errors"] == 0
 

@@ -114,6 +114,8 @@ class ServiceStats:
     rates_refused: set[int] = field(default_factory=set)
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     process_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
+    # a frame's whole turn on the worker: the pipeline, the send and the keyframe work after it
+    cycle_ms: deque[float] = field(default_factory=lambda: deque(maxlen=20000))
     publish_times_ns: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
     warnings: deque[str] = field(default_factory=lambda: deque(maxlen=20))
     sent: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=200))  # last poses
@@ -760,6 +762,7 @@ class Service:
             self.stats.frames_processed += 1
             self._publish(frame, pose)
             await asyncio.to_thread(self._background)  # after the send
+            self.stats.cycle_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _next_frame(self) -> CameraFrame | None:
         """The oldest queued frame at most frame_wait_ms old (since exposure); older ones are
@@ -930,6 +933,9 @@ class Service:
             "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
             "process_ms_p50": float(np.percentile(proc, 50)) if len(proc) else None,
             "process_ms_p99": float(np.percentile(proc, 99)) if len(proc) else None,
+            # frames a second this machine let the pipeline turn over (1 / its mean turn):
+            # the most it could publish here, whatever the camera's rate
+            "pipeline_capacity_hz": (float(1e3 / np.mean(s.cycle_ms)) if len(s.cycle_ms) else None),
             "ranges_in": s.ranges_in,
             "ranges_rejected": s.ranges_rejected,
             "attitudes_in": s.attitudes_in,
