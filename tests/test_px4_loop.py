@@ -76,15 +76,16 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
             f"PX4 SIH's clock ran {s['px4_clock_rate_vs_ours_ppm'] / 1e4:.1f} % off real time "
             f"on this host (more than {PX4_REAL_TIME_PPM / 1e4:.1f} %): EV fusion "
             f"{s['ev_pos_fused_pct']:.1f} % of the airborne time, at most "
-            f"{s['ev_pos_unfused_max_s']:.2f} s without it; the >= 99 % bound of issue 19 "
-            "needs a host where PX4's lockstep keeps real time",
+            f"{s.get('ev_pos_unfused_max_s', float('inf')):.2f} s without it; the >= 99 % "
+            "bound of issue 19 needs a host where PX4's lockstep keeps real time",
             stacklevel=1,
         )
-        assert s["ev_pos_unfused_max_s"] <= 5.0, detail
+        assert s.get("ev_pos_unfused_max_s", float("inf")) <= 5.0, detail
         assert s["ev_pos_fused_pct"] >= 40.0, detail
     # issue 19 asks p95 <= 0.25 m, which the hover does not meet every time: 0.167 and 0.196 m
     # (session 11), 0.326 m on a quiet machine in session 12's second CI clone (heading offset
     # -1.2 deg, 0 frames dropped; the climb tilts our frame: docs/RESULTS.md, session 12). The
     # bound separates a working loop from a broken one (PX4's own rangefinder mixed into our
-    # sensor 0 gave 0.44-1.09 m); the 0.25 m stays an open target of issue 19
+    # sensor 0 gave 0.44-1.09 m; session 16's slow host: 0.141-0.376 m); the 0.25 m stays an open
+    # target of issue 19
     assert s["horizontal_error_m_p95"] <= 0.40, detail
