@@ -147,7 +147,9 @@ class ServiceOptions:
         ge=0,
         le=100,
     )
-    timesync_rate_hz: float = opt(2.0, "our own TIMESYNC requests [Hz]", gt=0, le=50)
+    timesync_rate_hz: float = opt(
+        2.0, "our own TIMESYNC requests [Hz] once settled (10 Hz before)", gt=0, le=50
+    )
     stale_frame_ms: float = opt(
         100.0, "stop publishing when the last good frame is older than this [ms]", gt=0
     )

@@ -74,6 +74,40 @@ def test_clock_sync_ignores_slow_samples_and_resets_on_a_clock_jump() -> None:
     assert abs(sync.offset_at(t) - (t - jumped(t))) < 100_000
 
 
+def test_clock_sync_sees_a_clock_jump_through_slow_answers() -> None:
+    """A rebooted autopilot answers a busy host's requests slower than twice the fastest
+    round trip seen (the precision filter skips those): the jump must still be confirmed
+    after max_consecutive_deviations answers, not wait for a fast one (8 s of readings
+    refused "from the past" after a reboot in session 17's fault flight)."""
+    peer = PeerClock(offset_ns=5_000_000_000, drift_ppm=0.0)
+    sync = ClockSync()
+    t = 0
+    for _ in range(20):
+        t += 100_000_000
+        sync.on_reply(peer(t), t, t + 100_000)  # 0.1 ms round trips
+    assert sync.settled
+    assert not sync.on_reply(peer(t), t, t + 2_000_000)  # 2 ms: agrees, but skipped as slow
+    assert sync.slow_skipped == 1 and sync.settled
+    jumped = PeerClock(offset_ns=-20_000_000_000, drift_ppm=0.0)
+    for i in range(sync.max_consecutive_deviations):
+        t += 100_000_000
+        assert not sync.on_reply(jumped(t), t, t + 2_000_000)  # all slow
+        assert sync.resets == (1 if i == sync.max_consecutive_deviations - 1 else 0)
+        assert not sync.settled  # a requester asks faster from the first deviant answer
+    for _ in range(5):
+        t += 100_000_000
+        assert sync.on_reply(jumped(t), t, t + 2_000_000)
+    assert sync.settled
+    assert abs(sync.offset_at(t) - (t - jumped(t))) < 1_100_000  # within half the round trip
+    # a single deviant answer between agreeing ones is no jump
+    t += 100_000_000
+    assert not sync.on_reply(peer(t), t, t + 2_000_000)
+    assert not sync.settled
+    t += 100_000_000
+    sync.on_reply(jumped(t), t, t + 2_000_000)  # agrees (skipped as slow once converged)
+    assert sync.settled and sync.resets == 1
+
+
 def test_link_urls() -> None:
     assert LinkUrl.parse("udpin:127.0.0.1:14540") == LinkUrl("udpin", "127.0.0.1", 14540)
     assert LinkUrl.parse("/dev/ttyAMA0").kind == "serial"

@@ -74,6 +74,7 @@ FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; fr
 CAMERA_SILENT_S = 1.0  # no frame for this long (or 10 frame periods, if longer): said, shown
 AUTOPILOT_UNHEARD_S = 5.0  # no heartbeat this long after the start: said, with the link's error
 HEALTH_PERIOD_S = 0.5
+TIMESYNC_UNSETTLED_HZ = 10.0  # our TIMESYNC requests while the estimate is not settled
 
 
 def now_ns() -> int:
@@ -413,12 +414,17 @@ class Service:
             await self._sleep(1.0)
 
     async def _timesync_loop(self) -> None:
-        period = 1.0 / self.config.service.timesync_rate_hz
+        """Our TIMESYNC requests: service.timesync_rate_hz once the estimate is settled,
+        TIMESYNC_UNSETTLED_HZ before (at the start, or confirming a jump of the autopilot's
+        clock: its stamps are refused "from the past" until the estimate is new; 2.5 s of
+        them at 2 Hz, 0.5 s at 10 Hz)."""
+        rate_hz = self.config.service.timesync_rate_hz
         while not self._stop.is_set():
             ts1 = now_ns()
             self._timesync_sent.append(ts1)
             self.link.send(self.link.mav.timesync_encode(0, ts1))
-            await self._sleep(period)
+            settled = self.sync.settled
+            await self._sleep(1.0 / (rate_hz if settled else max(rate_hz, TIMESYNC_UNSETTLED_HZ)))
 
     def _rate_refused(self, msg_id: int, result: int) -> None:
         """The autopilot refused a message rate: said once, left at the autopilot's own."""
