@@ -66,6 +66,7 @@ class RangeSimulator:
         self.seed = seed
         phase_rng = np.random.default_rng([seed, 101])
         self.phase_s = phase_rng.uniform(0.0, 1.0, len(self.rangefinders))
+        self._T_body_rf = [rf.mount.T_body_sensor() for rf in self.rangefinders]
 
     def sample_times_us(self, index: int, t0_s: float, t1_s: float) -> NDArray[np.int64]:
         """Measurement times [us] of sensor ``index`` within [t0_s, t1_s)."""
@@ -81,14 +82,30 @@ class RangeSimulator:
 
     def measure(self, index: int, time_us: int) -> TrueRange:
         """The reading of sensor ``index`` at ``time_us`` (deterministic in seed, sensor, time)."""
+        return self.measure_many([index], [time_us])[0]
+
+    def measure_many(self, indices: Sequence[int], times_us: Sequence[int]) -> list[TrueRange]:
+        """The readings of sensors ``indices`` at ``times_us`` (paired), each equal to the bit
+        to measure()'s, with the poses from one spline evaluation."""
+        if len(indices) == 0:
+            return []
+        poses = self.trajectory.poses(np.asarray(times_us, dtype=np.float64) * 1e-6)
+        out = []
+        for n, (i, tu) in enumerate(zip(indices, times_us, strict=True)):
+            # one beam per cast: the ray-casting kernel's last bits depend on the batch (1e-8 m),
+            # and a reading must not depend on which others were asked with it
+            T_world_rf = poses[n] @ self._T_body_rf[i]
+            hits = self.world.raycast(T_world_rf[:3, 3], T_world_rf[:3, 2])
+            out.append(self._reading(i, int(tu), float(hits.t_m[0]), hits.points_world[0]))
+        return out
+
+    def _reading(self, index: int, time_us: int, true_d: float, hit: F64) -> TrueRange:
+        """The noise model on a true distance [m] (its draws seeded by seed, sensor, time)."""
         rf = self.rangefinders[index]
-        T = self.trajectory.T_world_body(time_us * 1e-6)
-        t_true, hit = laser_hits(self.world, T, [rf])
-        true_d = float(t_true[0])
         rng = np.random.default_rng([self.seed, 202, rf.sensor_id, time_us])
         u_drop, u_out, u_val, noise = rng.uniform(), rng.uniform(), rng.uniform(), rng.normal()
         if u_drop < rf.dropout_prob:
-            return TrueRange(None, true_d, hit[0])
+            return TrueRange(None, true_d, hit)
         if not np.isfinite(true_d) or true_d > rf.max_m:
             d, quality = rf.max_m, 1
         elif true_d < rf.min_m:
@@ -101,7 +118,7 @@ class RangeSimulator:
             d = min(max(d, rf.min_m), rf.max_m)
             quality = max(2, int(round(100 - 50 * true_d / rf.max_m)))
         sample = RangeSample(time_us, rf.sensor_id, float(d), rf.min_m, rf.max_m, quality)
-        return TrueRange(sample, true_d, hit[0])
+        return TrueRange(sample, true_d, hit)
 
     def valid_at(self, time_us: int) -> dict[int, float]:
         """The valid readings [m] of every sensor at ``time_us`` by id (dropouts and invalid
@@ -115,12 +132,11 @@ class RangeSimulator:
 
     def between(self, t0_s: float, t1_s: float) -> list[TrueRange]:
         """All readings of all sensors with times in [t0_s, t1_s), sorted by time then id."""
-        out: list[tuple[int, int, TrueRange]] = []
+        keys: list[tuple[int, int, int]] = []  # (time, id, sensor index)
         for i, rf in enumerate(self.rangefinders):
-            for tu in self.sample_times_us(i, t0_s, t1_s):
-                out.append((int(tu), rf.sensor_id, self.measure(i, int(tu))))
-        out.sort(key=lambda x: (x[0], x[1]))
-        return [r for _, _, r in out]
+            keys += [(int(tu), rf.sensor_id, i) for tu in self.sample_times_us(i, t0_s, t1_s)]
+        keys.sort()
+        return self.measure_many([i for _, _, i in keys], [tu for tu, _, _ in keys])
 
 
 class AttitudeSimulator:

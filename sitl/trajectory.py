@@ -270,9 +270,23 @@ class Trajectory:
         )
         return TrajectorySample(t, p, v, a, R, omega)
 
+    def poses(self, times_s: ArrayLike) -> F64:
+        """(N, 4, 4) body poses T_world_body at times (N,) [s] (clamped to [0, seconds]):
+        sample()'s position and rotation, equal to the bit, without its body rates (a third
+        of the spline evaluations: the SITL autopilot asks for one per range reading)."""
+        t = np.clip(np.atleast_1d(np.asarray(times_s, dtype=np.float64)), 0.0, self.seconds)
+        p = np.asarray(self._pos(t), dtype=np.float64)
+        R = self._rotation(np.asarray(self._pos_d2(t), dtype=np.float64), np.asarray(self._yaw(t)))
+        T = np.zeros((len(t), 4, 4))
+        T[:, :3, :3] = R
+        T[:, :3, 3] = p
+        T[:, 3, 3] = 1.0
+        return T
+
     def T_world_body(self, time_s: float) -> F64:
         """(4, 4) body pose at one time [s]."""
-        return self.sample([time_s]).T_world_body(0)
+        T: F64 = self.poses([time_s])[0]
+        return T
 
     def path_length_m(self, step_s: float = 0.01) -> float:
         """Length of the flown 3D path [m]."""

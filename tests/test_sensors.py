@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import numpy as np
@@ -78,6 +79,36 @@ def test_rates_and_order(world: Callable[[str, int], World], default_config) -> 
     assert times == sorted(times)
     valid = [r for r in readings if r.sample and r.sample.is_valid]
     assert len(valid) == len(readings)
+
+
+def test_readings_do_not_depend_on_how_they_are_asked_for(  # type: ignore[no-untyped-def]
+    world: Callable[[str, int], World], default_config
+) -> None:
+    """The SITL autopilot asks for the readings of whatever time passed since its last loop
+    (a few ms, or a stall's worth): the same reading, to the bit, whatever the windows, and
+    each one equal to measure()'s at its time (the batched pose evaluation of between())."""
+    w = world("hills", 2)
+    traj = Trajectory("lawnmower", w, 10.0, takeoff_landing=True)
+    sim = RangeSimulator(w, traj, default_config.rangefinders, seed=2)
+    whole = sim.between(0.0, 3.0)
+    rng = np.random.default_rng(7)
+    cuts = np.concatenate([[0.0], np.sort(rng.uniform(0.0, 3.0, 40)), [3.0]])
+    pieces = [r for a, b in itertools.pairwise(cuts) for r in sim.between(a, b)]
+    assert len(whole) == len(pieces) == 4 * 50 * 3
+    for a, b in zip(whole, pieces, strict=True):
+        assert a.sample == b.sample and a.true_distance_m == b.true_distance_m
+        assert np.array_equal(a.hit_world, b.hit_world)
+    index = {rf.sensor_id: i for i, rf in enumerate(default_config.rangefinders)}
+    for r in whole[::37]:
+        if r.sample is None:
+            continue
+        one = sim.measure(index[r.sample.sensor_id], r.sample.time_us)
+        assert one.sample == r.sample and np.array_equal(one.hit_world, r.hit_world)
+    # the poses behind them: sample()'s, to the bit
+    t = np.linspace(0.0, 10.0, 101)
+    s = traj.sample(t)
+    P = traj.poses(t)
+    assert all(np.array_equal(P[i], s.T_world_body(i)) for i in range(len(t)))
 
 
 def test_attitude_is_truth_with_small_error(world: Callable[[str, int], World]) -> None:
