@@ -4,6 +4,13 @@ It plays PX4 SITL's onboard MAVLink instance on 127.0.0.1: it sends to UDP 14540
 on 14580, as system 1 component 1 (MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR), and serves the
 simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
 
+- Time scale: ``time_scale`` flight seconds pass per wall-clock second (1: real time; 0.5: a
+  slow-motion flight for a host that cannot keep up with the camera, as `companion sitl run
+  --time-scale` and the tests on a slow machine fly it). The world, the vehicle, the camera's
+  frames and the sensors' readings all run slower (a 30 Hz camera sends 15 frames a second,
+  the body rates in ATTITUDE are per wall-clock second); the autopilot's own clock, its
+  streams, time sync and the link keep real time. Flight times (``t_sim``, fault windows)
+  are flight seconds.
 - Clock: its own boot clock, ``time_boot = (t_mono - t_boot) * (1 + drift_ppm 1e-6)``, started
   ``boot_offset_s`` before the process and drifting against the companion's monotonic clock, so
   that time sync is really needed.
@@ -77,6 +84,7 @@ class AutopilotOptions:
     boot_offset_s: float = 37.25  # the autopilot booted this long before the stub started
     drift_ppm: float = 60.0  # its crystal against the companion's clock
     readout_ms: float = 4.0  # a frame leaves the camera this long after its exposure
+    time_scale: float = 1.0  # flight seconds per wall-clock second (< 1: slow motion)
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
@@ -135,9 +143,12 @@ def camera_process(
     ready: Any = None,
     faults: tuple[Fault, ...] = (),
     loop: tuple[int, int] = (0, 0),
+    time_scale: float = 1.0,
 ) -> None:
     """Child process: render the flight (ahead of time, or all of it before the flight with
     ``prerender``) and stream each frame at exposure + readout; camera faults applied.
+    ``time_scale``: flight seconds per wall-clock second (frame k is exposed k / (rate x
+    time_scale) wall-clock seconds after the flight start).
     ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
     (only valid for a flight that is periodic there: it renders first + n frames at most)."""
     from sitl.scenario import Scenario
@@ -171,6 +182,7 @@ def camera_process(
         readout_ms,
         counters,
         faults,
+        time_scale,
     )
 
 
@@ -215,11 +227,13 @@ def _stream_frames(
     readout_ms: float,
     counters: Any,
     faults: tuple[Fault, ...],
+    time_scale: float = 1.0,
 ) -> None:
     """Serve frame seq at its exposure + readout to one client; a frame not ready or not
-    taken in time is dropped (counters[1]), a sent one counted (counters[0])."""
+    taken in time is dropped (counters[1]), a sent one counted (counters[0]). Frames are
+    ``1 / (rate_hz x time_scale)`` wall-clock seconds apart (the fault windows: flight time)."""
     link = _CameraLink(port)
-    period_ns = int(1e9 / rate_hz)
+    period_ns = int(1e9 / (rate_hz * time_scale))
     last_good: Any = None
     for seq in range(n_frames):
         expose_ns = flight_start_ns + seq * period_ns
@@ -314,6 +328,8 @@ class SimAutopilot:
 
         self.cfg = cfg
         self.opts = opts or AutopilotOptions()
+        if not 0.0 < self.opts.time_scale <= 1.0:
+            raise SitlError(f"time_scale {self.opts.time_scale}: must be in (0, 1]")
         s = cfg.sitl
         self.world = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
         self.trajectory = Trajectory(
@@ -349,7 +365,12 @@ class SimAutopilot:
         return clock_ns / (1.0 + self.opts.drift_ppm * 1e-6) + self.boot_ns
 
     def t_sim_of_mono(self, mono_ns: float) -> float:
-        return (mono_ns - self.flight_start_ns) * 1e-9
+        """Flight time [s] at a monotonic instant [ns] (scaled by ``time_scale``)."""
+        return (mono_ns - self.flight_start_ns) * 1e-9 * self.opts.time_scale
+
+    def mono_of_t_sim(self, t_sim_s: float) -> int:
+        """The monotonic instant [ns] of a flight time [s] (the exact inverse)."""
+        return self.flight_start_ns + int(round(t_sim_s * 1e9 / self.opts.time_scale))
 
     # ------------------------------------------------------------------ I/O
     def silent(self) -> bool:
@@ -520,7 +541,7 @@ class SimAutopilot:
                 s = self.trajectory.sample(np.array([t]))
                 R = s.R_world_body[0] @ so3.exp(noise * self._rng.standard_normal(3))
                 r, p, y = so3.matrix_to_rpy(R)
-                w = s.omega_body_rad_s[0]
+                w = s.omega_body_rad_s[0] * self.opts.time_scale  # per wall-clock second
                 self.send(
                     self.mav.attitude_encode(
                         self.clock_ns(now) // 1_000_000,
@@ -550,10 +571,11 @@ class SimAutopilot:
                         continue
                     sid = smp.sensor_id
                     t_s = smp.time_us * 1e-6
-                    if t_s - last_sent.get(sid, -1e9) < period * 0.95:
+                    # the stream's period is wall-clock time, the readings' flight time
+                    if t_s - last_sent.get(sid, -1e9) < period * 0.95 * self.opts.time_scale:
                         continue
                     last_sent[sid] = t_s
-                    mono = self.flight_start_ns + smp.time_us * 1000
+                    mono = self.mono_of_t_sim(t_s)
                     rf = next(x for x in self.cfg.rangefinders if x.sensor_id == sid)
                     sigma_cm = (rf.sigma_a_m + rf.sigma_b * smp.distance_m) * 100
                     self.send(
@@ -638,6 +660,7 @@ class SimAutopilot:
                 ready,
                 self.opts.faults,
                 (self.opts.loop_from_frame, self.opts.loop_frames),
+                self.opts.time_scale,
             ),
             daemon=True,
             name="sitl-camera",
@@ -668,9 +691,7 @@ class SimAutopilot:
                     await self.opts.flight_gate()
                 self.flight_start_ns = time.monotonic_ns() + int(self.opts.warmup_s * 1e9)
                 counters[2] = self.flight_start_ns
-                end_ns = self.flight_start_ns + int(
-                    (self.cfg.sitl.seconds + self.opts.linger_s) * 1e9
-                )
+                end_ns = self.mono_of_t_sim(self.cfg.sitl.seconds) + int(self.opts.linger_s * 1e9)
                 await asyncio.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
                 for t in tasks:
                     t.cancel()
@@ -720,7 +741,7 @@ class SimAutopilot:
         est = np.array([r.position for r in rec])
         gt = np.array([r.true_position for r in rec])
         rx_sim = np.array([self.t_sim_of_mono(r.rx_ns) for r in rec])
-        latency_ms = (rx_sim - t_sim) * 1e3
+        latency_ms = (rx_sim - t_sim) * 1e3 / self.opts.time_scale  # wall-clock ms
         # as EKF2 does on a reset_counter change (it re-anchors the vision frame), each segment
         # between resets is aligned on its own (SE(3), no scale); segments of < 10 poses are
         # left out of the ATE
@@ -741,6 +762,7 @@ class SimAutopilot:
                 self.stats.rate_requests_s,
                 self.cfg.camera.rate_hz,
                 self.opts.readout_ms,
+                self.opts.time_scale,
                 min(
                     (g.start_s for g in self.opts.faults if g.start_s >= f.end_s and g != f),
                     default=float("inf"),

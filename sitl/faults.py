@@ -84,13 +84,17 @@ def fault_metrics(
     rate_requests_s: Sequence[float],
     frame_rate_hz: float,
     readout_ms: float,
+    time_scale: float = 1.0,
     next_start_s: float = float("inf"),
 ) -> dict[str, Any]:
     """What the autopilot saw around ``fault``. Arrays: one entry per received pose, in
     reception order: reception and pose (exposure) times in flight seconds, reset_counter,
     time-sync conversion error [us]. Poses are put before/during/after the fault by their
     frame index, as the camera decides which frames are faulty (``seq / rate`` in the
-    window); the settled time-sync window ends at the next fault's start."""
+    window); the settled time-sync window ends at the next fault's start. ``time_scale``:
+    flight seconds per wall-clock second (sitl/autopilot.py); the durations the service is
+    judged by (``stop_after_last_good_frame_ms``, ``resume_s``) are wall-clock, the windows
+    flight time."""
     start, end = fault.start_s, fault.end_s
     out: dict[str, Any] = {"kind": fault.kind, "start_s": start, "end_s": end}
     t_frame = np.round(t_pose_s * frame_rate_hz) / frame_rate_hz  # the frame's nominal time
@@ -101,15 +105,15 @@ def fault_metrics(
     if fault.kind in CAMERA_KINDS:
         # the last good frame: the last exposure before the fault, released after readout
         last_exposure = (np.ceil(start * frame_rate_hz) - 1) / frame_rate_hz
-        release = last_exposure + readout_ms * 1e-3
+        release = last_exposure + readout_ms * 1e-3 * time_scale
         late = (rx_s >= release) & (rx_s < end)
         out["stop_after_last_good_frame_ms"] = (
-            float((rx_s[late].max() - release) * 1e3) if late.any() else 0.0
+            float((rx_s[late].max() - release) * 1e3 / time_scale) if late.any() else 0.0
         )
     after = t_frame >= end
     if after.any():
         first = int(np.flatnonzero(after)[0])
-        out["resume_s"] = float(rx_s[first] - end)
+        out["resume_s"] = float(rx_s[first] - end) / time_scale
         out["reset_counter_after"] = int(reset_counter[first])
     else:
         out["resume_s"] = None

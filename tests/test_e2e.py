@@ -103,6 +103,42 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_slow_motion_flight_is_the_same_flight_at_half_the_rates(tmp_path) -> None:
+    """AutopilotOptions.time_scale 0.5 (`companion sitl run --time-scale 0.5`, for a machine
+    that cannot keep up): 10 s of flight in 20 s. The camera sends its 300 frames at 15 Hz
+    stamped on the wall clock, the sensors their 2,000 readings; what the autopilot decodes
+    is put on the flight's clock (truth at the right instant: ATE as in real time) and its
+    latency on the wall clock's."""
+    seconds, scale = 10.0, 0.5
+    cfg, opts = sitl_flight(tmp_path, seconds, small=True, time_scale=scale)
+
+    async def both() -> tuple[dict, dict, list[int]]:
+        stub = SimAutopilot(cfg, opts)
+        stub_task = asyncio.create_task(stub.run(tmp_path / "autopilot"))
+        async with Service(cfg) as service:
+            stub_task.add_done_callback(lambda _: service.stop())
+            await service.run()
+            frame_us = [p.time_us for p in service.stats.sent]
+        return await stub_task, service.summary(), frame_us
+
+    report, summary, frame_us = asyncio.run(both())
+    assert "error" not in report, report
+    n_frames = int(seconds * cfg.camera.rate_hz)
+    assert report["camera_frames_sent"] + report["camera_frames_dropped"] >= n_frames - 2
+    assert report["camera_frames_sent"] >= 0.9 * n_frames  # 15 frames/s leave time to spare
+    # consecutive frames 1 / (30 Hz x 0.5) = 66.7 ms apart on the service's clock
+    gaps_ms = np.diff(np.array(frame_us)) * 1e-3
+    assert np.median(gaps_ms) == pytest.approx(1e3 / (cfg.camera.rate_hz * scale), rel=0.02)
+    assert report["received_rate_hz"] <= 1.05 * cfg.camera.rate_hz * scale
+    # the sensors' readings per flight second, unchanged: 4 sensors x 50 Hz x 10 s
+    assert summary["ranges_in"] >= 0.95 * 4 * 50 * seconds
+    assert report["ate_pct"] <= 1.5 and report["resets"] == 0
+    assert report["latency_ms_p50"] < 100.0  # wall-clock: not doubled
+    assert report["timesync_error_ms_max"] <= 10.0
+
+
+@pytest.mark.slow
 @pytest.mark.timeout(420)  # 40 s of flight + prerendering + waiting for the machine
 def test_dpose_corrects_what_the_autopilot_receives_over_the_pad(tmp_path) -> None:
     """d-Pose through the running service (config/pad.toml, 40 s): armed on the hover over

@@ -141,9 +141,10 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("out") / "sitl-run"
     faults = tuple(Fault.parse(f) for f in args.fault or ())
     key = load_key(args.signing_key, "--signing-key") if args.signing_key else b""
-    stub = SimAutopilot(
-        cfg, AutopilotOptions(prerender=args.prerender, faults=faults, signing_key=key)
+    opts = AutopilotOptions(
+        prerender=args.prerender, faults=faults, signing_key=key, time_scale=args.time_scale
     )
+    stub = SimAutopilot(cfg, opts)
     for f in faults:
         print(f"fault: {f.kind} at {f.start_s:g} s for {f.duration_s:g} s", flush=True)
     o = stub.opts
@@ -152,7 +153,8 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
         f"listening on 127.0.0.1:{o.listen_port}, sending to "
         f"127.0.0.1:{o.companion_port}, camera on tcp 127.0.0.1:{o.camera_port}; "
         f"ground station (`companion px4 check --url udpin://127.0.0.1:{o.gcs_port}`) "
-        f"from udp {o.gcs_listen_port} to {o.gcs_port}",
+        f"from udp {o.gcs_listen_port} to {o.gcs_port}"
+        + (f"; slow motion: {o.time_scale:g} flight s per s" if o.time_scale != 1.0 else ""),
         flush=True,
     )
     if args.prerender:
@@ -192,6 +194,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             common += [f"--{flag}", str(v)]
     py = [sys.executable, "-m", "companion.cli"]
     extra = ["--prerender"] if args.prerender else []
+    extra += ["--time-scale", str(args.time_scale)]
     stub = subprocess.Popen([*py, "sitl", "run", *common, *extra, "--out", str(out / "autopilot")])
     service = subprocess.Popen([*py, "run", *common, "--report", str(out / "service.json")])
     rc_stub = stub.wait()  # the flight is over: stop the service as systemd would (SIGTERM)
@@ -259,6 +262,7 @@ def add_sitl(sub: Any) -> None:
     p_srun.add_argument(
         "--signing-key", help="sign with this 32-byte key file and refuse unsigned frames"
     )
+    add_time_scale(p_srun)
     p_srun.set_defaults(func=cmd_sitl_run)
     p_px4 = sitl_sub.add_parser("px4", help="fly the real PX4 SITL (SIH) on our estimate")
     p_px4.add_argument("--px4", help="PX4 SITL launcher (else $PX4_SITL, ../shared/px4-sitl)")
@@ -315,6 +319,29 @@ def add_sitl(sub: Any) -> None:
     p_sheet.set_defaults(func=cmd_sitl_sheet)
 
 
+def time_scale(text: str) -> float:
+    """--time-scale: a number in (0, 1] (argparse exits 2 naming the option otherwise)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text}: must be in (0, 1]")
+    return value
+
+
+def add_time_scale(p: Any) -> None:
+    """The SITL flight's --time-scale (sitl/autopilot.py, AutopilotOptions.time_scale)."""
+    p.add_argument(
+        "--time-scale",
+        type=time_scale,
+        default=1.0,
+        metavar="S",
+        help="flight seconds per second (default 1; 0.5: a slow-motion flight, the camera at "
+        "half its rate, for a machine that cannot keep up in real time)",
+    )
+
+
 def add_demo(sub: Any) -> None:
     """``companion demo``."""
     p_demo = sub.add_parser("demo", help="SITL autopilot + service together, with a summary")
@@ -325,4 +352,5 @@ def add_demo(sub: Any) -> None:
         action="store_true",
         help="render the camera before the flight (latency without the renderer's CPU load)",
     )
+    add_time_scale(p_demo)
     p_demo.set_defaults(func=cmd_demo)
