@@ -318,6 +318,14 @@ def test_a_bad_log_level_is_a_usage_error_naming_it(capsys: pytest.CaptureFixtur
     assert "--log-level" in err and "'CHATTY'" in err
 
 
+def test_a_bad_time_scale_is_a_usage_error_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
+    for cmd, bad in (("sitl", "0"), ("sitl", "1.5"), ("demo", "fast"), ("demo", "-0.5")):
+        argv = ["sitl", "run"] if cmd == "sitl" else ["demo"]
+        assert main([*argv, "--time-scale", bad]) == EXIT_USAGE
+        err = capsys.readouterr().err
+        assert "--time-scale" in err and bad in err
+
+
 # ---------------------------------------------------------------- where the service is
 @pytest.fixture
 def fixed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
