@@ -106,11 +106,11 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
 @pytest.mark.timeout(300)
 def test_a_slow_motion_flight_is_the_same_flight_at_half_the_rates(tmp_path) -> None:
     """AutopilotOptions.time_scale 0.5 (`companion sitl run --time-scale 0.5`, for a machine
-    that cannot keep up): 10 s of flight in 20 s. The camera sends its 300 frames at 15 Hz
-    stamped on the wall clock, the sensors their 2,000 readings; what the autopilot decodes
+    that cannot keep up): 8 s of flight in 16 s. The camera sends its 240 frames at 15 Hz
+    stamped on the wall clock, the sensors their 1,600 readings; what the autopilot decodes
     is put on the flight's clock (truth at the right instant: ATE as in real time) and its
     latency on the wall clock's."""
-    seconds, scale = 10.0, 0.5
+    seconds, scale = 8.0, 0.5
     cfg, opts = sitl_flight(tmp_path, seconds, small=True, time_scale=scale)
 
     async def both() -> tuple[dict, dict, list[int]]:
@@ -131,7 +131,7 @@ def test_a_slow_motion_flight_is_the_same_flight_at_half_the_rates(tmp_path) -> 
     gaps_ms = np.diff(np.array(frame_us)) * 1e-3
     assert np.median(gaps_ms) == pytest.approx(1e3 / (cfg.camera.rate_hz * scale), rel=0.02)
     assert report["received_rate_hz"] <= 1.05 * cfg.camera.rate_hz * scale
-    # the sensors' readings per flight second, unchanged: 4 sensors x 50 Hz x 10 s
+    # the sensors' readings per flight second, unchanged: 4 sensors x 50 Hz x 8 s
     assert summary["ranges_in"] >= 0.95 * 4 * 50 * seconds
     assert report["ate_pct"] <= 1.5 and report["resets"] == 0
     assert report["latency_ms_p50"] < 100.0  # wall-clock: not doubled

@@ -530,18 +530,26 @@ def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> None:
-    """A SITL flight; from 12 s to 27 s another process floods the service's port with 5,000
+    """A SITL flight in slow motion (16 s of flight in 32 s: the camera at 15 frames/s);
+    from 6.5 to 15.5 s of flight (18 s) another process floods the service's port with 5,000
     datagrams/s (garbage, another system's frames, spoofed autopilot frames) from its own
     address. Before the fix the output stopped for ~45 s. Asserted at any load: the rate in
-    the flood is >= 80 % of the rate before it (and >= half the camera rate), no VO reset,
-    and the flood was read (dropped by address, not lost in the socket buffer). The absolute
-    figure on a quiet machine is in docs/BENCHMARKS.md."""
+    the flood is >= 80 % of the rate before it (and >= half of what the pipeline could do, up
+    to the camera's), no VO reset, and the flood was read (dropped by address, not lost in
+    the socket buffer). The figure at 30 Hz on a quiet machine is in docs/BENCHMARKS.md.
+
+    Slow motion, because the 80 % is about the service, not the machine: in real time on a
+    2-core host that turns a frame over in 45 ms with the SITL autopilot in its process
+    (session 17), the pipeline had no time to spare before the flood, and the CPU the flood
+    takes (its sender and the reading of 5,000 datagrams/s) came straight off the output
+    rate (22.8 poses/s before, 14.5 in it). At half the camera rate the pipeline has the
+    slack a vehicle's companion has; a service that stalls in the flood still fails."""
     from peers import sitl_flight
 
     from sitl.autopilot import SimAutopilot
 
-    seconds, flood_s = 30.0, (12.0, 27.0)
-    cfg, opts = sitl_flight(tmp_path, seconds, small=True)  # the 320x240 camera
+    seconds, flood_s, scale = 16.0, (6.5, 15.5), 0.5
+    cfg, opts = sitl_flight(tmp_path, seconds, small=True, time_scale=scale)  # 320x240
     port = int(cfg.service.mavlink_url.rsplit(":", 1)[1])
 
     async def fly() -> tuple[SimAutopilot, dict, dict, dict]:
@@ -562,7 +570,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
                     "--rate",
                     "5000",
                     "--seconds",
-                    str(flood_s[1] - flood_s[0]),
+                    str((flood_s[1] - flood_s[0]) / scale),  # wall-clock
                     stdout=asyncio.subprocess.PIPE,
                     cwd=Path(__file__).resolve().parents[1],
                 )
@@ -584,13 +592,14 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     def rate(lo: float, hi: float) -> float:
         return float(((t_pose >= lo) & (t_pose < hi)).sum() / (hi - lo))
 
-    before, during = rate(6.0, flood_s[0]), rate(flood_s[0] + 1.0, flood_s[1] - 1.0)
+    # poses per second of flight (twice those per wall-clock second)
+    before, during = rate(3.0, flood_s[0]), rate(flood_s[0] + 0.5, flood_s[1] - 0.5)
     print(f"poses/s before {before:.1f}, in the flood {during:.1f}", extra, summary)
     assert extra["flood"]["rate"] >= 2500, extra["flood"]  # the attacker really flooded
     assert extra["link"]["rx_other_address"] >= 0.5 * extra["flood"]["sent"]
     # at least half of what the machine let the pipeline do, up to the camera's rate (a slow
     # host turned a frame over in 60-80 ms in session 16)
-    keep_up = min(cfg.camera.rate_hz, summary["pipeline_capacity_hz"])
+    keep_up = min(cfg.camera.rate_hz, summary["pipeline_capacity_hz"] / scale)
     assert during >= 0.8 * before and during >= 0.5 * keep_up, (before, during, keep_up)
     assert report["resets"] <= summary["vo_gaps"]
     assert summary["pipeline_errors"] == 0 and summary["link"]["handler_errors"] == 0
