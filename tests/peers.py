@@ -183,6 +183,7 @@ def sitl_flight(
     service: dict | None = None,
     config: str = "config/sitl.toml",
     small: bool = False,
+    overrides: dict | None = None,
     **autopilot: object,
 ) -> tuple[object, object]:
     """A config (config/sitl.toml, ``seconds`` of flight) and SITL autopilot options that put
@@ -190,7 +191,8 @@ def sitl_flight(
     camera (the two cores are then the service's and the autopilot's, not the renderer's)
     and the status socket in ``tmp_path``. ``service``: more [service] keys;
     ``config``: the scenario's config file; ``small``: the 320x240 camera (small_camera());
-    ``autopilot``: more AutopilotOptions fields."""
+    ``overrides``: more config tables; ``autopilot``: more AutopilotOptions fields (a
+    ``time_scale`` < 1 flies in slow motion: slow_motion_overrides() for the durations)."""
     from companion.config import load_config, merge
     from sitl.autopilot import AutopilotOptions
 
@@ -213,9 +215,25 @@ def sitl_flight(
         "state_dir": str(tmp_path / "state"),
         **(service or {}),
     }
-    overrides = {"sitl": {"seconds": seconds}, "service": svc}
-    cfg = load_config(config, merge(small_camera(), overrides) if small else overrides)
+    flight = merge(overrides or {}, {"sitl": {"seconds": seconds}, "service": svc})
+    cfg = load_config(config, merge(small_camera(), flight) if small else flight)
     return cfg, opts
+
+
+def slow_motion_overrides(config: str, time_scale: float) -> dict:
+    """The service's options that are durations of flight (d-Pose's arming after and over a
+    hover, its drift per second), as the same stretch of flight lasts at ``time_scale``
+    (sitl/autopilot.py: the service lives on the wall clock, the scenario in flight time)."""
+    from companion.config import load_config
+
+    d = load_config(config).dpose
+    return {
+        "dpose": {
+            "arm_after_s": d.arm_after_s / time_scale,
+            "arm_window_s": d.arm_window_s / time_scale,
+            "vo_drift_m_per_s": d.vo_drift_m_per_s * time_scale,
+        }
+    }
 
 
 def service_config(tmp_path: Path, **service: object) -> object:

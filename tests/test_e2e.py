@@ -1,5 +1,6 @@
-"""End to end, in real time over loopback: the SITL autopilot (its own process for the camera)
-and the service, on the default scenario (hills, lawnmower; 30 s here, 60 s in `make demo`).
+"""End to end over loopback: the SITL autopilot (its own process for the camera) and the
+service, on the default scenario (hills, lawnmower; 30 s of flight here, 60 s in `make demo`),
+in slow motion (SCALE flight seconds per second: the camera at 15 frames/s).
 
 What is asserted holds at any load (a busy laptop, CI beside another test run; issue 16): every
 camera frame is accounted for, what the service sent is what the autopilot decoded, the time
@@ -7,7 +8,14 @@ sync is as good as the link's round trip allows, metric ATE in the autopilot's f
 <= 1.5 % of the path, no VO reset unless the machine stalled. The real-time figures (30 Hz
 received, latency, the 1 ms time-sync error and 5 ms round trip of a quiet machine) are
 benchmarks: `make demo`, docs/BENCHMARKS.md. A service that stalls or drops every other frame
-still fails here (received rate >= half the camera rate).
+still fails here (received rate >= half what its pipeline could do, up to the camera's rate).
+
+Slow motion (session 17): here the SITL autopilot runs in the service's process (the test reads
+its internals), which a real one never does, and on a slow 2-core host that process turned a
+frame over in 40-60 ms with stalls of 150 ms: in real time the VO lost its map up to 13 times
+in a flight (`vo_resets` 13, `vo_gaps` 0) and the pad's flight published nothing over the pad
+again, while `companion demo` (the autopilot in its own process) kept up with 30 Hz on the same
+host. At half speed the pipeline has the time a vehicle's companion has.
 """
 
 from __future__ import annotations
@@ -17,20 +25,22 @@ import os
 
 import numpy as np
 import pytest
-from peers import sitl_flight
+from peers import sitl_flight, slow_motion_overrides
 
+from companion.config import load_config
 from companion.geometry import so3
 from companion.service.app import Service
 from drivers.status import read_status
 from sitl.autopilot import SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "30"))
+SCALE = 0.5  # flight seconds per wall-clock second (AutopilotOptions.time_scale)
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(2 * SECONDS + 240)  # + waiting for the machine (tests/peers.py)
+@pytest.mark.timeout(2 * SECONDS / SCALE + 240)  # + waiting for the machine (tests/peers.py)
 def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
-    cfg, opts = sitl_flight(tmp_path, SECONDS)
+    cfg, opts = sitl_flight(tmp_path, SECONDS, time_scale=SCALE)
 
     async def both() -> tuple[dict, dict]:
         stub = SimAutopilot(cfg, opts)
@@ -61,7 +71,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     seen: dict = {}
     report, summary = asyncio.run(both())
     assert seen["vo"]["state"] == "TRACKING"
-    rate = cfg.camera.rate_hz
+    rate = cfg.camera.rate_hz * SCALE  # frames per wall-clock second
     assert 0.5 * rate <= seen["camera"]["fps"] <= 1.2 * rate
     assert seen["autopilot"]["timesync_converged"] and seen["autopilot"]["system_id"] == 1
     # ATTITUDE, TIMESYNC (PX4's time sync asked faster) and DISTANCE_SENSOR; SCALED_IMU is
@@ -88,7 +98,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert report["latency_ms_p50"] < 100.0  # stale_frame_ms: nothing older is ever sent
     # every frame accounted for: rendered and sent or lost by the camera (as a camera loses
     # them when it is behind), received, then processed, skipped for a newer one or refused
-    n_frames = int(SECONDS * rate)
+    n_frames = int(SECONDS * cfg.camera.rate_hz)
     assert report["camera_frames_sent"] + report["camera_frames_dropped"] >= n_frames - 2
     assert summary["frames_in"] >= report["camera_frames_sent"] - 1
     handled = summary["frames_processed"] + summary["frames_dropped"] + summary["frames_rejected"]
@@ -139,13 +149,21 @@ def test_a_slow_motion_flight_is_the_same_flight_at_half_the_rates(tmp_path) -> 
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(420)  # 40 s of flight + prerendering + waiting for the machine
+@pytest.mark.timeout(480)  # 40 s of flight in 80 s + prerendering + waiting for the machine
 def test_dpose_corrects_what_the_autopilot_receives_over_the_pad(tmp_path) -> None:
-    """d-Pose through the running service (config/pad.toml, 40 s): armed on the hover over
-    the pad, the marks left there; after a 12 m square out of their view, over the pad again
-    the position the autopilot decodes is within 2 cm (RMS) of the truth relative to the
-    arming pose (the VO alone drifts 5-10 cm there)."""
-    cfg, opts = sitl_flight(tmp_path, 40.0, config="config/pad.toml")
+    """d-Pose through the running service (config/pad.toml, 40 s of flight in slow motion):
+    armed on the hover over the pad, the marks left there; after a 12 m square out of their
+    view, over the pad again the position the autopilot decodes is within 2 cm (RMS) of the
+    truth relative to the arming pose (the VO alone drifts 5-10 cm there)."""
+    pad = "config/pad.toml"
+    arm_after_s = load_config(pad).dpose.arm_after_s  # in flight time
+    cfg, opts = sitl_flight(
+        tmp_path,
+        40.0,
+        config=pad,
+        overrides=slow_motion_overrides(pad, SCALE),
+        time_scale=SCALE,
+    )
 
     async def both() -> tuple[dict, SimAutopilot, dict]:
         stub = SimAutopilot(cfg, opts)
@@ -165,7 +183,7 @@ def test_dpose_corrects_what_the_autopilot_receives_over_the_pad(tmp_path) -> No
     t = np.array([r.t_sim_s for r in rec])
     est = np.array([r.position for r in rec])
     gt = np.array([r.true_position for r in rec])
-    k0 = int(np.searchsorted(t, cfg.dpose.arm_after_s))  # the arming window's start
+    k0 = int(np.searchsorted(t, arm_after_s))  # the arming window's start
     back = (t >= 29.0) & (t <= 33.0)  # hovering over the pad again (the square ends at 27.5 s)
     assert back.sum() >= 30, back.sum()
     err = np.linalg.norm((est[back] - est[k0]) - (gt[back] - gt[k0]), axis=1)
