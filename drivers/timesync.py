@@ -95,28 +95,26 @@ class ClockSync:
         self.recent_rtt_ns.append(rtt)
         mid = (ts1 + now_ns) // 2
         measured = float(mid - tc1)
-        if self.samples > 0:
-            # a clock jump (the peer rebooted) first: an answer within max_rtt_ns cannot be
-            # max_deviation_ns off through its delay, so a slow one counts as evidence too (on
-            # a busy host most answers are slower than twice the fastest: skipped first, they
-            # kept the old offset for 8 s after a reboot, every stamp of the peer "from the past")
-            predicted = self.offset_at(mid)
-            if abs(measured - predicted) > self.max_deviation_ns:
-                self.deviations += 1
-                if self.deviations >= self.max_consecutive_deviations:
-                    self.resets += 1
-                    self.reset()
-                return False
-            self.deviations = 0
-        fastest = min(self.recent_rtt_ns)
-        if self.samples >= 5 and rtt > max(2 * fastest, fastest + 500_000):
-            self.slow_skipped += 1
-            return False
         if self.samples == 0:
             self.offset_ns, self.skew, self.ref_ns = measured, 0.0, mid
             self.samples = 1
             return True
+        # a clock jump (the peer rebooted) first: an answer within max_rtt_ns cannot be
+        # max_deviation_ns off through its delay, so a slow one counts as evidence too (on a
+        # busy host most answers are slower than twice the fastest: skipped first, they kept
+        # the old offset for 8 s after a reboot, every stamp of the peer "from the past")
         predicted = self.offset_at(mid)
+        if abs(measured - predicted) > self.max_deviation_ns:
+            self.deviations += 1
+            if self.deviations >= self.max_consecutive_deviations:
+                self.resets += 1
+                self.reset()
+            return False
+        self.deviations = 0
+        fastest = min(self.recent_rtt_ns)
+        if self.samples >= 5 and rtt > max(2 * fastest, fastest + 500_000):
+            self.slow_skipped += 1
+            return False
         dt = mid - self.ref_ns
         gain = max(self.alpha_final, 1.0 / (self.samples + 1))
         error = measured - predicted

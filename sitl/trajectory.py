@@ -250,13 +250,17 @@ class Trajectory:
         x_b = np.cross(y_b, z_b)
         return np.stack([x_b, y_b, z_b], axis=2)
 
-    def sample(self, times_s: ArrayLike) -> TrajectorySample:
-        """State at times (N,) [s] (clamped to [0, seconds])."""
+    def _position_rotation(self, times_s: ArrayLike) -> tuple[F64, F64, F64, F64]:
+        """Clamped times (N,) [s], position (N, 3), acceleration (N, 3), R_world_body (N, 3, 3)."""
         t = np.clip(np.atleast_1d(np.asarray(times_s, dtype=np.float64)), 0.0, self.seconds)
         p = np.asarray(self._pos(t), dtype=np.float64)
-        v = np.asarray(self._pos_d1(t), dtype=np.float64)
         a = np.asarray(self._pos_d2(t), dtype=np.float64)
-        R = self._rotation(a, np.asarray(self._yaw(t)))
+        return t, p, a, self._rotation(a, np.asarray(self._yaw(t)))
+
+    def sample(self, times_s: ArrayLike) -> TrajectorySample:
+        """State at times (N,) [s] (clamped to [0, seconds])."""
+        t, p, a, R = self._position_rotation(times_s)
+        v = np.asarray(self._pos_d1(t), dtype=np.float64)
         # body rates from the rotation's time derivative: [w]x = R^T dR/dt (central difference)
         h = 1e-4
         Rp = self._rotation(np.asarray(self._pos_d2(t + h)), np.asarray(self._yaw(t + h)))
@@ -274,9 +278,7 @@ class Trajectory:
         """(N, 4, 4) body poses T_world_body at times (N,) [s] (clamped to [0, seconds]):
         sample()'s position and rotation, equal to the bit, without its body rates (a third
         of the spline evaluations: the SITL autopilot asks for one per range reading)."""
-        t = np.clip(np.atleast_1d(np.asarray(times_s, dtype=np.float64)), 0.0, self.seconds)
-        p = np.asarray(self._pos(t), dtype=np.float64)
-        R = self._rotation(np.asarray(self._pos_d2(t), dtype=np.float64), np.asarray(self._yaw(t)))
+        t, p, _, R = self._position_rotation(times_s)
         T = np.zeros((len(t), 4, 4))
         T[:, :3, :3] = R
         T[:, :3, 3] = p
