@@ -13,15 +13,30 @@ own requests: round trip rtt = now - ts1 and offset = (ts1 + now) / 2 - tc1 (com
 autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored, and
 so are samples much slower than the fastest recent ones (a reply that waited in a busy peer's
 socket buffer is asymmetric, and its offset is off by up to half its round trip: the NTP
-practice of trusting the fastest exchanges); the others feed an exponential filter whose gain
-starts at 1 and decays to alpha_final (fast convergence, then smoothing), plus a skew estimate
-so that a drifting autopilot clock (a few ppm to a few hundred ppm on a cheap crystal) stays
-aligned between samples. Several successive samples far from the estimate (an autopilot reboot:
-its clock jumps back) reset the filter, as PX4 does.
+practice of trusting the fastest exchanges).
+
+The others feed a two-state tracker of the offset and its rate, the skew (a drifting crystal:
+a few to a few hundred ppm; PX4 SITL's lockstep clock: up to 3 % slow on a slow host), whose
+conversions extrapolate the offset to the time asked. Its gains follow the samples' spacing:
+
+- growing memory first, the exact least-squares line through the k + 1 samples so far
+  (alpha_k = 2(2k + 1) / ((k + 1)(k + 2)), beta_k = 6 / ((k + 1)(k + 2)), k >= 1);
+- then fading memory of time constant tau = ``time_constant_s``, critically damped:
+  theta = exp(-dt / tau), alpha = 1 - theta^2, beta = (1 - theta)^2 (Brown's double
+  exponential smoothing; Morrison, "Introduction to Sequential Smoothing and Prediction",
+  the fading-memory polynomial filter of degree 1),
+
+whichever gain is larger; offset += alpha r, skew += beta r / dt for a residual r. Fixed
+per-sample gains (0.05 and 0.025, before session 18) were underdamped and made the skew's noise
+grow with the request rate: at PX4's 50 Hz on a busy host it swung by +-7000 ppm (a 60 ppm
+clock), and any pause in the answers (a port change, a stall) was extrapolated with it, 2-13
+ms off. Several successive samples far from the estimate (an autopilot reboot: its clock jumps
+back) reset the filter, as PX4 does.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -48,12 +63,12 @@ class ClockSync:
     def __init__(
         self,
         max_rtt_ns: int = 10_000_000,
-        alpha_final: float = 0.05,
+        time_constant_s: float = 3.0,
         max_deviation_ns: int = 100_000_000,
         max_consecutive_deviations: int = 5,
     ) -> None:
         self.max_rtt_ns = max_rtt_ns
-        self.alpha_final = alpha_final
+        self.time_constant_ns = time_constant_s * 1e9
         self.max_deviation_ns = max_deviation_ns
         self.max_consecutive_deviations = max_consecutive_deviations
         self.resets = 0  # times the estimate was dropped (autopilot clock jumps)
@@ -116,14 +131,25 @@ class ClockSync:
             self.slow_skipped += 1
             return False
         dt = mid - self.ref_ns
-        gain = max(self.alpha_final, 1.0 / (self.samples + 1))
+        if dt <= 0:  # an answer older than the last one fused (out of order): nothing new
+            return False
+        alpha, beta = self._gains(dt)
         error = measured - predicted
-        if dt > 0 and self.samples >= 2:
-            self.skew += gain * 0.5 * error / dt
-        self.offset_ns = predicted + gain * error
+        self.offset_ns = predicted + alpha * error
+        self.skew += beta * error / dt
         self.ref_ns = mid
         self.samples += 1
         return True
+
+    def _gains(self, dt_ns: int) -> tuple[float, float]:
+        """(alpha, beta) for the next sample, dt_ns after the previous one: the growing-memory
+        least-squares gains until the fading-memory ones are larger (module docstring)."""
+        k = self.samples  # samples fused so far: this one is sample k (from 0)
+        alpha_ls = 2.0 * (2 * k + 1) / ((k + 1) * (k + 2))
+        beta_ls = 6.0 / ((k + 1) * (k + 2))
+        theta = math.exp(-dt_ns / self.time_constant_ns)
+        alpha_fm, beta_fm = 1.0 - theta * theta, (1.0 - theta) ** 2
+        return (alpha_ls, beta_ls) if alpha_ls > alpha_fm else (alpha_fm, beta_fm)
 
     def remote_to_local_us(self, remote_us: int, now_ns: int) -> int:
         """A timestamp of the peer's clock [us] in ours [us] (the offset as of now_ns)."""

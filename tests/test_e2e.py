@@ -89,10 +89,11 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert report["received_rate_hz"] >= 0.5 * keep_up, (report, summary)
     # what the service sent reached the autopilot (a few may follow the autopilot's stop)
     assert report["received"] >= summary["published"] - 2 * rate
-    # the time sync is as good as the round trip allows once settled (1 ms on a quiet
-    # machine), within 10 ms while its skew is learnt after the start (a slow host: 4-6 ms)
+    # the time sync is as good as the round trip allows: a sample is off by at most half its
+    # round trip, and from the start (the first samples' line) within one (0.16 ms on a slow
+    # host, session 18; 4-6 ms before its skew's gains followed the samples' spacing)
     assert report["timesync_error_ms_p99"] <= 1.0 + 0.5 * report["timesync_rtt_ms_max"]
-    assert report["timesync_error_ms_max"] <= 10.0
+    assert report["timesync_error_ms_max"] <= 1.0 + report["timesync_rtt_ms_max"]
     assert report["timesync_rtt_ms_p50"] <= 20.0  # requests are answered from the loop
     assert report["ate_pct"] <= 1.5
     assert report["latency_ms_p50"] < 100.0  # stale_frame_ms: nothing older is ever sent
@@ -145,7 +146,7 @@ def test_a_slow_motion_flight_is_the_same_flight_at_half_the_rates(tmp_path) -> 
     assert summary["ranges_in"] >= 0.95 * 4 * 50 * seconds
     assert report["ate_pct"] <= 1.5 and report["resets"] == 0
     assert report["latency_ms_p50"] < 100.0  # wall-clock: not doubled
-    assert report["timesync_error_ms_max"] <= 10.0
+    assert report["timesync_error_ms_max"] <= 1.0 + report["timesync_rtt_ms_max"]
 
 
 @pytest.mark.slow

@@ -7,7 +7,8 @@ schedule of faults, each in its own window, while the MQTT broker is down for 45
   reach the autopilot, publishing stops within 100 ms of the last good frame, and resumes
   with a new reset_counter;
 - autopilot link: 10 s of silence, a new UDP port, a reboot (its clock restarts at zero). The
-  service asks for its message rates again and the time sync is back within 1 ms;
+  service asks for its message rates again and the time sync is back within 1 ms + half the
+  link's p99 round trip;
 - MQTT broker down from 5 s to 50 s: the output rate away from the faults stays >= half the
   camera rate with the broker down and after it is back (28 Hz on a quiet machine: a
   benchmark, docs/BENCHMARKS.md), and the retained status is fresh again.
@@ -141,11 +142,10 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
         assert m["reset_counter_after"] > m["reset_counter_before"], m
     silence, port, reboot = (faults[f.kind] for f in LINK_FAULTS)
     assert silence["rate_requests_after"] >= 1 and reboot["rate_requests_after"] >= 1
-    # within 10 ms (a third of a frame) from 2 s after the fault: 1 ms on a quiet machine, but
-    # on a slow host (session 16) 3.7 and 5.8 ms after the port change with round trips of
-    # 0.8 ms p99, 2.3 ms at most: the filter's skew, learnt again from samples 20 ms apart
-    # after the new peer's reset, is that noisy for a few seconds (drivers/timesync.py)
-    sync_bound_ms = 10.0
+    # from 2 s after the fault the time sync is as good as the round trip allows: a sample is
+    # off by at most half its round trip, and the filter averages them (0.12-0.19 ms on a
+    # loaded slow host, session 18; its skew, swinging by +-7000 ppm before, made it 2-13 ms)
+    sync_bound_ms = 1.0 + 0.5 * report["timesync_rtt_ms_p99"]
     for m in (silence, port, reboot):
         assert m["resume_s"] is not None and m["resume_s"] <= 5.0, m
         assert m["sync_error_ms_after"] is not None, m
