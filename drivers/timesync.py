@@ -11,9 +11,9 @@ We also keep our own estimate of the autopilot clock (its time_boot_ms / time_us
 DISTANCE_SENSOR and ATTITUDE samples can be moved into the companion's monotonic clock. From our
 own requests: round trip rtt = now - ts1 and offset = (ts1 + now) / 2 - tc1 (companion minus
 autopilot, ns), assuming a symmetric path. Samples with an rtt above max_rtt_ns are ignored, and
-so are samples much slower than the fastest recent ones (a reply that waited in a busy peer's
-socket buffer is asymmetric, and its offset is off by up to half its round trip: the NTP
-practice of trusting the fastest exchanges).
+so are samples much slower than the fast recent ones (their 20th percentile: a reply that
+waited in a busy peer's socket buffer is asymmetric, and its offset is off by up to half its
+round trip: the NTP practice of trusting the fastest exchanges).
 
 The others feed a two-state tracker of the offset and its rate, the skew (a drifting crystal:
 a few to a few hundred ppm; PX4 SITL's lockstep clock: up to 3 % slow on a slow host), whose
@@ -116,7 +116,7 @@ class ClockSync:
             return True
         # a clock jump (the peer rebooted) first: an answer within max_rtt_ns cannot be
         # max_deviation_ns off through its delay, so a slow one counts as evidence too (on a
-        # busy host most answers are slower than twice the fastest: skipped first, they kept
+        # busy host most answers are slower than twice the fast ones: skipped first, they kept
         # the old offset for 8 s after a reboot, every stamp of the peer "from the past")
         predicted = self.offset_at(mid)
         if abs(measured - predicted) > self.max_deviation_ns:
@@ -126,8 +126,12 @@ class ClockSync:
                 self.reset()
             return False
         self.deviations = 0
-        fastest = min(self.recent_rtt_ns)
-        if self.samples >= 5 and rtt > max(2 * fastest, fastest + 500_000):
+        # "fast" is the recent round trips' 20th percentile, not their minimum: where round
+        # trips spread evenly (PX4's lockstep answers in 4 ms steps: 0-4 ms) the minimum let
+        # one answer in ten through, and at 2 Hz the estimate coasted for 10 s at a time
+        ranked = sorted(self.recent_rtt_ns)
+        fast = ranked[len(ranked) // 5]
+        if self.samples >= 5 and rtt > max(2 * fast, fast + 500_000):
             self.slow_skipped += 1
             return False
         dt = mid - self.ref_ns
