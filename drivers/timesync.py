@@ -129,11 +129,12 @@ class ClockSync:
         # "fast" is the recent round trips' 20th percentile, not their minimum: where round
         # trips spread evenly (PX4's lockstep answers in 4 ms steps: 0-4 ms) the minimum let
         # one answer in ten through, and at 2 Hz the estimate coasted for 10 s at a time
-        ranked = sorted(self.recent_rtt_ns)
-        fast = ranked[len(ranked) // 5]
-        if self.samples >= 5 and rtt > max(2 * fast, fast + 500_000):
-            self.slow_skipped += 1
-            return False
+        if self.samples >= 5:
+            ranked_rtt_ns = sorted(self.recent_rtt_ns)
+            fast_rtt_ns = ranked_rtt_ns[len(ranked_rtt_ns) // 5]
+            if rtt > max(2 * fast_rtt_ns, fast_rtt_ns + 500_000):
+                self.slow_skipped += 1
+                return False
         dt = mid - self.ref_ns
         if dt <= 0:  # an answer older than the last one fused (out of order): nothing new
             return False
