@@ -173,13 +173,18 @@ def vision_position_estimate(mav: Any, pose: PoseEstimate) -> Any:
     )
 
 
-def centred_pose(poses: Sequence[PoseEstimate]) -> PoseEstimate | None:
+def centred_pose(
+    poses: Sequence[PoseEstimate], max_gap_us: float = float("inf")
+) -> PoseEstimate | None:
     """The pose at the centre of the last ``len(poses)`` published ones (time order, N >= 3):
     time and position their means (a straight-line fit's value at the mean time), velocity
     [m/s] the fit's slope: a central difference, right under constant acceleration, where the
     velocity over the last poses stamped at the newest one lags by half its span in every
     turn. Attitude, covariance and quality are the middle pose's. None when the poses are
-    fewer than three, of different VO maps (reset counters), or not finite.
+    fewer than three, of different VO maps (reset counters), not finite, or when two
+    neighbours are more than ``max_gap_us`` [us] apart: after a pause in publishing (a slow
+    moment of the machine), a window reaching back over it would stamp the message half the
+    pause old, older than EKF2's delayed horizon keeps (PX4 received 1.5 s old samples so).
 
     What it is for: ODOMETRY with velocity for EKF2 (EKF2_EV_CTRL bit 2), stamped (N-1)/2
     frames back; EKF2 fuses each sample at its own time in its delayed horizon, so the older
@@ -188,7 +193,8 @@ def centred_pose(poses: Sequence[PoseEstimate]) -> PoseEstimate | None:
         return None
     t = np.array([p.time_us for p in poses], dtype=np.float64)
     p = np.array([q.position_ned_m for q in poses], dtype=np.float64)
-    if not (np.all(np.isfinite(p)) and np.all(np.diff(t) > 0)):
+    gaps = np.diff(t)
+    if not (np.all(np.isfinite(p)) and np.all(gaps > 0) and np.all(gaps <= max_gap_us)):
         return None
     tc = (t - t.mean()) * 1e-6
     velocity = (tc @ (p - p.mean(axis=0))) / float(tc @ tc)

@@ -326,6 +326,14 @@ def test_centred_pose_velocity_is_exact_under_constant_acceleration() -> None:
     assert c.reset_counter == 4 and c.quality_pct == 90
     assert messages.centred_pose(poses[:2]) is None
     assert messages.centred_pose([*poses[:4], pose(1_200_000, reset=5)]) is None
+    # a pause in publishing (a slow moment): a window over it would be stamped half the pause
+    # old (PX4 received 1.5 s old samples so, session 19); one skipped frame is no pause
+    late = [poses[0], poses[1], pose(poses[1].time_us + 2_000_000)]
+    assert messages.centred_pose(late) is not None  # without a bound: the old behaviour
+    assert messages.centred_pose(late, max_gap_us=100_000) is None
+    skipped = [poses[0], poses[1], poses[3]]
+    c = messages.centred_pose(skipped, max_gap_us=100_000)
+    assert c is not None and c.time_us == round(np.mean([q.time_us for q in skipped]))
 
 
 def test_scaled_imu_gives_the_accelerometer_or_nothing() -> None:
@@ -535,6 +543,43 @@ def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) ->
     off = Service(service_config(tmp_path, attitude_wait_s=0.0))
     off.stats.autopilot_heartbeat_ns = 1
     assert off._wait_for_attitude(frames[0]) is False
+
+
+def test_centred_odometry_after_a_pause_is_never_stamped_across_it(tmp_path, monkeypatch) -> None:
+    """The service's ODOMETRY with centred velocity (the PX4 loop's output): through a pause
+    in publishing (frames too old on a slow moment) no message carries a stamp reaching back
+    over it. Before session 19 the first poses after a 2 s pause went out 1.0 s and 0.98 s
+    old (the mean of a window over the pause), which PX4 SITL received 1.5 s old."""
+    from peers import service_config
+
+    from companion.service import app
+    from companion.types import PoseEstimate
+
+    service = app.Service(service_config(tmp_path, output="odometry", odometry_centre_frames=3))
+    sent: list = []
+    monkeypatch.setattr(service.link, "send", lambda m: sent.append((clock["ns"], m)) or True)
+    clock = {"ns": 10_000_000_000}
+    monkeypatch.setattr(app, "now_ns", lambda: clock["ns"])
+    image = np.zeros((4, 4, 3), np.uint8)
+
+    def frame_at(t_us: int) -> None:
+        clock["ns"] = (t_us + 40_000) * 1000  # published 40 ms after its exposure
+        p = np.array([1e-6 * t_us, 0.0, -5.0])  # 1 m/s north
+        pose = PoseEstimate(
+            t_us, p, np.array([1.0, 0, 0, 0]), np.full(3, np.nan), np.eye(6) * 1e-4, 0, 90
+        )
+        service._publish(CameraFrame(t_us, t_us // 50_000, image), pose)
+
+    times = [10_000_000 + k * 50_000 for k in range(10)]  # 20 Hz
+    times += [times[-1] + 2_000_000 + k * 50_000 for k in range(10)]  # after a 2 s pause
+    for t in times:
+        frame_at(t)
+    odo = [(t_ns, m) for t_ns, m in sent if m.get_type() == "ODOMETRY"]
+    # 2 frames before a full window, and again after the pause: 16 of the 20 are sent
+    assert len(odo) == 16
+    for t_ns, m in odo:  # stamped one frame before the newest exposure (sent 40 ms after it)
+        assert t_ns / 1e3 - 40_000 - m.time_usec == 50_000
+        assert abs(m.vx - 1.0) < 1e-6  # the velocity of a window inside one stretch
 
 
 class _FakeCapture:

@@ -887,7 +887,11 @@ class Service:
             if n:
                 self._recent_poses.append(pose)
                 recent = list(self._recent_poses)[-n:]
-                centred = messages.centred_pose(recent) if len(recent) == n else None
+                centred = (
+                    messages.centred_pose(recent, 1e3 * self.config.service.stale_frame_ms)
+                    if len(recent) == n
+                    else None
+                )
                 wire = (
                     centred
                     if centred is not None
