@@ -174,7 +174,9 @@ class SitlStream(CameraSource):
         self._sock: socket.socket | None = None
         self.bad_frames = 0
 
-    def _recv_exact(self, sock: socket.socket, n: int) -> bytes | None:
+    def _recv_exact(self, sock: socket.socket, n: int) -> bytearray | None:
+        """``n`` bytes from ``sock`` (None at its end), read into one buffer that the frame's
+        array then wraps: a 320x240 frame is not copied again."""
         buf = bytearray(n)
         view = memoryview(buf)
         got = 0
@@ -183,7 +185,7 @@ class SitlStream(CameraSource):
             if k == 0:
                 return None
             got += k
-        return bytes(buf)
+        return buf
 
     def _read(self) -> Iterator[CameraFrame]:
         while not self.closed:

@@ -482,9 +482,10 @@ def test_udpout_sends_from_the_fixed_local_port() -> None:
 
 
 def test_frames_wait_for_a_slow_step_but_not_for_a_slow_board(tmp_path) -> None:
-    """The pipeline takes the oldest frame <= frame_wait_ms (60) old: a keyframe that
-    ran long costs latency, not a pose; older frames are skipped for newer ones
-    (counted as dropped), so a board slower than the camera keeps a bounded latency."""
+    """The pipeline takes the oldest frame <= frame_wait_ms (60) old, and young enough to
+    be sent after the recent processing time: a keyframe that ran long costs latency, not
+    a pose; older frames are skipped for newer ones (counted as dropped), so a board slower
+    than the camera keeps a bounded latency."""
     from peers import service_config
 
     from companion.service.app import Service, now_ns
@@ -509,6 +510,16 @@ def test_frames_wait_for_a_slow_step_but_not_for_a_slow_board(tmp_path) -> None:
     assert taken() == [3, 4] and service.stats.frames_dropped == 3
     queue(500.0)  # the only frame is always taken (the publisher's stale rule decides)
     assert taken() == [0] and service.stats.frames_dropped == 3
+    # a loaded machine: with 50 ms of processing a frame over 50 ms old would be stale
+    # (stale_frame_ms 100) once processed: skipped before the work while a newer one waits
+    service.stats.process_ms.extend([50.0] * 20)
+    queue(55.0, 22.0, 0.0)
+    assert taken() == [1, 2] and service.stats.frames_dropped == 4
+    service.stats.process_ms.extend([90.0] * 20)  # the newest alone can still make it
+    queue(55.0, 22.0, 0.0)
+    assert taken() == [2] and service.stats.frames_dropped == 6
+    queue(70.0)  # still: the only frame is always taken
+    assert taken() == [0] and service.stats.frames_dropped == 6
 
 
 def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) -> None:

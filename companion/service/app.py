@@ -31,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import itertools
 import json
 import logging
 import sys
@@ -70,6 +71,7 @@ from drivers.timesync import ClockSync, reply_for
 log = logging.getLogger("companion.service")
 
 MAX_CONSECUTIVE_PIPELINE_ERRORS = 30  # about a second of frames: then the service ends
+RECENT_PROCESS = 20  # frames whose median processing time rules which queued one can be sent
 FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; frame_wait_ms rules)
 CAMERA_SILENT_S = 1.0  # no frame for this long (or 10 frame periods, if longer): said, shown
 AUTOPILOT_UNHEARD_S = 5.0  # no heartbeat this long after the start: said, with the link's error
@@ -771,9 +773,19 @@ class Service:
             self.stats.cycle_ms.append((time.perf_counter() - t0) * 1e3)
 
     def _next_frame(self) -> CameraFrame | None:
-        """The oldest queued frame at most frame_wait_ms old (since exposure); older ones are
-        skipped (counted as dropped) while a newer frame exists."""
-        limit_us = self.config.service.frame_wait_ms * 1e3
+        """The oldest queued frame that can still be published: at most frame_wait_ms old
+        (since exposure), and at most stale_frame_ms less the recent processing time (the
+        median of the last RECENT_PROCESS frames), so that its pose is not too old to send
+        once made; older ones are skipped (counted as dropped) while a newer frame exists.
+        On a loaded machine (a climb's keyframes beside the simulator on 2 cores, session
+        19) frames were processed only to be found stale: 1.3-1.7 s without a pose sent,
+        and PX4 stopped fusing us; a frame skipped before the work leaves the time to the
+        next one."""
+        o = self.config.service
+        limit_us = o.frame_wait_ms * 1e3
+        recent = list(itertools.islice(reversed(self.stats.process_ms), RECENT_PROCESS))
+        if len(recent) == RECENT_PROCESS:
+            limit_us = min(limit_us, (o.stale_frame_ms - float(np.median(recent))) * 1e3)
         with self._frames_lock:
             now_us = now_ns() / 1e3
             while len(self._frames) > 1 and now_us - self._frames[0].time_us > limit_us:
