@@ -111,7 +111,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
-    offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1)
+    s["vo_heading_deg"] = read_json(out / "service-report.json").get("vo_heading_deg")
+    frame_error = _frame_heading_error(t_tr, tr[:, 4:8], air_t0, s["vo_heading_deg"])
+    offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1, frame_error)
     path_and_landing(s, flight, ok, tr, air_t0, air_t1)
     camera_and_latency(s, out)
     _px4_vision_age(s, ulog)
@@ -260,10 +262,12 @@ def _position_errors(
     ours: Any,
     t_cmp: Any,
     air_t1: Any,
+    frame_error: float | None = None,
 ) -> np.ndarray:
     """PX4's estimate against the truth over the compared span, each stretch between EKF2
-    position resets after its own translation, into ``s``; the longest stretch's
-    translation (3,)."""
+    position resets after its own translation, into ``s`` (also turned into PX4's axes and,
+    given ``frame_error`` [rad] (_frame_heading_error), into our frame's); the longest
+    stretch's translation (3,)."""
     # to the touchdown: the truth at the home level, or PX4's land detector if earlier (SIH's
     # vehicle may sink below its start altitude before PX4 sees the landing: px4_bridge.py)
     t_touch = touchdown(t_tr, p_tr, t_cmp, air_t1, 0.02)
@@ -285,12 +289,38 @@ def _position_errors(
     dpsi = _heading_offset(ulog, ours, t_cmp)
     if dpsi is not None:
         s["heading_offset_deg"] = float(np.degrees(dpsi))
-        c, sn = np.cos(dpsi), np.sin(dpsi)
-        turned = est_p @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
-        own: dict[str, Any] = {}
-        segment_errors(own, turned, gt, seg)
-        s["horizontal_error_m_p95_px4_axes"] = own["horizontal_error_m_p95"]
+        s["horizontal_error_m_p95_px4_axes"] = _turned_p95(est_p, gt, seg, dpsi)
+    if frame_error is not None:
+        s["frame_heading_error_deg"] = float(np.degrees(frame_error))
+        s["horizontal_error_m_p95_frame_axes"] = _turned_p95(est_p, gt, seg, -frame_error)
     return offset
+
+
+def _turned_p95(est: np.ndarray, gt: np.ndarray, seg: np.ndarray, angle_rad: float) -> Any:
+    """Horizontal p95 [m] of ``est`` (N, 3) turned by ``angle_rad`` about the vertical (NED:
+    positive turns north towards east) against ``gt``, per stretch (segment_errors)."""
+    c, sn = np.cos(angle_rad), np.sin(angle_rad)
+    turned = est @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]).T
+    own: dict[str, Any] = {}
+    segment_errors(own, turned, gt, seg)
+    return own["horizontal_error_m_p95"]
+
+
+def _frame_heading_error(
+    t_tr: np.ndarray, q_tr: np.ndarray, before: Any, vo_heading_deg: float | None
+) -> float | None:
+    """Our frame's heading error [rad]: the heading the service's VO took at its start (the
+    autopilot's then: ``vo_heading_deg``, its exit report) minus SIH's true yaw on the
+    ground (the median before ``before``, our clock [ns]; the vehicle rests until it arms).
+    Every position we send is turned by it about home: PX4's compass error at our start,
+    which no estimator of ours sees (docs/RESULTS.md, session 19). None without either."""
+    rest = t_tr < before
+    if vo_heading_deg is None or rest.sum() < 10:
+        return None
+    w, x, y, z = (q_tr[rest, k] for k in range(4))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    d = np.radians(vo_heading_deg) - float(np.median(yaw))
+    return float(np.arctan2(np.sin(d), np.cos(d)))
 
 
 def _heading_offset(ulog: dict[str, np.ndarray], ours: Any, t_cmp: Any) -> float | None:

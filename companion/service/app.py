@@ -973,6 +973,8 @@ class Service:
             "pipeline_errors": s.pipeline_errors,
             "warnings": list(s.warnings),
             "vo_resets": ps.vo_resets,
+            # our frame's heading [deg]: the autopilot's when the VO started (None: no attitude)
+            "vo_heading_deg": ps.vo_heading_deg,
             "vo_gaps": ps.gaps,  # resets forced by > vo.max_gap_ms without frames
             "reset_counter": s.last_reset_counter,
             "scale": ps.scale,

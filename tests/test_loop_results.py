@@ -1,0 +1,47 @@
+"""The closed loops' summary figures (sitl/px4_results.py): our frame's heading error and the
+error in that frame's axes, on a seeded synthetic flight whose frame is turned by a known
+angle."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.geometry import so3
+from sitl.px4_results import _frame_heading_error, _turned_p95
+
+
+def _square(n: int = 400, side_m: float = 20.0) -> np.ndarray:
+    """A 20 m square at 5 m up (N, 3), NED."""
+    s = np.linspace(0.0, 4.0, n, endpoint=False)
+    leg, f = np.floor(s).astype(int), s - np.floor(s)
+    corners = np.array([[0, 0], [side_m, 0], [side_m, side_m], [0, side_m], [0, 0]], float)
+    xy = corners[leg] + f[:, None] * (corners[leg + 1] - corners[leg])
+    return np.column_stack([xy, np.full(n, -5.0)])
+
+
+def test_a_frame_turned_by_the_autopilots_heading_error_is_measured_and_undone() -> None:
+    rng = np.random.default_rng(19)
+    true_yaw_rad = np.radians(30.0)  # the vehicle rests at yaw 30 deg before the take-off
+    error_rad = np.radians(0.9)  # the autopilot's compass is 0.9 deg past the truth then
+    t_ns = np.arange(200) * 50_000_000
+    q = so3.matrix_to_quat(so3.rpy_to_matrix(0.0, 0.0, true_yaw_rad))
+    q_tr = np.tile(q, (len(t_ns), 1))
+    vo_heading_deg = float(np.degrees(true_yaw_rad + error_rad))  # what the service took
+    got = _frame_heading_error(t_ns, q_tr, t_ns[-1] + 1, vo_heading_deg)
+    assert got is not None and abs(got - error_rad) < 1e-9
+    assert _frame_heading_error(t_ns, q_tr, t_ns[-1] + 1, None) is None
+    assert _frame_heading_error(t_ns, q_tr, t_ns[5], vo_heading_deg) is None  # too few at rest
+
+    # positions in a frame whose north is the autopilot's: a compass 0.9 deg past the truth
+    # puts its north 0.9 deg west of true north, so every true vector reads 0.9 deg further
+    # east in it (turned north -> east by +error)
+    gt = _square()
+    c, s = np.cos(error_rad), np.sin(error_rad)
+    est = gt @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+    est += rng.normal(0.0, 0.01, est.shape)  # 1 cm of estimate noise
+    seg = np.zeros(len(gt), dtype=np.int64)
+    north_aligned = _turned_p95(est, gt, seg, 0.0)
+    in_our_axes = _turned_p95(est, gt, seg, -got)
+    assert north_aligned > 0.2  # 0.9 deg at up to 28 m from home (after the median offset)
+    assert in_our_axes < 0.03  # only the noise left
+    assert _turned_p95(est, gt, seg, got) > 1.8 * north_aligned  # the wrong way: twice the angle
