@@ -54,20 +54,26 @@ def _unlock(fd: int) -> None:
     os.close(fd)
 
 
-def _not_counted(since: float) -> None:
+def _not_counted(since: float) -> float:
     """Give the running test back the time it waited for a lock since ``since`` (monotonic):
     pytest-timeout's alarm (its signal method, ITIMER_REAL) moves on by as much, so that a
-    test's limit counts its own work, not the other tests' (of this run or another run)."""
+    test's limit counts its own work, not the other tests' (of this run or another run).
+    Returns now (monotonic): a wait calls it after every poll, so that the alarm never goes
+    off while it waits (session 19: with two runs on the machine, three autopilot tests
+    timed out in their wait for the other run's autopilots, 60-300 s)."""
+    now = time.monotonic()
     remaining_s, interval_s = signal.getitimer(signal.ITIMER_REAL)
     if remaining_s > 0:
-        signal.setitimer(signal.ITIMER_REAL, remaining_s + time.monotonic() - since, interval_s)
+        signal.setitimer(signal.ITIMER_REAL, remaining_s + now - since, interval_s)
+    return now
 
 
 async def hold_machine_async(exclusive: bool, poll_s: float = 0.1) -> None:
     """Hold the machine, shared or alone, until release_machine(); a process that holds it
     shared and asks for it alone lets go first (two upgrades would wait on each other). Polls,
-    so that a test's timeout can interrupt the wait; the wait is not counted in that timeout
-    (_not_counted)."""
+    moving the test's timeout on by each poll's wait (_not_counted): the wait is not counted,
+    however long another run keeps the machine (a lock dies with its holder; a run that hangs
+    holding it ends at its own timeouts)."""
     base = os.environ.get(MACHINE_LOCK_ENV)
     if not base:
         return
@@ -75,10 +81,12 @@ async def hold_machine_async(exclusive: bool, poll_s: float = 0.1) -> None:
     since = time.monotonic()
     while (turn := _try_lock(base + ".turn")) is None:
         await asyncio.sleep(poll_s)
+        since = _not_counted(since)
     try:
         mode = fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH
         while (fd := _try_lock(base, mode)) is None:
             await asyncio.sleep(poll_s)
+            since = _not_counted(since)
         _machine.append(fd)
     finally:
         _unlock(turn)
@@ -110,6 +118,7 @@ def hold_autopilots(poll_s: float = 0.5) -> None:
     since = time.monotonic()
     while (fd := _try_lock(path)) is None:
         time.sleep(poll_s)
+        since = _not_counted(since)
     _autopilots.append(fd)
     _not_counted(since)
 

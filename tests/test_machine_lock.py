@@ -7,9 +7,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import peers
+import pytest
 from peers import AUTOPILOTS_LOCK_ENV, _not_counted
 
 TESTS = Path(__file__).parent
@@ -77,3 +80,37 @@ def test_a_wait_for_the_machine_is_not_counted_in_the_tests_time_limit() -> None
         assert extended_s > remaining_s + 29.0
     finally:
         signal.setitimer(signal.ITIMER_REAL, remaining_s, interval_s)
+
+
+def test_a_wait_longer_than_the_tests_limit_does_not_end_the_test(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The alarm moves on while the test waits, not only once it has the lock: here the other
+    run holds the autopilots 2.5 s against a limit of 1 s left (three tests of session 19's
+    second run ended in their wait so, 60-300 s)."""
+    env = {**os.environ, AUTOPILOTS_LOCK_ENV: str(tmp_path / "autopilots.lock")}
+    monkeypatch.setenv(AUTOPILOTS_LOCK_ENV, env[AUTOPILOTS_LOCK_ENV])
+    monkeypatch.setattr(peers, "_autopilots", [])  # this worker's own hold, if any, aside
+    other = _run(tmp_path / "released", "hold", env)
+    remaining_s, interval_s = signal.getitimer(signal.ITIMER_REAL)
+    assert remaining_s > 0, "no pytest-timeout alarm: the suite's limits are not armed"
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "held"
+        threading.Timer(2.5, _release, (other,)).start()
+        signal.setitimer(signal.ITIMER_REAL, 1.0, interval_s)  # 1 s left of this test's limit
+        t0 = time.monotonic()
+        peers.hold_autopilots(poll_s=0.05)  # pytest-timeout fails the test here if it fires
+        waited_s = time.monotonic() - t0
+        left_s, _ = signal.getitimer(signal.ITIMER_REAL)
+        peers.release_autopilots()
+        assert waited_s >= 2.0 and left_s > 0.5  # the wait was given back as it went
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, remaining_s, interval_s)
+        other.kill()
+        other.communicate()
+
+
+def _release(holder: subprocess.Popen[str]) -> None:
+    assert holder.stdin is not None
+    holder.stdin.write("\n")
+    holder.stdin.flush()
