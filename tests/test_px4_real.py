@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -373,6 +373,12 @@ def test_real_px4_gives_each_broken_set_up_its_reason(vision_px4: RealPx4, case:
         wait_for(r.px4, f"cs_ev_pos {s.fused}", lambda: ev_pos(r.px4) is s.fused)
         time.sleep(1.0)
         report = r.check(s.output)
+        if case == "ev_delay_200ms":
+            # EKF2 fuses a sample shifted 200 ms back only while it arrives younger than its
+            # delayed horizon + 100 ms - 200 ms (~52 ms here: horizon 152 ms): on a loaded
+            # machine (65 ms, session 19's two runs at once) it stops. The check must say
+            # what PX4 does, and flag the delay either way
+            s = replace(s, fused=bool(ev_pos(r.px4)))
     finally:
         set_up(r, Scenario(VPE))
         r.sender.answering = True

@@ -130,15 +130,16 @@ def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
             sock.settimeout(0.1)
             answered = False
             sock.sendto(mav.timesync_encode(0, 424242).pack(mav), ("127.0.0.1", port))
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 2 and not answered:
+            t0 = time.monotonic()  # still answering, however loaded the machine (not its speed)
+            while time.monotonic() - t0 < 10 and not answered:
                 with contextlib.suppress(TimeoutError):
                     data = await asyncio.to_thread(sock.recv, 4096)
                     answered = any(
                         m.get_type() == "TIMESYNC" and m.ts1 == 424242
                         for m in mav.parse_buffer(data) or []
                     )
-            tasks_alive = all(not t.done() for t in service._tasks)
+            tasks_alive = [t.get_name() for t in service._tasks if not t.done()]
+            tasks_dead = [t.get_name() for t in service._tasks if t.done()]
             queued_attitudes = list(service._attitudes)
             queued_ranges = list(service._ranges)
             summary = service.summary()
@@ -148,12 +149,14 @@ def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
         for a in queued_attitudes:
             assert np.all(np.isfinite(a.quat_wxyz)) and np.all(np.abs(a.rates_rad_s) <= 50)
         assert all(r.is_valid for r in queued_ranges)
-        return summary, status, answered and tasks_alive, sent
+        return summary, status, (answered, tasks_alive, tasks_dead), sent
 
-    summary, status, alive, sent = asyncio.run(main())
+    summary, status, (answered, tasks_alive, tasks_dead), sent = asyncio.run(main())
     link = summary["link"]
     print(link, summary["ranges_rejected"], summary["attitudes_in"])
-    assert alive and not loop_errors
+    assert answered, "no TIMESYNC answer within 10 s of the storm's end"
+    assert tasks_alive and not tasks_dead, tasks_dead
+    assert not loop_errors, loop_errors
     assert link["handler_errors"] == 0
     assert link["rx_bytes"] >= 0.99 * sent  # the storm was read, not lost in the socket
     assert link["rx_bad"] > 20_000 and link["rx_messages"] > 20_000
