@@ -73,6 +73,7 @@ def _hold(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray) -> np.ndarray:
 def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     out: Path = flight.out
     tel = flight.tel
+    service_report = read_json(out / "service-report.json")
     s: dict[str, Any] = {
         "mission": flight.o.mission,
         "seed": flight.o.seed,
@@ -85,7 +86,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         "ev_fused_s_before_arming": _between(tel.phases, "ev fused", "armed"),
         # the message rates PX4 acknowledged to the service (its exit report): TIMESYNC (111)
         # among them once PX4 took our faster time sync (service.px4_timesync_rate_hz)
-        "rates_acknowledged": read_json(out / "service-report.json").get("rates_acknowledged"),
+        "rates_acknowledged": service_report.get("rates_acknowledged"),
         "configure_exit": getattr(flight, "configure_exit", None),
         "notes": list(flight.notes),
     }
@@ -111,9 +112,9 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     # from 2 s after the first fusion (EKF2's reset to our frame and its transient) to the disarm
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
-    s["vo_heading_deg"] = read_json(out / "service-report.json").get("vo_heading_deg")
-    frame_error = _frame_heading_error(t_tr, tr[:, 4:8], air_t0, s["vo_heading_deg"])
-    offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1, frame_error)
+    s["vo_heading_deg"] = service_report.get("vo_heading_deg")
+    frame_error_rad = _frame_heading_error(t_tr, tr[:, 4:8], air_t0, s["vo_heading_deg"])
+    offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1, frame_error_rad)
     path_and_landing(s, flight, ok, tr, air_t0, air_t1)
     camera_and_latency(s, out)
     _px4_vision_age(s, ulog)
@@ -262,11 +263,11 @@ def _position_errors(
     ours: Any,
     t_cmp: Any,
     air_t1: Any,
-    frame_error: float | None = None,
+    frame_error_rad: float | None = None,
 ) -> np.ndarray:
     """PX4's estimate against the truth over the compared span, each stretch between EKF2
     position resets after its own translation, into ``s`` (also turned into PX4's axes and,
-    given ``frame_error`` [rad] (_frame_heading_error), into our frame's); the longest
+    given ``frame_error_rad`` (_frame_heading_error), into our frame's); the longest
     stretch's translation (3,)."""
     # to the touchdown: the truth at the home level, or PX4's land detector if earlier (SIH's
     # vehicle may sink below its start altitude before PX4 sees the landing: px4_bridge.py)
@@ -290,10 +291,17 @@ def _position_errors(
     if dpsi is not None:
         s["heading_offset_deg"] = float(np.degrees(dpsi))
         s["horizontal_error_m_p95_px4_axes"] = _turned_p95(est_p, gt, seg, dpsi)
-    if frame_error is not None:
-        s["frame_heading_error_deg"] = float(np.degrees(frame_error))
-        s["horizontal_error_m_p95_frame_axes"] = _turned_p95(est_p, gt, seg, -frame_error)
+    if frame_error_rad is not None:
+        s["frame_heading_error_deg"] = float(np.degrees(frame_error_rad))
+        s["horizontal_error_m_p95_frame_axes"] = _turned_p95(est_p, gt, seg, -frame_error_rad)
     return offset
+
+
+def _yaw_rad(q_wxyz: np.ndarray) -> np.ndarray:
+    """Yaw [rad] of quaternions (N, 4) wxyz (body FRD -> NED)."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
 
 
 def _turned_p95(est: np.ndarray, gt: np.ndarray, seg: np.ndarray, angle_rad: float) -> Any:
@@ -317,9 +325,7 @@ def _frame_heading_error(
     rest = t_tr < before
     if vo_heading_deg is None or rest.sum() < 10:
         return None
-    w, x, y, z = (q_tr[rest, k] for k in range(4))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    d = np.radians(vo_heading_deg) - float(np.median(yaw))
+    d = np.radians(vo_heading_deg) - float(np.median(_yaw_rad(q_tr[rest])))
     return float(np.arctan2(np.sin(d), np.cos(d)))
 
 
@@ -334,14 +340,9 @@ def _heading_offset(ulog: dict[str, np.ndarray], ours: Any, t_cmp: Any) -> float
     if near.sum() < 10:
         return None
 
-    def yaw(q: np.ndarray) -> np.ndarray:
-        q = np.asarray(q, dtype=np.float64)
-        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-
     t_g = ours(vg["timestamp"])
-    y_true = np.interp(t_a[near], t_g, np.unwrap(yaw(vg["q"])))
-    d = y_true - yaw(va["q"][near])
+    y_true = np.interp(t_a[near], t_g, np.unwrap(_yaw_rad(vg["q"])))
+    d = y_true - _yaw_rad(va["q"][near])
     return float(np.median(np.arctan2(np.sin(d), np.cos(d))))
 
 
