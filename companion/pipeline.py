@@ -24,6 +24,7 @@ from companion.attitude.gravity import (
     attitude_correction,
     gravity_from_motion,
 )
+from companion.attitude.heading import HeadingFix, MagHeading
 from companion.attitude.pad import PadLevel
 from companion.config import Config
 from companion.dpose.estimator import Dpose
@@ -56,6 +57,10 @@ VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [u
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
 VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
+# vo.heading_source = magnetometer: the compass window ends when the VO sees the body move
+# this far or turn this much from where the window started
+MAG_STILL_MAX_MOVE_M = 0.1
+MAG_STILL_MAX_TURN_RAD = float(np.radians(1.0))
 IMU_BUFFER = 4096  # accelerometer samples kept (80 s at 50 Hz, 16 s at 250 Hz)
 MOTION_BUFFER = 1024  # (time, map, R_vo_body, metric position) of the last frames kept
 # the tilt correction of a 4 s window changes slowly: recomputed at most this often (~1 ms
@@ -115,6 +120,13 @@ class Pipeline:
                 float(np.radians(PAD_MAX_ERROR_DEG)),
             )
         self._pad_sampled_us = 0  # the last plane sampled over the pad
+        # vo.heading_source = magnetometer: this VO map's compass window, the map it belongs to,
+        # the body's VO position and yaw where it started, the mean turn since, frames in it
+        self.mag_heading: MagHeading | None = None
+        self._mag_window: tuple[int, F64, float] | None = None
+        self._mag_turn = (0.0, 0)
+        self.heading_fix: HeadingFix | None = None  # the fix the frame's heading took
+        self.mag_heading_ended = False  # the body moved: no compass window any more
         self.specs = {r.sensor_id: r.spec() for r in config.rangefinders}
         self._beams_of: dict[tuple[int, ...], tuple[F64, F64]] = {}  # by sensor ids: origins, beams
         methods = make_methods(self.camera, config.scale, sensor_study)
@@ -263,6 +275,7 @@ class Pipeline:
         t0 = time.perf_counter()
         self.tilt = self._tilt(frame.time_us, {sid: v[0] for sid, v in lasers.items()})
         self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
+        self._magnetometer_heading(frame.time_us)
         pose = self._pose(frame.time_us)
         self._remember_motion(frame.time_us, R_world_body)
         if pose is not None and self.dpose is not None:
@@ -478,6 +491,64 @@ class Pipeline:
         it, the next feed_frame does it first. Returns whether there was any."""
         return self.vo.finish_pending()
 
+    def _magnetometer_heading(self, time_us: int) -> None:
+        """``vo.heading_source = magnetometer``: the VO frame's heading from our own compass
+        (companion/attitude/heading.py). From a VO map's first tracking frame the IMU samples
+        (SCALED_IMU's accelerometer, gyroscope and raw field) are averaged while the body
+        stands still; once they span ``vo.mag_heading_min_s`` the frame's heading becomes
+        the compass's body heading minus the body's yaw in the VO frame (its mean over the
+        window), and it is refined with every frame until the body moves (the IMU, or the VO
+        seeing it move MAG_STILL_MAX_MOVE_M or turn MAG_STILL_MAX_TURN_RAD). Then it stays
+        for the map's life (a later change would turn the published trajectory about the
+        map's origin), and no later map takes the compass's: the first motion is the take-off,
+        and in the air the accelerometer is no level and the motors disturb the field (a map
+        after a VO reset takes the autopilot's heading, which fused ours). On the ground the
+        position is at that origin, so the turn moves it by millimetres; the published yaw
+        steps by the compass's correction (< 2 deg on PX4 SIH), which EKF2 fuses as a yaw
+        measurement."""
+        o = self.config.vo
+        if o.heading_source != "magnetometer" or self.mag_heading_ended:
+            return
+        p = self.metric_positions.get(self.method_name)
+        R = self.R_vo_body()
+        if p is None or R is None:
+            return
+        yaw_body_vo = so3.matrix_to_rpy(R)[2]
+        w = self._mag_window
+        h = self.mag_heading
+        if h is None or w is None or w[0] != self.vo.resets:
+            h = self.mag_heading = MagHeading(float(np.radians(o.mag_declination_deg)))
+            h.last_us = time_us  # the window starts at the map's first pose
+            w = self._mag_window = (self.vo.resets, np.array(p, dtype=np.float64), yaw_body_vo)
+            self._mag_turn = (0.0, 0)
+        start = h.last_us if h.last_us is not None else time_us
+        fresh = []
+        for sample in reversed(self._imu):  # from the newest end: only the last frame's
+            if sample.time_us <= start:
+                break
+            if sample.time_us <= time_us:
+                fresh.append(sample)
+        for sample in reversed(fresh):
+            h.add(sample)
+        turn = float(np.angle(np.exp(1j * (yaw_body_vo - w[2]))))
+        if (
+            float(np.linalg.norm(p - w[1])) > MAG_STILL_MAX_MOVE_M
+            or abs(turn) > MAG_STILL_MAX_TURN_RAD
+        ):
+            h.moved = True
+        if h.moved:
+            self.mag_heading_ended = True
+            return
+        total, n = self._mag_turn
+        self._mag_turn = (total + turn, n + 1)
+        fix = h.fix()
+        if fix is None or fix.span_us < o.mag_heading_min_s * 1e6:
+            return
+        mean_yaw_body_vo = w[2] + self._mag_turn[0] / self._mag_turn[1]
+        self.vo.yaw_vo_rad = float(np.angle(np.exp(1j * (fix.yaw_rad - mean_yaw_body_vo))))
+        self.vo.yaw_vo_known = True
+        self.heading_fix = fix
+
     def _remember_motion(self, time_us: int, R_world_body: F64 | None) -> None:
         """The body's rotation and metric position in the VO frame at this frame, for
         :meth:`_imu_gravity` (with the VO map and the published trajectory's reset counter:
@@ -656,6 +727,11 @@ class Pipeline:
             vo_heading_deg=(
                 float(np.degrees(self.vo.yaw_vo_rad)) if self.vo.yaw_vo_known else None
             ),
+            mag_heading_sigma_deg=(
+                float(np.degrees(fix.sigma_rad)) if (fix := self.heading_fix) is not None else None
+            ),
+            mag_heading_samples=fix.samples if fix is not None else 0,
+            mag_heading_final=self.mag_heading_ended,
             gaps=self.gaps,
             method=self.method_name,
             scale=est.scale if est is not None else None,
@@ -681,6 +757,11 @@ class PipelineStatus:
     # heading of the VO frame's x axis [deg]: the autopilot's at the VO's initialisation; None
     # when no autopilot attitude was at hand then (the frame's x axis is the first heading)
     vo_heading_deg: float | None
+    # vo.heading_source = magnetometer: the compass fix the heading took (its white-noise sigma
+    # and the samples averaged); None / 0 while the heading is still the autopilot's
+    mag_heading_sigma_deg: float | None
+    mag_heading_samples: int
+    mag_heading_final: bool  # the vehicle moved: the compass no longer refines the heading
     gaps: int  # resets forced by a gap without usable frames
     method: str  # the published scale method
     scale: float | None  # its scale (metres per VO unit), None before the first

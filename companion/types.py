@@ -79,14 +79,17 @@ class AttitudeSample:
 
 @dataclass(frozen=True, slots=True)
 class ImuSample:
-    """One accelerometer sample from the autopilot (SCALED_IMU).
+    """One inertial sample from the autopilot (SCALED_IMU).
 
     accel_frd_m_s2: (3,) specific force in the body frame (FRD) [m/s^2]: about (0, 0, -9.81)
-    level and at rest.
+    level and at rest. gyro_frd_rad_s: (3,) body rates [rad/s], None when not sent.
+    mag_frd_gauss: (3,) magnetic field in the body frame [gauss], None without a magnetometer.
     """
 
     time_us: int
     accel_frd_m_s2: F64
+    gyro_frd_rad_s: F64 | None = None
+    mag_frd_gauss: F64 | None = None
 
 
 class VoState(enum.Enum):

@@ -58,6 +58,10 @@ ALGORITHM_SECTIONS = ("vo", "scale", "attitude", "dpose")
 RANGE_COLUMNS = ["time_us", "sensor_id", "distance_m", "min_m", "max_m", "signal_quality"]
 ATTITUDE_COLUMNS = ["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"]
 IMU_COLUMNS = ["time_us", "ax_m_s2", "ay_m_s2", "az_m_s2"]  # specific force, body FRD
+# optional (recordings before session 20 lack them; empty when the autopilot sent none):
+# body rates and the raw magnetic field, body FRD
+IMU_GYRO_COLUMNS = ["wx_rad_s", "wy_rad_s", "wz_rad_s"]
+IMU_MAG_COLUMNS = ["mx_gauss", "my_gauss", "mz_gauss"]
 PUBLISHED_COLUMNS = [
     "time_us",
     "x_m",
@@ -373,7 +377,12 @@ def _read_ours(path: Path) -> Dataset:
     if fed_i is not None:
         imu_rows, fed_i = imu_rows[: int(np.searchsorted(fed_i, n))], fed_i[fed_i < n]
     imus = [
-        ImuSample(int(r["time_us"]), np.array([float(r[k]) for k in IMU_COLUMNS[1:]]))
+        ImuSample(
+            int(r["time_us"]),
+            np.array([float(r[k]) for k in IMU_COLUMNS[1:]]),
+            _optional_vector(r, IMU_GYRO_COLUMNS),
+            _optional_vector(r, IMU_MAG_COLUMNS),
+        )
         for r in imu_rows
     ]
     if fed_r is not None:  # samples fed before a frame that was not written: not part of it
@@ -597,6 +606,13 @@ def toml_dumps(data: dict[str, Any]) -> str:
     return "\n".join(_toml_lines(data)).lstrip("\n") + "\n"
 
 
+def _optional_vector(row: dict[str, str], columns: list[str]) -> F64 | None:
+    """(3,) floats from a CSV row's optional columns; None when absent or empty."""
+    if any(not row.get(c) for c in columns):
+        return None
+    return np.array([float(row[c]) for c in columns])
+
+
 def _num(v: float) -> str:
     """A float as its shortest exact text (reads back to the same double)."""
     return repr(float(v))
@@ -712,7 +728,7 @@ class DatasetWriter:
         self._row("frames.csv", ["time_us", "seq", "filename", "held"])
         self._row("ranges.csv", [*RANGE_COLUMNS, FED])
         self._row("attitude.csv", [*ATTITUDE_COLUMNS, FED])
-        self._row("imu.csv", [*IMU_COLUMNS, FED])
+        self._row("imu.csv", [*IMU_COLUMNS, *IMU_GYRO_COLUMNS, *IMU_MAG_COLUMNS, FED])
         self._row("published.csv", PUBLISHED_COLUMNS)
         self._flush()
 
@@ -764,7 +780,9 @@ class DatasetWriter:
                 [a.time_us, *map(_num, a.quat_wxyz), *map(_num, a.rates_rad_s), k],
             )
         for m in imus:
-            self._row("imu.csv", [m.time_us, *map(_num, m.accel_frd_m_s2), k])
+            gyro = ["", "", ""] if m.gyro_frd_rad_s is None else list(map(_num, m.gyro_frd_rad_s))
+            mag = ["", "", ""] if m.mag_frd_gauss is None else list(map(_num, m.mag_frd_gauss))
+            self._row("imu.csv", [m.time_us, *map(_num, m.accel_frd_m_s2), *gyro, *mag, k])
         for r in ranges:
             self._row(
                 "ranges.csv",

@@ -108,15 +108,22 @@ def attitude_from_message(msg: Any, time_us: int) -> AttitudeSample | None:
 
 
 def imu_from_scaled(msg: Any, time_us: int) -> ImuSample | None:
-    """An ImuSample (accelerometer, body FRD [m/s^2]) from SCALED_IMU (mG); None unless the
-    three accelerations are finite and below 16 g. SCALED_IMU, not HIGHRES_IMU: PX4 subtracts
+    """An ImuSample (accelerometer, body FRD [m/s^2]; gyroscope and magnetometer when usable)
+    from SCALED_IMU (mG, mrad/s, mgauss); None unless the three accelerations are finite and
+    below 16 g. SCALED_IMU, not HIGHRES_IMU: PX4 subtracts
     EKF2's accelerometer bias estimate from HIGHRES_IMU, and without GNSS that estimate wanders
     (0.1-0.3 m/s^2 on SIH: 1-2 deg of tilt in our gravity); SCALED_IMU is the calibrated
     sensor alone (docs/decisions.md, "Gravity from the accelerometer")."""
     f = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=np.float64) * (STANDARD_GRAVITY_M_S2 / 1e3)
     if not np.all(np.isfinite(f)) or float(np.linalg.norm(f)) > MAX_SPECIFIC_FORCE_M_S2:
         return None
-    return ImuSample(time_us, f)
+    # gyroscope (mrad/s) and magnetometer (mgauss; PX4 sends its first sensor_mag, corrected
+    # for the board's rotation only; all zero when there is none): None when not usable
+    w = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=np.float64) * 1e-3
+    m = np.array([msg.xmag, msg.ymag, msg.zmag], dtype=np.float64) * 1e-3
+    gyro = w if np.all(np.isfinite(w)) else None
+    mag = m if np.all(np.isfinite(m)) and np.any(m) else None
+    return ImuSample(time_us, f, gyro, mag)
 
 
 def set_message_interval(mav: Any, target_system: int, msg_id: int, rate_hz: float | None) -> Any:

@@ -68,8 +68,14 @@ def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) ->
     cfg = with_record(load_config(), tmp_path / "rec")
     inputs = synthetic_inputs(12)
     rng = np.random.default_rng(7)
-    imus = [  # accelerometer samples (SCALED_IMU) for all but the first frame
-        [ImuSample(f.time_us - d, rng.normal(0.0, 3.0, 3)) for d in (30_000, 10_000)] if k else []
+    imus = [  # SCALED_IMU samples for all but the first frame: one with the gyroscope and the
+        # magnetometer, one with the accelerometer alone (an autopilot without a compass)
+        [
+            ImuSample(f.time_us - 30_000, *rng.normal(0.0, 3.0, (3, 3))),
+            ImuSample(f.time_us - 10_000, rng.normal(0.0, 3.0, 3)),
+        ]
+        if k
+        else []
         for k, (f, _, _) in enumerate(inputs)
     ]
     held = {1, 2}  # frames the service held from its VO (waiting for the autopilot's attitude)
@@ -97,6 +103,11 @@ def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) ->
         elif isinstance(b, ImuSample):
             assert a.time_us == b.time_us
             assert np.array_equal(a.accel_frd_m_s2, b.accel_frd_m_s2)
+            for read, fed in (
+                (a.gyro_frd_rad_s, b.gyro_frd_rad_s),
+                (a.mag_frd_gauss, b.mag_frd_gauss),
+            ):
+                assert (read is None and fed is None) or np.array_equal(read, fed)
         else:
             assert a.time_us == b.time_us
             assert np.array_equal(a.quat_wxyz, b.quat_wxyz)

@@ -337,19 +337,25 @@ def test_centred_pose_velocity_is_exact_under_constant_acceleration() -> None:
 
 
 def test_scaled_imu_gives_the_accelerometer_or_nothing() -> None:
-    """SCALED_IMU's accelerometer (mG -> specific force, FRD [m/s^2]) for the VO's gravity;
-    beyond 16 g: none."""
+    """SCALED_IMU's accelerometer (mG -> specific force, FRD [m/s^2]) for the VO's gravity,
+    its gyroscope (mrad/s -> rad/s) and magnetometer (mgauss -> gauss; all zero: no compass)
+    for our compass heading; beyond 16 g: none."""
     from pymavlink.dialects.v20 import common as mavlink
 
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 
-    def imu(ax: int, ay: int, az: int):
-        m = mav.scaled_imu_encode(123, ax, ay, az, 0, 0, 0, 0, 0, 0)
+    def imu(ax: int, ay: int, az: int, gyro=(0, 0, 0), mag=(0, 0, 0)):
+        m = mav.scaled_imu_encode(123, ax, ay, az, *gyro, *mag)
         return decode(m.pack(mav))
 
     got = messages.imu_from_scaled(imu(10, -20, -1000), 42)
     assert got is not None and got.time_us == 42
     assert np.allclose(got.accel_frd_m_s2, [0.0980665, -0.196133, -9.80665])
+    assert got.mag_frd_gauss is None and np.array_equal(got.gyro_frd_rad_s, np.zeros(3))
+    got = messages.imu_from_scaled(imu(0, 0, -1000, (5, -7, 1200), (218, -13, 430)), 42)
+    assert got is not None and got.gyro_frd_rad_s is not None and got.mag_frd_gauss is not None
+    assert np.allclose(got.gyro_frd_rad_s, [0.005, -0.007, 1.2])
+    assert np.allclose(got.mag_frd_gauss, [0.218, -0.013, 0.430])
     assert messages.imu_from_scaled(imu(0, 0, -17000), 42) is None  # 17 g
 
 

@@ -189,6 +189,7 @@ class Service:
         self._timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
         self._last_vo_state = VoState.INITIALIZING
         self._vo_start_logged = -1  # vo_resets of the last initialisation logged
+        self._compass_logged = (False, False)  # (first fix logged, final one logged)
         self._first_frame_us: int | None = None  # for service.attitude_wait_s
         self.frame_check = FrameCheck(config.vo)  # on every delivered frame (reader thread)
         self._frame_problem: FrameProblem | None = None  # the camera fault in progress
@@ -460,11 +461,9 @@ class Service:
                 wanted[messages.MSG_ID_TIMESYNC] = o.px4_timesync_rate_hz
             wanted[messages.MSG_ID_DISTANCE_SENSOR] = o.distance_sensor_rate_hz
             wanted[messages.MSG_ID_ATTITUDE] = o.attitude_rate_hz
-            if (
-                self.stats.autopilot == "PX4"
-                and o.imu_rate_hz > 0
-                and self.config.vo.imu_gravity_window_s > 0
-            ):
+            vo = self.config.vo
+            imu_wanted = vo.imu_gravity_window_s > 0 or vo.heading_source == "magnetometer"
+            if self.stats.autopilot == "PX4" and o.imu_rate_hz > 0 and imu_wanted:
                 wanted[messages.MSG_ID_SCALED_IMU] = o.imu_rate_hz
             if self.stats.autopilot == "ArduPilot":  # whether it holds our EKF origin
                 wanted[ardupilot.MSG_ID_GLOBAL_POSITION_INT] = ardupilot.POSITION_RATE_HZ
@@ -866,6 +865,23 @@ class Service:
                 p.vo_heading_deg,
             )
 
+    def _log_compass_heading(self, p: PipelineStatus) -> None:
+        """vo.heading_source = magnetometer: once when our compass first sets the frame's
+        heading, and once when it stops refining it (the vehicle moved)."""
+        if p.mag_heading_samples == 0 or p.vo_heading_deg is None:
+            return
+        ended = p.mag_heading_final
+        if self._compass_logged == (True, ended):
+            return
+        self._compass_logged = (True, ended)
+        log.info(
+            "VO frame's heading %.2f deg from our compass (%d samples at rest, sigma %.2f deg)%s",
+            p.vo_heading_deg,
+            p.mag_heading_samples,
+            p.mag_heading_sigma_deg or 0.0,
+            ": final, the vehicle moved" if ended else "; refined until the vehicle moves",
+        )
+
     def _camera_problem(self, problem: FrameProblem | None) -> None:
         """A camera fault starts or ends (on the event loop): said once, not per frame."""
         prev, self._frame_problem = self._frame_problem, problem
@@ -878,6 +894,7 @@ class Service:
         self._last_vo_state = VoState[self.pipeline_status.vo_state]
         if self._last_vo_state == VoState.TRACKING:
             self._log_vo_start(self.pipeline_status)
+            self._log_compass_heading(self.pipeline_status)
         if pose is None or not messages.is_finite_pose(pose):
             self.stats.not_published += 1
             return
@@ -973,8 +990,11 @@ class Service:
             "pipeline_errors": s.pipeline_errors,
             "warnings": list(s.warnings),
             "vo_resets": ps.vo_resets,
-            # our frame's heading [deg]: the autopilot's when the VO started (None: no attitude)
+            # our frame's heading [deg]: the autopilot's when the VO started (None: no attitude),
+            # or our compass's (vo.heading_source = magnetometer) over the samples below
             "vo_heading_deg": ps.vo_heading_deg,
+            "mag_heading_samples": ps.mag_heading_samples,
+            "mag_heading_sigma_deg": ps.mag_heading_sigma_deg,
             "vo_gaps": ps.gaps,  # resets forced by > vo.max_gap_ms without frames
             "reset_counter": s.last_reset_counter,
             "scale": ps.scale,
@@ -1000,6 +1020,7 @@ class Service:
                 "keyframes": p.keyframes,
                 "resets": p.vo_resets,
                 "heading_deg": p.vo_heading_deg,
+                "heading_from_compass": p.mag_heading_samples > 0,
             },
             "scale": {
                 "method": p.method,

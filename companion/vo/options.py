@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from companion.options import opt
+
+HeadingSource = Literal["autopilot", "magnetometer"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +77,25 @@ class VoOptions:
         "motion over this window (when SCALED_IMU arrives) [s]; 0 = the attitude's alone",
         ge=0,
         le=30,
+    )
+    heading_source: HeadingSource = opt(
+        "autopilot",
+        "the VO frame's heading: the autopilot's when the VO initialises, or (magnetometer) "
+        "then our own tilt-compensated compass averaged while the vehicle stands still "
+        "(SCALED_IMU's raw field, companion/attitude/heading.py): docs/decisions.md",
+    )
+    mag_declination_deg: float = opt(
+        0.0,
+        "the site's magnetic declination for heading_source = magnetometer [deg, east "
+        "positive]: look it up for the site (a WMM calculator)",
+        ge=-180,
+        le=180,
+    )
+    mag_heading_min_s: float = opt(
+        5.0,
+        "heading_source = magnetometer: the field averaged this long at rest before the frame "
+        "takes its heading (then refined until the vehicle moves) [s]",
+        gt=0,
     )
     window_keyframes: int = opt(6, "keyframes optimised by the local bundle adjustment", ge=2)
     max_keyframes: int = opt(10, "keyframes kept in the map (older ones dropped)", ge=2)
