@@ -5,8 +5,8 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
 1. PX4 SITL (``px4-sitl INSTANCE WORKDIR``) with GPS off and vision on at boot
    (SENS_EN_GPSSIM=0, SYS_HAS_GPS=0, EKF2_GPS_CTRL=0, EKF2_EV_CTRL=15, EKF2_HGT_REF=3) and
    EKF2_RNG_CTRL=0 (PX4's own simulated rangefinder measures SIH's flat ground; EKF2 does not
-   use it: our distance sensors go to the companion), EKF2_MAG_DECL=3.3, EKF2_EVP_NOISE=0.03
-   (docs/decisions.md, "PX4 SIH in the loop").
+   use it: our distance sensors go to the companion), EKF2_MAG_DECL=3.3, EKF2_EVP_NOISE=0.03,
+   EKF2_ABIAS_INIT=0.05, EKF2_DELAY_MAX=300 (docs/decisions.md, "PX4 SIH in the loop").
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
 3. The bridge (``python -m sitl.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
@@ -93,6 +93,15 @@ BOOT_PARAMS = {
     # truth: < 0.02 m/s^2). With 0.05, six missions: PX4's tilt error 1.01-1.10 deg RMS
     # against SIH's truth, 1.05-1.42 with 0.2 (docs/RESULTS.md, session 11)
     "EKF2_ABIAS_INIT": "0.05",
+    # EKF2's fusion horizon, 300 ms back (default 200): EKF2 fuses a sample when its delayed
+    # horizon passes the sample's stamp, measured at EKF2_DELAY_MAX - 44 ms (156 ms with 200,
+    # 236 with 300: estimator_aid_src_ev_pos, fused minus sample time). Our samples reach PX4
+    # at our latency plus half the ODOMETRY centring window (50 ms at 20 Hz); with 200 the
+    # service had to drop every pose over 100 ms old (service.stale_frame_ms), and on this
+    # 2-core host the bursts of them were EKF2's only unfused moments (0.5-1.6 s without a
+    # sample). With 300 the service sends poses up to 200 ms old (config/px4_sitl.toml), all
+    # still younger than the horizon (docs/decisions.md, "A longer fusion horizon")
+    "EKF2_DELAY_MAX": "300",
 }
 SERIAL_CONTROL_DEV_SHELL = 10
 SERIAL_CONTROL_FLAG_RESPOND, SERIAL_CONTROL_FLAG_EXCLUSIVE = 2, 4
