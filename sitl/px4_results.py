@@ -113,6 +113,10 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     t_cmp = (t_first + SETTLE_NS) if t_first is not None else air_t0
     s["compared_from_s_after_takeoff"] = float((t_cmp - air_t0) * 1e-9)
     s["vo_heading_deg"] = service_report.get("vo_heading_deg")
+    # the compass's part in it (vo.heading_source = magnetometer): field samples averaged at
+    # rest and their white-noise sigma; 0 / None when the heading is PX4's at our start
+    s["mag_heading_samples"] = service_report.get("mag_heading_samples")
+    s["mag_heading_sigma_deg"] = service_report.get("mag_heading_sigma_deg")
     frame_error_rad = _frame_heading_error(t_tr, tr[:, 4:8], air_t0, s["vo_heading_deg"])
     offset = _position_errors(s, t_tr, p_tr, t_lp, p_lp, ulog, ours, t_cmp, air_t1, frame_error_rad)
     path_and_landing(s, flight, ok, tr, air_t0, air_t1)
@@ -317,11 +321,12 @@ def _turned_p95(est: np.ndarray, gt: np.ndarray, seg: np.ndarray, angle_rad: flo
 def _frame_heading_error(
     t_tr: np.ndarray, q_tr: np.ndarray, before: Any, vo_heading_deg: float | None
 ) -> float | None:
-    """Our frame's heading error [rad]: the heading the service's VO took at its start (the
-    autopilot's then: ``vo_heading_deg``, its exit report) minus SIH's true yaw on the
-    ground (the median before ``before``, our clock [ns]; the vehicle rests until it arms).
-    Every position we send is turned by it about home: PX4's compass error at our start,
-    which no estimator of ours sees (docs/RESULTS.md, session 19). None without either."""
+    """Our frame's heading error [rad]: the heading of the service's VO frame
+    (``vo_heading_deg``, its exit report: our compass's at rest with vo.heading_source =
+    magnetometer, else the autopilot's at the VO's start) minus SIH's true yaw on the ground
+    (the median before ``before``, our clock [ns]; the vehicle rests until it arms). Every
+    position we send is turned by it about home, and no estimator of ours sees it
+    (docs/RESULTS.md, sessions 19 and 20). None without either."""
     rest = t_tr < before
     if vo_heading_deg is None or rest.sum() < 10:
         return None

@@ -91,3 +91,6 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
     # within 0.6 deg of SIH's yaw (session 20's six missions: -0.08 to +0.24 deg, sigma 0.10;
     # PX4's heading at our start, which the frame took before, was up to 1.15 deg off)
     assert abs(s["frame_heading_error_deg"]) <= 0.6, detail
+    # ... from PX4's SCALED_IMU through the service: >= 10 s of field samples at 50 Hz (the
+    # ground hold gives ~50 s)
+    assert (s["mag_heading_samples"] or 0) >= 500, detail
