@@ -876,3 +876,31 @@ def test_check_will_not_share_the_running_services_link(tmp_path: Path) -> None:
             assert gcs.url == "udpin://127.0.0.1:14550" and gcs.ctx.fc_port == "ETHERNET"
 
     asyncio.run(scenario())
+
+
+def test_delay_max_reaches_back_as_far_as_our_oldest_stamps() -> None:
+    """EKF2_DELAY_MAX against how old our stamps can leave (service.stale_frame_ms plus the
+    ODOMETRY centring), EKF2's horizon trailing by ~45 ms (the real PX4 measured 156 / 236 ms
+    with 200 / 300): the default service (100 ms, no centring) is served by PX4's default 200;
+    the PX4 loop's (200 ms and 3 poses centred at 20 Hz: 250 ms) needs 300, which configure
+    writes (applied at a reboot). A parameter list without it gets no row."""
+    from companion.config import load_config
+    from companion.px4.check import oldest_stamp_ms
+    from companion.px4.rules import LinkContext
+
+    assert oldest_stamp_ms(load_config()) == 100.0
+    assert oldest_stamp_ms(load_config("config/px4_sitl.toml")) == 250.0
+    base: dict[str, int | float] = {
+        "EKF2_HGT_REF": 3,
+        "SYS_HAS_MAG": 1,
+        "EKF2_MAG_TYPE": 0,
+        "EKF2_EV_CTRL": 15,
+    }
+    loop = LinkContext("odometry", odometry_frame="local_ned", oldest_stamp_ms=250.0)
+    short = _rows({**base, "EKF2_DELAY_MAX": 200.0}, loop)["EKF2_DELAY_MAX"]
+    assert short.status is Status.WARN and "fused late" in short.why
+    assert [(t.value, t.reboot) for t in short.targets] == [(300.0, True)]
+    assert _rows({**base, "EKF2_DELAY_MAX": 300.0}, loop)["EKF2_DELAY_MAX"].status is Status.OK
+    default = LinkContext("odometry")
+    assert _rows({**base, "EKF2_DELAY_MAX": 200.0}, default)["EKF2_DELAY_MAX"].status is Status.OK
+    assert "EKF2_DELAY_MAX" not in _rows(base, loop)

@@ -25,6 +25,7 @@ PX4 refuses to arm) and needs a magnetometer for the same reason.
 from __future__ import annotations
 
 import enum
+import math
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -73,6 +74,11 @@ RNG_CTRL = {0: "off", 1: "conditional", 2: "enabled"}
 NOISE_MD = {0: "from the message", 1: "from the parameters"}
 MAG_TYPE = {0: "automatic", 1: "magnetic heading", 5: "none", 6: "init only"}
 REBOOT_PARAMS = frozenset({"EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_DELAY_MAX"})
+# EKF2 fuses a vision sample when its delayed horizon passes the sample's stamp; the horizon
+# trails PX4's clock by EKF2_DELAY_MAX less this much (PX4 SITL, main 2026-03: fused minus
+# sample time 156 ms with EKF2_DELAY_MAX 200, 236 ms with 300; docs/decisions.md, "A longer
+# fusion horizon")
+HORIZON_SHORTFALL_MS = 45.0
 REBOOT_PREFIXES = ("MAV_", "SER_", "SYS_HAS_")
 
 
@@ -128,6 +134,9 @@ class LinkContext:
     link_host: str = "127.0.0.1"  # its host (UDP/TCP: where it listens or sends to)
     no_gnss: bool = False  # configure --no-gnss: also turn GNSS fusion off (EKF2_GPS_CTRL = 0)
     odometry_frame: str = "local_frd"  # service.odometry_frame
+    # the oldest our samples' stamps can be when they leave: service.stale_frame_ms plus the
+    # ODOMETRY centring's (service.odometry_centre_frames - 1) / 2 frames [ms]
+    oldest_stamp_ms: float = 100.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -314,6 +323,11 @@ def _ekf2_rows(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
         _int_row(params, "EKF2_EV_CTRL", 0, 15, partial(_judge_ev_ctrl, f)),
         _int_row(params, "EKF2_HGT_REF", 0, 3, partial(_judge_hgt_ref, f), HGT_REF),
         _float_row(params, "EKF2_EV_DELAY", "ms", partial(_judge_ev_delay, f)),
+        *(
+            [_float_row(params, "EKF2_DELAY_MAX", "ms", partial(_judge_delay_max, f))]
+            if "EKF2_DELAY_MAX" in params  # (every EKF2 has it: a partial list may not)
+            else []
+        ),
         *_trust_rows(params, f),
         *_other_sensor_rows(params, f),
     ]
@@ -493,6 +507,30 @@ def _judge_hgt_ref(f: _Ekf2Facts, v: int) -> Judgement:
             )
         return Judgement(Status.WARN, need, f"{why}; {flat}", 3)
     return Judgement(Status.FAIL, need, "not a height source PX4 knows", 3)
+
+
+def _judge_delay_max(f: _Ekf2Facts, v: float) -> Judgement:
+    """EKF2_DELAY_MAX: its fusion horizon (HORIZON_SHORTFALL_MS less) must reach back as far
+    as our oldest stamps (service.stale_frame_ms plus the ODOMETRY centring)."""
+    oldest = f.ctx.oldest_stamp_ms
+    need_ms = 10.0 * math.ceil((oldest + HORIZON_SHORTFALL_MS) / 10.0)
+    need = f">= {need_ms:g} ms"
+    why = (
+        f"EKF2 fuses each of our samples when its delayed horizon (~EKF2_DELAY_MAX - "
+        f"{HORIZON_SHORTFALL_MS:g} ms behind PX4's clock) passes the sample's stamp, and our "
+        f"stamps leave up to {oldest:.0f} ms old (service.stale_frame_ms and the ODOMETRY "
+        "centring)"
+    )
+    if v >= need_ms:
+        return Judgement(Status.OK, need, why)
+    return Judgement(
+        Status.WARN,
+        need,
+        f"{why}: a sample older than ~{v - HORIZON_SHORTFALL_MS:.0f} ms arrives behind the "
+        "horizon and is fused late, at the horizon's instant (up to 100 ms off), or dropped; "
+        "raise it (PX4 applies it after a reboot) or lower service.stale_frame_ms",
+        need_ms,
+    )
 
 
 def _judge_ev_delay(f: _Ekf2Facts, v: float) -> Judgement:
