@@ -19,8 +19,11 @@ import pytest
 from sitl.px4_flight import SHARED_PX4, Flight, FlightOptions
 
 # PX4 SIH's lockstep clock against ours: ~0.1 % on session 15's host, 0.9-2.3 % over session
-# 16's hovers on a slower one (docs/RESULTS.md, session 16)
-PX4_REAL_TIME_PPM = 5_000
+# 16's hovers on a slower one (docs/RESULTS.md, session 16), 0.6-0.8 % in every hover of
+# sessions 19-20 here. Up to 1 % the 99 % is asserted: since EKF2's longer horizon (session
+# 20: EKF2_DELAY_MAX 300, poses up to 200 ms old) the late, bunched samples of a slow clock
+# are fused (hovers at 0.64 / 0.77 % off: 100.0 % fused; the six missions 100.0 %)
+PX4_REAL_TIME_PPM = 10_000
 
 pytestmark = [
     pytest.mark.skipif(
