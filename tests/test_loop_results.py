@@ -45,3 +45,20 @@ def test_a_frame_turned_by_the_autopilots_heading_error_is_measured_and_undone()
     assert north_aligned > 0.2  # 0.9 deg at up to 28 m from home (after the median offset)
     assert in_our_axes < 0.03  # only the noise left
     assert _turned_p95(est, gt, seg, got) > 1.8 * north_aligned  # the wrong way: twice the angle
+
+
+def test_one_translation_for_the_flight_beside_the_per_stretch_figures() -> None:
+    """A flight whose estimate is 0.2 m higher after a fusion restart (counted as a position
+    reset, our frame unmoved): each stretch after its own translation shows none of it, one
+    translation for the whole flight shows it (0.1 m each way of the median)."""
+    from sitl.loop_results import segment_errors
+
+    gt = _square()
+    est = gt.copy()
+    est[200:, 2] -= 0.2  # NED: up
+    seg = np.r_[np.zeros(200, dtype=np.int64), np.ones(200, dtype=np.int64)]
+    s: dict = {}
+    segment_errors(s, est, gt, seg)
+    assert s["vertical_error_m_p95"] < 1e-9 and s["horizontal_error_m_p95"] < 1e-9
+    assert abs(s["vertical_error_m_p95_one_translation"] - 0.1) < 1e-9
+    assert s["horizontal_error_m_p95_one_translation"] < 1e-9
