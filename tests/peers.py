@@ -11,6 +11,7 @@ import socket
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 
@@ -261,3 +262,26 @@ def service_config(tmp_path: Path, **service: object) -> object:
         **service,
     }
     return load_config(None, {"service": svc})
+
+
+def feed_biased_step(pipeline: Any, step: Any, imus: list, k_imu: int, R_err: Any) -> int:
+    """Feed a pipeline the IMU samples ``imus[k_imu:]`` up to a SITL step's frame, then the
+    step with its autopilot attitudes turned by ``R_err`` (3, 3) (an autopilot's attitude
+    error: R_err @ R_world_body); returns the index of the next IMU sample."""
+    from companion.geometry import so3
+    from companion.offline import feed_step
+    from companion.types import AttitudeSample
+
+    while k_imu < len(imus) and imus[k_imu].time_us <= step.frame.time_us:
+        pipeline.feed_imu(imus[k_imu])
+        k_imu += 1
+    biased = [
+        AttitudeSample(
+            a.time_us, so3.matrix_to_quat(R_err @ so3.quat_to_matrix(a.quat_wxyz)), a.rates_rad_s
+        )
+        for a in step.attitudes
+    ]
+    feed_step(
+        pipeline, type(step)(step.frame, step.rendered, step.T_world_body, step.ranges, biased)
+    )
+    return k_imu

@@ -193,10 +193,11 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
     trajectory, 0.3 m/s^2 noise, 50 Hz) beside it. The VO frame starts on the biased attitude
     (2 deg off level); the accelerometer's correction brings it back: the window measures the
     2 deg, and the VO frame ends within 0.8 deg of level."""
+    from peers import feed_biased_step
+
     from companion.config import load_config
-    from companion.offline import feed_step
     from companion.pipeline import Pipeline
-    from companion.types import AttitudeSample, ImuSample
+    from companion.types import ImuSample
     from sitl.scenario import Scenario
 
     cfg = load_config(
@@ -220,18 +221,7 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
     k_imu = 0
     corrections, tilts = [], []
     for st in sc.steps(workers=2):
-        while k_imu < len(imus) and imus[k_imu].time_us <= st.frame.time_us:
-            p.feed_imu(imus[k_imu])
-            k_imu += 1
-        biased = [
-            AttitudeSample(
-                a.time_us,
-                so3.matrix_to_quat(R_err @ so3.quat_to_matrix(a.quat_wxyz)),
-                a.rates_rad_s,
-            )
-            for a in st.attitudes
-        ]
-        feed_step(p, type(st)(st.frame, st.rendered, st.T_world_body, st.ranges, biased))
+        k_imu = feed_biased_step(p, st, imus, k_imu, R_err)
         p.background_work()
         R_vo_body = p.R_vo_body()
         if R_vo_body is not None and p.vo.state.value == "tracking":

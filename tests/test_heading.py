@@ -126,10 +126,10 @@ def test_the_pipeline_takes_its_frames_heading_from_the_compass_before_the_take_
     vo.mag_heading_min_s at rest it takes the compass's (within 0.3 deg of the truth), and at
     the take-off it stops refining and keeps it through the climb. With heading_source =
     autopilot the same flight keeps the 3 deg."""
+    from peers import feed_biased_step
+
     from companion.config import load_config
-    from companion.offline import feed_step
     from companion.pipeline import Pipeline
-    from companion.types import AttitudeSample
     from sitl.scenario import Scenario
 
     decl = math.radians(3.3)
@@ -172,18 +172,7 @@ def test_the_pipeline_takes_its_frames_heading_from_the_compass_before_the_take_
         errors_deg, final = [], []
         k_imu = 0
         for st in sc.steps(stop=140, workers=2):  # the ground and the climb to ~3 m
-            while k_imu < len(imus) and imus[k_imu].time_us <= st.frame.time_us:
-                p.feed_imu(imus[k_imu])
-                k_imu += 1
-            biased = [
-                AttitudeSample(
-                    a.time_us,
-                    so3.matrix_to_quat(R_err @ so3.quat_to_matrix(a.quat_wxyz)),
-                    a.rates_rad_s,
-                )
-                for a in st.attitudes
-            ]
-            feed_step(p, type(st)(st.frame, st.rendered, st.T_world_body, st.ranges, biased))
+            k_imu = feed_biased_step(p, st, imus, k_imu, R_err)
             R_vo_body = p.R_vo_body()
             if R_vo_body is None or p.vo.state.value != "tracking":
                 continue
