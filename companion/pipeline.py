@@ -8,6 +8,7 @@ per stream; attitude and ranges are buffered and looked up at each frame's captu
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -530,7 +531,7 @@ class Pipeline:
                 fresh.append(sample)
         for sample in reversed(fresh):
             h.add(sample)
-        turn = float(np.angle(np.exp(1j * (yaw_body_vo - w[2]))))
+        turn = math.remainder(yaw_body_vo - w[2], math.tau)  # wrapped to [-pi, pi]
         if (
             float(np.linalg.norm(p - w[1])) > MAG_STILL_MAX_MOVE_M
             or abs(turn) > MAG_STILL_MAX_TURN_RAD
@@ -545,7 +546,7 @@ class Pipeline:
         if fix is None or fix.span_us < o.mag_heading_min_s * 1e6:
             return
         mean_yaw_body_vo = w[2] + self._mag_turn[0] / self._mag_turn[1]
-        self.vo.yaw_vo_rad = float(np.angle(np.exp(1j * (fix.yaw_rad - mean_yaw_body_vo))))
+        self.vo.yaw_vo_rad = math.remainder(fix.yaw_rad - mean_yaw_body_vo, math.tau)
         self.vo.yaw_vo_known = True
         self.heading_fix = fix
 

@@ -50,7 +50,7 @@ STANDARD_GRAVITY_M_S2 = 9.80665
 
 
 def magnetic_yaw_rad(force_frd_m_s2: F64, field_frd: F64, declination_rad: float) -> float:
-    """Equation (1): the body's true heading [rad] in (-pi, pi] from the specific force (3,)
+    """Equation (1): the body's true heading [rad] in [-pi, pi] from the specific force (3,)
     [m/s^2] and the magnetic field (3,) [any unit] in the body frame (FRD), at rest, with the
     site's declination [rad, east positive]. NaN when the field has no horizontal part."""
     f = np.asarray(force_frd_m_s2, dtype=np.float64)
@@ -61,7 +61,7 @@ def magnetic_yaw_rad(force_frd_m_s2: F64, field_frd: F64, declination_rad: float
     if np.linalg.norm(h) < 1e-9 or np.linalg.norm(x_h) < 1e-9:
         return math.nan
     yaw = math.atan2(float(d @ np.cross(h, x_h)), float(h @ x_h)) + declination_rad
-    return math.atan2(math.sin(yaw), math.cos(yaw))
+    return math.remainder(yaw, math.tau)
 
 
 @dataclass(frozen=True, slots=True)
