@@ -290,6 +290,17 @@ class Config:
                 f"attitude.sensor_ids: 3 different sensors needed, got {list(chosen)}"
             )
 
+    def oldest_stamp_ms(self) -> float:
+        """How old our samples' stamps can be when they leave [ms]: a pose is dropped past
+        service.stale_frame_ms, and ODOMETRY centred on N poses is stamped (N - 1) / 2 frames
+        further back (companion/service/app.py holds its messages to this; `companion px4
+        check` compares it with EKF2's horizon)."""
+        o = self.service
+        oldest = o.stale_frame_ms
+        if o.output in ("odometry", "both") and o.odometry_centre_frames > 1:
+            oldest += (o.odometry_centre_frames - 1) / 2 * 1000.0 / self.camera.rate_hz
+        return oldest
+
 
 # --------------------------------------------------------------------------- loading
 

@@ -885,11 +885,10 @@ def test_delay_max_reaches_back_as_far_as_our_oldest_stamps() -> None:
     the PX4 loop's (200 ms and 3 poses centred at 20 Hz: 250 ms) needs 300, which configure
     writes (applied at a reboot). A parameter list without it gets no row."""
     from companion.config import load_config
-    from companion.px4.check import oldest_stamp_ms
     from companion.px4.rules import LinkContext
 
-    assert oldest_stamp_ms(load_config()) == 100.0
-    assert oldest_stamp_ms(load_config("config/px4_sitl.toml")) == 250.0
+    assert load_config().oldest_stamp_ms() == 100.0
+    assert load_config("config/px4_sitl.toml").oldest_stamp_ms() == 250.0
     base: dict[str, int | float] = {
         "EKF2_HGT_REF": 3,
         "SYS_HAS_MAG": 1,

@@ -599,6 +599,64 @@ def test_centred_odometry_after_a_pause_is_never_stamped_across_it(tmp_path, mon
         assert abs(m.vx - 1.0) < 1e-6  # the velocity of a window inside one stretch
 
 
+def test_centred_odometry_is_never_older_than_its_oldest_stamp(tmp_path, monkeypatch) -> None:
+    """ODOMETRY centred on N poses leaves at most ``Config.oldest_stamp_ms`` old: the age
+    limit (``service.stale_frame_ms``) plus (N - 1) / 2 frames, what `companion px4 check`
+    holds EKF2's horizon to. A window over a skipped frame is centred further back: published
+    near the age limit, it would reach past EKF2's horizon (one went out 275 ms old against
+    236 ms, session 20), so such a window sends the newest pose with the window's velocity."""
+    from peers import service_config
+
+    from companion.service import app
+    from companion.types import PoseEstimate
+
+    cfg = service_config(
+        tmp_path, output="odometry", odometry_centre_frames=3, stale_frame_ms=200.0
+    )
+    oldest_ms = cfg.oldest_stamp_ms()
+    assert oldest_ms == 200.0 + 1000.0 / cfg.camera.rate_hz  # one frame back
+    frame_us = round(1e6 / cfg.camera.rate_hz)
+    service = app.Service(cfg)
+    sent: list = []
+    monkeypatch.setattr(service.link, "send", lambda m: sent.append((clock["ns"], m)) or True)
+    clock = {"ns": 10_000_000_000}
+    monkeypatch.setattr(app, "now_ns", lambda: clock["ns"])
+    image = np.zeros((4, 4, 3), np.uint8)
+
+    def frame_at(t_us: int, delay_us: int) -> None:
+        clock["ns"] = (t_us + delay_us) * 1000
+        p = np.array([1e-6 * t_us, 0.0, -5.0])  # 1 m/s north
+        pose = PoseEstimate(
+            t_us, p, np.array([1.0, 0, 0, 0]), np.full(3, np.nan), np.eye(6) * 1e-4, 0, 90
+        )
+        service._publish(CameraFrame(t_us, t_us // frame_us, image), pose)
+
+    def odometry() -> list:
+        return [(t_ns, m) for t_ns, m in sent if m.get_type() == "ODOMETRY"]
+
+    t0 = 10_000_000
+    # each published 190 ms after its exposure (inside the 200 ms limit); the fourth comes
+    # after a skipped frame, so its window would be centred 4/3 frames back
+    times = [t0, t0 + frame_us, t0 + 2 * frame_us, t0 + 4 * frame_us]
+    for t_us in times:
+        frame_at(t_us, 190_000)
+    odo = odometry()
+    assert len(odo) == 2  # ODOMETRY needs a velocity: none before the window is full
+    assert all((t_ns / 1e3 - m.time_usec) / 1e3 <= oldest_ms for t_ns, m in odo)
+    # the full window without a skip: centred one frame back
+    assert odo[0][1].time_usec == times[1] and abs(odo[0][1].vx - 1.0) < 1e-6
+    assert abs(odo[0][1].x - 1e-6 * times[1]) < 1e-9
+    # the window over the skip: the newest pose, the window's velocity
+    assert odo[1][1].time_usec == times[3] and abs(odo[1][1].vx - 1.0) < 1e-6
+    assert abs(odo[1][1].x - 1e-6 * times[3]) < 1e-9
+    # the same skip published promptly stays centred (its mean time, its velocity)
+    frame_at(t0 + 5 * frame_us, 40_000)
+    frame_at(t0 + 7 * frame_us, 40_000)
+    _, m = odometry()[-1]
+    assert m.time_usec == round((times[3] + 2 * t0 + 12 * frame_us) / 3)
+    assert abs(m.vx - 1.0) < 1e-6
+
+
 class _FakeCapture:
     """cv2.VideoCapture of a device that cannot exist here: a backend name and a
     CAP_PROP_POS_MSEC that is either the V4L2 buffer stamp or a stream position."""

@@ -86,17 +86,6 @@ def service_answers(path: Path) -> bool:
         return False
 
 
-def oldest_stamp_ms(cfg: Config) -> float:
-    """How old our samples' stamps can be when they leave [ms]: a pose is dropped past
-    service.stale_frame_ms, and ODOMETRY centred on N poses is stamped (N - 1) / 2 frames
-    further back."""
-    o = cfg.service
-    oldest = o.stale_frame_ms
-    if o.output in ("odometry", "both") and o.odometry_centre_frames > 1:
-        oldest += (o.odometry_centre_frames - 1) / 2 * 1000.0 / cfg.camera.rate_hz
-    return oldest
-
-
 def resolve(cfg: Config, opts: Px4Options) -> Target:
     """The autopilot URL and our side's context; ConfigError when the only link is the one
     the running service holds."""
@@ -114,7 +103,7 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
         link_host=link.host,
         no_gnss=opts.no_gnss,
         odometry_frame=cfg.service.odometry_frame,
-        oldest_stamp_ms=oldest_stamp_ms(cfg),
+        oldest_stamp_ms=cfg.oldest_stamp_ms(),
     )
     own = mavsdk_url(service_url, "service.mavlink_url")
     url = mavsdk_url(opts.url) if opts.url else own

@@ -916,11 +916,16 @@ class Service:
             if n:
                 self._recent_poses.append(pose)
                 recent = list(self._recent_poses)[-n:]
-                centred = (
-                    messages.centred_pose(recent, 1e3 * self.config.service.stale_frame_ms)
-                    if len(recent) == n
-                    else None
-                )
+                stale_us = 1e3 * self.config.service.stale_frame_ms
+                centred = messages.centred_pose(recent, stale_us) if len(recent) == n else None
+                oldest_us = 1e3 * self.config.oldest_stamp_ms()
+                if centred is not None and now_ns() / 1e3 - centred.time_us > oldest_us:
+                    # a window over a skipped frame is centred more than (N - 1) / 2 frames
+                    # back: past the oldest stamp `px4 check` holds EKF2's horizon to, the
+                    # newest pose goes out with the window's velocity (EKF2 drops samples
+                    # older than its horizon: one went out 275 ms old against its 236,
+                    # session 20)
+                    centred = dataclasses.replace(pose, velocity_ned_m_s=centred.velocity_ned_m_s)
                 wire = (
                     centred
                     if centred is not None
