@@ -181,6 +181,10 @@ class Service:
         self._attitudes: deque[AttitudeSample] = deque(maxlen=4096)
         self._imus: deque[ImuSample] = deque(maxlen=4096)
         self._recent_poses: deque[PoseEstimate] = deque(maxlen=15)  # for centred ODOMETRY
+        # centred ODOMETRY: no window over a gap longer than the age limit, and no stamp older
+        # than the budget `px4 check` holds EKF2's horizon to (the config is frozen)
+        self._centre_max_gap_us = 1e3 * config.service.stale_frame_ms
+        self._oldest_stamp_us = 1e3 * config.oldest_stamp_ms()
         self._stop = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -916,10 +920,12 @@ class Service:
             if n:
                 self._recent_poses.append(pose)
                 recent = list(self._recent_poses)[-n:]
-                stale_us = 1e3 * self.config.service.stale_frame_ms
-                centred = messages.centred_pose(recent, stale_us) if len(recent) == n else None
-                oldest_us = 1e3 * self.config.oldest_stamp_ms()
-                if centred is not None and now_ns() / 1e3 - centred.time_us > oldest_us:
+                centred = (
+                    messages.centred_pose(recent, self._centre_max_gap_us)
+                    if len(recent) == n
+                    else None
+                )
+                if centred is not None and now_ns() / 1e3 - centred.time_us > self._oldest_stamp_us:
                     # a window over a skipped frame is centred more than (N - 1) / 2 frames
                     # back: past the oldest stamp `px4 check` holds EKF2's horizon to, the
                     # newest pose goes out with the window's velocity (EKF2 drops samples
