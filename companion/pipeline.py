@@ -56,6 +56,7 @@ LANDED_HEIGHT_SIGMA_M = 0.02  # a configured landing-gear height: its uncertaint
 GROUND_REST_SPREAD_M = 0.02  # readings spreading more than this (or 3 sigma) are not at rest
 VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [us]
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]
+SAMPLE_NOISE_ARM_M = 1.0  # one sample's position sigma: the scale's relative sigma times this [m]
 VO_TILT_SIGMA_RAD = float(np.radians(0.5))  # roll/pitch sigma without the range fusion
 VO_YAW_SIGMA_RAD = float(np.radians(2.0))  # yaw sigma of the VO (no absolute heading)
 # vo.heading_source = magnetometer: the compass window ends when the VO sees the body move
@@ -654,12 +655,18 @@ class Pipeline:
         position = R_world_vo @ p
         reset_counter = self.trajectories[self.method_name].reset_counter
         velocity = self._velocity(time_us, reset_counter, position)
-        # covariance over (x, y, z, roll, pitch, yaw): position from the scale's relative
-        # sigma times the distance travelled in this VO map (at least 1 m) plus a 2 cm floor;
-        # roll/pitch from the fused tilt (else a VO default); yaw from the VO default
+        # covariance over (x, y, z, roll, pitch, yaw), for an autopilot's filter that takes
+        # it as one sample's white measurement noise (EKF2: R = max(ours, EKF2_EVP_NOISE^2)).
+        # Position: a 2 cm floor plus the scale's relative sigma over one metre (the part of
+        # our error that changes from sample to sample: a scale update moves the local map by
+        # that much per metre). Not the drift since the map's origin (that sigma times the
+        # distance travelled, until session 22): drift is correlated over minutes, so no
+        # filter averages it away, and as noise it handed EKF2's height to SIH's noisy
+        # accelerometer (docs/decisions.md, "The covariance we send"). Roll/pitch from the
+        # fused tilt (else a VO default); yaw from the VO default
         rel = est.sigma / est.scale if est.scale > 0 else 1.0
         cov = np.zeros((6, 6))
-        sigma_p = rel * max(float(np.linalg.norm(p)), 1.0) + POSITION_SIGMA_FLOOR_M
+        sigma_p = rel * SAMPLE_NOISE_ARM_M + POSITION_SIGMA_FLOOR_M
         cov[:3, :3] = np.eye(3) * sigma_p**2
         cov[3:5, 3:5] = np.eye(2) * VO_TILT_SIGMA_RAD**2
         cov[5, 5] = VO_YAW_SIGMA_RAD**2

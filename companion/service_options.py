@@ -127,6 +127,13 @@ class ServiceOptions:
         ge=0,
         le=15,
     )
+    odometry_velocity_sigma_m_s: float = opt(
+        0.1,
+        "ODOMETRY's velocity sigma per axis [m/s] (its velocity covariance: EKF2 takes it as "
+        "each sample's noise, EKF2_EVV_NOISE as its floor)",
+        gt=0,
+        le=10,
+    )
     distance_sensor_rate_hz: float = opt(
         50.0, "DISTANCE_SENSOR rate asked from the autopilot [Hz]", gt=0, le=1000
     )

@@ -941,7 +941,10 @@ class Service:
                 wire = dataclasses.replace(
                     pose, quality_pct=ardupilot.ardupilot_quality(pose.quality_pct)
                 )
-            odo = messages.odometry(mav, wire, rates, frame=self.config.service.odometry_frame)
+            so = self.config.service
+            odo = messages.odometry(
+                mav, wire, rates, so.odometry_velocity_sigma_m_s, frame=so.odometry_frame
+            )
             if odo is not None:
                 sent |= self.link.send(odo)
         if sent:
