@@ -89,12 +89,6 @@ BOOT_PARAMS = {
     # the floor under our velocity variance (default 0.1 m/s): ours is 0.05 here
     # (service.odometry_velocity_sigma_m_s in config/px4_sitl.toml), measured 1-6 cm/s
     "EKF2_EVV_NOISE": "0.05",
-    # the accelerometer noise EKF2 assumes (default 0.35 m/s^2): SIH's is ~3x that (SCALED_IMU
-    # 0.35 / 1.2 / 0.95 m/s^2 per axis in the air, docs/decisions.md "Climbs and descents").
-    # Told the default, EKF2 trusts its integration too much and its height wanders ~4.5 cm RMS
-    # about the height we send it; told SIH's, it follows ours (docs/decisions.md, "What EKF2
-    # adds to our height")
-    "EKF2_ACC_NOISE": "1.0",
     # the accelerometer's switch-on bias sigma (default 0.2 m/s^2, for an uncalibrated IMU):
     # without GNSS the bias is unobservable on the ground, and at the take-off EKF2 learnt our
     # climb's velocity errors (0.1-0.2 m/s) as 0.15-0.2 m/s^2 of bias, a 1 deg tilt error that

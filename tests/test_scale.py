@@ -21,6 +21,8 @@ from companion.scale.methods import (
     B8PerFrame,
     B9Plane,
     MetricTrajectory,
+    MMSCwK,
+    ReuseCounter,
     ScaleInput,
 )
 from companion.scale.options import ScaleOptions
@@ -245,6 +247,53 @@ def test_m_msc_does_not_take_a_lone_match_at_a_keyframe() -> None:
         results[min_sensors] = lone.scale / s_true
     assert abs(results[2] - 1) < 0.01  # held
     assert abs(results[1] - 1.37) < 0.02  # taken
+
+
+def test_reuse_counter_counts_a_pair_until_it_is_forgotten() -> None:
+    rc = ReuseCounter(memory_us=2_000_000)
+    assert list(rc.factors(0, [(1, 7), (2, 7)])) == [1.0, 1.0]  # per sensor and point
+    assert list(rc.factors(50_000, [(1, 7)])) == [np.sqrt(2)]
+    assert list(rc.factors(100_000, [(1, 7), (1, 8)])) == [np.sqrt(3), 1.0]
+    assert list(rc.factors(1_900_000, [(1, 8)])) == [np.sqrt(2)]  # 1.8 s later: remembered
+    assert list(rc.factors(2_200_000, [(1, 7)])) == [1.0]  # unused for 2.1 s: a new start
+    assert list(rc.factors(2_300_000, [(1, 7)])) == [np.sqrt(2)]
+    assert list(ReuseCounter(0).factors(0, [(1, 7), (1, 7)])) == [1.0, 1.0]  # off
+
+
+def _mmscwk_after_a_biased_stretch(reuse_memory_s: float, fresh_points: bool) -> float:
+    """M-MSCwK at 20 Hz over a static scene: 2 s of four sensors reading the true scale,
+    then 3 s of all four reading 4 % short, each match 5 % sigma (a descent's matches: a
+    weak, biased point under each beam). Returns the final scale over the true one."""
+    s_true = 3.0
+    T_cam_vo = se3.make(np.eye(3), [0.2, 0.1, -0.3])
+    feats = scene_features(lambda r: np.full(len(r), 8.0), T_cam_vo, s_true)
+    pixels = {0: (200.0, 120.0), 1: (440.0, 120.0), 2: (200.0, 360.0), 3: (440.0, 360.0)}
+    method = MMSCwK("M-MSCwK", CAM, ScaleOptions(reuse_memory_s=reuse_memory_s))
+    est = None
+    for k in range(100):
+        f = 1.0 if k < 40 else 0.96
+        lasers = {}
+        for sid, px in pixels.items():
+            p_cam = _laser_at(px, 8.0 * f)
+            lasers[sid] = (float(np.linalg.norm(p_cam)), p_cam, 0.05 * 8.0)
+        ids = feats.point_ids + (k * 10_000 if fresh_points else 0)
+        fk = VoFeatures(feats.pixels, ids, feats.points_vo, feats.depth_sigma)
+        vo = VoOutput(k * 50_000, VoState.TRACKING, False, se3.inverse(T_cam_vo), fk)
+        est = method.step(ScaleInput(k * 50_000, vo, T_cam_vo, lasers, 0, (s_true, 0.01 * s_true)))
+    assert est is not None
+    return est.scale / s_true
+
+
+def test_mmscwk_does_not_take_one_point_seen_again_as_new_evidence() -> None:
+    """The beams resting on the same map points frame after frame give one measurement, not
+    sixty: the filter moves far less towards their 4 % bias than it does when every frame
+    brings new points (which are independent evidence, and taken as such)."""
+    repeated = 1.0 - _mmscwk_after_a_biased_stretch(2.0, fresh_points=False)
+    as_independent = 1.0 - _mmscwk_after_a_biased_stretch(0.0, fresh_points=False)
+    fresh = 1.0 - _mmscwk_after_a_biased_stretch(2.0, fresh_points=True)
+    assert as_independent > 0.025  # the old filter followed the bias most of the way
+    assert repeated < 0.5 * as_independent
+    assert fresh > 0.025 and abs(fresh - as_independent) < 1e-9  # new points: unchanged
 
 
 def test_b7_window_ml_closed_form() -> None:

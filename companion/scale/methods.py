@@ -36,6 +36,7 @@ from companion.types import ScaleEstimate, VoOutput
 F64 = NDArray[np.float64]
 
 MATCH_WINDOW = 300  # attempts kept per sensor for the match rate (10 s at 30 Hz)
+SWEEP_US = 1_000_000  # ReuseCounter forgets stale pairs this often
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,16 +152,63 @@ class MSC(Method):
             self.scale, self.sigma, self.n_used = m.scale, m.sigma, 1
 
 
+class ReuseCounter:
+    """How often each (sensor, map point) pair has been matched lately.
+
+    A sensor's beam stays on one map point for many frames (about 2 s in cruise at 3 m/s,
+    for the whole of a hover or a descent): the MSC measurements those frames give share the
+    point's depth error, so they are one measurement repeated, not independent ones. A
+    Kalman filter that fuses them at the frame rate as independent is overconfident and
+    follows one point's depth bias: in PX4 SIH's landings the points under the beams (near
+    the focus of expansion, triangulated with little parallax) read 3-7 % deep, and the scale
+    fell 3.5 % in 6 s while the VO's true unit held (docs/decisions.md, "Repeated MSC
+    matches"). The n-th use of a pair within ``memory_us`` of its previous use counts with
+    its sigma times sqrt(n), so one point's information grows like log(n), not n. A pair
+    unused for ``memory_us`` is forgotten (swept once a second: the table holds the pairs of
+    the last ``memory_us``, a few thousand at most). Landings replayed: a 2 s memory kept
+    half the gain of 30 s (a hovering beam leaves its point and comes back to it)."""
+
+    def __init__(self, memory_us: int) -> None:
+        self.memory_us = memory_us
+        self._uses: dict[tuple[int, int], tuple[int, int]] = {}  # pair -> (count, last time)
+        self._swept_us: int | None = None
+
+    def factors(self, time_us: int, pairs: list[tuple[int, int]]) -> F64:
+        """sqrt(n) (len(pairs),) for these pairs used at ``time_us``, counting this use."""
+        if self.memory_us <= 0:
+            return np.ones(len(pairs))
+        uses = self._uses
+        if self._swept_us is None or abs(time_us - self._swept_us) >= SWEEP_US:
+            self._swept_us = time_us
+            for k in [k for k, (_, last) in uses.items() if time_us - last > self.memory_us]:
+                del uses[k]
+        n = np.empty(len(pairs))
+        for i, pair in enumerate(pairs):
+            prev = uses.get(pair)
+            count = prev[0] + 1 if prev is not None and time_us - prev[1] <= self.memory_us else 1
+            uses[pair] = (count, time_us)
+            n[i] = count
+        return np.sqrt(n)
+
+
 @dataclass
 class MSCwK(Method):
-    """MSC of the first sensor at every frame through the scale Kalman filter."""
+    """MSC of the first sensor at every frame through the scale Kalman filter (a match
+    repeated on the same map point weighs less each time: ReuseCounter)."""
 
     kf: ScaleKalman | None = None
     sensors: str = "first"
+    reuse: ReuseCounter | None = None
 
     def reset(self) -> None:
         super().reset()
         self.kf = ScaleKalman(self.opts.random_walk_per_s, self.opts.gate_chi2)
+        self.reuse = ReuseCounter(int(self.opts.reuse_memory_s * 1e6))
+
+    def _reuse(self) -> ReuseCounter:
+        if self.reuse is None:
+            self.reuse = ReuseCounter(int(self.opts.reuse_memory_s * 1e6))
+        return self.reuse
 
     def on_initial(self, inp: ScaleInput, s0: float, sigma0: float) -> None:
         if self.kf is None:
@@ -173,7 +221,10 @@ class MSCwK(Method):
         if not inp.lasers:
             return None
         m = self._msc(inp, next(iter(inp.lasers)))
-        return None if m is None else (m.scale, m.sigma, 1)
+        if m is None:
+            return None
+        k = float(self._reuse().factors(inp.time_us, [(m.sensor_id, m.point_id)])[0])
+        return m.scale, m.sigma * k, 1
 
     def update(self, inp: ScaleInput) -> None:
         if self.kf is None:
@@ -190,17 +241,19 @@ class MSCwK(Method):
             self.scale, self.sigma = self.kf.scale, self.kf.sigma
 
 
-def _fused(method: Method, inp: ScaleInput, max_sensors: int) -> tuple[float, float, int] | None:
-    """Robust ML fusion of the MSC matches of the first ``max_sensors`` sensors (0 = all)."""
+def _fused(
+    method: Method, inp: ScaleInput, max_sensors: int, reuse: ReuseCounter | None = None
+) -> tuple[float, float, int] | None:
+    """Robust ML fusion of the MSC matches of the first ``max_sensors`` sensors (0 = all);
+    with ``reuse``, each match's sigma grows with its map point's repeated use."""
     ids = list(inp.lasers)[:max_sensors] if max_sensors > 0 else list(inp.lasers)
     ms = [m for sid in ids if (m := method._msc(inp, sid)) is not None]
     if not ms:
         return None
-    res = fuse(
-        np.array([m.scale for m in ms]),
-        np.array([m.sigma for m in ms]),
-        method.opts.fusion_outlier_sigmas,
-    )
+    sigma = np.array([m.sigma for m in ms])
+    if reuse is not None:
+        sigma = sigma * reuse.factors(inp.time_us, [(m.sensor_id, m.point_id) for m in ms])
+    res = fuse(np.array([m.scale for m in ms]), sigma, method.opts.fusion_outlier_sigmas)
     if res is None:
         return None
     return res[0], res[1], int(res[2].sum())
@@ -231,7 +284,7 @@ class MMSCwK(MSCwK):
     """Our extension: the M-MSC fusion at every frame, through the MSCwK Kalman filter."""
 
     def measurement(self, inp: ScaleInput) -> tuple[float, float, int] | None:
-        return _fused(self, inp, 0)
+        return _fused(self, inp, 0, self._reuse())
 
 
 @dataclass

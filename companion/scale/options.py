@@ -45,6 +45,13 @@ class ScaleOptions:
         6.63, "chi-square gate (1 dof) on a scale measurement's innovation", gt=0
     )
     init_sigma_rel: float = opt(0.2, "relative sigma of the initial scale", gt=0)
+    reuse_memory_s: float = opt(
+        30.0,
+        "MSCwK / M-MSCwK: a sensor's match on the same map point again within this long is the "
+        "same measurement again: its n-th use has its sigma times sqrt(n) (companion/scale/"
+        "methods.py, ReuseCounter); 0 = every frame's match independent",
+        ge=0,
+    )
     fusion_outlier_sigmas: float = opt(
         3.0, "M-MSC: drop measurements this many sigmas from the weighted median", gt=0
     )
