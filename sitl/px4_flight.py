@@ -6,7 +6,8 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    (SENS_EN_GPSSIM=0, SYS_HAS_GPS=0, EKF2_GPS_CTRL=0, EKF2_EV_CTRL=15, EKF2_HGT_REF=3) and
    EKF2_RNG_CTRL=0 (PX4's own simulated rangefinder measures SIH's flat ground; EKF2 does not
    use it: our distance sensors go to the companion), EKF2_MAG_DECL=3.3, EKF2_EVP_NOISE=0.03,
-   EKF2_ABIAS_INIT=0.05, EKF2_DELAY_MAX=300 (docs/decisions.md, "PX4 SIH in the loop").
+   EKF2_EVV_NOISE=0.05, EKF2_ABIAS_INIT=0.05, EKF2_DELAY_MAX=300 (docs/decisions.md, "PX4 SIH
+   in the loop").
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
 3. The bridge (``python -m sitl.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.

@@ -16,7 +16,10 @@ Definitions (docs/RESULTS.md, "PX4 in the loop"):
   the fusion PX4 has no horizontal position at all: Altitude mode, px4_flight.py).
 - PX4's estimate: ``vehicle_local_position`` from the log at its ``timestamp_sample``, PX4's
   clock mapped to ours by a line through the smallest LOCAL_POSITION_NED arrival delays (SIH's
-  clock drifts against ours); without a log, LOCAL_POSITION_NED stamped on arrival.
+  clock drifts against ours); without a log, LOCAL_POSITION_NED stamped on arrival. Its error
+  is taken against SIH's ``vehicle_local_position_groundtruth`` at the same PX4 timestamps
+  (``truth_source``; no clock mapping in the figure), else against truth.csv at the mapped
+  times (beside it as ``*_bridge_clock`` when both exist).
 - ``heading_offset_deg``: SIH's true yaw minus PX4's (``vehicle_attitude`` against
   ``vehicle_attitude_groundtruth``, both PX4's clock), the median over the 10 s before the
   compared span (on the ground: PX4's compass heading, which our VO's frame took at its start);
@@ -61,6 +64,7 @@ TOPICS = {
     "vehicle_local_position",
     "vehicle_attitude",
     "vehicle_attitude_groundtruth",
+    "vehicle_local_position_groundtruth",
 }
 
 
@@ -281,6 +285,7 @@ def _position_errors(
     span &= (t_lp >= t_tr[0]) & (t_lp <= t_tr[-1])
     gt = truth_at(t_lp[span], t_tr, p_tr)
     est_p = p_lp[span]
+    gt_px4 = _px4_clock_truth(ulog, span)
     # PX4 resets its position to ours when our reset_counter changes (a VO re-initialisation):
     # each stretch between EKF2 position resets is compared after its own translation
     seg = np.zeros(len(est_p), dtype=np.int64)
@@ -289,6 +294,16 @@ def _position_errors(
         rc = vlp["xy_reset_counter"].astype(np.int64) * 256 + vlp["z_reset_counter"]
         seg = _hold(ours(vlp["timestamp"]), rc, t_lp[span])
     s["px4_position_resets"] = int(len(np.unique(seg)) - 1)
+    if gt_px4 is not None:
+        # the same figures against truth.csv through the clock line, for comparison
+        bridge: dict[str, Any] = {}
+        segment_errors(bridge, est_p, gt, seg)
+        s["horizontal_error_m_p95_bridge_clock"] = bridge["horizontal_error_m_p95"]
+        s["vertical_error_m_p95_bridge_clock"] = bridge["vertical_error_m_p95"]
+        gt = gt_px4
+        s["truth_source"] = "px4.ulg vehicle_local_position_groundtruth (PX4's clock)"
+    else:
+        s["truth_source"] = "truth.csv (the bridge's clock; PX4's time mapped by a line)"
     offset = segment_errors(s, est_p, gt, seg)
     s["frame_offset_m"] = [float(v) for v in offset]
     dpsi = _heading_offset(ulog, ours, t_cmp)
@@ -299,6 +314,28 @@ def _position_errors(
         s["frame_heading_error_deg"] = float(np.degrees(frame_error_rad))
         s["horizontal_error_m_p95_frame_axes"] = _turned_p95(est_p, gt, seg, -frame_error_rad)
     return offset
+
+
+def _px4_clock_truth(ulog: dict[str, np.ndarray], span: np.ndarray) -> np.ndarray | None:
+    """SIH's true position (N, 3), NED [m], at the ``span`` (mask over vehicle_local_position)
+    samples' own times, both in PX4's clock (``vehicle_local_position_groundtruth``); None
+    without either topic. No clock mapping: the line through the arrival delays that maps PX4's
+    time to ours (clock_line) was off by up to 35 ms in parts of a flight (SIH's lockstep pace
+    varies), and at 3 m/s that alone put 0.1 m into the horizontal figure (docs/RESULTS.md,
+    session 22)."""
+    vlp = ulog.get("vehicle_local_position")
+    g = ulog.get("vehicle_local_position_groundtruth")
+    if vlp is None or g is None or len(g) < 2 or len(vlp) != len(span):
+        return None
+    names = g.dtype.names or ()
+    t_g = (g["timestamp_sample"] if "timestamp_sample" in names else g["timestamp"]).astype(
+        np.float64
+    )
+    order = np.argsort(t_g, kind="stable")
+    t = vlp["timestamp_sample"][span].astype(np.float64)
+    return np.column_stack(
+        [np.interp(t, t_g[order], g[k][order].astype(np.float64)) for k in "xyz"]
+    )
 
 
 def _yaw_rad(q_wxyz: np.ndarray) -> np.ndarray:

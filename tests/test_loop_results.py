@@ -62,3 +62,39 @@ def test_one_translation_for_the_flight_beside_the_per_stretch_figures() -> None
     assert s["vertical_error_m_p95"] < 1e-9 and s["horizontal_error_m_p95"] < 1e-9
     assert abs(s["vertical_error_m_p95_one_translation"] - 0.1) < 1e-9
     assert s["horizontal_error_m_p95_one_translation"] < 1e-9
+
+
+def test_px4_truth_is_read_in_px4s_own_clock() -> None:
+    """PX4's estimate is compared with SIH's ground truth at the same PX4 timestamps: a clock
+    line that is 35 ms off (SIH's lockstep pace varies) would put 0.1 m of error at 3 m/s into
+    the figure; the truth in PX4's clock leaves only the estimate's own."""
+    from sitl.loop_results import segment_errors
+    from sitl.px4_results import _px4_clock_truth
+
+    rng = np.random.default_rng(22)
+    gt = _square(n=800)  # 80 m in 26.7 s at 3 m/s
+    t_px4_us = np.arange(len(gt), dtype=np.float64) * 33_333.0 + 5e6
+    est = gt + rng.normal(0.0, 0.01, gt.shape)
+    vlp = np.zeros(len(gt), dtype=[("timestamp_sample", "u8"), ("x", "f4")])
+    vlp["timestamp_sample"] = t_px4_us
+    truth_t = np.arange(t_px4_us[0] - 1e6, t_px4_us[-1] + 1e6, 4_000.0)  # SIH's 4 ms steps
+    g = np.zeros(len(truth_t), dtype=[(k, "f8") for k in ("timestamp", "x", "y", "z")])
+    g["timestamp"] = truth_t
+    for i, k in enumerate("xyz"):
+        g[k] = np.interp(truth_t, t_px4_us, gt[:, i])
+    g = g[rng.permutation(len(g))]  # the order of a log's messages is not assumed
+    span = np.ones(len(gt), dtype=bool)
+    span[:5] = False
+    got = _px4_clock_truth(
+        {"vehicle_local_position": vlp, "vehicle_local_position_groundtruth": g}, span
+    )
+    assert got is not None and np.max(np.abs(got - gt[span])) < 0.005  # (4 ms grid, corners)
+    seg = np.zeros(int(span.sum()), dtype=np.int64)
+    s: dict = {}
+    segment_errors(s, est[span], got, seg)
+    assert s["horizontal_error_m_p95"] < 0.03  # the noise alone
+    # the same truth read through a clock 35 ms off: 0.1 m at 3 m/s
+    late = np.column_stack([np.interp(t_px4_us + 35_000.0, t_px4_us, gt[:, i]) for i in range(3)])
+    segment_errors(s, est[span], late[span], seg)
+    assert s["horizontal_error_m_p95"] > 0.09
+    assert _px4_clock_truth({"vehicle_local_position": vlp}, span) is None  # no truth topic
