@@ -653,6 +653,25 @@ def test_ev_ctrl_bits_as_ekf2_reads_them() -> None:
     assert "flat ground" in hgt["EKF2_HGT_REF"].why  # PX4's caveat on vision/range height
 
 
+def test_the_velocity_floor_is_judged_against_the_velocity_sigma_we_send() -> None:
+    """EKF2_EVV_NOISE floors our velocity variance: above the sigma the service sends
+    (service.odometry_velocity_sigma_m_s) EKF2 ignores how well we measured it; without a
+    velocity in our message the floor does not matter."""
+    from companion.px4.rules import LinkContext
+
+    ours = LinkContext("odometry", odometry_frame="local_ned", velocity_sigma_m_s=0.05)
+    high = _rows({"EKF2_EVV_NOISE": 0.1}, ours)["EKF2_EVV_NOISE"]
+    assert high.status is Status.WARN and high.targets[0].value == 0.05
+    assert "0.05" in high.why
+    assert _rows({"EKF2_EVV_NOISE": 0.05}, ours)["EKF2_EVV_NOISE"].status is Status.OK
+    low = _rows({"EKF2_EVV_NOISE": 0.001}, ours)["EKF2_EVV_NOISE"]
+    assert low.status is Status.FAIL and low.targets[0].value == 0.05
+    default = _rows({"EKF2_EVV_NOISE": 0.1}, LinkContext("odometry"))["EKF2_EVV_NOISE"]
+    assert default.status is Status.OK  # PX4's default floor is our default sigma
+    vpe = _rows({"EKF2_EVV_NOISE": 1.0}, LinkContext("vision_position_estimate"))
+    assert vpe["EKF2_EVV_NOISE"].status is Status.OK  # no velocity sent
+
+
 def test_rules_for_delay_gnss_output_and_height_reference() -> None:
     from companion.px4.rules import LinkContext
 

@@ -104,6 +104,7 @@ def resolve(cfg: Config, opts: Px4Options) -> Target:
         no_gnss=opts.no_gnss,
         odometry_frame=cfg.service.odometry_frame,
         oldest_stamp_ms=cfg.oldest_stamp_ms(),
+        velocity_sigma_m_s=cfg.service.odometry_velocity_sigma_m_s,
     )
     own = mavsdk_url(service_url, "service.mavlink_url")
     url = mavsdk_url(opts.url) if opts.url else own

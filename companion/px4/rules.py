@@ -137,6 +137,7 @@ class LinkContext:
     # the oldest our samples' stamps can be when they leave: service.stale_frame_ms plus the
     # ODOMETRY centring's (service.odometry_centre_frames - 1) / 2 frames [ms]
     oldest_stamp_ms: float = 100.0
+    velocity_sigma_m_s: float = 0.1  # service.odometry_velocity_sigma_m_s
 
 
 @dataclass(frozen=True, slots=True)
@@ -368,6 +369,7 @@ def _trust_rows(params: Mapping[str, Param], f: _Ekf2Facts) -> list[Row]:
     return [
         _int_row(params, "EKF2_EV_NOISE_MD", 0, 1, _judge_noise_md, NOISE_MD),
         _float_row(params, "EKF2_EVP_NOISE", "m", _floor_judge(0.01, 0.3, "position", 0.1)),
+        _float_row(params, "EKF2_EVV_NOISE", "m/s", partial(_judge_evv_noise, f)),
         _float_row(params, "EKF2_EVA_NOISE", "rad", _floor_judge(0.05, 0.3, "angle", 0.1)),
         _int_row(params, "EKF2_EV_QMIN", 0, 100, partial(_judge_qmin, f)),
         _float_row(params, "EKF2_EVP_GATE", "SD", _judge_gate),
@@ -566,6 +568,28 @@ def _judge_noise_md(v: int) -> Judgement:
     if v == 0:
         return Judgement(Status.OK, "0 (from the message)", why)
     return Judgement(Status.WARN, "0 (from the message)", "our covariance is ignored; " + why, 0)
+
+
+def _judge_evv_noise(f: _Ekf2Facts, v: float) -> Judgement:
+    """EKF2_EVV_NOISE: the floor under our velocity variance. Above the sigma we send
+    (service.odometry_velocity_sigma_m_s) EKF2 weighs our velocity at the floor instead, and
+    its own integration of the accelerometer decides more of its height (docs/decisions.md,
+    "What EKF2 adds to our height")."""
+    ours = f.ctx.velocity_sigma_m_s
+    if not f.velocity:
+        return Judgement(Status.OK, "any", f"not used: {f.message} carries no velocity")
+    need = f"0.01..{ours:g} (our velocity sigma)"
+    why = f"floor on the velocity variance EKF2 takes from us; we send {ours:g} m/s"
+    if v < 0.01:
+        return Judgement(Status.FAIL, need, f"below PX4's minimum; {why}", max(ours, 0.01))
+    if v > ours * 1.001:
+        return Judgement(
+            Status.WARN,
+            need,
+            f"above our sigma: EKF2 weighs our velocity at {v:g} m/s, not as measured ({why})",
+            max(ours, 0.01),
+        )
+    return Judgement(Status.OK, need, why)
 
 
 def _floor_judge(lo: float, hi: float, what: str, default: float) -> Callable[[float], Judgement]:
