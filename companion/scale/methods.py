@@ -160,7 +160,7 @@ class ReuseCounter:
     point's depth error, so they are one measurement repeated, not independent ones. A
     Kalman filter that fuses them at the frame rate as independent is overconfident and
     follows one point's depth bias: in PX4 SIH's landings the points under the beams (near
-    the focus of expansion, triangulated with little parallax) read 3-7 % deep, and the scale
+    the focus of expansion, triangulated with little parallax) read 2-7 % deep, and the scale
     fell 3.5 % in 6 s while the VO's true unit held (docs/decisions.md, "Repeated MSC
     matches"). The n-th use of a pair within ``memory_us`` of its previous use counts with
     its sigma times sqrt(n), so one point's information grows like log(n), not n. A pair
