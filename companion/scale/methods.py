@@ -203,7 +203,7 @@ class MSCwK(Method):
     def reset(self) -> None:
         super().reset()
         self.kf = ScaleKalman(self.opts.random_walk_per_s, self.opts.gate_chi2)
-        self.reuse = ReuseCounter(int(self.opts.reuse_memory_s * 1e6))
+        self.reuse = None  # a new map's points: counted afresh (_reuse)
 
     def _reuse(self) -> ReuseCounter:
         if self.reuse is None:
