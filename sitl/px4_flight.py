@@ -106,6 +106,13 @@ BOOT_PARAMS = {
     # sample). With 300 the service sends poses up to 200 ms old (config/px4_sitl.toml), all
     # still younger than the horizon (docs/decisions.md, "A longer fusion horizon")
     "EKF2_DELAY_MAX": "300",
+    # the output predictor's time constants (default 0.25 s): PX4's published position is
+    # EKF2's delayed state carried to the present on the IMU, pulled toward that state by
+    # these; with SIH's noisy accelerometer (~1.4 m/s^2 on z) the 0.25 s pull let the
+    # published height wander 3.2-3.5 cm RMS off the delayed state that matched ours to 9 mm
+    # (six flights); 0.1 s: 2.3 cm (docs/decisions.md, "PX4's output predictor")
+    "EKF2_TAU_POS": "0.1",
+    "EKF2_TAU_VEL": "0.1",
 }
 SERIAL_CONTROL_DEV_SHELL = 10
 SERIAL_CONTROL_FLAG_RESPOND, SERIAL_CONTROL_FLAG_EXCLUSIVE = 2, 4
