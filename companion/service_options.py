@@ -154,6 +154,13 @@ class ServiceOptions:
         ge=0,
         le=100,
     )
+    px4_stamp_at_send: bool = opt(
+        True,
+        "while a PX4 autopilot stamps our poses with their arrival (its time sync not "
+        "converged, as modelled from its TIMESYNC requests: at the start and ~10 s after a "
+        "jump of either clock), send each pose carried to its sending time along its velocity "
+        "and stamped then; false: the exposure's stamp always",
+    )
     timesync_rate_hz: float = opt(
         2.0, "our own TIMESYNC requests [Hz] once settled (10 Hz before)", gt=0, le=50
     )

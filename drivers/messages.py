@@ -10,6 +10,7 @@ STATUSTEXT (severity, 50 characters; a longer text in chunks sharing an id) for 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -177,6 +178,22 @@ def vision_position_estimate(mav: Any, pose: PoseEstimate) -> Any:
         yaw,
         upper_triangle(pose.covariance_6x6),
         pose.reset_counter & 0xFF,
+    )
+
+
+def pose_at(pose: PoseEstimate, time_us: int) -> PoseEstimate:
+    """The pose carried to ``time_us`` [us, our clock] along its own velocity (NED, m/s):
+    position + velocity * dt, attitude, covariance and the rest as they are; the pose itself
+    when its velocity is unknown (NaN). For an autopilot that stamps a sample with its arrival
+    (PX4 before its time sync converges): sent as of its sending, the pose and its stamp agree
+    whether the autopilot converts our stamp or takes the arrival (drivers/timesync.py,
+    RequesterModel)."""
+    v = np.asarray(pose.velocity_ned_m_s, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        return pose
+    dt_s = (time_us - pose.time_us) * 1e-6
+    return dataclasses.replace(
+        pose, time_us=int(time_us), position_ned_m=np.asarray(pose.position_ned_m) + v * dt_s
     )
 
 

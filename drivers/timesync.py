@@ -159,3 +159,79 @@ class ClockSync:
     def remote_to_local_us(self, remote_us: int, now_ns: int) -> int:
         """A timestamp of the peer's clock [us] in ours [us] (the offset as of now_ns)."""
         return int(round(remote_us + self.offset_at(now_ns) * 1e-3))
+
+
+# PX4's requester side (src/lib/timesync/Timesync.{hpp,cpp}, PX4 1.14 to main 2026): the
+# figures its filter is built on, modelled by :class:`RequesterModel`
+PX4_CONVERGENCE_WINDOW = 500  # fused answers before PX4 converts our stamps
+PX4_GAINS_INITIAL = (0.05, 0.05)  # (alpha, beta) at the first answer
+PX4_GAINS_FINAL = (0.003, 0.003)  # (alpha, beta) from the convergence window on
+PX4_MAX_DEVIATION_NS = 100_000_000  # an answer this far from the estimate is an outlier
+PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # one more outlier in a row resets the filter
+
+
+class RequesterModel:
+    """What a TIMESYNC requester (PX4) makes of the answers we give it: whether it converts
+    our ``time_usec`` stamps into its clock, or stamps our samples with their arrival.
+
+    PX4 converts a companion's stamps only while its own filter is converged: after
+    PX4_CONVERGENCE_WINDOW fused answers since its last reset. It resets at boot and when more
+    than PX4_MAX_CONSECUTIVE_DEVIATIONS answers in a row fall over PX4_MAX_DEVIATION_NS from
+    its estimate (a jump of either clock; in SITL, PX4's lockstep clock falling behind ours when
+    the simulator stalls: 187 ms at once in one PX4 SIH flight, session 23). For the next ~500
+    answers (10 s at 50 Hz) PX4 then stamps our samples on arrival, our latency late (~100 ms:
+    0.3 m at 3 m/s). Nothing on the link says so; this model follows PX4's filter on the same
+    answers (each request's ts1, PX4's clock, against the tc1 we answered with) and says
+    whether PX4 should be converting (:attr:`converts`).
+
+    The model sees neither PX4's reception time of our answer (it takes the round trip as 0;
+    PX4 fuses answers within 10 ms, so its offsets differ by at most 5 ms: nothing against 100
+    ms thresholds) nor the answers PX4 drops for their round trip, so it needs ``margin`` more
+    answers than PX4 before it says ``converts``: erring toward "not converted" is the cheap
+    side (the service then sends poses as of their sending, right in both states of PX4).
+    Offsets in ns, PX4's clock minus ours (PX4's sign)."""
+
+    def __init__(self, margin: float = 0.2) -> None:
+        self.needed = int(round(PX4_CONVERGENCE_WINDOW * (1.0 + margin)))
+        self.resets = 0  # resets seen after the first answer (clock jumps)
+        self.answers = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """PX4's filter as at boot (also: the autopilot went silent, it may have rebooted)."""
+        self.sequence = 0
+        self.offset_ns = 0.0
+        self.skew_ns = 0.0  # per answer, as PX4 keeps it
+        self.deviations = 0
+
+    @property
+    def converts(self) -> bool:
+        """True when the requester converts our stamps (its filter converged, with margin)."""
+        return self.sequence >= self.needed
+
+    def on_answer(self, ts1_ns: int, tc1_ns: int) -> None:
+        """A request (its ts1, the requester's clock [ns]) we answered with tc1 [ns] (ours)."""
+        self.answers += 1
+        observed = float(ts1_ns - tc1_ns)
+        if self.sequence >= PX4_CONVERGENCE_WINDOW:
+            if abs(self.offset_ns - observed) > PX4_MAX_DEVIATION_NS:
+                self.deviations += 1
+                if self.deviations > PX4_MAX_CONSECUTIVE_DEVIATIONS:
+                    self.resets += 1
+                    self.reset()
+                return
+            alpha, beta = PX4_GAINS_FINAL
+        else:
+            # PX4's gain schedule: a sigmoid from the initial to the final gains
+            progress = self.sequence / PX4_CONVERGENCE_WINDOW
+            p = 1.0 - math.exp(0.5 * (1.0 - 1.0 / (1.0 - progress)))
+            alpha = p * PX4_GAINS_FINAL[0] + (1.0 - p) * PX4_GAINS_INITIAL[0]
+            beta = p * PX4_GAINS_FINAL[1] + (1.0 - p) * PX4_GAINS_INITIAL[1]
+        if self.sequence == 0:
+            self.offset_ns = observed
+        else:
+            previous = self.offset_ns
+            self.offset_ns = alpha * observed + (1.0 - alpha) * (self.offset_ns + self.skew_ns)
+            self.skew_ns = beta * (self.offset_ns - previous) + (1.0 - beta) * self.skew_ns
+        self.sequence += 1
+        self.deviations = 0

@@ -25,6 +25,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from drivers.timesync import RequesterModel
+
 REPO = Path(__file__).resolve().parent.parent
 PX4_SITL = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
 SKIP_REASON = (
@@ -214,6 +216,9 @@ class VisionSender:
         self.answering = True  # TIMESYNC answers
         self.attitude: tuple[float, float, float] | None = None  # PX4's roll, pitch, yaw
         self.timesync_requests = 0
+        self.px4_system_id = 0  # from PX4's HEARTBEAT (its instance + 1)
+        self.clock_jump_ns = 0  # added to our clock (answers and stamps): a jump of it
+        self.model = RequesterModel()  # PX4's time sync as our answers drive it
         self.sent = 0
         self.started = time.monotonic()
         self._stop = threading.Event()
@@ -229,6 +234,10 @@ class VisionSender:
         self._thread.join(5)
         self.sock.close()
 
+    def now_ns(self) -> int:
+        """Our clock [ns]: monotonic, plus the jump the test put in it."""
+        return time.monotonic_ns() + self.clock_jump_ns
+
     def _send(self, msg: Any) -> None:
         with contextlib.suppress(OSError):
             self.sock.sendto(msg.pack(self.mav), self.px4)
@@ -243,7 +252,11 @@ class VisionSender:
             if kind == "TIMESYNC" and msg.tc1 == 0:
                 self.timesync_requests += 1
                 if self.answering:
-                    self._send(self.mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+                    tc1 = self.now_ns()
+                    self._send(self.mav.timesync_encode(tc1, msg.ts1))
+                    self.model.on_answer(msg.ts1, tc1)
+            elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                self.px4_system_id = msg.get_srcSystem()
             elif kind == "ATTITUDE":
                 self.attitude = (msg.roll, msg.pitch, msg.yaw)
 
@@ -253,7 +266,7 @@ class VisionSender:
         x, y, z = (a + d * t for a, d in zip(p.position_ned_m, p.drift_m_s, strict=True))
         roll, pitch, yaw = self.attitude or (0.0, 0.0, 0.0)
         yaw += p.yaw_offset_rad
-        usec = time.monotonic_ns() // 1000
+        usec = self.now_ns() // 1000
         cov = [math.nan] + [0.0] * 20  # NaN: "use EKF2's noise parameters"
         if p.kind == "vpe":
             return self.mav.vision_position_estimate_encode(usec, x, y, z, roll, pitch, yaw, cov, 0)

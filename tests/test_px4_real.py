@@ -385,3 +385,84 @@ def test_real_px4_gives_each_broken_set_up_its_reason(vision_px4: RealPx4, case:
         if case != LAST:  # after ODOMETRY, EV yaw in NED did not align the heading again
             wait_for(r.px4, "vision fused again", lambda: ev_pos(r.px4) is True)
     assert_scenario(report, s)
+
+
+@real
+@pytest.mark.timeout(240)
+def test_real_px4_stamps_on_arrival_exactly_while_our_model_says_so(vision_px4: RealPx4) -> None:
+    """Our model of PX4's time sync (drivers/timesync.py, RequesterModel: the service sends
+    poses as of their sending while it says PX4 stamps them on arrival) against PX4 itself.
+    Whenever the model says PX4 converts our stamps, PX4's vehicle_visual_odometry carries a
+    converted timestamp_sample (never the arrival's); a 300 ms jump of our clock makes PX4
+    reset its filter and stamp on arrival, and the model says so; both converge again, the
+    model never before PX4. Session 23 met the jump in a flight: SIH stalled 187 ms."""
+    r = vision_px4
+    set_up(r, Scenario(VPE, fused=True))
+    sender = r.sender
+
+    def px4_converts() -> bool | None:
+        o = r.px4.listener("vehicle_visual_odometry") or {}
+        if not o:
+            return None
+        return o.get("timestamp") != o.get("timestamp_sample")
+
+    def ask_timesync(interval_us: float) -> None:
+        sender._send(
+            sender.mav.command_long_encode(
+                sender.px4_system_id,
+                1,
+                mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                messages.MSG_ID_TIMESYNC,
+                interval_us,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+
+    seen: list[tuple[bool, bool | None]] = []
+
+    def watch(until_model: bool, deadline_s: float) -> None:
+        """Poll (model, PX4) until the model says ``until_model``: never the model
+        converting while PX4 stamps on arrival."""
+        end = time.monotonic() + deadline_s
+        while time.monotonic() < end:
+            model = sender.model.converts
+            px4 = px4_converts()
+            seen.append((model, px4))
+            assert not (model and px4 is False), seen[-20:]
+            if model == until_model and (not model or px4):
+                return
+            time.sleep(0.2)
+        m = sender.model
+        raise AssertionError(
+            f"the model did not reach converts={until_model}: {seen[-20:]}; answers "
+            f"{m.answers}, sequence {m.sequence}, resets {m.resets}, PX4's "
+            f"{r.px4.listener('timesync_status')}"
+        )
+
+    assert sender.px4_system_id, "no HEARTBEAT from PX4"
+    ask_timesync(20_000)  # 50 Hz, as the service asks: ~10 s to converge
+    try:
+        watch(True, 120.0)
+        assert px4_converts() is True
+        resets = sender.model.resets
+        sender.clock_jump_ns += 300_000_000
+        end = time.monotonic() + 10.0
+        while sender.model.resets == resets:  # six answers in a row 300 ms off
+            assert time.monotonic() < end, "the model saw no jump"
+            time.sleep(0.05)
+        assert not sender.model.converts
+        end = time.monotonic() + 10.0  # PX4 reset on the same answers: stamps on arrival
+        while px4_converts() is not False:
+            assert time.monotonic() < end, "PX4 kept converting our stamps after the jump"
+            time.sleep(0.1)
+        watch(True, 60.0)
+        assert px4_converts() is True
+        # PX4 converged first (the model's margin): some polls saw PX4 converting alone
+        assert any(px4 and not model for model, px4 in seen[-40:]), seen[-40:]
+    finally:
+        ask_timesync(0)  # PX4's own rate again

@@ -15,7 +15,13 @@ from companion.types import CameraFrame, PoseEstimate
 from drivers import messages
 from drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
 from drivers.mavlink import LinkStats, LinkUrl, Parser
-from drivers.timesync import ClockSync, reply_for
+from drivers.timesync import (
+    PX4_CONVERGENCE_WINDOW,
+    PX4_MAX_CONSECUTIVE_DEVIATIONS,
+    ClockSync,
+    RequesterModel,
+    reply_for,
+)
 
 
 class PeerClock:
@@ -162,6 +168,76 @@ def test_clock_sync_sees_a_clock_jump_through_slow_answers() -> None:
     t += 100_000_000
     sync.on_reply(jumped(t), t, t + 2_000_000)  # agrees (skipped as slow once converged)
     assert sync.settled and sync.resets == 1
+
+
+def _feed_requests(model: RequesterModel, peer: PeerClock, t_ns: int, n: int) -> int:
+    """n requests of a requester at 50 Hz answered at once (our clock t_ns onward)."""
+    for _ in range(n):
+        t_ns += 20_000_000
+        model.on_answer(peer(t_ns), t_ns)
+    return t_ns
+
+
+def test_px4s_time_sync_is_modelled_to_its_convergence_and_tracks_a_slow_lockstep_clock() -> None:
+    """PX4 converts our stamps after PX4_CONVERGENCE_WINDOW fused answers; the model says so
+    only with its margin on top (never before PX4 does), and its estimate follows a clock
+    0.6 % slow (PX4 SIH's lockstep pace on this host) as PX4's filter does: within a few ms,
+    with no reset."""
+    peer = PeerClock(offset_ns=-12_194_000_000_000, drift_ppm=-6000.0)
+    model = RequesterModel()
+    assert model.needed == 600 and model.needed > PX4_CONVERGENCE_WINDOW
+    t = _feed_requests(model, peer, 1_000_000_000, model.needed - 1)
+    assert not model.converts
+    t = _feed_requests(model, peer, t, 1)
+    assert model.converts
+    t = _feed_requests(model, peer, t, 3000)  # another minute
+    assert model.converts and model.resets == 0
+    # PX4's sign: its clock minus ours; the final gains trail a skew by a few ms at most
+    assert abs(model.offset_ns - (peer(t) - t)) < 5_000_000
+
+
+def test_px4s_time_sync_reset_on_a_jump_of_its_clock_is_modelled() -> None:
+    """A lockstep PX4 whose simulator stalled 187 ms (session 23's lawnmower 1): PX4 resets
+    its filter on the sixth answer in a row over 100 ms off, then stamps our samples on
+    arrival for ~500 answers. A 60 ms step is no reset (PX4's filter takes it slowly)."""
+    model = RequesterModel()
+    peer = PeerClock(offset_ns=-5_000_000_000, drift_ppm=0.0)
+    t = _feed_requests(model, peer, 0, 700)
+    assert model.converts
+    stepped = PeerClock(offset_ns=peer.offset_ns + 60_000_000, drift_ppm=0.0)
+    t = _feed_requests(model, stepped, t, 50)
+    assert model.converts and model.resets == 0
+    stalled = PeerClock(offset_ns=stepped.offset_ns + 187_000_000, drift_ppm=0.0)
+    for _ in range(PX4_MAX_CONSECUTIVE_DEVIATIONS):
+        t = _feed_requests(model, stalled, t, 1)
+        assert model.converts  # outliers, not yet a jump
+    # a good answer between them would have cleared the count; the sixth in a row resets
+    t = _feed_requests(model, stalled, t, 1)
+    assert model.resets == 1 and not model.converts
+    t = _feed_requests(model, stalled, t, model.needed - 1)
+    assert not model.converts
+    t = _feed_requests(model, stalled, t, 1)
+    assert model.converts
+    assert abs(model.offset_ns - (stalled(t) - t)) < 1_000_000
+
+
+def test_a_pose_is_carried_to_its_sending_along_its_velocity() -> None:
+    pose = sample_pose()
+    later = messages.pose_at(pose, pose.time_us + 100_000)
+    assert later.time_us == pose.time_us + 100_000
+    assert np.allclose(later.position_ned_m, pose.position_ned_m + 0.1 * pose.velocity_ned_m_s)
+    assert np.array_equal(later.quat_wxyz_ned_frd, pose.quat_wxyz_ned_frd)
+    assert np.array_equal(later.covariance_6x6, pose.covariance_6x6)
+    unknown = PoseEstimate(
+        pose.time_us,
+        pose.position_ned_m,
+        pose.quat_wxyz_ned_frd,
+        np.full(3, np.nan),
+        pose.covariance_6x6,
+        3,
+        87,
+    )
+    assert messages.pose_at(unknown, pose.time_us + 100_000) is unknown  # nothing to carry
 
 
 def test_link_urls() -> None:
@@ -655,6 +731,81 @@ def test_centred_odometry_is_never_older_than_its_oldest_stamp(tmp_path, monkeyp
     _, m = odometry()[-1]
     assert m.time_usec == round((times[3] + 2 * t0 + 12 * frame_us) / 3)
     assert abs(m.vx - 1.0) < 1e-6
+
+
+def test_poses_go_out_as_of_their_sending_while_px4_stamps_them_on_arrival(
+    tmp_path, monkeypatch
+) -> None:
+    """PX4 stamps our samples with their arrival until its time sync has converged on ~500 of
+    our answers, and again for as long after a jump of its clock (a stalled SIH: 187 ms in
+    session 23's lawnmower 1, 0.3-0.5 m of error at 3 m/s for 10 s). Meanwhile the service
+    sends each pose carried to its sending and stamped then (ODOMETRY and
+    VISION_POSITION_ESTIMATE); once its model of PX4's filter has converged, the exposure's
+    stamp again; PX4's clock jumping puts it back. Off (``px4_stamp_at_send`` false), or with
+    an autopilot that is not PX4: the exposure's stamp always."""
+    from peers import service_config
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.service import app
+
+    clock = {"ns": 0}
+    monkeypatch.setattr(app, "now_ns", lambda: clock["ns"])
+
+    def run(autopilot: str, **kw) -> tuple[list, list, app.Service]:
+        """(per frame: (sent at its sending, PX4 converting as modelled)), messages, service"""
+        cfg = service_config(tmp_path, output="both", odometry_centre_frames=3, **kw)
+        service = app.Service(cfg)
+        service.stats.autopilot = autopilot
+        sent: list = []
+        monkeypatch.setattr(service.link, "send", lambda m: sent.append((clock["ns"], m)) or True)
+        px4 = mavlink.MAVLink(None, srcSystem=cfg.service.system_id, srcComponent=1)
+        image = np.zeros((4, 4, 3), np.uint8)
+        frames: list = []
+        px4_offset_ns = -3_000_000_000  # PX4's clock 3 s behind ours
+
+        def frame_at(t_us: int) -> None:
+            # PX4 asks at 50 Hz: 2-3 requests a frame at 20 Hz, answered at once
+            for k in range(3 if (t_us // 50_000) % 2 else 2):
+                clock["ns"] = t_us * 1000 + k * 17_000_000
+                request = mavlink.MAVLink_timesync_message(0, clock["ns"] + px4_offset_ns)
+                service._on_message(decode(request.pack(px4)), clock["ns"])
+            clock["ns"] = (t_us + 40_000) * 1000  # published 40 ms after its exposure
+            p = np.array([1e-6 * t_us, 0.0, -5.0])  # 1 m/s north
+            v = np.array([1.0, 0.0, 0.0])
+            pose = PoseEstimate(t_us, p, np.array([1.0, 0, 0, 0]), v, np.eye(6) * 1e-4, 0, 90)
+            n = len(sent)
+            converts = service.px4_stamps.converts
+            service._publish(CameraFrame(t_us, t_us // 50_000, image), pose)
+            for t_ns, m in sent[n:]:  # both messages: where the vehicle was at their stamp
+                stamp_us = m.time_usec if m.get_type() == "ODOMETRY" else m.usec
+                assert abs(m.x - 1e-6 * stamp_us) < 1e-6, m
+                frames.append((stamp_us == t_ns // 1000, converts))
+
+        t0 = 10_000_000
+        for k in range(300):  # 15 s at 20 Hz: 750 requests answered
+            frame_at(t0 + k * 50_000)
+        px4_offset_ns -= 187_000_000  # the simulator stalled: PX4's clock fell behind
+        for k in range(300, 320):
+            frame_at(t0 + k * 50_000)
+        return frames, sent, service
+
+    frames, _, service = run("PX4")
+    assert all(at_send == (not converts) for at_send, converts in frames), frames
+    modelled = [converts for _, converts in frames]
+    # 600 answers (240 frames) to converge, 6 answers (3 frames) after the jump to reset
+    first = modelled.index(True)
+    assert not any(modelled[:first]) and 230 < first // 2 < 250, first
+    after = len(modelled) - 1 - max(i for i, c in enumerate(modelled) if c)
+    assert all(modelled[first:-after]) and 2 * 17 <= after <= 2 * 18, after  # of 20 frames
+    model = service.px4_stamps
+    assert model.resets == 1 and not model.converts
+    report = service.summary()
+    assert report["px4_timesync_resets"] == 1 and report["px4_converts_stamps"] is False
+    assert report["stamped_at_send"] == sum(1 for at_send, _ in frames if at_send) // 2 + 1
+    for autopilot, kw in (("PX4", {"px4_stamp_at_send": False}), ("ArduPilot", {})):
+        frames, _, service = run(autopilot, **kw)
+        assert len(frames) > 600 and not any(at_send for at_send, _ in frames)
+        assert service.stats.stamped_at_send == 0
 
 
 class _FakeCapture:

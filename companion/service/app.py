@@ -66,7 +66,7 @@ from drivers import ardupilot, messages
 from drivers.backoff import Backoff
 from drivers.files import atomic_write
 from drivers.status import status_path
-from drivers.timesync import ClockSync, reply_for
+from drivers.timesync import ClockSync, RequesterModel, reply_for
 
 log = logging.getLogger("companion.service")
 
@@ -107,6 +107,7 @@ class ServiceStats:
     imus_rejected: int = 0  # not finite or beyond 16 g
     foreign_messages: int = 0  # from another system id than the configured autopilot's
     timesync_replies: int = 0
+    stamped_at_send: int = 0  # poses sent as of their sending (PX4 stamping on arrival)
     last_reset_counter: int = 0
     autopilot_heartbeat_ns: int = 0
     autopilot_system_id: int = 0
@@ -144,6 +145,8 @@ class Service:
         # worker replaces after each frame (a reference swap, atomic in CPython)
         self.pipeline_status = self.pipeline.status()
         self.sync = ClockSync()
+        # PX4's own time sync as our answers drive it: whether it converts our stamps
+        self.px4_stamps = RequesterModel()
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
         from drivers.signing import Signing
@@ -329,6 +332,8 @@ class Service:
             if reply is not None:  # a request: answer at once
                 self.link.send(self.link.mav.timesync_encode(reply.tc1, reply.ts1))
                 self.stats.timesync_replies += 1
+                if msg.get_srcComponent() == messages.MAV_COMP_ID_AUTOPILOT1:
+                    self._px4_answered(reply.ts1, reply.tc1)
             elif msg.ts1 in self._timesync_sent:  # an answer to one of our own requests
                 self._timesync_sent.remove(msg.ts1)
                 self.sync.on_reply(msg.tc1, msg.ts1, rx_ns)
@@ -473,6 +478,8 @@ class Service:
                 wanted[ardupilot.MSG_ID_GLOBAL_POSITION_INT] = ardupilot.POSITION_RATE_HZ
             hb = self.stats.autopilot_heartbeat_ns
             silent = bool(hb) and now_ns() - hb > 3_000_000_000
+            if silent:  # it may reboot: its time sync starts again
+                self.px4_stamps.reset()
             if silent and not self._autopilot_lost:
                 self._warn("autopilot: no heartbeat for 3 s (link lost?)")
             elif self._autopilot_lost and not silent:
@@ -911,8 +918,11 @@ class Service:
         o = self.config.service.output
         mav = self.link.mav
         sent = False
+        # PX4 stamping on arrival: each message as of its sending, stamped then
+        send_us = now_ns() // 1000 if self._stamp_at_send() else None
         if o in ("vision_position_estimate", "both"):
-            sent |= self.link.send(messages.vision_position_estimate(mav, pose))
+            vpe = pose if send_us is None else messages.pose_at(pose, send_us)
+            sent |= self.link.send(messages.vision_position_estimate(mav, vpe))
         if o in ("odometry", "both"):
             rates = self._attitude_rates
             wire = pose
@@ -941,6 +951,8 @@ class Service:
                 wire = dataclasses.replace(
                     pose, quality_pct=ardupilot.ardupilot_quality(pose.quality_pct)
                 )
+            if send_us is not None:
+                wire = messages.pose_at(wire, send_us)
             so = self.config.service
             odo = messages.odometry(
                 mav, wire, rates, so.odometry_velocity_sigma_m_s, frame=so.odometry_frame
@@ -952,12 +964,45 @@ class Service:
             if self.stats.published and pose.reset_counter != self.stats.last_reset_counter:
                 self._warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
             self.stats.published += 1
+            self.stats.stamped_at_send += send_us is not None
             self.stats.publish_times_ns.append(t)
             self.stats.latency_ms.append((t / 1e3 - frame.time_us) / 1e3)
             self.stats.last_reset_counter = pose.reset_counter
             self.stats.sent.append(pose)
             self.recorder.pose(pose)
             self._last_pose = pose
+
+    def _px4_answered(self, ts1: int, tc1: int) -> None:
+        """A TIMESYNC request of the autopilot answered: our model of PX4's time sync
+        follows it; a reset (its clock jumped) is warned, the convergence logged."""
+        model = self.px4_stamps
+        before = (model.converts, model.resets)
+        model.on_answer(ts1, tc1)
+        if self.stats.autopilot != "PX4":
+            return
+        if model.resets != before[1]:
+            self._warn(
+                "autopilot clock jumped: PX4 stamps our poses on arrival until its time sync "
+                "converges again (~500 answers)"
+                + (
+                    "; sending them as of their sending"
+                    if self.config.service.px4_stamp_at_send
+                    else ""
+                )
+            )
+        elif model.converts and not before[0]:
+            log.info("PX4 converts our stamps now (%d TIMESYNC answers)", model.sequence)
+
+    def _stamp_at_send(self) -> bool:
+        """Whether PX4 stamps our poses with their arrival now, by our model of its time
+        sync (drivers/timesync.py, RequesterModel): then they go out as of their sending
+        (``service.px4_stamp_at_send``; a pose so sent is right in either state of PX4, so
+        the model errs toward it)."""
+        return (
+            self.config.service.px4_stamp_at_send
+            and self.stats.autopilot == "PX4"
+            and not self.px4_stamps.converts
+        )
 
     async def _sleep(self, seconds: float) -> None:
         with contextlib.suppress(TimeoutError):
@@ -996,6 +1041,10 @@ class Service:
             "imu_gravity_frames": self.pipeline.gravity_used,
             "timesync_replies": s.timesync_replies,
             "timesync_converged": self.sync.converged,
+            # PX4's side, modelled: whether it converts our stamps; poses sent as of sending
+            "px4_converts_stamps": self.px4_stamps.converts,
+            "px4_timesync_resets": self.px4_stamps.resets,
+            "stamped_at_send": s.stamped_at_send,
             "rates_acknowledged": sorted(s.rates_acknowledged),
             "rates_refused": sorted(s.rates_refused),
             "autopilot_offset_ms": self.sync.offset_at(now_ns()) * 1e-6,
@@ -1091,6 +1140,8 @@ class Service:
             "timesync_converged": self.sync.converged,
             "timesync_offset_ms": self.sync.offset_at(now) * 1e-6 if self.sync.converged else None,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
+            "px4_converts_stamps": self.px4_stamps.converts if s.autopilot == "PX4" else None,
+            "stamped_at_send": s.stamped_at_send,
             "rates_acknowledged": sorted(s.rates_acknowledged),
             "rates_refused": sorted(s.rates_refused),
             "rx_messages": link.rx_messages,
