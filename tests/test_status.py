@@ -24,6 +24,8 @@ SAMPLE = {
         "timesync_converged": True,
         "timesync_offset_ms": 10608.123,
         "timesync_rtt_ms": 0.21,
+        "px4_converts_stamps": False,
+        "stamped_at_send": 12,
         "rates_acknowledged": [26, 30, 111, 132],  # PX4: SCALED_IMU, ATTITUDE, TIMESYNC, ...
         "rates_refused": [],
         "rx_messages": 1000,
@@ -154,6 +156,7 @@ def test_cli_status_table_and_json(tmp_path, capsys) -> None:
         "camera: stream ended",
         "edge?",
         "disabled",
+        "PX4 stamps on arrival: poses sent as of sending (12)",
     ):
         assert text in table, text
 

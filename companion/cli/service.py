@@ -148,10 +148,20 @@ def _autopilot_rows(ap: dict[str, Any]) -> list[tuple[str, str]]:
             "  time sync",
             f"{'converged' if ap['timesync_converged'] else 'NOT converged'}  "
             f"offset {_fmt(ap['timesync_offset_ms'], ' ms', 3)}  "
-            f"rtt {_fmt(ap['timesync_rtt_ms'], ' ms', 2)}",
+            f"rtt {_fmt(ap['timesync_rtt_ms'], ' ms', 2)}" + _px4_stamps_text(ap),
         ),
         ("  messages", f"{ap['rx_messages']} in, {ap['rx_bad']} bad" + _signing_text(ap)),
     ]
+
+
+def _px4_stamps_text(ap: dict[str, Any]) -> str:
+    """PX4's side of the time sync as the service models it (newer services only)."""
+    converts = ap.get("px4_converts_stamps")
+    if converts is None:
+        return ""
+    if converts:
+        return "  PX4 converts our stamps"
+    return f"  PX4 stamps on arrival: poses sent as of sending ({ap.get('stamped_at_send', 0)})"
 
 
 def _camera_text(cam: dict[str, Any]) -> str:
