@@ -40,6 +40,14 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+# PX4's requester side (src/lib/timesync/Timesync.{hpp,cpp}, PX4 1.14 to main 2026): the
+# figures its filter is built on, modelled by :class:`RequesterModel`
+PX4_CONVERGENCE_WINDOW = 500  # fused answers before PX4 converts our stamps
+PX4_GAINS_INITIAL = (0.05, 0.05)  # (alpha, beta) at the first answer
+PX4_GAINS_FINAL = (0.003, 0.003)  # (alpha, beta) from the convergence window on
+PX4_MAX_DEVIATION_NS = 100_000_000  # an answer this far from the estimate is an outlier
+PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # one more outlier in a row resets the filter
+
 
 @dataclass(frozen=True, slots=True)
 class TimesyncReply:
@@ -64,8 +72,8 @@ class ClockSync:
         self,
         max_rtt_ns: int = 10_000_000,
         time_constant_s: float = 3.0,
-        max_deviation_ns: int = 100_000_000,
-        max_consecutive_deviations: int = 5,
+        max_deviation_ns: int = PX4_MAX_DEVIATION_NS,
+        max_consecutive_deviations: int = PX4_MAX_CONSECUTIVE_DEVIATIONS,
     ) -> None:
         self.max_rtt_ns = max_rtt_ns
         self.time_constant_ns = time_constant_s * 1e9
@@ -159,15 +167,6 @@ class ClockSync:
     def remote_to_local_us(self, remote_us: int, now_ns: int) -> int:
         """A timestamp of the peer's clock [us] in ours [us] (the offset as of now_ns)."""
         return int(round(remote_us + self.offset_at(now_ns) * 1e-3))
-
-
-# PX4's requester side (src/lib/timesync/Timesync.{hpp,cpp}, PX4 1.14 to main 2026): the
-# figures its filter is built on, modelled by :class:`RequesterModel`
-PX4_CONVERGENCE_WINDOW = 500  # fused answers before PX4 converts our stamps
-PX4_GAINS_INITIAL = (0.05, 0.05)  # (alpha, beta) at the first answer
-PX4_GAINS_FINAL = (0.003, 0.003)  # (alpha, beta) from the convergence window on
-PX4_MAX_DEVIATION_NS = 100_000_000  # an answer this far from the estimate is an outlier
-PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # one more outlier in a row resets the filter
 
 
 class RequesterModel:
