@@ -19,8 +19,8 @@ from __future__ import annotations
 import csv
 import datetime
 import heapq
-import io
 import json
+import math
 import os
 import re
 import tomllib
@@ -45,7 +45,7 @@ from companion.types import (
     RangeSample,
     RangeSensorSpec,
 )
-from drivers.files import atomic_write
+from drivers.files import atomic_write, open_new
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -139,6 +139,9 @@ class Dataset:
     imus: list[ImuSample] = field(default_factory=list)
     imu_fed: I64 | None = None
     frame_held: NDArray[np.bool_] | None = None  # (F,) frames the service held from its VO
+    folder: SafeFolder | None = None  # where the files are read from (drivers/safe_files.py)
+    frame_names: list[str] = field(default_factory=list)  # (F,) as frames.csv names them
+    skipped: dict[str, RowCount] = field(default_factory=dict)  # per file: rows left out
 
     def __len__(self) -> int:
         return len(self.frame_paths)
@@ -153,17 +156,24 @@ class Dataset:
         return len(self.gt_times_us) > 0
 
     def load_frame(self, index: int) -> CameraFrame:
-        """Read frame ``index`` as BGR (grey images are expanded to three channels)."""
-        path = self.frame_paths[index]
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(f"cannot read image {path}")
-        if img.ndim == 2:
-            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        elif img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        """Read frame ``index`` as BGR (grey images are expanded to three channels): a regular
+        file inside the folder whose header has the calibration's size (checked before it is
+        decoded); DatasetError naming the frame otherwise."""
+        size = (self.camera.width, self.camera.height)
+        if self.folder is not None and index < len(self.frame_names):
+            img = _decode_frame(self.folder, self.frame_names[index], size, f"frame {index}")
+        else:
+            path = self.frame_paths[index]
+            img = _decode_frame(SafeFolder(path.parent), path.name, size, f"frame {index}")
         seq = index if self.frame_seqs is None else int(self.frame_seqs[index])
-        return CameraFrame(int(self.frame_times_us[index]), seq, np.asarray(img, dtype=np.uint8))
+        return CameraFrame(int(self.frame_times_us[index]), seq, img)
+
+    def skipped_text(self) -> list[str]:
+        """One line per file with rows the reader left out: how many and the first reason."""
+        return [
+            f"{name}: {c.skipped} bad row{'s' if c.skipped > 1 else ''} left out (first: {c.first})"
+            for name, c in self.skipped.items()
+        ]
 
     def frames(self) -> Iterator[CameraFrame]:
         """Frames in time order, loaded lazily."""
@@ -257,38 +267,182 @@ def dataset_steps(ds: Dataset) -> Iterator[DatasetStep]:
             ranges, atts, imus = [], [], []
 
 
-def _read_csv(path: Path, optional: bool = False) -> list[dict[str, str]]:
-    """The rows of a CSV file with a header. A last line without its newline is a row the
-    writer did not finish (a recording killed mid-write): it is left out. ``optional``: a
-    missing file has no rows."""
-    if not path.exists():
-        if optional:
-            return []
-        raise DatasetError(f"missing file {path}")
-    text = path.read_text()
-    if text and not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-    return list(csv.DictReader(io.StringIO(text, newline="")))
+MAX_TIME_US = 2**62  # a time stamp of ours: [0, 2**62] us (146,000 years)
+MAX_SEQ = 2**62
+QUAT_NORM_TOLERANCE = 0.01  # |norm - 1| of a stored unit quaternion (float32 sources: 1e-7)
+MAX_RATE_RAD_S = 50.0  # as the live service refuses ATTITUDE (drivers/messages.py)
+MAX_SPECIFIC_FORCE_M_S2 = 16 * 9.80665  # as it refuses SCALED_IMU
+MAX_DISTANCE_M = 1000.0
+MAX_POSITION_M = 1e7
+MAX_VELOCITY_M_S = 1e4
+MAX_MAGNETIC_GAUSS = 100.0
+
+
+@dataclass
+class RowCount:
+    """The rows of one file left out by the reader: how many, and the first one's reason."""
+
+    skipped: int = 0
+    first: str = ""
+
+    def add(self, reason: str) -> None:
+        """Count a left-out row (its reason kept if it is the first)."""
+        self.skipped += 1
+        self.first = self.first or reason
+
+
+def _unit_quat(table: CsvTable, line: int, row: list[str], columns: Sequence[str]) -> F64:
+    """A unit quaternion from four columns: finite, norm within QUAT_NORM_TOLERANCE of 1
+    (then normalised); DatasetError naming the row otherwise (a zero quaternion)."""
+    q = np.array([_float(table, line, row, c, -2.0, 2.0) for c in columns])
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+        where = table.where(line, "/".join(columns))
+        raise DatasetError(f"{where}: not a unit quaternion (norm {norm:.6g})")
+    return q / norm
+
+
+def _float(
+    table: CsvTable,
+    line: int,
+    row: list[str],
+    column: str,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+) -> float:
+    """A finite float of ``column`` in [lo, hi] (DatasetError naming file, row, column)."""
+    return parse_float(table.field(line, row, column), table.where(line, column), lo, hi)
+
+
+def _int(table: CsvTable, line: int, row: list[str], column: str, lo: int, hi: int) -> int:
+    """An integer of ``column`` in [lo, hi] (DatasetError naming file, row, column)."""
+    return parse_int(table.field(line, row, column), table.where(line, column), lo, hi)
+
+
+def _time(table: CsvTable, line: int, row: list[str]) -> int:
+    return _int(table, line, row, "time_us", 0, MAX_TIME_US)
+
+
+def _vector(
+    table: CsvTable, line: int, row: list[str], columns: Sequence[str], bound: float
+) -> F64:
+    return np.array([_float(table, line, row, c, -bound, bound) for c in columns])
+
+
+def _range_row(table: CsvTable, line: int, row: list[str]) -> tuple[RangeSample, float]:
+    """A ranges.csv row: the reading as recorded and its true distance (NaN if unknown)."""
+    sample = RangeSample(
+        _time(table, line, row),
+        _int(table, line, row, "sensor_id", 0, 255),
+        _float(table, line, row, "distance_m", 0.0, MAX_DISTANCE_M),
+        _float(table, line, row, "min_m", 0.0, MAX_DISTANCE_M),
+        _float(table, line, row, "max_m", 0.0, MAX_DISTANCE_M),
+        _int(table, line, row, "signal_quality", 0, 100),
+    )
+    if sample.max_m <= sample.min_m:
+        raise DatasetError(f"{table.where(line, 'max_m')}: not above min_m")
+    truth = "true_distance_m"
+    text = table.field(line, row, truth) if table.has(truth) else ""
+    true_m = parse_float(text, table.where(line, truth), 0.0, MAX_DISTANCE_M) if text else math.nan
+    return sample, true_m
+
+
+def _attitude_row(table: CsvTable, line: int, row: list[str]) -> AttitudeSample:
+    """An attitude.csv row: a unit quaternion and finite rates below MAX_RATE_RAD_S."""
+    return AttitudeSample(
+        _time(table, line, row),
+        _unit_quat(table, line, row, ATTITUDE_COLUMNS[1:5]),
+        _vector(table, line, row, ATTITUDE_COLUMNS[5:], MAX_RATE_RAD_S),
+    )
+
+
+def _imu_row(table: CsvTable, line: int, row: list[str]) -> ImuSample:
+    """An imu.csv row: the specific force (finite, below 16 g) and, when the columns are there
+    and filled, the rates and the magnetic field."""
+    accel = _vector(table, line, row, IMU_COLUMNS[1:], MAX_SPECIFIC_FORCE_M_S2)
+    if float(np.linalg.norm(accel)) > MAX_SPECIFIC_FORCE_M_S2:
+        raise DatasetError(f"{table.where(line, 'ax_m_s2')}: specific force above 16 g")
+    return ImuSample(
+        _time(table, line, row),
+        accel,
+        _optional_vector(table, line, row, IMU_GYRO_COLUMNS, MAX_RATE_RAD_S),
+        _optional_vector(table, line, row, IMU_MAG_COLUMNS, MAX_MAGNETIC_GAUSS),
+    )
+
+
+def _pose_row_read(table: CsvTable, line: int, row: list[str]) -> PublishedPose:
+    """A published.csv (or poses.csv) row."""
+    return PublishedPose(
+        _time(table, line, row),
+        _vector(table, line, row, PUBLISHED_COLUMNS[1:4], MAX_POSITION_M),
+        _unit_quat(table, line, row, PUBLISHED_COLUMNS[4:8]),
+        _vector(table, line, row, PUBLISHED_COLUMNS[8:11], MAX_VELOCITY_M_S),
+        _int(table, line, row, "reset_counter", 0, 255),
+        _int(table, line, row, "quality_pct", 0, 100),
+    )
+
+
+def _rows(
+    table: CsvTable, parse: Any, counts: RowCount, n_frames: int | None = None
+) -> tuple[list[Any], I64 | None]:
+    """The rows of a samples file parsed by ``parse`` and, when the file has the column, the
+    frame each was fed before. A row that does not parse (a word or NaN in a number, a zero
+    quaternion, a short or long row, a fed_before_frame that decreases) is left out and
+    counted in ``counts``, as the live service counts bad MAVLink. ``n_frames``: the samples
+    fed before a frame that was not written (an unfinished recording) are not part of it."""
+    fed_column = table.has(FED)
+    samples: list[Any] = []
+    fed: list[int] = []
+    width = len(table.columns)
+    for line, row in table.rows:
+        try:
+            if len(row) != width:
+                raise DatasetError(f"{table.name} row {line}: {len(row)} fields, header {width}")
+            sample = parse(table, line, row)
+            k = _int(table, line, row, FED, 0, MAX_SEQ) if fed_column else 0
+            if fed and k < fed[-1]:
+                raise DatasetError(f"{table.where(line, FED)}: {k} after {fed[-1]} (decreases)")
+        except DatasetError as e:
+            counts.add(str(e))
+            continue
+        if n_frames is not None and fed_column and k >= n_frames:
+            break
+        samples.append(sample)
+        fed.append(k)
+    return samples, (np.array(fed, dtype=np.int64) if fed_column else None)
 
 
 def read_tum(path: Path) -> tuple[F64, F64]:
-    """TUM trajectory: times (N,) [s] and poses (N, 4, 4) from 'time tx ty tz qx qy qz qw'."""
-    rows = []
-    for line in path.read_text().splitlines():
-        line = line.strip()
+    """TUM trajectory: times (N,) [s] and poses (N, 4, 4) from 'time tx ty tz qx qy qz qw';
+    DatasetError naming the line for anything else (8 finite numbers, a unit quaternion,
+    increasing times)."""
+    folder = SafeFolder(path.parent)
+    return _tum_poses(folder.read_text(path.name, MAX_CSV_BYTES), path.name)
+
+
+def _tum_poses(text: str, name: str) -> tuple[F64, F64]:
+    """Times (N,) [s] and poses (N, 4, 4) of the TUM ``text`` (file ``name``)."""
+    times: list[float] = []
+    poses: list[F64] = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
         if not line or line.startswith("#"):
             continue
         vals = line.split()
+        where = f"{name} line {number}"
         if len(vals) != 8:
-            raise DatasetError(f"{path}: a TUM line needs 8 values, got {len(vals)}")
-        rows.append([float(v) for v in vals])
-    arr = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
-    poses = (
-        np.stack([se3.from_quat(so3.quat_xyzw_to_wxyz(r[4:8]), r[1:4]) for r in arr])
-        if len(arr)
-        else np.zeros((0, 4, 4))
-    )
-    return arr[:, 0], poses
+            raise DatasetError(f"{where}: a TUM line needs 8 values, got {len(vals)}")
+        t, *xyz_q = (
+            parse_float(v, f"{where}, value {i + 1}", -1e12, 1e12) for i, v in enumerate(vals)
+        )
+        q = so3.quat_xyzw_to_wxyz(np.array(xyz_q[3:]))
+        if abs(float(np.linalg.norm(q)) - 1.0) > QUAT_NORM_TOLERANCE:
+            raise DatasetError(f"{where}: not a unit quaternion")
+        if times and t <= times[-1]:
+            raise DatasetError(f"{where}: time {t} not after {times[-1]}")
+        times.append(t)
+        poses.append(se3.from_quat(q, xyz_q[:3]))
+    return np.array(times, dtype=np.float64), (np.stack(poses) if poses else np.zeros((0, 4, 4)))
 
 
 def write_tum(path: Path, times_s: F64, poses: F64) -> None:
@@ -303,232 +457,305 @@ def write_tum(path: Path, times_s: F64, poses: F64) -> None:
             )
 
 
-def _ours_config(path: Path, meta: dict[str, Any]) -> tuple[Config, SitlConfig | None]:
+def _ours_config(folder: SafeFolder, meta: dict[str, Any]) -> tuple[Config, SitlConfig | None]:
     """The config of a dataset of ours: calibration.toml (camera, the declared rangefinders:
     none declared = none), config.toml (a recording's algorithm options) and, only when
     meta.toml declares a simulated world, its [sitl] table."""
-    try:
-        calib = tomllib.loads((path / "calibration.toml").read_text())
-        algo = (
-            tomllib.loads((path / "config.toml").read_text())
-            if (path / "config.toml").exists()
-            else {}
-        )
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        raise DatasetError(f"{path}: cannot read calibration/config: {e}") from None
+    calib = folder.read_toml("calibration.toml")
+    algo = folder.read_toml("config.toml") if folder.exists("config.toml") else {}
     calib.pop("matrices", None)
     calib.setdefault("rangefinders", [])  # the dataset's sensors, never the built-in ones
     unknown = sorted(set(algo) - set(ALGORITHM_SECTIONS))
     if unknown:
-        raise DatasetError(f"{path}/config.toml: unexpected tables {unknown}")
+        raise DatasetError(f"{folder.shown}/config.toml: unexpected tables {unknown[:5]}")
     has_world = "sitl" in meta and meta.get("world", "sitl") != "none"
     try:
         cfg = from_dict(Config, {**calib, **algo, "sitl": meta.get("sitl", {})})
     except ConfigError as e:
-        raise DatasetError(f"{path}: bad calibration: {e}") from None
+        raise DatasetError(f"{folder.shown}: bad calibration.toml/config.toml: {e}") from None
     return cfg, (cfg.sitl if has_world else None)
 
 
-def _fed_column(rows: list[dict[str, str]], name: str) -> I64 | None:
-    """The fed_before_frame column of a recording's samples (None if the file has none);
-    rows must be in frame order (the writer appends them so)."""
-    if not rows or FED not in rows[0]:
-        return None
-    fed = np.array([int(r[FED]) for r in rows], dtype=np.int64)
-    if np.any(np.diff(fed) < 0) or (len(fed) and fed[0] < 0):
-        raise DatasetError(f"{name}: {FED} must not decrease")
-    return fed
+@dataclass(frozen=True, slots=True)
+class _Frames:
+    """frames.csv as read: times, sequence numbers, the file names and the held flags."""
+
+    times_us: I64
+    seqs: I64
+    names: list[str]
+    held: NDArray[np.bool_]
 
 
-def _complete_frames(paths: list[Path]) -> int:
+def _read_frames(folder: SafeFolder, name: str = "frames.csv") -> _Frames:
+    """The frames of frames.csv; DatasetError naming the row and the field for any bad one
+    (a frame's index is what the samples refer to: none may be left out), for a file name
+    outside the folder, and for a time that does not increase."""
+    table = folder.read_csv(name, ["time_us", "seq", "filename"])
+    times: list[int] = []
+    seqs: list[int] = []
+    names: list[str] = []
+    held: list[bool] = []
+    has_held = table.has("held")
+    for line, row in table.rows:
+        t = _time(table, line, row)
+        if times and t <= times[-1]:
+            raise DatasetError(f"{table.where(line, 'time_us')}: {t} not after {times[-1]}")
+        times.append(t)
+        seqs.append(_int(table, line, row, "seq", 0, MAX_SEQ))
+        filename = table.field(line, row, "filename")
+        folder.check_name(filename, table.where(line, "filename"))
+        names.append(filename)
+        held.append(has_held and _int(table, line, row, "held", 0, 1) == 1)
+    return _Frames(
+        np.array(times, dtype=np.int64),
+        np.array(seqs, dtype=np.int64),
+        names,
+        np.array(held, dtype=bool),
+    )
+
+
+def _complete_frames(folder: SafeFolder, names: list[str], size: tuple[int, int]) -> int:
     """How many leading frames of an unfinished recording have their image: the first missing
     or empty file ends it, and the last one must decode (a power cut may keep the rows but
     not the images)."""
-    n = next(
-        (i for i, p in enumerate(paths) if not p.exists() or p.stat().st_size == 0), len(paths)
-    )
-    while n > 0 and cv2.imread(str(paths[n - 1]), cv2.IMREAD_UNCHANGED) is None:
-        n -= 1
+    n = len(names)
+    for i, name in enumerate(names):
+        real = folder.resolve(name, f"frames.csv row {i + 2}, filename")
+        try:
+            empty = os.stat(real).st_size == 0
+        except OSError:
+            empty = True
+        if empty:
+            n = i
+            break
+    while n > 0:
+        try:
+            _decode_frame(folder, names[n - 1], size, f"frame {n - 1}")
+            break
+        except DatasetError:
+            n -= 1
     return n
 
 
-def _read_ours(path: Path) -> Dataset:
-    try:
-        meta = tomllib.loads((path / "meta.toml").read_text())
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        raise DatasetError(f"{path}: cannot read meta/calibration: {e}") from None
+def _decode_frame(
+    folder: SafeFolder, name: str, size: tuple[int, int], where: str
+) -> NDArray[np.uint8]:
+    """The BGR image of file ``name``: read under the folder's discipline, its header's size
+    checked against ``size`` (the calibration's) before it is decoded."""
+    data = folder.read_bytes(name, MAX_IMAGE_BYTES, f"{where} ({name})")
+    check_image_header(data, f"{where} ({name})", size)
+    flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    if img is None or img.shape[:2] != (size[1], size[0]):
+        raise DatasetError(f"{where} ({name}): the image does not decode")
+    return np.asarray(img, dtype=np.uint8)
+
+
+def _read_ours(folder: SafeFolder) -> Dataset:
+    path = folder.shown
+    meta = folder.read_toml("meta.toml")
     if meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: not a {FORMAT_NAME} folder")
-    cfg, sitl = _ours_config(path, meta)
-    complete = bool(meta.get("complete", True))
-    frames = _read_csv(path / "frames.csv")
-    paths = [path / r["filename"] for r in frames]
-    n = len(frames) if complete else _complete_frames(paths)
-    frames, paths = frames[:n], paths[:n]
-    times = np.array([int(r["time_us"]) for r in frames], dtype=np.int64)
-    seqs = np.array([int(r["seq"]) for r in frames], dtype=np.int64)
-    held = np.array([r.get("held", "0") == "1" for r in frames], dtype=bool)
-    range_rows = _read_csv(path / "ranges.csv", optional=True)
-    att_rows = _read_csv(path / "attitude.csv", optional=True)
-    fed_r = _fed_column(range_rows, "ranges.csv")
-    fed_a = _fed_column(att_rows, "attitude.csv")
-    imu_rows = _read_csv(path / "imu.csv", optional=True)
-    fed_i = _fed_column(imu_rows, "imu.csv")
-    if fed_i is not None:
-        imu_rows, fed_i = imu_rows[: int(np.searchsorted(fed_i, n))], fed_i[fed_i < n]
-    imus = [
-        ImuSample(
-            int(r["time_us"]),
-            np.array([float(r[k]) for k in IMU_COLUMNS[1:]]),
-            _optional_vector(r, IMU_GYRO_COLUMNS),
-            _optional_vector(r, IMU_MAG_COLUMNS),
-        )
-        for r in imu_rows
-    ]
-    if fed_r is not None:  # samples fed before a frame that was not written: not part of it
-        range_rows, fed_r = range_rows[: int(np.searchsorted(fed_r, n))], fed_r[fed_r < n]
-    if fed_a is not None:
-        att_rows, fed_a = att_rows[: int(np.searchsorted(fed_a, n))], fed_a[fed_a < n]
+    cfg, sitl = _ours_config(folder, meta)
+    size = (cfg.camera.width, cfg.camera.height)
+    complete = meta.get("complete", True) is not False
+    frames = _read_frames(folder)
+    n = len(frames.names) if complete else _complete_frames(folder, frames.names, size)
+    counts: dict[str, RowCount] = {}
+
+    def samples(name: str, required: list[str], parse: Any) -> tuple[list[Any], I64 | None]:
+        table = folder.read_csv(name, required, optional=True)
+        counts[name] = RowCount()
+        return _rows(table, parse, counts[name], None if complete else n)
+
+    range_rows, fed_r = samples("ranges.csv", RANGE_COLUMNS, _range_row)
+    atts, fed_a = samples("attitude.csv", ATTITUDE_COLUMNS, _attitude_row)
+    imus, fed_i = samples("imu.csv", IMU_COLUMNS, _imu_row)
+    ranges = [r for r, _ in range_rows]
     declared = {r.sensor_id for r in cfg.rangefinders}
-    ranges = [
-        RangeSample(
-            int(r["time_us"]),
-            int(r["sensor_id"]),
-            float(r["distance_m"]),
-            float(r["min_m"]),
-            float(r["max_m"]),
-            int(r["signal_quality"]),
-        )
-        for r in range_rows
-    ]
     undeclared = sorted({r.sensor_id for r in ranges} - declared)
     if undeclared:
         raise DatasetError(
             f"{path}: ranges.csv has sensor ids {undeclared} that calibration.toml does not "
             "declare ([[rangefinders]] with their mounts)"
         )
-    true_m = np.array([float(r.get("true_distance_m") or "nan") for r in range_rows])
-    atts = [
-        AttitudeSample(
-            int(r["time_us"]),
-            np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]),
-            np.array([float(r[k]) for k in ("wx_rad_s", "wy_rad_s", "wz_rad_s")]),
-        )
-        for r in att_rows
-    ]
     gt_t, gt_T = (
-        read_tum(path / "groundtruth.txt")
-        if (path / "groundtruth.txt").exists()
+        _tum_poses(folder.read_text("groundtruth.txt", MAX_CSV_BYTES), "groundtruth.txt")
+        if folder.exists("groundtruth.txt")
         else (np.zeros(0), np.zeros((0, 4, 4)))
     )
     fed = None
-    if fed_r is not None or fed_a is not None or meta.get("ingest_order", False):
+    if fed_r is not None or fed_a is not None or meta.get("ingest_order", False) is True:
         empty = np.zeros(0, dtype=np.int64)
         fed = (empty if fed_r is None else fed_r, empty if fed_a is None else fed_a)
-    last_us = int(times[-1]) if n else -1
+    last_us = int(frames.times_us[n - 1]) if n else -1
     published = [
-        p for p in read_poses_csv(path / "published.csv") if complete or p.time_us <= last_us
+        p
+        for p in _read_published(folder, "published.csv", counts)
+        if complete or p.time_us <= last_us
     ]
+    held = frames.held[:n]
     return Dataset(
         path,
         "companion",
         cfg.camera.model(),
         cfg.camera.T_body_cam(),
         [r.spec() for r in cfg.rangefinders],
-        times,
-        paths,
+        frames.times_us[:n],
+        [path / name for name in frames.names[:n]],
         ranges,
-        true_m,
+        np.array([t for _, t in range_rows], dtype=np.float64),
         atts,
         np.round(gt_t * 1e6).astype(np.int64),
         gt_T,
         sitl,
         cfg,
-        frame_seqs=seqs,
+        frame_seqs=frames.seqs[:n],
         fed_before=fed,
         imus=imus,
         imu_fed=fed_i,
         frame_held=held if held.any() else None,
-        frames_checked=bool(meta.get("frames_checked", False)),
+        frames_checked=meta.get("frames_checked", False) is True,
         published=published,
         complete=complete,
         meta=meta,
+        folder=folder,
+        frame_names=frames.names[:n],
+        skipped={k: c for k, c in counts.items() if c.skipped},
     )
+
+
+def _read_published(
+    folder: SafeFolder, name: str, counts: dict[str, RowCount] | None = None
+) -> list[PublishedPose]:
+    """The poses of a published.csv-layout file in ``folder`` (none without the file); bad
+    rows left out and counted in ``counts[name]``."""
+    table = folder.read_csv(name, PUBLISHED_COLUMNS, optional=True)
+    count = RowCount()
+    poses, _ = _rows(table, _pose_row_read, count)
+    if counts is not None and count.skipped:
+        counts[name] = count
+    return poses
 
 
 def read_poses_csv(path: Path) -> list[PublishedPose]:
     """Poses in the published.csv layout (a recording's, or `eval`'s poses.csv); no file:
-    none. A torn last row (a killed writer) is left out."""
-    return [
-        PublishedPose(
-            int(r["time_us"]),
-            np.array([float(r[k]) for k in ("x_m", "y_m", "z_m")]),
-            np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")]),
-            np.array([float(r[k]) for k in ("vx_m_s", "vy_m_s", "vz_m_s")]),
-            int(r["reset_counter"]),
-            int(r["quality_pct"]),
-        )
-        for r in _read_csv(path, optional=True)
-    ]
+    none. A torn last row (a killed writer) and rows that do not parse are left out."""
+    return _read_published(SafeFolder(path.parent), path.name)
 
 
-def _yaml_list(text: str, key: str) -> list[float]:
-    m = re.search(rf"^\s*{key}\s*:\s*\[([^\]]*)\]", text, re.MULTILINE)
+def _yaml_list(text: str, key: str, count: int | None = None) -> list[float]:
+    """The numbers of ``key: [a, b, ...]`` in sensor.yaml (``count`` of them when given)."""
+    m = re.search(rf"^\s*{key}\s*:\s*\[([^\]]{{0,4096}})\]", text, re.MULTILINE)
     if not m:
         raise DatasetError(f"sensor.yaml: no '{key}' list")
-    return [float(v) for v in m.group(1).replace("\n", " ").split(",") if v.strip()]
+    parts = [v for v in m.group(1).replace("\n", " ").split(",") if v.strip()]
+    if count is not None and len(parts) != count:
+        raise DatasetError(f"sensor.yaml: '{key}' needs {count} numbers, got {len(parts)}")
+    return [parse_float(v, f"sensor.yaml, {key}[{i}]", -1e6, 1e6) for i, v in enumerate(parts)]
 
 
-def _read_euroc(path: Path) -> Dataset:
+def _euroc_camera(text: str) -> tuple[CameraModel, F64]:
+    """The camera model and T_imu_cam of an EuRoC sensor.yaml's text (comments removed)."""
+    fu, fv, cu, cv = _yaml_list(text, "intrinsics", 4)
+    width, height = (int(v) for v in _yaml_list(text, "resolution", 2))
+    if not (16 <= width <= 8192 and 16 <= height <= 8192) or min(fu, fv) <= 0:
+        raise DatasetError(f"sensor.yaml: resolution {width} x {height} or focal length <= 0")
+    dist = (_yaml_list(text, "distortion_coefficients") + [0.0] * 5)[:5]
+    m = re.search(r"T_BS\s*:.{0,200}?data\s*:\s*\[([^\]]{0,4096})\]", text, re.DOTALL)
+    if not m:
+        raise DatasetError("sensor.yaml: no T_BS data")
+    parts = [v for v in m.group(1).replace("\n", " ").split(",") if v.strip()]
+    if len(parts) != 16:
+        raise DatasetError(f"sensor.yaml: T_BS needs 16 numbers, got {len(parts)}")
+    T = np.array(
+        [parse_float(v, f"sensor.yaml, T_BS[{i}]", -1e6, 1e6) for i, v in enumerate(parts)]
+    )
+    model = CameraModel(width, height, fu, fv, cu, cv, *dist)
+    return model, T.reshape(4, 4)
+
+
+def _euroc_frames(folder: SafeFolder, cam: str) -> tuple[I64, list[str]]:
+    """The frames of an EuRoC cam0/data.csv (ns -> us), by time; DatasetError naming the row
+    for a bad one, a file name outside the folder or a repeated time."""
+    table = folder.read_csv(f"{cam}/data.csv")
+    rows: list[tuple[int, str]] = []
+    for line, row in table.rows:
+        if row[0].lstrip().startswith("#"):
+            continue
+        where = f"{cam}/data.csv row {line}"
+        if len(row) < 2:
+            raise DatasetError(f"{where}: expected timestamp,filename")
+        name = f"{cam}/data/{row[1].strip()}"
+        folder.check_name(row[1].strip(), f"{where}, filename")
+        rows.append((parse_int(row[0], f"{where}, timestamp", 0, MAX_TIME_US) // 1000, name))
+    rows.sort()
+    times = np.array([t for t, _ in rows], dtype=np.int64)
+    if len(times) > 1 and np.any(np.diff(times) <= 0):
+        raise DatasetError(f"{cam}/data.csv: two frames at the same time")
+    return times, [name for _, name in rows]
+
+
+def _euroc_truth(
+    folder: SafeFolder, name: str, F: F64, counts: dict[str, RowCount]
+) -> tuple[I64, F64]:
+    """Ground-truth times [us] and T_world_body (z-down) of state_groundtruth_estimate0; rows
+    that do not parse (or a quaternion that is not a unit one) are left out and counted."""
+    table = folder.read_csv(name)
+    count = counts.setdefault(name, RowCount())
+    times: list[int] = []
+    poses: list[F64] = []
+    for line, row in table.rows:
+        if row[0].lstrip().startswith("#"):
+            continue
+        where = f"{name} row {line}"
+        try:
+            if len(row) < 8:
+                raise DatasetError(f"{where}: {len(row)} fields, at least 8 needed")
+            t = parse_int(row[0], f"{where}, timestamp", 0, MAX_TIME_US) // 1000
+            v = [
+                parse_float(x, f"{where}, field {i + 2}", -1e7, 1e7) for i, x in enumerate(row[1:8])
+            ]
+            q = np.array(v[3:7])
+            if abs(float(np.linalg.norm(q)) - 1.0) > QUAT_NORM_TOLERANCE:
+                raise DatasetError(f"{where}: not a unit quaternion")
+            if times and t <= times[-1]:
+                raise DatasetError(f"{where}: time not after the previous row's")
+        except DatasetError as e:
+            count.add(str(e))
+            continue
+        times.append(t)
+        poses.append(F @ se3.from_quat(q, v[:3]) @ F)
+    T = np.stack(poses) if poses else np.zeros((0, 4, 4))
+    return np.array(times, dtype=np.int64), T
+
+
+def _read_euroc(folder: SafeFolder) -> Dataset:
     """EuRoC MAV layout: mav0/cam0/{data.csv,data/*.png,sensor.yaml} and ground truth.
 
     EuRoC's world is z-up and its body is the IMU frame; both are turned by 180 degrees about
     x (F = diag(1, -1, -1)) to give a z-down world and a z-down body, as our NED/FRD algorithms
     expect. No distance sensors; the attitude input is the ground-truth orientation.
     """
-    mav = path / "mav0" if (path / "mav0").exists() else path
-    cam = mav / "cam0"
-    yaml_text = (
-        re.sub(r"#.*", "", (cam / "sensor.yaml").read_text())
-        if (cam / "sensor.yaml").exists()
-        else None
-    )
-    if yaml_text is None:
+    path = folder.shown
+    mav = "mav0" if folder.exists("mav0") else ""
+    cam = f"{mav}/cam0".lstrip("/")
+    if not folder.exists(f"{cam}/sensor.yaml"):
         raise DatasetError(f"{path}: missing mav0/cam0/sensor.yaml")
-    fu, fv, cu, cv = _yaml_list(yaml_text, "intrinsics")
-    res = _yaml_list(yaml_text, "resolution")
-    dist = _yaml_list(yaml_text, "distortion_coefficients") + [0.0] * 5
-    m = re.search(r"T_BS\s*:.*?data\s*:\s*\[([^\]]*)\]", yaml_text, re.DOTALL)
-    if not m:
-        raise DatasetError(f"{path}: sensor.yaml has no T_BS")
-    T_imu_cam = np.array(
-        [float(v) for v in m.group(1).replace("\n", " ").split(",") if v.strip()]
-    ).reshape(4, 4)
+    yaml_text = re.sub(r"#.*", "", folder.read_text(f"{cam}/sensor.yaml"))
+    model, T_imu_cam = _euroc_camera(yaml_text)
     F = np.diag([1.0, -1.0, -1.0, 1.0])
-    model = CameraModel(
-        int(res[0]), int(res[1]), fu, fv, cu, cv, dist[0], dist[1], dist[2], dist[3], dist[4]
-    )
-    rows = []
-    with (cam / "data.csv").open() as fh:
-        for line in fh:
-            if line.startswith("#") or not line.strip():
-                continue
-            ts, name = [v.strip() for v in line.split(",")[:2]]
-            rows.append((int(ts) // 1000, cam / "data" / name))
-    rows.sort()
-    times = np.array([r[0] for r in rows], dtype=np.int64)
-    gt_file = mav / "state_groundtruth_estimate0" / "data.csv"
+    times, names = _euroc_frames(folder, cam)
+    gt_name = f"{mav}/state_groundtruth_estimate0/data.csv".lstrip("/")
+    counts: dict[str, RowCount] = {}
     gt_times = np.zeros(0, dtype=np.int64)
     gt_T = np.zeros((0, 4, 4))
-    atts: list[AttitudeSample] = []
-    if gt_file.exists():
-        vals = np.loadtxt(gt_file, delimiter=",", comments="#", ndmin=2)
-        gt_times = (vals[:, 0].astype(np.int64)) // 1000
-        gt_T = np.stack([F @ se3.from_quat(v[4:8], v[1:4]) @ F for v in vals])
-        atts = [
-            AttitudeSample(int(t), so3.matrix_to_quat(T[:3, :3]), np.zeros(3))
-            for t, T in zip(gt_times, gt_T, strict=True)
-        ]
+    if folder.exists(gt_name):
+        gt_times, gt_T = _euroc_truth(folder, gt_name, F, counts)
+    atts = [
+        AttitudeSample(int(t), so3.matrix_to_quat(T[:3, :3]), np.zeros(3))
+        for t, T in zip(gt_times, gt_T, strict=True)
+    ]
     return Dataset(
         path,
         "euroc",
@@ -536,22 +763,29 @@ def _read_euroc(path: Path) -> Dataset:
         F @ T_imu_cam,
         [],
         times,
-        [r[1] for r in rows],
+        [path / name for name in names],
         attitudes=atts,
         gt_times_us=gt_times,
         gt_T_world_body=gt_T,
+        folder=folder,
+        frame_names=names,
+        skipped={k: c for k, c in counts.items() if c.skipped},
     )
 
 
 def open_dataset(path: str | Path) -> Dataset:
-    """Open a dataset folder of our format or EuRoC's (detected by its files)."""
+    """Open a dataset folder of our format or EuRoC's (detected by its files), read under
+    the discipline of drivers/safe_files.py: DatasetError naming the file, the row and the
+    field for anything it cannot take; rows of samples that do not parse are left out and
+    counted (``Dataset.skipped``)."""
     p = Path(path)
     if not p.is_dir():
         raise DatasetError(f"dataset folder not found: {p}")
-    if (p / "meta.toml").exists():
-        return _read_ours(p)
-    if (p / "mav0" / "cam0").exists() or (p / "cam0" / "data.csv").exists():
-        return _read_euroc(p)
+    folder = SafeFolder(p)
+    if folder.exists("meta.toml"):
+        return _read_ours(folder)
+    if folder.exists("mav0/cam0") or folder.exists("cam0/data.csv"):
+        return _read_euroc(folder)
     raise DatasetError(f"{p}: neither a {FORMAT_NAME} folder (meta.toml) nor EuRoC (mav0/cam0)")
 
 
@@ -606,11 +840,14 @@ def toml_dumps(data: dict[str, Any]) -> str:
     return "\n".join(_toml_lines(data)).lstrip("\n") + "\n"
 
 
-def _optional_vector(row: dict[str, str], columns: list[str]) -> F64 | None:
-    """(3,) floats from a CSV row's optional columns; None when absent or empty."""
-    if any(not row.get(c) for c in columns):
+def _optional_vector(
+    table: CsvTable, line: int, row: list[str], columns: list[str], bound: float
+) -> F64 | None:
+    """(3,) finite floats within +-bound from a CSV row's optional columns; None when absent
+    or empty."""
+    if any(not table.has(c) or not table.field(line, row, c).strip() for c in columns):
         return None
-    return np.array([float(row[c]) for c in columns])
+    return _vector(table, line, row, columns, bound)
 
 
 def _num(v: float) -> str:
@@ -680,7 +917,8 @@ class DatasetWriter:
             raise DatasetError(f"{path} exists and is not an empty folder")
         if image_format not in ("png", "jpg"):
             raise DatasetError(f"image format must be png or jpg, got {image_format!r}")
-        (path / "images").mkdir(parents=True, exist_ok=True)
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "images").mkdir()  # new: never a planted link
         self.path = path
         self.image_format = image_format
         self._encode_params = (
@@ -721,7 +959,7 @@ class DatasetWriter:
             "config.toml", {k: to_dict(getattr(config, k)) for k in ALGORITHM_SECTIONS}
         )
         self._files = {
-            name: (path / name).open("w", newline="")
+            name: open_new(path / name, newline="")  # O_EXCL | O_NOFOLLOW
             for name in ("frames.csv", "ranges.csv", "attitude.csv", "imu.csv", "published.csv")
         }
         self._csv = {name: csv.writer(fh, lineterminator="\n") for name, fh in self._files.items()}
@@ -771,7 +1009,7 @@ class DatasetWriter:
         attitude): a replay feeds its samples but not the frame."""
         k = self.frames
         name = f"images/{k:06d}.{self.image_format}"
-        with (self.path / name).open("wb") as fh:
+        with open_new(self.path / name, binary=True) as fh:
             fh.write(encoded)
         self.bytes_written += len(encoded)
         for a in attitudes:

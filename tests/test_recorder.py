@@ -29,7 +29,6 @@ from peers import sitl_flight
 
 from companion.cli import main
 from companion.config import Config, load_config
-from companion.errors import ConfigError
 from companion.service.recorder import Recorder, recording_dir
 from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
 from drivers.dataset import DatasetWriter, open_dataset, read_poses_csv
@@ -228,14 +227,76 @@ def test_sigkill_leaves_a_recording_readable_to_its_last_complete_frame(tmp_path
     assert len(again) == n and len(again.ranges) == n
 
 
-def test_a_used_record_dir_is_a_config_error(tmp_path: Path) -> None:
-    (tmp_path / "rec").mkdir()
-    (tmp_path / "rec" / "meta.toml").write_text("")
-    cfg = with_record(load_config(), tmp_path / "rec")
-    with pytest.raises(ConfigError, match=r"^record\.dir: .* not an empty folder"):
-        Recorder(cfg.record, cfg)
+def test_a_used_record_dir_records_into_a_new_sibling_and_says_so(tmp_path: Path) -> None:
+    """record.dir without {start} after a reboot: the earlier run's folder is left as it is,
+    the recording goes into rec-2 (then rec-3), and the operator is told where."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "meta.toml").write_text("earlier run")
+    cfg = with_record(load_config(), rec)
+    frame, ranges, atts = synthetic_inputs(1)[0]
+    for sibling in ("rec-2", "rec-3"):
+        said: list[str] = []
+        with Recorder(cfg.record, cfg).running(said.append) as recorder:
+            recorder.frame(frame, ranges, atts)
+        assert recorder.path == tmp_path / sibling and recorder.state == "closed"
+        assert len(said) == 1 and f"recording into {tmp_path / sibling}" in said[0]
+        assert len(open_dataset(tmp_path / sibling)) == 1
+        assert recorder.status()["dir"] == str(tmp_path / sibling)
+    assert [p.name for p in rec.iterdir()] == ["meta.toml"]
+    assert (rec / "meta.toml").read_text() == "earlier run"
     start = time.strptime("2026-05-01 12:30:05", "%Y-%m-%d %H:%M:%S")
     assert recording_dir("/x/flight-{start}", start) == Path("/x/flight-20260501-123005")
+
+
+def plant_links(folder: Path, outside: Path) -> dict[Path, bytes]:
+    """Symbolic links from the names a recording writes to files and a folder in
+    ``outside``; returns the outside files with their content (to check they are intact)."""
+    outside.mkdir(exist_ok=True)
+    victims: dict[Path, bytes] = {}
+    for name in ("meta.toml", "calibration.toml", "frames.csv", "published.csv"):
+        victim = outside / f"victim-{name}"
+        victim.write_bytes(b"not yours\n")
+        victims[victim] = victim.read_bytes()
+        (folder / name).symlink_to(victim)
+    (outside / "images").mkdir()
+    (folder / "images").symlink_to(outside / "images")
+    return victims
+
+
+def test_planted_links_never_make_the_recorder_write_outside_its_folder(tmp_path: Path) -> None:
+    """The service runs as root: links planted in a pre-made record.dir, or a record.dir that
+    is itself a link to another (empty) folder, must not make it write anywhere else."""
+    outside = tmp_path / "outside"
+    used = tmp_path / "used"
+    used.mkdir()
+    victims = plant_links(used, outside)
+    (outside / "empty").mkdir()
+    (tmp_path / "linked").symlink_to(outside / "empty")
+    frame, ranges, atts = synthetic_inputs(1)[0]
+    for folder in (used, tmp_path / "linked"):
+        cfg = with_record(load_config(), folder)
+        said: list[str] = []
+        with Recorder(cfg.record, cfg).running(said.append) as recorder:
+            recorder.frame(frame, ranges, atts)
+        assert recorder.path == tmp_path / f"{folder.name}-2" and recorder.state == "closed"
+        assert len(open_dataset(recorder.path)) == 1 and len(said) == 1
+    assert {v: v.read_bytes() for v in victims} == victims
+    assert not any((outside / "images").iterdir()) and not any((outside / "empty").iterdir())
+
+
+def test_the_dataset_writer_creates_its_files_never_through_a_link(tmp_path: Path) -> None:
+    """A link that appears in the recording's folder after it was made (a race): the write
+    fails (the recorder stops, the service runs on); the link's target is untouched."""
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"not yours\n")
+    writer = DatasetWriter(tmp_path / "rec", load_config())
+    (tmp_path / "rec" / "images" / "000000.png").symlink_to(victim)
+    frame, ranges, atts = synthetic_inputs(1)[0]
+    with pytest.raises(FileExistsError):
+        writer.write_frame(frame, writer.encode(frame.image_bgr), ranges, atts)
+    writer.close()
+    assert victim.read_bytes() == b"not yours\n"
 
 
 # ------------------------------------------------------------------------------ round trip
@@ -333,3 +394,31 @@ def test_the_disk_budget_ends_the_recording_mid_flight_not_the_output(tmp_path: 
     for p in published:
         same(replayed[p.time_us].position_ned_m, p.position_ned_m)
         same(replayed[p.time_us].quat_wxyz, p.quat_wxyz)
+
+
+def test_atomic_write_never_writes_through_a_planted_temporary_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """meta.toml (and the state files) go through atomic_write: a link planted at the
+    temporary name it used to take (pid-based: predictable) is not followed, and neither is
+    one at a name it draws (the next random name is taken instead)."""
+    import secrets
+
+    from drivers import files
+
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"not yours\n")
+    target = tmp_path / "meta.toml"
+    (tmp_path / f".meta.toml.{os.getpid()}.tmp").symlink_to(victim)
+    drawn = iter(["planted", "planted", "free"])
+    (tmp_path / ".meta.toml.planted.tmp").symlink_to(victim)
+    monkeypatch.setattr(secrets, "token_hex", lambda _n: next(drawn))
+    files.atomic_write(target, b"complete = true\n")
+    assert target.read_bytes() == b"complete = true\n" and not target.is_symlink()
+    assert victim.read_bytes() == b"not yours\n"
+    assert not (tmp_path / ".meta.toml.free.tmp").exists()
+    monkeypatch.undo()
+    target.unlink()
+    target.symlink_to(victim)  # a link at the target itself is replaced, not followed
+    files.atomic_write(target, b"new\n")
+    assert target.read_bytes() == b"new\n" and victim.read_bytes() == b"not yours\n"

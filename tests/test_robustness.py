@@ -659,3 +659,34 @@ def test_an_exit_report_on_a_full_disk_is_a_warning_and_leaves_no_torn_file(
     assert "exit report not written" in r.stderr and "Traceback" not in r.stderr
     assert (full_disk / "report.json").read_text() == '{"old": true}\n'  # untouched
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler", "report.json"]
+
+
+def test_a_used_record_dir_on_a_full_disk_is_a_warning_never_an_exit(tmp_path, full_disk) -> None:
+    """record.dir without {start}, holding an earlier run, on a full disk (a reboot of a
+    drone whose recordings filled its card): the service runs, says why it does not
+    record, and exits 0 at the end of its run (it used to exit 2 at each start: a restart
+    loop with no output at all)."""
+    rec = full_disk / "rec"
+    rec.mkdir()
+    (rec / "meta.toml").touch()  # an earlier run's (an inode: no byte of data needed)
+    conf = tmp_path / "c.toml"
+    conf.write_text(
+        "[service]\n"
+        f'mavlink_url = "udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"\n'
+        f'camera_url = "sitl://127.0.0.1:{free_port()}"\n'
+        f'status_socket = "{tmp_path / "s.sock"}"\n'
+        f'state_dir = "{tmp_path / "state"}"\n'
+        f'[record]\ndir = "{rec}"\n'
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(conf), "--duration", "2"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert r.returncode == 0, r.stderr
+    said = [line for line in r.stderr.splitlines() if "recorder:" in line]
+    assert said and "Traceback" not in r.stderr
+    assert any("cannot record into" in line for line in said), said
+    assert sorted(p.name for p in rec.iterdir()) == ["meta.toml"]  # the earlier run: as it was

@@ -13,6 +13,14 @@ stops the recording cleanly, never the service; the folder then holds a valid da
 last frame, and the reason is said once (the service's warnings, log, MQTT) and kept in the
 status. A recording is not resumed after it stopped: a replay must see every frame the
 pipeline saw, so a recording with a hole would not replay what was flown.
+
+The recording's folder is its own (the service runs as root): ``record.dir`` made at the start,
+or an empty folder we own that nobody else may write into (made beforehand, e.g. by systemd).
+Anything else there (a folder of an earlier run when ``record.dir`` has no ``{start}``, a
+file, a symbolic link, a folder others may write into) is left alone: the recording goes into
+a new sibling ``record.dir-2``, ``-3``... and the service says so; when none can be made, it
+runs without a recording and says why. Every file in it is created new, never through a link
+(O_EXCL | O_NOFOLLOW, drivers/files.py).
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ import logging
 import os
 import queue
 import shutil
+import stat
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -30,7 +39,7 @@ from typing import Any
 
 from companion import __version__
 from companion.config import Config, RecordOptions
-from companion.errors import ConfigError, DatasetError
+from companion.errors import DatasetError
 from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
 from drivers.dataset import DatasetWriter
 
@@ -39,6 +48,7 @@ log = logging.getLogger("companion.recorder")
 SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
 CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
+SIBLING_ATTEMPTS = 1000  # record.dir taken: record into record.dir-2 .. record.dir-1000
 
 Item = (
     tuple[
@@ -50,6 +60,21 @@ Item = (
     ]
     | PoseEstimate
 )
+
+
+def _empty_folder_of_ours(path: Path) -> bool:
+    """Whether ``path`` is an empty folder (not a link to one) that we own and nobody else
+    may write into: nobody can have planted anything in it, nor can while we record."""
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return False
+    return (
+        stat.S_ISDIR(st.st_mode)
+        and st.st_uid == os.geteuid()
+        and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+        and not any(path.iterdir())
+    )
 
 
 def recording_dir(template: str, start: time.struct_time | None = None) -> Path:
@@ -66,13 +91,8 @@ class Recorder:
         self.options = options
         self.config = config
         self.enabled = bool(options.dir)
+        # record.dir as configured; start() records into a folder it makes there (or beside)
         self.path = recording_dir(options.dir) if self.enabled else None
-        p = self.path
-        if p is not None and p.exists() and (not p.is_dir() or any(p.iterdir())):
-            raise ConfigError(
-                f"record.dir: {self.path} exists and is not an empty folder (a recording "
-                "goes into a new folder: put {start} in the name for one per run)"
-            )
         self.state = "recording" if self.enabled else "off"
         self.reason = ""
         self.frames_not_recorded = 0  # frames the pipeline got after the recording stopped
@@ -99,6 +119,7 @@ class Recorder:
             return
         o = self.options
         try:
+            self.path = self._new_folder(self.path)
             self._writer = DatasetWriter(
                 self.path,
                 self.config,
@@ -113,6 +134,32 @@ class Recorder:
         log.info("recording into %s (%s, budget %g MB)", self.path, o.image_format, o.max_mb)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
+
+    def _new_folder(self, wanted: Path) -> Path:
+        """The recording's folder, made now: ``wanted`` (record.dir), or when anything is
+        there already, a new sibling ``wanted-2``, ``wanted-3``... (said through notify). A
+        folder made here is empty and ours: no link can have been planted in it. OSError when
+        none can be made (the caller records nothing and says why)."""
+        wanted.parent.mkdir(parents=True, exist_ok=True)
+        if _empty_folder_of_ours(wanted):
+            return wanted  # made for us beforehand (e.g. systemd's StateDirectory=)
+        for k in range(1, SIBLING_ATTEMPTS + 1):
+            path = wanted if k == 1 else wanted.with_name(f"{wanted.name}-{k}")
+            try:
+                path.mkdir(mode=0o755)  # never through a link: EEXIST when one is there
+            except FileExistsError:
+                continue
+            if k > 1:
+                self._notify(
+                    f"recorder: record.dir {wanted} exists and is not an empty folder of "
+                    f"ours; recording into {path} instead (put {{start}} in record.dir for "
+                    "a folder per run)"
+                )
+            return path
+        raise FileExistsError(
+            f"{wanted} and its siblings up to -{SIBLING_ATTEMPTS} all exist; clear them out "
+            "or put {start} in record.dir"
+        )
 
     def close(self) -> None:
         """Write what is queued, then mark the recording complete (meta.toml). A disk that
