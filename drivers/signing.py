@@ -12,9 +12,17 @@ restored image) is locked out until its clock passes the old value again. Theref
 - the timestamp starts at max(wall clock, the persisted value) and the persisted value is kept
   ahead of every timestamp used (written ``RESERVE_UNITS`` ahead, atomically: temporary file,
   fsync, rename, fsync of the directory), so a crash or a power cut never makes it go back;
-- one ``MAVLinkSigning`` state is shared by the sender and the parser of a link, so a valid
-  signed frame from the autopilot with a newer timestamp moves our own forward (as the
-  specification asks);
+- one signing state (``SigningState``) is shared by the sender and the parser of a link, so a
+  valid signed frame from the autopilot with a newer timestamp moves our own forward (as the
+  specification asks), but only a plausible one: a frame stamped more than
+  ``PEER_AHEAD_MAX_UNITS`` (30 days) ahead of both our wall clock and our own timestamp, or
+  beyond what our next start accepts, is refused, counted (``far_ahead`` in the status) and
+  logged once. The specification bounds how far *behind* a new stream may start (1 minute)
+  but not how far ahead a key holder may push everybody; accepted, one frame from an
+  autopilot with a wrong real-time clock moved us years ahead (the next start refused the
+  persisted value) or to the 48-bit edge (our own timestamp then wrapped: replays to all);
+- our own timestamp never passes ``OWN_LIMIT_UNITS`` (a day below 2**48) through the wall
+  clock, a peer or the stored value, so what we persist always passes the start-up check;
 - with ``require_signed``, unsigned or badly signed frames are refused, except HEARTBEAT (as
   PX4 does, so that a peer with the wrong key is still visible as a peer).
 """
@@ -46,6 +54,12 @@ NEW_STREAM_WINDOW_UNITS = 60 * UNITS_PER_S  # a new stream may start this far be
 MAX_TIMESTAMP = 1 << 48  # the signing timestamp has 48 bits
 CLOCK_SET_UNITS = (1_704_067_200 - EPOCH_2015_S) * UNITS_PER_S  # 2024-01-01: a wall clock set
 MAX_AHEAD_UNITS = 366 * 86400 * UNITS_PER_S  # a stored value this far ahead of a set clock: bad
+DAY_UNITS = 86400 * UNITS_PER_S
+OWN_LIMIT_UNITS = MAX_TIMESTAMP - DAY_UNITS  # ours is never set past this (a day of headroom)
+STORED_LIMIT_UNITS = MAX_TIMESTAMP - DAY_UNITS // 2  # a stored value from here on: refused
+# a genuine peer may be this far ahead of max(our wall clock, our own timestamp): a companion
+# without a real-time clock restores an old time at boot while a GPS-timed autopilot is right
+PEER_AHEAD_MAX_UNITS = 30 * DAY_UNITS
 
 log = logging.getLogger("companion.signing")
 
@@ -72,6 +86,8 @@ class VerifyingMAVLink(mavlink.MAVLink):  # type: ignore[misc]
             return False  # a replay, or older than what this stream already sent
         if last is None and timestamp + NEW_STREAM_WINDOW_UNITS < s.timestamp:
             return False  # a "new" stream from long ago: a recorded frame
+        if isinstance(s, SigningState) and not s.admit_peer(timestamp, stream):
+            return False  # implausibly far ahead: neither the stream nor ours moves
         s.stream_timestamps[stream] = timestamp
         s.timestamp = max(s.timestamp, timestamp)
         return True
@@ -108,6 +124,65 @@ def wall_units(now_s: float | None = None) -> int:
     return max(0, int((now - EPOCH_2015_S) * UNITS_PER_S))
 
 
+def clock_is_set(wall: int) -> bool:
+    """Whether a wall clock reading ``wall`` (signing units) looks set: 2024 or later. A board
+    without a real-time clock boots at 1970 (or at its image's date) until NTP or GPS sets it."""
+    return wall >= CLOCK_SET_UNITS
+
+
+class SigningState(mavlink.MAVLinkSigning):  # type: ignore[misc]
+    """pymavlink's signing state of one link (shared by its sender and its parser), which
+    refuses a peer's timestamp too far ahead to be a clock that is right.
+
+    The bound, in signing units (10 us): ``PEER_AHEAD_MAX_UNITS`` ahead of the later of our
+    wall clock and our *own* timestamp (where we started plus the monotonic time since: a
+    peer's frames do not move this reference, so a key holder cannot walk us forward one
+    step at a time); never beyond what our next start accepts (``MAX_AHEAD_UNITS`` ahead of
+    a set wall clock, less the reserve) nor ``OWN_LIMIT_UNITS``."""
+
+    def __init__(self, first_units: int) -> None:
+        super().__init__()
+        self.timestamp = first_units
+        self.own_start_units = first_units
+        self.own_start_ns = time.monotonic_ns()
+        self.far_ahead = 0  # genuine frames refused for a timestamp too far ahead
+        self.far_ahead_s = 0.0  # how far ahead of our reference the last one was [s]
+
+    def own_units(self) -> int:
+        """Our own timestamp as peers cannot move it: the first one plus the monotonic time
+        since [signing units]."""
+        return self.own_start_units + (time.monotonic_ns() - self.own_start_ns) // 10_000
+
+    def peer_limit_units(self, wall: int | None = None) -> int:
+        """The newest timestamp a peer may send us now [signing units]; ``wall``: the wall
+        clock in signing units (default: now)."""
+        wall = wall_units() if wall is None else wall
+        limit = max(wall, self.own_units()) + PEER_AHEAD_MAX_UNITS
+        if clock_is_set(wall):  # what we persist after it must pass TimestampStore.read()
+            limit = min(limit, wall + MAX_AHEAD_UNITS - 2 * RESERVE_UNITS)
+        return min(limit, OWN_LIMIT_UNITS)
+
+    def admit_peer(self, timestamp: int, stream: tuple[int, int, int]) -> bool:
+        """Whether a genuine frame's ``timestamp`` (signing units) of ``stream`` (link,
+        system, component) may move ours; the first refusal is logged, all are counted."""
+        wall = wall_units()
+        if timestamp <= self.peer_limit_units(wall):
+            return True
+        self.far_ahead += 1
+        self.far_ahead_s = (timestamp - max(wall, self.own_units())) / UNITS_PER_S
+        if self.far_ahead == 1:
+            log.warning(
+                "signing: a frame signed with our key (link %d, system %d, component %d) is "
+                "stamped %.1f days ahead of our clock: refused, as is every frame more than "
+                "%d days ahead (a wrong clock on the autopilot? until it is fixed, it may "
+                "refuse what we send as too old)",
+                *stream,
+                self.far_ahead_s / 86400,
+                PEER_AHEAD_MAX_UNITS // DAY_UNITS,
+            )
+        return False
+
+
 class TimestampStore:
     """The persisted signing timestamp: ``start()`` once, ``keep_ahead(ts)`` as it advances."""
 
@@ -133,13 +208,13 @@ class TimestampStore:
         if not text.isdigit() or len(text) > 20:
             raise ConfigError(f"{key}: {self.path} does not hold a timestamp: {text[:40]!r}")
         value = int(text)
-        if value >= MAX_TIMESTAMP - 2 * RESERVE_UNITS:
+        if value >= STORED_LIMIT_UNITS:
             raise ConfigError(
                 f"{key}: {self.path} holds {value}, at or beyond the 48-bit limit of a signing "
                 f"timestamp ({MAX_TIMESTAMP}); a corrupt or forged file"
             )
         wall = wall_units(now_s)
-        if wall >= CLOCK_SET_UNITS and value > wall + MAX_AHEAD_UNITS:
+        if clock_is_set(wall) and value > wall + MAX_AHEAD_UNITS:
             days = (value - wall) / UNITS_PER_S / 86400
             raise ConfigError(
                 f"{key}: {self.path} holds a timestamp {days:.0f} days ahead of the wall clock; "
@@ -149,8 +224,8 @@ class TimestampStore:
 
     def start(self, now_s: float | None = None) -> int:
         """The first timestamp to use: after everything used before, and not behind the wall
-        clock. Persists the reserve ahead of it before it is used."""
-        first = max(wall_units(now_s), self.read(now_s) + 1)
+        clock (up to ``OWN_LIMIT_UNITS``). Persists the reserve ahead of it before it is used."""
+        first = max(min(wall_units(now_s), OWN_LIMIT_UNITS), self.read(now_s) + 1)
         try:
             self._write(first + RESERVE_UNITS)
         except OSError as e:
@@ -205,7 +280,7 @@ class Signing:
         self.store = store
         self.link_id = link_id
         self.require_signed = require_signed
-        self.state: Any = None
+        self.state: SigningState | None = None
 
     @staticmethod
     def from_options(opts: SigningOptions) -> Signing | None:
@@ -219,12 +294,13 @@ class Signing:
 
     def apply(self, sender: Any, parser: Any) -> None:
         """Set up pymavlink's signing on a link's sender and parser (one shared state)."""
-        s = sender.signing
+        first = self.store.start() if self.store is not None else min(wall_units(), OWN_LIMIT_UNITS)
+        s = SigningState(first)
         s.secret_key = self.key
         s.link_id = self.link_id
         s.sign_outgoing = True
-        s.timestamp = self.store.start() if self.store is not None else wall_units()
         s.allow_unsigned_callback = self._allow_unsigned
+        sender.signing = s
         parser.signing = s
         self.state = s
 
@@ -232,15 +308,18 @@ class Signing:
         return not self.require_signed or msg_id in ALLOWED_UNSIGNED
 
     def tick(self) -> None:
-        """Advance the timestamp to the wall clock (never back) and keep the file ahead."""
+        """Advance the timestamp to the wall clock (never back, never past
+        ``OWN_LIMIT_UNITS``) and keep the file ahead."""
         if self.state is None:
             return
-        self.state.timestamp = max(self.state.timestamp, wall_units())
+        self.state.timestamp = max(self.state.timestamp, min(wall_units(), OWN_LIMIT_UNITS))
         if self.store is not None:
             self.store.keep_ahead(self.state.timestamp)
 
     def counters(self) -> dict[str, int]:
-        """pymavlink's counts: frames signed correctly, badly, and unsigned ones refused."""
+        """pymavlink's counts: frames signed correctly, badly, and unsigned ones refused; of
+        the bad ones, those signed right but stamped implausibly far ahead (``far_ahead``,
+        the last one ``far_ahead_s`` seconds ahead of our clock)."""
         s = self.state
         if s is None:
             return {}
@@ -250,4 +329,6 @@ class Signing:
             "unsigned_accepted": int(s.unsigned_count),
             "refused": int(s.reject_count),
             "timestamp_write_errors": self.store.write_errors if self.store else 0,
+            "far_ahead": s.far_ahead,
+            "far_ahead_s": int(s.far_ahead_s),
         }
