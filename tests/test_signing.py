@@ -508,3 +508,18 @@ def test_hostile_clocks_on_a_signed_link_neither_stop_signing_nor_the_next_start
         assert max(ts for _, ts in got) < wall_units() + 2 * RESERVE_UNITS  # near the clock
     signing = json.loads((tmp_path / "report0.json").read_text())["signing"]
     assert signing["far_ahead"] == 2 and signing["good_signatures"] >= 10
+
+
+def test_companion_status_shows_the_frames_stamped_too_far_ahead() -> None:
+    """The operator's view says why the autopilot's frames are refused (its clock)."""
+    from companion.cli.service import _signing_text
+
+    counters = {
+        "good_signatures": 5,
+        "bad_signatures": 2,
+        "refused": 0,
+        "far_ahead": 2,
+    }
+    assert _signing_text({"signing": counters}).endswith("0 refused, 2 stamped too far ahead")
+    counters["far_ahead"] = 0
+    assert _signing_text({"signing": counters}).endswith("0 refused")

@@ -132,8 +132,9 @@ def _signing_text(ap: dict[str, Any]) -> str:
     sg = ap.get("signing")
     if not sg:
         return ", unsigned link"
+    far = f", {sg['far_ahead']} stamped too far ahead" if sg.get("far_ahead") else ""
     return f", signed: {sg['good_signatures']} good, {sg['bad_signatures']} bad signatures, " + (
-        f"{sg['refused']} refused"
+        f"{sg['refused']} refused{far}"
     )
 
 
