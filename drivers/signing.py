@@ -174,8 +174,8 @@ class SigningState(mavlink.MAVLinkSigning):  # type: ignore[misc]
             log.warning(
                 "signing: a frame signed with our key (link %d, system %d, component %d) is "
                 "stamped %.1f days ahead of our clock: refused, as is every frame more than "
-                "%d days ahead (a wrong clock on the autopilot? until it is fixed, it may "
-                "refuse what we send as too old)",
+                "%d days ahead (the autopilot's clock wrong, or ours far behind: set it by "
+                "NTP or GPS; until then the autopilot may refuse what we send as too old)",
                 *stream,
                 self.far_ahead_s / 86400,
                 PEER_AHEAD_MAX_UNITS // DAY_UNITS,
