@@ -6,6 +6,14 @@ message is dropped and counted when it is full) and wake the sender task. The se
 with capped, jittered backoff (0.5 s doubling to 30 s), announces ``online`` (retained), and
 drains the queue; when the broker goes away it reconnects and carries on with what is queued.
 The password is passed to the client only, never logged.
+
+Nothing is subscribed, so every PUBLISH the broker sends is unasked (a hostile or broken
+broker): it is dropped as it is parsed and counted (``MqttStats.unasked``), never queued
+(aiomqtt's incoming queue, which nobody reads, held every one: 50 MB pushed cost 75 MB of
+memory and more at each reconnection), and never acknowledged (no PUBACK queued per message
+for a broker that does not read them; a compliant broker stops at its in-flight window). The
+retained ``online`` goes out at QoS 1 without waiting for its PUBACK: behind a flood it came
+later than aiomqtt's 5 s timeout, which dropped the connection (the flapping every 5 s).
 """
 
 from __future__ import annotations
@@ -14,8 +22,10 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import ssl
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +35,8 @@ from drivers.backoff import Backoff
 MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
 STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" status to go out
 OFFLINE = b'{"state": "offline"}'
+ONLINE = b'{"state": "online"}'
+MAX_TOPIC_SHOWN = 80  # characters of an unasked topic quoted in the log (the broker's text)
 
 
 log = logging.getLogger("companion.mqtt")
@@ -38,6 +50,8 @@ class MqttStats:
     connects: int = 0
     last_error: str = ""
     errors: int = 0  # failed connections and lost ones
+    unasked: int = 0  # PUBLISH from the broker on topics never subscribed to: dropped
+    unasked_bytes: int = 0  # their payloads [bytes]
 
 
 class MqttPublisher:
@@ -55,6 +69,7 @@ class MqttPublisher:
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._offline_sent = asyncio.Event()
+        self._unasked_logged = False  # one warning per connection
 
     @property
     def queued(self) -> int:
@@ -105,7 +120,7 @@ class MqttPublisher:
                 tls_context = ssl.create_default_context(cafile=o.ca_file or None)
             except (OSError, ssl.SSLError) as e:  # it went away after the config check
                 raise OSError(f"CA file {o.ca_file or '(system)'}: {e}") from e
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             o.host,
             o.port,
             username=o.username or None,
@@ -114,7 +129,24 @@ class MqttPublisher:
             keepalive=o.keepalive_s,
             tls_context=tls_context,
             timeout=5.0,
+            queue_type=_dropping_queue(self._unasked),
         )
+        client._client.manual_ack_set(True)  # paho's own client: acknowledge nothing unasked
+        return client
+
+    def _unasked(self, message: Any) -> None:
+        """Count a PUBLISH nobody asked for (dropped as it arrives); say so once per
+        connection, with its topic shortened (the broker's text)."""
+        payload = message.payload
+        self.stats.unasked += 1
+        self.stats.unasked_bytes += len(payload) if isinstance(payload, (bytes, str)) else 0
+        if not self._unasked_logged:
+            self._unasked_logged = True
+            log.warning(
+                "MQTT: the broker sends messages on topics never subscribed to (first: %r); "
+                "dropped and counted",
+                str(message.topic)[:MAX_TOPIC_SHOWN],
+            )
 
     async def _run(self) -> None:
         """Connect, drain, reconnect: every failure (the broker, TLS, a bad CA file, a bug) is
@@ -128,23 +160,15 @@ class MqttPublisher:
                     self.stats.connected = True
                     self.stats.connects += 1
                     self.stats.last_error = ""
+                    self._unasked_logged = False
                     backoff.reset()
                     log.info("MQTT connected to %s:%d", self.opts.host, self.opts.port)
-                    await client.publish(
-                        self.topic_status, b'{"state": "online"}', qos=1, retain=True
-                    )
-                    while True:
-                        while self._queue:  # drained before "offline" on a stop too
-                            topic, payload, retain = self._queue[0]
-                            await client.publish(topic, payload, qos=0, retain=retain)
-                            self._queue.popleft()  # only once it went out
-                            self.stats.published += 1
-                        if self._stopping:
-                            await client.publish(self.topic_status, OFFLINE, qos=1, retain=True)
-                            self._offline_sent.set()
-                            return
-                        self._wake.clear()
-                        await self._wake.wait()
+                    online = asyncio.create_task(self._announce(client))
+                    try:
+                        await self._drain(client)
+                    finally:
+                        online.cancel()
+                    return  # stopped: "offline" sent
             except asyncio.CancelledError:
                 raise
             except aiomqtt.MqttError as e:
@@ -156,6 +180,29 @@ class MqttPublisher:
             if self._stopping:
                 return
             await asyncio.sleep(backoff.next_s())
+
+    async def _drain(self, client: Any) -> None:
+        """Send what is queued as it comes (QoS 0), until a stop: then ``offline``."""
+        while True:
+            while self._queue:  # drained before "offline" on a stop too
+                topic, payload, retain = self._queue[0]
+                await client.publish(topic, payload, qos=0, retain=retain)
+                self._queue.popleft()  # only once it went out
+                self.stats.published += 1
+            if self._stopping:
+                await client.publish(self.topic_status, OFFLINE, qos=1, retain=True)
+                self._offline_sent.set()
+                return
+            self._wake.clear()
+            await self._wake.wait()
+
+    async def _announce(self, client: Any) -> None:
+        """The retained ``online`` at QoS 1, its PUBACK awaited for as long as it takes (it
+        may come behind a flood) beside the queue's draining; a lost connection ends it."""
+        import aiomqtt
+
+        with contextlib.suppress(aiomqtt.MqttError):
+            await client.publish(self.topic_status, ONLINE, qos=1, retain=True, timeout=math.inf)
 
     def _failed(self, why: str) -> None:
         """Log a failure: every one while connected, then once per distinct error (a broker
@@ -172,3 +219,14 @@ class MqttPublisher:
             )
         self.stats.last_error = why
         self.stats.errors += 1
+
+
+def _dropping_queue(drop: Callable[[Any], None]) -> type[asyncio.Queue[Any]]:
+    """A queue class for aiomqtt's incoming messages that keeps none: each is handed to
+    ``drop`` as it is parsed (nothing is subscribed, so nothing is read from it)."""
+
+    class Unasked(asyncio.Queue[Any]):
+        def put_nowait(self, item: Any) -> None:
+            drop(item)
+
+    return Unasked

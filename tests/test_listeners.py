@@ -1,0 +1,136 @@
+"""Every listener of the service under a flood: a hostile MQTT broker pushing what was never
+asked for, and a local process hammering the status socket."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+from pathlib import Path
+
+from hostile_mqtt import HostileBroker
+
+ROOT = Path(__file__).resolve().parents[1]
+FLOOD_BYTES = 50 * 1024 * 1024
+FLOOD_PAYLOAD_BYTES = 256  # small messages: the most of them per MB (the parser's worst case)
+POSE_HZ = 30.0
+
+# The publisher as the service runs it, in a process of its own (its memory is measured
+# alone): a pose queued on the camera's schedule, an event-loop probe (a 10 ms sleep, how
+# late it wakes), and a line of figures every 0.25 s; it stops at a line on stdin.
+PUBLISHER = """
+import asyncio, json, sys
+from companion.service.mqtt import MqttPublisher
+from companion.service_options import MqttOptions
+
+def kb(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+
+async def main(port, pose_hz):
+    loop = asyncio.get_running_loop()
+    base_kb = kb("VmRSS")
+    lags = []
+
+    async def probe():
+        while True:
+            t = loop.time()
+            await asyncio.sleep(0.01)
+            lags.append(loop.time() - t - 0.01)
+
+    stop = asyncio.Event()
+    loop.add_reader(sys.stdin.fileno(), stop.set)
+    opts = MqttOptions(enabled=True, port=port, keepalive_s=2)
+    async with MqttPublisher(opts, 7) as pub:
+        probe_task = asyncio.create_task(probe())
+        k, t0 = 0, loop.time()
+        while not stop.is_set():
+            pub.publish_pose({"k": k})
+            k += 1
+            if k % 8 == 0:
+                ordered = sorted(lags)
+                figures = {
+                    "stats": vars(pub.stats), "base_kb": base_kb, "hwm_kb": kb("VmHWM"),
+                    "lag_max_s": ordered[-1] if ordered else 0.0,
+                    "lag_p99_s": ordered[int(0.99 * len(ordered))] if ordered else 0.0,
+                }
+                print(json.dumps(figures), flush=True)
+            await asyncio.sleep(max(0.0, t0 + k / pose_hz - loop.time()))
+        probe_task.cancel()
+
+asyncio.run(main(int(sys.argv[1]), float(sys.argv[2])))
+"""
+
+
+async def start_publisher(port: int) -> asyncio.subprocess.Process:
+    """The publisher's process, its stdin and stdout piped."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-c",
+        PUBLISHER,
+        str(port),
+        str(POSE_HZ),
+        stdin=asyncio.subprocess.PIPE,
+        stdout=asyncio.subprocess.PIPE,
+        env=env,
+    )
+
+
+async def figures_until(proc: asyncio.subprocess.Process, done, timeout_s: float) -> dict:
+    """The publisher's figures, line after line, until done(figures) or the timeout."""
+    assert proc.stdout is not None
+    async with asyncio.timeout(timeout_s):
+        while True:
+            line = await proc.stdout.readline()
+            assert line, "the publisher ended"
+            figures = json.loads(line)
+            if done(figures):
+                return figures
+
+
+def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory() -> None:
+    """A broker pushing 50 MB of PUBLISH on topics never subscribed to (QoS 0 and 1): the
+    publisher drops and counts them, its memory stays flat, it keeps its one connection and
+    keeps sending poses at the camera's rate. Before: every message was kept in aiomqtt's
+    incoming queue, which nobody reads (+75 MB here), and each was acknowledged."""
+
+    async def run() -> tuple[dict, dict, HostileBroker, tuple[float, float]]:
+        async with HostileBroker(FLOOD_BYTES, FLOOD_PAYLOAD_BYTES) as broker:
+            proc = await start_publisher(broker.port)
+            try:
+                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
+                loop = asyncio.get_running_loop()
+                t0 = loop.time()
+                while not broker.report.flood_done:
+                    await asyncio.sleep(0.1)
+                n = broker.report.flood_messages
+                end = await figures_until(proc, lambda f: f["stats"].get("unasked", 0) >= n, 60)
+                window = (t0, loop.time())
+                after = await figures_until(proc, lambda f: True, 5)
+            finally:
+                assert proc.stdin is not None
+                proc.stdin.write(b"stop\n")
+                await proc.wait()
+            return end, after, broker, window
+
+    end, after, broker, (t0, t1) = asyncio.run(run())
+    report = broker.report
+    log = report.client_publish_log
+    poses = [t for t, topic in log if t0 <= t < t1 and topic.endswith("/pose")]
+    print(report.flood_messages, report.flood_bytes, t1 - t0, len(poses), end, after)
+    stats = end["stats"]
+    assert report.flood_done and report.flood_bytes >= FLOOD_BYTES
+    assert stats["unasked"] == report.flood_messages
+    assert stats["unasked_bytes"] >= FLOOD_BYTES * 0.9
+    growth_mb = (end["hwm_kb"] - end["base_kb"]) / 1024
+    assert growth_mb <= 20.0, growth_mb
+    assert report.connections == 1 and report.closed_by_client_during_flood == 0
+    assert stats["connects"] == 1 and stats["errors"] == 0 and after["stats"]["connected"]
+    assert report.pubacks_from_client == 0  # nothing unasked is acknowledged
+    # the poses went out on the camera's schedule all through the flood (the queue holds 200:
+    # a sender starved for more than a few seconds would have dropped some)
+    assert len(poses) >= 0.9 * POSE_HZ * (t1 - t0), (len(poses), t1 - t0)
+    assert after["stats"]["dropped"] == 0
