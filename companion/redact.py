@@ -52,6 +52,14 @@ def _unquoted(value: str) -> str:
     return value
 
 
+def _at_fragments(password: str) -> list[str]:
+    """What a URL parser that ends the userinfo at the first '@' shows of a password with
+    '@' (libsoup: the "host" ``ss@host`` of ``user:p@ss@host``): its pieces between '@'
+    and each tail after one."""
+    pieces = password.split("@")
+    return [*pieces, *("@".join(pieces[k:]) for k in range(1, len(pieces)))]
+
+
 def redact_url(url: str) -> str:
     """``url`` with its credentials masked: the password of every ``scheme://user:pass@``
     (``rtsp://user:***@host/path``; a user name without a password is kept) and the value of
@@ -68,14 +76,14 @@ def redact_url(url: str) -> str:
 
 
 def url_secrets(url: str) -> list[str]:
-    """The passwords inside ``url`` (a userinfo's password as written and percent-decoded,
-    a GStreamer secret property's value as written and unquoted), to mask wherever they
-    appear."""
+    """The passwords inside ``url`` (a userinfo's password as written, percent-decoded and
+    the pieces of it around an '@', a GStreamer secret property's value as written and
+    unquoted), to mask wherever they appear."""
     out: list[str] = []
     for m in _USERINFO.finditer(url):
         _user, sep, password = m["userinfo"].partition(":")
         if sep and password:
-            out += [password, unquote(password)]
+            out += [password, unquote(password), *_at_fragments(password)]
     for m in _GST_PROPERTY.finditer(url):
         if _GST_SECRET_NAME.match(m["name"]):
             out += [m["value"], _unquoted(m["value"])]

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.errors import CompanionError, ConfigError
+from companion.redact import redact_url
 from companion.types import CameraFrame
 
 if TYPE_CHECKING:
@@ -128,10 +129,14 @@ def plausible_stamp_us(t_us: int, arrival_us: int) -> int | None:
 
 class CameraSource(ABC):
     """Base: ``frames()`` yields CameraFrame until the source ends or ``close()``; it may be
-    called again after it ended (the service reopens a live camera). ``finite``: a recording
-    that ends for good (a file, a folder), not a live device. ``request``: what the config asks
-    (None: take what comes, e.g. for a check that opens nothing). ``last_error``: the driver
-    error that ended the last ``frames()``, None once a frame came again."""
+    called again after it ended (the service reopens a camera). ``finite``: a recording that
+    ends for good, decided by the source's kind: a ``folder:``, a video file (a path or
+    ``file://``), a ``gst:`` pipeline whose sources all read files or generate frames; never
+    a device, a network URL, the SITL stream, picamera2, or a pipeline with a live, network
+    or unknown source (drivers/camera_gst.py): those are cameras, reopened with backoff.
+    ``request``: what the config asks (None: take what comes, e.g. for a check that opens
+    nothing). ``last_error``: the driver error that ended the last ``frames()``, None once a
+    frame came again."""
 
     finite = False
 
@@ -349,8 +354,9 @@ class VideoCaptureSource(CameraSource):
     ) -> None:
         super().__init__(request)
         self.spec = spec
+        self.shown = redact_url(spec) if isinstance(spec, str) else spec  # for log and errors
         self.device = device
-        self.finite = isinstance(spec, str) and Path(spec).is_file()  # a video file ends
+        self.finite = is_video_file(spec)  # a recording ends for good; a camera is reopened
 
     def _open(self) -> Any:
         """The opened capture, with the request applied and checked on a V4L2 device."""
@@ -364,14 +370,14 @@ class VideoCaptureSource(CameraSource):
         # a stalled network stream must not block forever (FFmpeg backend)
         cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, 2000)
         if not cap.isOpened():
-            raise CameraError(f"camera {self.spec!r}: cannot open")
+            raise CameraError(f"camera {self.shown!r}: cannot open")
         if self.device and self.request is not None:
             for _key, prop, value in uvc_settings(self.request):
                 cap.set(prop, value)  # False is common for a value the driver rounds: read back
             problems = uvc_readback_problems(self.request, cap.get)
             if problems:
                 cap.release()
-                raise CameraError(f"camera {self.spec!r}: " + "; ".join(problems))
+                raise CameraError(f"camera {self.shown!r}: " + "; ".join(problems))
         return cap
 
     def _read(self) -> Iterator[CameraFrame]:
@@ -392,7 +398,7 @@ class VideoCaptureSource(CameraSource):
                     driver_us = driver_stamp_us(cap.get(cv2.CAP_PROP_POS_MSEC), grab_us)
                 stamps = "grab" if driver_us is None else "v4l2 buffer"
                 if stamps != self.stamps:
-                    log.info("camera %r: frames stamped at %s", self.spec, stamps)
+                    log.info("camera %r: frames stamped at %s", self.shown, stamps)
                     self.stamps = stamps
                 t_us = grab_us if driver_us is None else driver_us
                 ok, img = cap.retrieve()
@@ -404,6 +410,17 @@ class VideoCaptureSource(CameraSource):
                 seq += 1
         finally:
             cap.release()
+
+
+def is_video_file(spec: str | int) -> bool:
+    """Whether a VideoCapture spec is a recording (a video file, a ``file://`` URL), which
+    ends for good, rather than a camera (a device, a network stream), which is reopened."""
+    if not isinstance(spec, str):
+        return False  # a device number
+    scheme, sep, _rest = spec.partition("://")
+    if sep:
+        return scheme.lower() == "file"
+    return not spec.startswith("/dev/") and Path(spec).is_file()
 
 
 def driver_stamp_us(driver_ms: float, grab_us: int) -> int | None:

@@ -17,9 +17,17 @@ the buffer reached us, at most 0.5 s before); otherwise (a non-live pipeline: a 
 fast as possible, ``videotestsrc`` without ``is-live``) the time the buffer reached the appsink.
 ``stamps`` says which ("gst pts" or "arrival").
 
-End of stream ends ``frames()`` (a live camera is then reopened by the service; a non-live
-pipeline, e.g. a file, is ``finite``: the service stops). An error message on the bus raises
-CameraError with the element's name and GStreamer's text; nothing here can crash the service.
+End of stream ends ``frames()``. Whether the service then stops or reopens the pipeline is
+decided by its source elements' kind, not by whether the pipeline is live (an MJPEG IP camera
+read by ``souphttpsrc`` is not live, yet it is a camera): the pipeline is ``finite`` (a
+recording: the service stops at its end) only when every source reads a file (``filesrc``,
+``multifilesrc``, a ``uri`` of ``file:``) or is a non-live generator (``videotestsrc``
+without ``is-live``). A device (v4l2src, libcamerasrc, nvarguscamerasrc), a network source
+(a URI handler of another protocol, or a Source/Network element: souphttpsrc, rtspsrc,
+udpsrc, srtsrc), a live source and any element we cannot tell make it a camera: reopened with
+backoff when it ends (see ``source_kind``). An error message on the bus raises CameraError
+with the element's name and GStreamer's text, with credentials masked (companion.redact);
+nothing here can crash the service.
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ import cv2
 import numpy as np
 
 from companion.errors import ConfigError
+from companion.redact import redact_text, url_secrets
 from companion.types import U8, CameraFrame
 from drivers.camera import CameraError, CameraSource, CaptureRequest, plausible_stamp_us
 
@@ -57,6 +66,10 @@ FORMAT_LAYOUT: dict[str, tuple[int, tuple[int, int, int]]] = {
 SINK_FORMATS = "{BGR, BGRx, BGRA, RGB, RGBx, RGBA, xRGB, ARGB, xBGR, ABGR, GRAY8}"
 PULL_TIMEOUT_S = 0.1  # how often the reader looks at the bus and at close()
 EOS_ERROR_WAIT_NS = 200_000_000  # after EOS, how long an error that caused it may take
+# source elements that read files; URI protocols that are files
+FILE_SOURCES = ("filesrc", "multifilesrc", "splitmuxsrc", "imagesequencesrc")
+FILE_PROTOCOLS = ("file", "multifile", "splitmux", "imagesequence")
+FINITE_KINDS = ("file", "generator")  # a pipeline of these sources only is a recording
 INSTALL_HINT = (
     "GStreamer's Python bindings are needed: apt-get install python3-gi gir1.2-gstreamer-1.0 "
     "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good, and a "
@@ -145,6 +158,8 @@ class GstSource(CameraSource):
         if request is not None and request.fourcc:
             log.info("camera.fourcc is for V4L2 devices; a gst: pipeline sets its own caps")
         pipe = self._parse()  # checked now, started later
+        self.sources = self._source_kinds(pipe)  # (element name, kind) of each source
+        self.finite = all(kind in FINITE_KINDS for _name, kind in self.sources)
         pipe.set_state(self._gst.State.NULL)
         self.live: bool | None = None  # known once started
         self._set_drop = False
@@ -155,12 +170,18 @@ class GstSource(CameraSource):
         try:
             pipe = Gst.parse_launch(self.pipeline_text)
         except Exception as e:  # GLib.Error: syntax, no such element / property
-            raise ConfigError(f"{self.key}: gst: {getattr(e, 'message', e)}") from None
+            why = self._redacted(str(getattr(e, "message", e)))  # may quote a value
+            raise ConfigError(f"{self.key}: gst: {why}") from None
         if not isinstance(pipe, Gst.Pipeline):  # a single element: wrap it
             raise ConfigError(f"{self.key}: gst: a pipeline ending in appsink is needed")
         if self._appsink(pipe) is None:
             raise ConfigError(f"{self.key}: gst: the pipeline must end in an appsink")
         return pipe
+
+    def _redacted(self, text: str) -> str:
+        """``text`` (GStreamer's, which may quote a location or a property) with the
+        pipeline's credentials masked."""
+        return redact_text(text, url_secrets(self.pipeline_text))
 
     def _appsink(self, pipe: Any) -> Any:
         """The pipeline's (last) appsink, or None. Gst.Iterator is walked by hand: without
@@ -178,6 +199,21 @@ class GstSource(CameraSource):
                 found = None
             else:  # DONE or ERROR
                 return found
+
+    def _source_kinds(self, pipe: Any) -> list[tuple[str, str]]:
+        """(name, kind) of each of the pipeline's source elements (see ``source_kind``)."""
+        Gst = self._gst
+        out = []
+        it = pipe.iterate_sources()
+        while True:
+            res, element = it.next()
+            if res == Gst.IteratorResult.OK:
+                out.append((str(element.get_name()), source_kind(Gst, element)))
+            elif res == Gst.IteratorResult.RESYNC:
+                it.resync()
+                out = []
+            else:  # DONE or ERROR
+                return out
 
     def _sink(self, pipe: Any) -> Any:
         """The appsink, set up for a reader that wants the newest frame without waiting."""
@@ -201,7 +237,7 @@ class GstSource(CameraSource):
         more = f" ({detail[-1]})" if detail else ""
         if "not-negotiated" in (debug or ""):
             more += f"; the appsink takes {SINK_FORMATS}: put a videoconvert before it"
-        return CameraError(f"camera gst: {src}: {err.message}{more}")
+        return CameraError(self._redacted(f"camera gst: {src}: {err.message}{more}"))
 
     def _start(self, pipe: Any, sink: Any) -> None:
         """PAUSED then PLAYING on our monotonic clock; CameraError from the bus on failure. A
@@ -217,7 +253,6 @@ class GstSource(CameraSource):
         ret = pipe.set_state(Gst.State.PAUSED)
         if ret != Gst.StateChangeReturn.FAILURE:
             self.live = ret == Gst.StateChangeReturn.NO_PREROLL
-            self.finite = not self.live  # a file (or a test source) ends for good
             if self._set_drop:
                 sink.set_property("drop", self.live)
             ret = pipe.set_state(Gst.State.PLAYING)
@@ -225,7 +260,8 @@ class GstSource(CameraSource):
             msg = bus.timed_pop_filtered(Gst.SECOND, Gst.MessageType.ERROR)
             if msg is not None:
                 raise self._bus_error(msg)
-            raise CameraError(f"camera gst: the pipeline does not start: {self.pipeline_text!r}")
+            shown = self._redacted(repr(self.pipeline_text))
+            raise CameraError(f"camera gst: the pipeline does not start: {shown}")
 
     def _read(self) -> Iterator[CameraFrame]:
         Gst = self._gst
@@ -282,6 +318,37 @@ class GstSource(CameraSource):
             log.info("camera gst: frames stamped at %s", stamps)
             self.stamps = stamps
         return CameraFrame(arrival_us if t_us is None else t_us, seq, img)
+
+
+def source_kind(Gst: Any, element: Any) -> str:
+    """What a source element reads: "file" or "generator" (a recording: it ends for good),
+    "network", "live" (a device, a live source) or "unknown" (all three a camera: reopened
+    when it ends).
+
+    In this order: a ``uri`` property (uridecodebin, urisourcebin, playbin) decides by its
+    scheme; a Source/Network element is "network"; a live GstBaseSrc (v4l2src, libcamera's,
+    ``is-live=true``) is "live"; a URI handler of a protocol that is not a file (rtmpsrc,
+    appsrc) is "unknown"; a non-live GstBaseSrc is "file" when it reads files (FILE_SOURCES,
+    Source/File), else "generator" (videotestsrc); anything else (a bin) is "unknown".
+    """
+    factory = element.get_factory()
+    klass = str(factory.get_metadata("klass") or "") if factory is not None else ""
+    if element.find_property("uri") is not None:
+        uri = str(element.get_property("uri") or "")
+        return "file" if uri.startswith("file:") else "network"
+    if "Network" in klass:
+        return "network"
+    live = getattr(element, "is_live", None)  # GstBaseSrc's field; None: not a GstBaseSrc
+    if not isinstance(live, bool):
+        return "unknown"
+    if live:
+        return "live"
+    protocols: list[str] = []
+    if factory is not None and factory.get_uri_type() == Gst.URIType.SRC:
+        protocols = list(factory.get_uri_protocols() or [])
+    if any(p not in FILE_PROTOCOLS for p in protocols):
+        return "unknown"
+    return "file" if _factory(element) in FILE_SOURCES or "File" in klass else "generator"
 
 
 def _factory(element: Any) -> str:

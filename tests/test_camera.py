@@ -16,6 +16,7 @@ import sys
 import textwrap
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -242,6 +243,86 @@ def test_gst_under_refused_writable_executable_memory(tmp_path) -> None:
         pytest.skip(f"this kernel has no PR_SET_MDWE (Linux >= 6.3): {r.stdout.strip()}")
     assert r.returncode == 0, r.stdout + r.stderr
     assert "FRAMES 5 (240, 320, 3)" in r.stdout, r.stdout + r.stderr
+
+
+def serve_mjpeg_parts(parts_per_connection: int) -> tuple[int, Callable[[], None]]:
+    """A tiny MJPEG camera over HTTP on 127.0.0.1 that sends ``parts_per_connection`` 64x48
+    JPEG parts on each connection, then closes it (an IP camera that ends its stream);
+    returns its port and a function that stops it."""
+    import http.server
+
+    rng = np.random.default_rng(4)
+    jpg = cv2.imencode(".jpg", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))[1].tobytes()
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=f")
+            self.end_headers()
+            head = b"--f\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
+            for _ in range(parts_per_connection):
+                self.wfile.write(head % len(jpg) + jpg + b"\r\n")
+                time.sleep(1 / 30)
+            self.close_connection = True
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+
+    def stop() -> None:
+        server.shutdown()
+        server.server_close()
+
+    return server.server_address[1], stop
+
+
+@needs_gst
+def test_gst_a_network_camera_that_ends_its_stream_is_a_camera_not_a_recording() -> None:
+    """souphttpsrc is not a live source, yet an MJPEG IP camera is a camera: its end of
+    stream must not read as the end of a recording (the service would stop); frames() opens
+    it again. Finiteness goes by the sources' kind, known before anything starts."""
+    port, stop = serve_mjpeg_parts(6)
+    try:
+        src = open_camera(
+            f"gst:souphttpsrc location=http://127.0.0.1:{port}/cam.mjpg ! multipartdemux ! "
+            "jpegdec ! videoconvert ! appsink",
+            camera=camera(64, 48),
+        )
+        assert not src.finite
+        first, again = list(src.frames()), list(src.frames())  # ended, then reopened
+        assert len(first) >= 3 and len(again) >= 3 and not src.live
+        assert not src.finite and src.sources == [("souphttpsrc0", "network")]
+    finally:
+        stop()
+    for pipeline, finite in (
+        ("filesrc location=clip.avi ! decodebin", True),
+        ("multifilesrc location=img%04d.jpg ! jpegdec", True),
+        ("uridecodebin uri=file:///clip.mp4", True),
+        ("videotestsrc num-buffers=5", True),  # not live: a generator that ends
+        ("videotestsrc is-live=true", False),
+        ("v4l2src device=/dev/video0", False),
+        ("uridecodebin uri=rtsp://cam/live", False),
+        ("rtspsrc location=rtsp://cam/live ! decodebin", False),
+        ("udpsrc port=5600 ! application/x-rtp ! rtpjpegdepay ! jpegdec", False),
+    ):
+        assert open_camera(f"gst:{pipeline} ! videoconvert ! appsink").finite == finite, pipeline
+
+
+def test_only_a_video_file_is_a_finite_video_capture(tmp_path) -> None:
+    clip = tmp_path / "clip.avi"
+    clip.write_bytes(b"")
+    for spec, finite in (
+        (str(clip), True),
+        (f"file://{clip}", True),
+        ("http://127.0.0.1:8080/video.mjpg", False),
+        ("rtsp://cam/live", False),
+        ("/dev/video0", False),
+        (0, False),
+    ):
+        assert VideoCaptureSource(spec).finite == finite, spec
 
 
 # --------------------------------------------------------------------------- files, folders

@@ -319,17 +319,19 @@ class MjpegCamera:
         self.server.server_close()
 
 
+async def wait_frames(service: Service, n: int, timeout_s: float) -> bool:
+    """Whether the service's camera delivers ``n`` more frames within ``timeout_s``."""
+    target = service.stats.frames_in + n
+    end = time.monotonic() + timeout_s
+    while service.stats.frames_in < target and time.monotonic() < end:
+        await asyncio.sleep(0.05)
+    return service.stats.frames_in >= target
+
+
 def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
     cam = MjpegCamera()
     cam.start()
     cfg = service_config(tmp_path, camera_url=f"http://127.0.0.1:{cam.port}/stream.mjpg")
-
-    async def wait_frames(service: Service, n: int, timeout_s: float) -> bool:
-        target = service.stats.frames_in + n
-        end = time.monotonic() + timeout_s
-        while service.stats.frames_in < target and time.monotonic() < end:
-            await asyncio.sleep(0.05)
-        return service.stats.frames_in >= target
 
     async def main() -> dict[str, Any]:
         async with Service(cfg) as service:
@@ -361,6 +363,47 @@ def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
     silent = [w for w in r["warnings"] if "camera: no frames for" in w]
     assert len(silent) == 1 and "frames again" in r["warnings"][-1]  # said, then cleared
     assert abs(r["t_first"] - time.monotonic_ns() // 1000) < 60e6  # our monotonic clock
+
+
+def test_a_gst_network_camera_that_closes_its_stream_is_reopened(tmp_path) -> None:
+    """An MJPEG IP camera through GStreamer (souphttpsrc: not a live source) closes its
+    stream: the service does not take it for the end of a recording and stop (the unit is
+    restarted on failure only: the output would be gone until somebody acts); it reopens the
+    camera with backoff, and frames resume when the camera is back."""
+    pytest.importorskip("gi")
+    cam = MjpegCamera()
+    cam.start()
+    url = (
+        f"gst:souphttpsrc location=http://127.0.0.1:{cam.port}/stream.mjpg ! multipartdemux "
+        "! jpegdec ! videoconvert ! appsink"
+    )
+    cfg = service_config(tmp_path, camera_url=url)
+
+    async def main() -> dict[str, Any]:
+        async with Service(cfg) as service:
+            first = await wait_frames(service, 20, 20.0)
+            cam.stop()  # the camera closes the stream (a reboot, a network drop)
+            await asyncio.sleep(2.0)
+            stopped = service._stop.is_set()
+            cam.start()
+            back = await wait_frames(service, 20, 20.0)
+            return {
+                "first": first,
+                "stopped": stopped,
+                "back": back,
+                "finite": service.camera.finite,
+                "warnings": list(service.stats.warnings),
+            }
+
+    try:
+        r = asyncio.run(main())
+    finally:
+        cam.stop()
+    assert r["first"], "no frames from the camera at the start"
+    assert not r["stopped"] and not r["finite"], r["warnings"]
+    assert not any("recording ended" in w for w in r["warnings"]), r["warnings"]
+    assert sum("reopening" in w for w in r["warnings"]) == 1, r["warnings"]
+    assert r["back"], "no frames within 20 s of the camera's return"
 
 
 def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
@@ -466,6 +509,72 @@ def test_credentials_in_the_camera_url_are_never_shown(tmp_path, caplog) -> None
     assert "rtsp://pilot:***@127.0.0.1" in shown
     assert "hunter2secret" not in shown  # ...with the password masked everywhere
     assert len(got) >= 2
+
+
+def test_redaction_knows_gstreamer_credentials_and_passwords_with_at() -> None:
+    from companion.redact import redact_text, redact_url, url_secrets
+
+    pipeline = (
+        "gst:rtspsrc location=rtsp://pilot:p@ss@w0rd@cam.local/live user-id=gstuser "
+        'user-pw="hunter2 secret" proxy-id=proxyman proxy-pw=pr0xy@pw ! decodebin ! '
+        "videoconvert ! appsink srtsrc passphrase=longpassphrase"
+    )
+    shown = redact_url(pipeline)
+    for secret in ("p@ss@w0rd", "ss@w0rd", "w0rd", "gstuser", "hunter2", "proxyman", "pr0xy"):
+        assert secret not in shown, (secret, shown)
+    assert "longpassphrase" not in shown
+    assert "rtsp://pilot:***@cam.local/live" in shown and "user-pw=*** proxy-id=***" in shown
+    assert "! decodebin ! videoconvert ! appsink" in shown  # the rest as it was
+    secrets = url_secrets(pipeline)
+    assert {"p@ss@w0rd", "hunter2 secret", "pr0xy@pw", "longpassphrase"} <= set(secrets)
+    error = "camera gst: rtspsrc0: Unauthorized (hunter2 secret; p%40ss@w0rd)"
+    assert "hunter2" not in redact_text(error, secrets)  # a secret quoted anywhere
+    # a one-letter password: masked in its URL, never searched for in every warning
+    text = "camera: pipeline stopped; reopening (appsink), autopilot happy"
+    assert redact_text(text, url_secrets("rtsp://u:p@cam/x")) == text
+    assert redact_url("rtsp://u:p@cam/x") == "rtsp://u:***@cam/x"
+    assert redact_text(text, ["p", "pp", "ing"]) == text
+
+
+def test_gst_credentials_are_never_shown(tmp_path, caplog) -> None:
+    """A gst: camera with credentials in its location (a password with '@') and in
+    souphttpsrc's properties, against a camera that is not there: GStreamer's error quotes
+    the location; neither the log, the warnings, the status nor the summary shows them, and
+    a warning with many 'p' is left as it is."""
+    pytest.importorskip("gi")
+    from companion.config import describe
+
+    url = (
+        f"gst:souphttpsrc location=http://pilot:p@ssw0rd@127.0.0.1:{free_port()}/cam.mjpg "
+        "user-id=gstpilot user-pw=hunter2@s3kr1t proxy-id=proxyman proxy-pw=pr0xy@pw "
+        "! multipartdemux ! jpegdec ! videoconvert ! appsink"
+    )
+    cfg = service_config(tmp_path, camera_url=url)
+    plain = "camera: pipeline stopped; reopening (appsink), autopilot happy"
+
+    async def main() -> tuple[dict, dict, list[str]]:
+        async with Service(cfg) as service:
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not any(
+                "reopening until" in w for w in service.stats.warnings
+            ):
+                await asyncio.sleep(0.1)
+            service._warn(plain)
+            status = await asyncio.to_thread(read_status, tmp_path / "status.sock")
+            return status or {}, service.summary(), list(service.stats.warnings)
+
+    with caplog.at_level("DEBUG"):
+        status, summary, warnings = asyncio.run(main())
+    shown = "\n".join(
+        [json.dumps(status), json.dumps(summary, default=str), *warnings]
+        + [r.getMessage() for r in caplog.records]
+        + describe(cfg)
+    )
+    assert any("reopening until" in w for w in warnings), warnings
+    assert "http://pilot:***@127.0.0.1" in shown and "user-pw=***" in shown
+    for secret in ("ssw0rd", "gstpilot", "hunter2", "s3kr1t", "proxyman", "pr0xy"):
+        assert secret not in shown, secret
+    assert warnings[-1] == plain
 
 
 def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
