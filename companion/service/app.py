@@ -165,7 +165,7 @@ class Service:
         self.mqtt: MqttPublisher | None = (
             MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
         )
-        self.recorder = Recorder(config.record, config)  # a non-empty record.dir: exit 2
+        self.recorder = Recorder(config.record, config)  # its folder is made at start
         self._last_pose: PoseEstimate | None = None
         self.origin = ardupilot.OriginKeeper()  # ArduPilot: does its EKF hold our origin
         self.systemd = SdNotify()
