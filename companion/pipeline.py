@@ -102,6 +102,17 @@ class Pipeline:
         self.gaps = 0  # times tracking was dropped after a gap between usable frames
         self._last_good_us: int | None = None
         self._attitude: deque[AttitudeSample] = deque(maxlen=512)
+        # frames kept from a VO that is not tracking because no attitude was at hand for them
+        # once an attitude stream exists (a map's north is the autopilot's, never the camera's)
+        self.held_for_attitude = 0
+        # maps dropped because they had started without the autopilot's heading and its
+        # attitude stream began later (ArduPilot's, asked for after its first HEARTBEAT)
+        self.heading_restarts = 0
+        # the published position's anchor for the current reset_counter: (reset_counter, the
+        # NED offset [m] added to the rotated metric position) so that a new map continues
+        # from the last published position whatever its heading (see _anchored)
+        self._anchor: tuple[int, F64] | None = None
+        self._last_position_ned_m: F64 | None = None
         # accelerometer samples and our own motion, for gravity in the VO frame
         self._imu: deque[ImuSample] = deque(maxlen=IMU_BUFFER)
         # (time, (VO map, reset counter), R_vo_body, metric position, autopilot R_world_body)
@@ -168,6 +179,7 @@ class Pipeline:
         if self._attitude and sample.time_us <= self._attitude[-1].time_us:
             return
         self._attitude.append(sample)
+        self.vo.heading_required = True
 
     def feed_imu(self, sample: ImuSample) -> None:
         """Buffer an accelerometer sample (ignored unless finite and newer than the last)."""
@@ -203,6 +215,16 @@ class Pipeline:
             R0 = so3.quat_to_matrix(before.quat_wxyz)
             R1 = so3.quat_to_matrix(after.quat_wxyz)
             return R0 @ so3.exp(alpha * so3.log(R0.T @ R1))
+        if (
+            before is not None
+            and after is not None
+            and (after.time_us - before.time_us > 2 * ATTITUDE_MAX_GAP_US)
+        ):  # a gap in the stream (a stall): no slerp across it, the nearest if close enough
+            before, after = (
+                (before, None)
+                if time_us - before.time_us <= after.time_us - time_us
+                else (None, after)
+            )
         near = before or after
         assert near is not None
         if abs(near.time_us - time_us) > ATTITUDE_MAX_GAP_US:
@@ -238,6 +260,21 @@ class Pipeline:
             self.gaps += 1
         self._last_good_us = frame.time_us
         R_world_body = self.attitude_at(frame.time_us)
+        vo = self.vo
+        if vo.state == VoState.TRACKING and vo.heading_required and not vo.yaw_vo_known:
+            # a map that started before the attitude stream did: its north is the camera's
+            # first heading; it is dropped and the next one takes the autopilot's
+            vo.lose()
+            self.heading_restarts += 1
+        if vo.state != VoState.TRACKING:
+            if vo.heading_required and R_world_body is None:
+                self.held_for_attitude += 1
+                self.vo_output = None
+                return None
+            ref_us = vo.reference_time_us
+            R_ref = None if ref_us is None else self.attitude_at(ref_us)
+            if R_ref is not None:
+                vo.set_reference_attitude(R_ref)
         plane = None
         if self.vo.state != VoState.TRACKING and self.config.vo.ground_init:
             plane = self.ground_plane(frame.time_us, R_world_body)
@@ -652,8 +689,8 @@ class Pipeline:
         if est is None or p is None or R_vo_body is None:
             return None
         R_world_vo = so3.rot_z(self.vo.yaw_vo_rad)
-        position = R_world_vo @ p
         reset_counter = self.trajectories[self.method_name].reset_counter
+        position = self._anchored(R_world_vo @ p, reset_counter)
         velocity = self._velocity(time_us, reset_counter, position)
         # covariance over (x, y, z, roll, pitch, yaw), for an autopilot's filter that takes
         # it as one sample's white measurement noise (EKF2: R = max(ours, EKF2_EVP_NOISE^2)).
@@ -684,6 +721,22 @@ class Pipeline:
             reset_counter,
             quality,
         )
+
+    def _anchored(self, position_ned_m: F64, reset_counter: int) -> F64:
+        """(3,) [m] the published NED position: the metric position turned by the map's
+        heading plus the anchor of its reset_counter. A new map (a new reset_counter) is
+        anchored at the last published position: the metric trajectory continues from there
+        in its own axes (MetricTrajectory), but a map that starts on another heading than the
+        last one would otherwise turn the whole track about the first map's origin and jump
+        by up to twice the distance flown."""
+        a = self._anchor
+        if a is None or a[0] != reset_counter:
+            last = self._last_position_ned_m
+            offset = np.zeros(3) if last is None else last - position_ned_m
+            self._anchor = a = (reset_counter, offset)
+        anchored: F64 = position_ned_m + a[1]
+        self._last_position_ned_m = anchored
+        return anchored
 
     def _velocity(self, time_us: int, reset_counter: int, position: F64) -> F64:
         """NED velocity [m/s] as the difference over the last VELOCITY_WINDOW_US of poses of
@@ -741,6 +794,8 @@ class Pipeline:
             mag_heading_samples=fix.samples if fix is not None else 0,
             mag_heading_final=self.mag_heading_ended,
             gaps=self.gaps,
+            held_for_attitude=self.held_for_attitude,
+            heading_restarts=self.heading_restarts,
             method=self.method_name,
             scale=est.scale if est is not None else None,
             scale_sigma=est.sigma if est is not None else None,
@@ -771,6 +826,10 @@ class PipelineStatus:
     mag_heading_samples: int
     mag_heading_final: bool  # the vehicle moved: the compass no longer refines the heading
     gaps: int  # resets forced by a gap without usable frames
+    # frames kept from a VO that was not tracking: no autopilot attitude at hand for them
+    held_for_attitude: int
+    # maps dropped because they started before the autopilot's attitude stream did
+    heading_restarts: int
     method: str  # the published scale method
     scale: float | None  # its scale (metres per VO unit), None before the first
     scale_sigma: float | None

@@ -149,6 +149,11 @@ class VisualOdometry:
         # whether yaw_vo_rad is the autopilot's heading at initialisation (False: no attitude
         # was at hand, the VO frame's x axis is the camera's first heading, 0)
         self.yaw_vo_known = False
+        # whether a map may start only on a reference frame with an attitude (set by the
+        # caller once an autopilot's attitude stream exists): then a map never takes the
+        # camera's first heading as north (a stall's re-initialisation did, turning every
+        # later pose by the vehicle's heading: issue "The live service under attack ...")
+        self.heading_required = False
         # the relative sigma of the VO unit in metres when the map started on a metric ground
         # plane (None: a two-view start, arbitrary unit)
         self.metric_sigma_rel: float | None = None
@@ -271,6 +276,25 @@ class VisualOdometry:
         return VoOutput(time_us, self.state, is_kf, T_vo_cam, feats)
 
     # ------------------------------------------------------------------ reference / init
+    @property
+    def reference_time_us(self) -> int | None:
+        """The time of the frame a new map would start from (its first keyframe), None while
+        tracking or before any reference."""
+        if self.state == VoState.TRACKING or not len(self.tracks):
+            return None
+        return self._ref_time_us
+
+    def set_reference_attitude(self, R_world_body: F64) -> None:
+        """The autopilot's attitude (3, 3) at the reference frame, as known now: the
+        samples around that frame's time usually arrive after the frame itself (a link's
+        latency, a backlog after a stall), so the caller refines the reference's gravity and
+        heading with them before the map starts. Ignored while tracking."""
+        if self.state == VoState.TRACKING:
+            return
+        self._ref_R_vo_cam = self._gravity_R_vo_body(R_world_body) @ self.T_body_cam[:3, :3]
+        self._ref_yaw_rad = so3.matrix_to_rpy(R_world_body)[2]
+        self._ref_yaw_known = True
+
     def _restart_reference(self, gray: U8, time_us: int, R_world_body: F64 | None) -> None:
         self.tracks = Tracks.empty()
         px = self._detect(gray, self.opts.max_features)
@@ -289,6 +313,8 @@ class VisualOdometry:
         is gravity-aligned from the attitude with the camera at its origin, its unit the
         metre. Rays within ~70 deg of the plane are left as candidates (grazing: a depth
         error of the plane grows as 1 / cos)."""
+        if self.heading_required and R_world_body is None:
+            return False
         if len(self.tracks) < self.opts.init_min_points:
             self._restart_reference(gray, time_us, R_world_body)
         else:  # the reference orientation of this frame, not of the frame the tracks began
@@ -333,9 +359,13 @@ class VisualOdometry:
         self.tracks = self.tracks.extend(new_px, kf0.kf_id, self._normalized(new_px))
         return True
 
-    def _try_initialize(self, gray: U8, time_us: int) -> bool:
+    def _try_initialize(self, gray: U8, time_us: int, R_world_body: F64 | None) -> bool:
         tr = self.tracks
         if len(tr) < self.opts.init_min_points:
+            return False
+        if self.heading_required and not self._ref_yaw_known:
+            # no map on a heading that is not the autopilot's: this frame is the reference
+            self._restart_reference(gray, time_us, R_world_body)
             return False
         x1 = self._normalized(tr.px)
         flow_px = np.linalg.norm(x1 - tr.anchor_xy, axis=1) * self.focal_px
@@ -753,7 +783,7 @@ class VisualOdometry:
                 self._ref_frames > self.opts.init_max_frames
             ):
                 self._restart_reference(gray, frame.time_us, R_world_body)
-            elif self._try_initialize(gray, frame.time_us):
+            elif self._try_initialize(gray, frame.time_us, R_world_body):
                 if self.ever_initialized:
                     self.resets += 1
                 self.ever_initialized = True
@@ -764,6 +794,9 @@ class VisualOdometry:
             self.points.clear()
             self.point_sigma.clear()
             self.keyframes = []
+            # with an attitude stream, the reference's attitude is refined by the caller from
+            # the samples that arrive after this frame (set_reference_attitude); without one
+            # it may be this frame's nearest sample, up to the caller's gap old
             self._restart_reference(gray, frame.time_us, R_world_body)
         else:
             self._check_candidates()
