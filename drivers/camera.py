@@ -469,7 +469,7 @@ def check_camera_url(url: str, key: str = "service.camera_url") -> str | None:
         return None if path.exists() else f"{key}: {url} does not exist (yet): waiting for it"
     if not path.is_file():
         raise ConfigError(
-            f"{key}: {url!r} is neither a file, a device, a URL (scheme://...) nor a "
+            f"{key}: {redact_url(url)!r} is neither a file, a device, a URL (scheme://...) nor a "
             "GStreamer pipeline"
         )
     return None
