@@ -45,8 +45,10 @@ from dataclasses import dataclass
 PX4_CONVERGENCE_WINDOW = 500  # fused answers before PX4 converts our stamps
 PX4_GAINS_INITIAL = (0.05, 0.05)  # (alpha, beta) at the first answer
 PX4_GAINS_FINAL = (0.003, 0.003)  # (alpha, beta) from the convergence window on
-PX4_MAX_DEVIATION_NS = 100_000_000  # an answer this far from the estimate is an outlier
-PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # one more outlier in a row resets the filter
+PX4_MAX_RTT_SAMPLE_NS = 10_000_000  # MAX_RTT_SAMPLE: an answer whose round trip is not
+# below it is discarded (neither fused nor an outlier: it cannot reset the filter)
+PX4_MAX_DEVIATION_NS = 100_000_000  # MAX_DEVIATION_SAMPLE: this far off is an outlier
+PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # MAX_CONSECUTIVE_HIGH_DEVIATION: one more in a row resets
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,6 +94,9 @@ class ClockSync:
         self.samples = 0
         self.last_rtt_ns = 0
         self.deviations = 0
+        # the latest outlier's offset [ns] while outliers come in a row (a jump being
+        # confirmed: where the fast answers put the peer's clock now), else None
+        self.deviant_offset_ns: float | None = None
 
     @property
     def converged(self) -> bool:
@@ -103,6 +108,15 @@ class ClockSync:
         """Converged, and the latest answers agree with the estimate (False while a clock
         jump is being confirmed): a requester asks faster while it is not."""
         return self.converged and self.deviations == 0
+
+    @property
+    def fast_rtt_ns(self) -> int:
+        """The recent round trips' 20th percentile [ns] (0 before any): the link's round trip
+        when nothing waits in a buffer."""
+        if not self.recent_rtt_ns:
+            return 0
+        ranked_rtt_ns = sorted(self.recent_rtt_ns)
+        return ranked_rtt_ns[len(ranked_rtt_ns) // 5]
 
     def offset_at(self, now_ns: int) -> float:
         """The estimated offset local - remote [ns] at our time now_ns."""
@@ -129,17 +143,18 @@ class ClockSync:
         predicted = self.offset_at(mid)
         if abs(measured - predicted) > self.max_deviation_ns:
             self.deviations += 1
+            self.deviant_offset_ns = measured
             if self.deviations >= self.max_consecutive_deviations:
                 self.resets += 1
                 self.reset()
             return False
         self.deviations = 0
+        self.deviant_offset_ns = None
         # "fast" is the recent round trips' 20th percentile, not their minimum: where round
         # trips spread evenly (PX4's lockstep answers in 4 ms steps: 0-4 ms) the minimum let
         # one answer in ten through, and at 2 Hz the estimate coasted for 10 s at a time
         if self.samples >= 5:
-            ranked_rtt_ns = sorted(self.recent_rtt_ns)
-            fast_rtt_ns = ranked_rtt_ns[len(ranked_rtt_ns) // 5]
+            fast_rtt_ns = self.fast_rtt_ns
             if rtt > max(2 * fast_rtt_ns, fast_rtt_ns + 500_000):
                 self.slow_skipped += 1
                 return False
@@ -173,27 +188,47 @@ class RequesterModel:
     """What a TIMESYNC requester (PX4) makes of the answers we give it: whether it converts
     our ``time_usec`` stamps into its clock, or stamps our samples with their arrival.
 
-    PX4 converts a companion's stamps only while its own filter is converged: after
-    PX4_CONVERGENCE_WINDOW fused answers since its last reset. It resets at boot and when more
-    than PX4_MAX_CONSECUTIVE_DEVIATIONS answers in a row fall over PX4_MAX_DEVIATION_NS from
-    its estimate (a jump of either clock; in SITL, PX4's lockstep clock falling behind ours when
-    the simulator stalls: 187 ms at once in one PX4 SIH flight, session 23). For the next ~500
-    answers (10 s at 50 Hz) PX4 then stamps our samples on arrival, our latency late (~100 ms:
-    0.3 m at 3 m/s). Nothing on the link says so; this model follows PX4's filter on the same
-    answers (each request's ts1, PX4's clock, against the tc1 we answered with) and says
-    whether PX4 should be converting (:attr:`converts`).
+    PX4's Timesync::update (src/lib/timesync/Timesync.cpp), answer by answer:
 
-    The model sees neither PX4's reception time of our answer (it takes the round trip as 0;
-    PX4 fuses answers within 10 ms, so its offsets differ by at most 5 ms: nothing against 100
-    ms thresholds) nor the answers PX4 drops for their round trip, so it needs ``margin`` more
+    1. round trip = its reception time - ts1 (unsigned: an answer "from the future" is huge);
+       not below PX4_MAX_RTT_SAMPLE_NS: discarded, nothing else happens (no outlier count);
+    2. once converged (PX4_CONVERGENCE_WINDOW fused answers since the last reset), an answer
+       whose offset is over PX4_MAX_DEVIATION_NS from the estimate is an outlier; more than
+       PX4_MAX_CONSECUTIVE_DEVIATIONS in a row reset the filter (a jump of either clock; in
+       SITL, PX4's lockstep clock falling behind ours when the simulator stalls: 187 ms in one
+       PX4 SIH flight);
+    3. otherwise the answer is fused (double exponential smoothing, gains scheduled from
+       PX4_GAINS_INITIAL to PX4_GAINS_FINAL over the window) and the outlier count cleared.
+
+    PX4 converts our stamps only while converged; for ~500 answers after a reset (10 s at
+    50 Hz) it stamps our samples on arrival, our latency late (~100 ms: 0.3 m at 3 m/s).
+    Nothing on the link says so; this model follows PX4's filter on the same answers (each
+    request's ts1, PX4's clock, against the tc1 we answered with).
+
+    Step 1 needs PX4's reception time of our answer, which the model estimates with ``clock``,
+    our own estimate of PX4's clock (:class:`ClockSync`, from our requests): our answer's time
+    in PX4's clock, minus ts1, plus the link's fast round trip for the way back (the upper
+    side: a whole round trip where half is due). Until ``clock`` has converged no answer can
+    be shown to pass, so none is counted. That check is what keeps the model with PX4 when
+    answers are late: a serial link that delivered requests 0-100 ms late (PX4 fused 8-9 % of
+    the answers, the model without it counted them all), a stall of our loop (the requests
+    queued meanwhile, answered at once 0.2 s late, counted as outliers: a false "clock
+    jumped"), forged requests (their ts1 is no time PX4 just sent at: PX4 discards our answers
+    to them by their round trip). Without ``clock`` the round trip is taken as 0 (a peer on
+    loopback that answers at once: the test harness of the real PX4).
+
+    The model still cannot see answers lost on the way to PX4, so it needs ``margin`` more
     answers than PX4 before it says ``converts``: erring toward "not converted" is the cheap
     side (the service then sends poses as of their sending, right in both states of PX4).
     Offsets in ns, PX4's clock minus ours (PX4's sign)."""
 
-    def __init__(self, margin: float = 0.2) -> None:
+    def __init__(self, margin: float = 0.2, clock: ClockSync | None = None) -> None:
         self.needed = int(round(PX4_CONVERGENCE_WINDOW * (1.0 + margin)))
+        self.clock = clock
         self.resets = 0  # resets seen after the first answer (clock jumps)
         self.answers = 0
+        self.rtt_discarded = 0  # answers PX4 discards for their round trip (or unknown one)
+        self.last_rtt_ns: int | None = None  # the latest answer's round trip, as estimated
         self.reset()
 
     def reset(self) -> None:
@@ -208,10 +243,36 @@ class RequesterModel:
         """True when the requester converts our stamps (its filter converged, with margin)."""
         return self.sequence >= self.needed
 
+    def round_trip_ns(self, ts1_ns: int, tc1_ns: int) -> int | None:
+        """PX4's round trip [ns] for our answer (tc1, our clock) to its request (ts1, its
+        clock), estimated on the long side; None while ``clock`` has no estimate.
+
+        While ``clock`` is confirming a jump (its fast answers disagree with it), the offset
+        they point to is tried too: PX4's own answers come back fast across the jump, so it
+        sees the outliers at once, and so must the model (it would otherwise wait for our
+        estimate to reset and converge again, ~1 s, saying "converts" meanwhile)."""
+        clock = self.clock
+        if clock is None:
+            return 0
+        offsets_ns = [clock.offset_at(tc1_ns)] if clock.converged else []
+        if clock.deviations and clock.deviant_offset_ns is not None:
+            offsets_ns.append(clock.deviant_offset_ns)
+        rtt_ns = None
+        for offset_ns in offsets_ns:  # offset: ours - PX4's
+            rtt_ns = int(round(tc1_ns - offset_ns - ts1_ns)) + clock.fast_rtt_ns
+            if 0 <= rtt_ns < PX4_MAX_RTT_SAMPLE_NS:
+                break
+        return rtt_ns
+
     def on_answer(self, ts1_ns: int, tc1_ns: int) -> None:
         """A request (its ts1, the requester's clock [ns]) we answered with tc1 [ns] (ours)."""
         self.answers += 1
-        observed = float(ts1_ns - tc1_ns)
+        rtt_ns = self.round_trip_ns(ts1_ns, tc1_ns)
+        self.last_rtt_ns = rtt_ns
+        if rtt_ns is None or not 0 <= rtt_ns < PX4_MAX_RTT_SAMPLE_NS:
+            self.rtt_discarded += 1
+            return
+        observed = float(ts1_ns + rtt_ns // 2 - tc1_ns)  # (ts1 + its reception) / 2 - tc1
         if self.sequence >= PX4_CONVERGENCE_WINDOW:
             if abs(self.offset_ns - observed) > PX4_MAX_DEVIATION_NS:
                 self.deviations += 1

@@ -18,6 +18,7 @@ from drivers.mavlink import LinkStats, LinkUrl, Parser
 from drivers.timesync import (
     PX4_CONVERGENCE_WINDOW,
     PX4_MAX_CONSECUTIVE_DEVIATIONS,
+    PX4_MAX_RTT_SAMPLE_NS,
     ClockSync,
     RequesterModel,
     reply_for,
@@ -219,6 +220,169 @@ def test_px4s_time_sync_reset_on_a_jump_of_its_clock_is_modelled() -> None:
     t = _feed_requests(model, stalled, t, 1)
     assert model.converts
     assert abs(model.offset_ns - (stalled(t) - t)) < 1_000_000
+
+
+def _px4_link(
+    model: RequesterModel,
+    clock: ClockSync,
+    peer: PeerClock,
+    t0_ns: int,
+    seconds: float,
+    answer_delay_ns,
+    forged_per_s: int = 0,
+    seed: int = 0,
+) -> list[int]:
+    """PX4 and us on one link, in time order from t0_ns (our clock) for ``seconds``: PX4's
+    TIMESYNC requests at 50 Hz, request k answered ``answer_delay_ns(k)`` after its sending
+    (the request's way and our reader; the answer's way back takes 0.25 ms), fed to ``model``
+    as the service feeds it; our own requests at 10 Hz answered in 0.5 ms, fed to ``clock``;
+    ``forged_per_s`` requests a second from somebody else, in bursts of 10 (ts1 anywhere
+    within 5 s of PX4's clock), answered at once. Returns PX4's true round trip of each of
+    its answers [ns]."""
+    rng = np.random.default_rng(seed)
+    events: list[tuple[int, int, int, int]] = []  # (time handled, kind, ts1, tc1 or 0)
+    n = int(seconds * 50)
+    true_rtt_ns = []
+    for k in range(n):
+        sent = t0_ns + k * 20_000_000
+        answered = sent + int(answer_delay_ns(k))
+        events.append((answered, 0, peer(sent), answered))
+        true_rtt_ns.append(answered - sent + 250_000)
+    for k in range(int(seconds * 10)):
+        sent = t0_ns + k * 100_000_000 + 7_000_000
+        events.append((sent + 500_000, 1, sent, peer(sent + 250_000)))
+    for burst in range(int(seconds * forged_per_s / 10)):  # bursts of 10, 1 ms apart
+        start = t0_ns + int(burst * 10e9 / forged_per_s) + 5_000_000
+        for k in range(10):
+            at = start + k * 1_000_000
+            events.append((at, 0, peer(at) + int(rng.uniform(-5e9, 5e9)), at))
+    for at, kind, ts1, tc1 in sorted(events):
+        if kind == 0:
+            model.on_answer(ts1, tc1)
+        else:
+            clock.on_reply(tc1, ts1, at)
+    return true_rtt_ns
+
+
+def test_px4s_time_sync_model_discards_the_answers_px4_discards_for_their_round_trip() -> None:
+    """PX4 fuses an answer only when its round trip is below PX4_MAX_RTT_SAMPLE_NS (10 ms).
+    Over the serial link as it was (requests delivered 0-100 ms late) PX4 fused 8-9 % of our
+    answers and took ~2 min to converge; the model counted them all and said "converts" after
+    12 s. With our clock sync it counts no more answers than PX4 fuses, and about as many."""
+    peer = PeerClock(offset_ns=3_000_000_000, drift_ppm=40.0)
+    rng = np.random.default_rng(5)
+    late = rng.uniform(0, 100e6, 600)  # the serial reader that waited for its time-out
+    clock = ClockSync()
+    model = RequesterModel(clock=clock)
+    true_rtt_ns = _px4_link(model, clock, peer, 10**9, 12.0, lambda k: late[k])
+    px4_fused = sum(rtt < PX4_MAX_RTT_SAMPLE_NS for rtt in true_rtt_ns)
+    assert 30 < px4_fused < 80, px4_fused  # ~9 % of 600
+    assert px4_fused - 10 <= model.sequence <= px4_fused, (model.sequence, px4_fused)
+    assert not model.converts and model.rtt_discarded >= 600 - px4_fused
+    blind = RequesterModel()  # the model as it was: the round trip taken as 0
+    _px4_link(blind, ClockSync(), peer, 10**9, 12.0, lambda k: late[k])
+    assert blind.converts  # what the service believed after 12 s
+    # the link as it is now (requests on time): converged once PX4 would be, with the margin
+    clock = ClockSync()
+    model = RequesterModel(clock=clock)
+    _px4_link(model, clock, peer, 10**9, 11.0, lambda k: 300_000)
+    assert not model.converts and model.sequence >= 500
+    _px4_link(model, clock, peer, 10**9 + 11 * 10**9, 2.0, lambda k: 300_000)
+    assert model.converts and model.resets == 0 and model.rtt_discarded < 30
+
+
+def test_forged_timesync_requests_do_not_reset_the_model_of_px4s_time_sync() -> None:
+    """Somebody else's TIMESYNC requests with the autopilot's ids (ts1 anywhere within 5 s of
+    PX4's clock): we answer them, and PX4 receives those answers too, but discards them by
+    their round trip (its clock is not near their ts1). Before, the model took them as
+    outliers and reset (4 times in 35 s of the attack: PX4 did not)."""
+    peer = PeerClock(offset_ns=-7_000_000_000, drift_ppm=-25.0)
+
+    def attack(model: RequesterModel, clock: ClockSync) -> None:
+        _px4_link(model, clock, peer, 10**9, 15.0, lambda k: 300_000)
+        assert model.converts  # PX4 converged; then 35 s of forged requests, 5 a second
+        _px4_link(model, clock, peer, 16 * 10**9, 35.0, lambda k: 300_000, 5, seed=2)
+
+    blind = RequesterModel()  # without the round trip check the attack resets it
+    attack(blind, ClockSync())
+    assert blind.resets >= 1, blind.resets
+    clock = ClockSync()
+    model = RequesterModel(clock=clock)
+    attack(model, clock)
+    assert model.resets == 0 and model.converts
+    assert model.rtt_discarded >= 35 * 5 - 5  # every forged answer (a few may land near)
+    assert abs(model.offset_ns - (peer(51 * 10**9) - 51 * 10**9)) < 2_000_000
+
+
+def test_a_stall_of_the_service_raises_no_false_clock_jump_and_a_real_jump_is_seen(
+    tmp_path, monkeypatch
+) -> None:
+    """The event loop blocked 0.2 s (or 0.25, 0.5, 1 s): PX4's requests queued meanwhile are
+    answered at once when it runs again, up to a second late. PX4 discards those answers for
+    their round trip; before, the model took the ones over 100 ms off as outliers and, six in
+    a row, warned "autopilot clock jumped" (a stall of ~0.2 s, and once an unattacked
+    flight). Fed as the service feeds it (`_on_message`, PX4's requests and the answers to
+    our own), no warning and no reset; a real jump of PX4's clock (187 ms, a stalled SIH) is
+    still warned, within 0.5 s of our first answer showing it."""
+    from peers import service_config
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.service import app
+
+    clock = {"ns": 0}
+    monkeypatch.setattr(app, "now_ns", lambda: clock["ns"])
+    service = app.Service(service_config(tmp_path))
+    service.stats.autopilot = "PX4"
+    monkeypatch.setattr(service.link, "send", lambda m: True)
+    px4 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    peer = PeerClock(offset_ns=2_000_000_000, drift_ppm=30.0)
+    stalls = {20.0: 0.2, 23.0: 0.25, 26.0: 0.5, 29.0: 1.0}  # start [s] -> length [s]
+    jump_s = 33.0
+
+    def handled_at(sent_ns: int) -> int:
+        """When the service handles a message that arrived at sent_ns + 0.3 ms."""
+        for start, length in stalls.items():
+            if start * 1e9 <= sent_ns < (start + length) * 1e9:
+                return int((start + length) * 1e9)  # the loop runs again
+        return sent_ns + 300_000
+
+    def px4_clock(t_ns: int) -> int:
+        return peer(t_ns) - (187_000_000 if t_ns >= jump_s * 1e9 else 0)
+
+    events = []  # (handled at, order, message)
+    for k in range(int(37.0 * 50)):
+        sent = 10**9 + k * 20_000_000
+        request = mavlink.MAVLink_timesync_message(0, px4_clock(sent))
+        events.append((handled_at(sent), k, decode(request.pack(px4))))
+    for k in range(int(37.0 * 10)):  # ours at 10 Hz; none while the loop is blocked
+        sent = 10**9 + k * 100_000_000 + 3_000_000
+        if handled_at(sent) != sent + 300_000:
+            continue
+        events.append((sent, -2, sent))  # sent: the service waits for its answer
+        answer = mavlink.MAVLink_timesync_message(px4_clock(sent + 250_000), sent)
+        events.append((sent + 500_000, -1, decode(answer.pack(px4))))
+    jumped_at_ns, before_stalls = None, False
+    for at, kind, msg in sorted(events, key=lambda e: (e[0], e[1])):
+        clock["ns"] = at
+        if kind == -2:
+            service._timesync_sent.append(msg)
+            continue
+        if not before_stalls and at >= 20e9:  # PX4 converts by then, as modelled
+            assert service.px4_stamps.converts and service.sync.converged
+            before_stalls = True
+        service._on_message(msg, at)
+        if jumped_at_ns is None and service.px4_stamps.resets:
+            jumped_at_ns = at
+        if at < jump_s * 1e9:
+            assert not any("clock jumped" in w for w in service.stats.warnings), at * 1e-9
+    assert service.px4_stamps.rtt_discarded >= 10 + 12 + 25 + 50  # the stalls' late answers
+    assert jumped_at_ns is not None and service.px4_stamps.resets == 1
+    assert before_stalls and service.sync.resets == 1  # ours followed the jump too
+    first_answer_after_jump_ns = 10**9 + 3_000_000 + 100_000_000 * 320  # 33.003 s
+    assert 0 <= jumped_at_ns - first_answer_after_jump_ns < 500_000_000, jumped_at_ns
+    assert sum("clock jumped" in w for w in service.stats.warnings) == 1
+    report = service.summary()
+    assert report["px4_timesync_resets"] == 1
 
 
 def test_a_pose_is_carried_to_its_sending_along_its_velocity() -> None:
@@ -764,6 +928,13 @@ def test_poses_go_out_as_of_their_sending_while_px4_stamps_them_on_arrival(
         px4_offset_ns = -3_000_000_000  # PX4's clock 3 s behind ours
 
         def frame_at(t_us: int) -> None:
+            # one of our own requests a frame, answered in 0.5 ms (our estimate of PX4's
+            # clock, by which the model judges the round trips of PX4's)
+            ts1 = t_us * 1000 - 5_000_000
+            service._timesync_sent.append(ts1)
+            clock["ns"] = ts1 + 500_000
+            answer = mavlink.MAVLink_timesync_message(ts1 + 250_000 + px4_offset_ns, ts1)
+            service._on_message(decode(answer.pack(px4)), clock["ns"])
             # PX4 asks at 50 Hz: 2-3 requests a frame at 20 Hz, answered at once
             for k in range(3 if (t_us // 50_000) % 2 else 2):
                 clock["ns"] = t_us * 1000 + k * 17_000_000

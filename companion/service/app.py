@@ -146,7 +146,7 @@ class Service:
         self.pipeline_status = self.pipeline.status()
         self.sync = ClockSync()
         # PX4's own time sync as our answers drive it: whether it converts our stamps
-        self.px4_stamps = RequesterModel()
+        self.px4_stamps = RequesterModel(clock=self.sync)  # its round trips by our clock sync
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
         from drivers.signing import Signing
@@ -1044,6 +1044,8 @@ class Service:
             # PX4's side, modelled: whether it converts our stamps; poses sent as of sending
             "px4_converts_stamps": self.px4_stamps.converts,
             "px4_timesync_resets": self.px4_stamps.resets,
+            # our answers PX4 discards for their round trip (late, forged), as modelled
+            "px4_timesync_rtt_discarded": self.px4_stamps.rtt_discarded,
             "stamped_at_send": s.stamped_at_send,
             "rates_acknowledged": sorted(s.rates_acknowledged),
             "rates_refused": sorted(s.rates_refused),
@@ -1141,6 +1143,7 @@ class Service:
             "timesync_offset_ms": self.sync.offset_at(now) * 1e-6 if self.sync.converged else None,
             "timesync_rtt_ms": self.sync.last_rtt_ns * 1e-6,
             "px4_converts_stamps": self.px4_stamps.converts if s.autopilot == "PX4" else None,
+            "px4_timesync_rtt_discarded": self.px4_stamps.rtt_discarded,
             "stamped_at_send": s.stamped_at_send,
             "rates_acknowledged": sorted(s.rates_acknowledged),
             "rates_refused": sorted(s.rates_refused),
@@ -1149,6 +1152,7 @@ class Service:
             "handler_errors": link.handler_errors,
             "foreign_messages": s.foreign_messages + link.rx_foreign,
             "other_address": link.rx_other_address,
+            "rx_overflow_bytes": link.rx_overflow_bytes,  # serial: faster than parsed, dropped
             "attitudes_rejected": s.attitudes_rejected,
             "imus_rejected": s.imus_rejected,
             "signing": self.link.signing.counters() if self.link.signing else None,
