@@ -13,8 +13,12 @@ top towards the nose (DESIGN.md section 2). A range sensor's beam is +z of its o
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import math
+import os
+import re
+import stat
 import tomllib
 import types
 import typing
@@ -26,13 +30,13 @@ import numpy as np
 
 from companion.attitude.options import AttitudeOptions
 from companion.dpose.options import DposeOptions
-from companion.errors import ConfigError
+from companion.errors import CompanionError, ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
-from companion.service_options import ServiceOptions
+from companion.service_options import ServiceOptions, check_link_number
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -114,6 +118,8 @@ class RangefinderConfig:
     )
 
     def __post_init__(self) -> None:
+        if self.serial:  # DEVICE:BAUD: a baud rate termios takes
+            check_link_number(f"serial:{self.serial}", "serial")
         if self.max_m <= self.min_m:
             raise ConfigError(f"max_m: must be > min_m ({self.min_m}), got {self.max_m}")
 
@@ -327,15 +333,15 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
     args = typing.get_args(tp)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
-            raise ConfigError(f"{key}: expected a table, got {value!r}")
+            raise ConfigError(f"{key}: expected a table, got {_short(value)}")
         return from_dict(typing.cast(type, tp), value, f"{key}.")
     if origin is Literal:
         if value not in args:
-            raise ConfigError(f"{key}: must be one of {list(args)}, got {value!r}")
+            raise ConfigError(f"{key}: must be one of {list(args)}, got {_short(value)}")
         return value
     if origin is tuple:
         if not isinstance(value, list):
-            raise ConfigError(f"{key}: expected an array, got {value!r}")
+            raise ConfigError(f"{key}: expected an array, got {_short(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
@@ -346,7 +352,7 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         raise ConfigError(f"{key}: union types are not supported in config")  # pragma: no cover
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+            raise ConfigError(f"{key}: expected true or false, got {_short(value)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -360,11 +366,13 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         if isinstance(value, int) and abs(value) >= 2**63:
             raise ConfigError(f"{key}: number out of range, got {_short(value)}")
         if not math.isfinite(value):
-            raise ConfigError(f"{key}: must be finite, got {value!r}")
+            raise ConfigError(f"{key}: must be finite, got {_short(value)}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {value!r}")
+            raise ConfigError(f"{key}: expected a string, got {_short(value)}")
+        if "\x00" in value:  # no path, URL or name holds one; the OS refuses it in a path
+            raise ConfigError(f"{key}: a NUL byte in the text, got {_short(value)}")
         return value
     raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")  # pragma: no cover
 
@@ -431,30 +439,167 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
 
 
 MAX_CONFIG_BYTES = 1 << 20  # a config is a few kB; more is not a config
+MAX_TOML_DEPTH = 16  # tables and arrays nested deeper than this are not a config or a dataset
+# what the TOML scanner looks at: strings (their start), comments, brackets, keys' dots, = , \n
+_TOML_TOKEN = re.compile(r"\"\"\"|'''|[\"'#\[\]{}=.,\n]")
+_TOML_STRING_END = {
+    '"""': re.compile(r'(?:[^"\\]|\\.|"(?!""))*"""', re.DOTALL),
+    "'''": re.compile(r"(?:[^']|'(?!''))*'''", re.DOTALL),
+    '"': re.compile(r'(?:[^"\\\n]|\\.)*"'),
+    "'": re.compile(r"[^'\n]*'"),
+}
+_FILE_KINDS = (
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISDIR, "a directory"),
+)
+
+
+def file_kind(mode: int) -> str:
+    """What a file of st_mode ``mode`` is, in words ("a FIFO", "a regular file")."""
+    return next((name for test, name in _FILE_KINDS if test(mode)), "a regular file")
+
+
+def read_regular_file(
+    path: Path,
+    max_bytes: int,
+    error: type[CompanionError] = ConfigError,
+    *,
+    follow_symlinks: bool = True,
+) -> bytes:
+    """The bytes of the regular file ``path`` (at most ``max_bytes``), opened without blocking
+    and checked on the open descriptor (fstat, not by name): a FIFO, a device, a socket or a
+    directory is refused at once, as is a larger file; ``follow_symlinks=False``: a symlink
+    as the last component is refused (O_NOFOLLOW). Every failure raises ``error`` naming the
+    file."""
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY
+    if not follow_symlinks:
+        flags |= os.O_NOFOLLOW
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise error(f"{path}: file not found") from None
+    except (OSError, ValueError) as e:  # ValueError: a NUL byte in the name
+        reason = "a symlink (not followed)" if getattr(e, "errno", 0) == errno.ELOOP else e
+        raise error(f"{path}: cannot read: {getattr(e, 'strerror', None) or reason}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{path}: is {file_kind(st.st_mode)}, not a regular file: not read")
+        if st.st_size > max_bytes:
+            raise error(f"{path}: larger than {max_bytes} bytes ({st.st_size}): not read")
+        chunks: list[bytes] = []
+        size = 0
+        while size <= max_bytes:
+            chunk = os.read(fd, min(1 << 20, max_bytes + 1 - size))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as e:
+        raise error(f"{path}: cannot read: {e.strerror or e}") from None
+    finally:
+        os.close(fd)
+    if size > max_bytes:
+        raise error(f"{path}: larger than {max_bytes} bytes: not read")
+    return b"".join(chunks)
+
+
+def decode_utf8(raw: bytes, where: str, error: type[CompanionError] = ConfigError) -> str:
+    """``raw`` as UTF-8 text (strict; a leading BOM dropped); ``error`` naming ``where`` and the
+    byte offset otherwise, and for a NUL byte (no text file of ours holds one)."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise error(f"{where}: not UTF-8 text (byte {e.start}): {e.reason}") from None
+    nul = text.find("\x00")
+    if nul >= 0:
+        raise error(f"{where}: a NUL byte at character {nul}: not a text file")
+    return text.removeprefix("\ufeff")
+
+
+def toml_nesting(text: str) -> int:
+    """How deeply the TOML ``text`` nests tables and arrays (an upper bound, read without
+    parsing: brackets of values, and the dots of keys and table headers, outside strings
+    and comments), so that a document nested 30,000 deep is refused before the parser
+    recurses into it."""
+    deepest = key_dots = 0
+    open_brackets: list[str] = []
+    in_key, header = True, False
+    pos, n = 0, len(text)
+    while pos < n:
+        m = _TOML_TOKEN.search(text, pos)
+        if m is None:
+            break
+        tok, pos = m.group(), m.end()
+        if tok in _TOML_STRING_END:
+            end = _TOML_STRING_END[tok].match(text, pos)
+            pos = end.end() if end else n  # an unterminated string: the parser says so
+        elif tok == "#":
+            newline = text.find("\n", pos)
+            pos = n if newline < 0 else newline
+        elif tok == "\n" and (header or not open_brackets):
+            in_key, header, key_dots = True, False, 0
+            open_brackets.clear()
+        elif tok == "." and (in_key or header):
+            key_dots += 1
+        elif tok == "=":
+            in_key, key_dots = False, 0
+        elif tok in "[{":
+            header = header or (in_key and not open_brackets)
+            open_brackets.append(tok)
+            in_key = tok == "{"
+        elif tok in "]}" and open_brackets:
+            open_brackets.pop()
+        elif tok == ",":
+            in_key = bool(open_brackets) and open_brackets[-1] == "{"
+        deepest = max(deepest, len(open_brackets) + key_dots)
+    return deepest
+
+
+def data_nesting(value: Any) -> int:
+    """How deeply ``value`` (parsed TOML or JSON: dicts and lists) nests, without recursion."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if isinstance(item, dict):
+            stack.extend((v, depth + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, depth + 1) for v in item)
+    return deepest
+
+
+def parse_toml(
+    text: str,
+    where: str,
+    error: type[CompanionError] = ConfigError,
+    max_depth: int = MAX_TOML_DEPTH,
+) -> dict[str, Any]:
+    """The TOML table of ``text``; ``error`` naming ``where`` for anything else: a syntax
+    error, nesting deeper than ``max_depth`` (checked before parsing), an integer too long to
+    read."""
+    if toml_nesting(text) > max_depth:
+        raise error(f"{where}: tables or arrays nested deeper than {max_depth}: not read")
+    try:
+        data = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, ValueError, RecursionError) as e:
+        # ValueError: an int too long to read; RecursionError: a nesting the scan missed
+        raise error(f"{where}: not valid TOML: {str(e)[:200]}") from None
+    if data_nesting(data) > max_depth:
+        raise error(f"{where}: tables or arrays nested deeper than {max_depth}: not read")
+    return data
 
 
 def read_toml(path: Path) -> dict[str, Any]:
     """The TOML table in ``path``; ConfigError naming the file for anything that is not a
-    readable UTF-8 TOML file (missing, a directory, unreadable, too big, bad bytes)."""
-    try:
-        with path.open("rb") as fh:
-            raw = fh.read(MAX_CONFIG_BYTES + 1)
-    except FileNotFoundError:
-        raise ConfigError(f"config file not found: {path}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a config file") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror or e}") from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes: not a config file")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}): {e.reason}") from None
-    try:
-        return tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, ValueError) as e:  # ValueError: an int too long to read
-        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    readable UTF-8 TOML file (missing, a directory, a FIFO or a device, unreadable, too big,
+    bad bytes, nested too deep)."""
+    raw = read_regular_file(path, MAX_CONFIG_BYTES, ConfigError)
+    return parse_toml(decode_utf8(raw, str(path)), str(path))
 
 
 def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

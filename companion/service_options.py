@@ -11,6 +11,30 @@ from typing import Literal
 from companion.errors import ConfigError
 from companion.options import opt
 
+MAX_PORT = 65535
+MAX_BAUD = 12_000_000  # the fastest USB serial adapters; termios refuses more
+MAX_KEEPALIVE_S = 65535  # MQTT's keepalive is a 16-bit number of seconds
+TOPIC_FORBIDDEN = "+#\x00"  # MQTT wildcards and NUL: never in a topic we publish to
+LINK_KINDS = ("udpin", "udpout", "tcp", "serial")
+
+
+def check_link_number(url: str, key: str) -> None:
+    """ConfigError naming ``key`` when the number at the end of a link URL cannot work: a
+    port outside 1..65535 (udpin/udpout/tcp:HOST:PORT) or a baud rate outside 1..12,000,000
+    (serial:DEVICE:BAUD, DEVICE:BAUD). The rest of the URL is the link's to parse."""
+    kind, _, rest = url.partition(":")
+    head, _, tail = url.rpartition(":")
+    if not head or not tail.isdigit():
+        return
+    number = int(tail[:12]) if len(tail) <= 12 else MAX_BAUD + 1
+    if kind in LINK_KINDS[:3] and rest and not 1 <= number <= MAX_PORT:
+        raise ConfigError(f"{key}: port must be 1..{MAX_PORT}, got {tail[:20]} in {url[:80]!r}")
+    if (kind == "serial" or url.startswith("/dev/")) and not 1 <= number <= MAX_BAUD:
+        raise ConfigError(
+            f"{key}: baud rate must be 1..{MAX_BAUD}, got {tail[:20]} in {url[:80]!r}"
+        )
+
+
 OutputName = Literal["vision_position_estimate", "odometry", "both"]
 OdometryFrame = Literal["local_frd", "local_ned"]
 
@@ -30,7 +54,19 @@ class MqttOptions:
     status_hz: float = opt(1.0, "status rate [Hz]", gt=0, le=10)
     pose_hz: float = opt(10.0, "pose rate [Hz]", gt=0, le=50)
     queue_size: int = opt(200, "messages kept while the broker is away (oldest dropped)", ge=1)
-    keepalive_s: int = opt(10, "MQTT keepalive [s] (the broker sends the will after 1.5x)", ge=2)
+    keepalive_s: int = opt(
+        10, "MQTT keepalive [s] (the broker sends the will after 1.5x)", ge=2, le=MAX_KEEPALIVE_S
+    )
+
+    def __post_init__(self) -> None:
+        bad = sorted(set(self.topic_prefix) & set(TOPIC_FORBIDDEN))
+        if bad or not self.topic_prefix or self.topic_prefix.startswith("$"):
+            raise ConfigError(
+                "topic_prefix: a topic level without the wildcards + and #, NUL or a leading $ "
+                f"(the broker drops the connection), got {self.topic_prefix!r}"
+            )
+        if len(self.topic_prefix.encode()) > 1024:
+            raise ConfigError("topic_prefix: longer than 1024 bytes")
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,6 +233,7 @@ class ServiceOptions:
     )
 
     def __post_init__(self) -> None:
+        check_link_number(self.mavlink_url, "mavlink_url")
         if self.frame_wait_ms >= self.stale_frame_ms:
             raise ConfigError(
                 f"frame_wait_ms: must be < stale_frame_ms ({self.stale_frame_ms}), "

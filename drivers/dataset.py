@@ -23,7 +23,6 @@ import json
 import math
 import os
 import re
-import tomllib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +45,15 @@ from companion.types import (
     RangeSensorSpec,
 )
 from drivers.files import atomic_write, open_new
+from drivers.safe_files import (
+    MAX_CSV_BYTES,
+    MAX_IMAGE_BYTES,
+    CsvTable,
+    SafeFolder,
+    check_image_header,
+    parse_float,
+    parse_int,
+)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -293,13 +301,13 @@ class RowCount:
 
 def _unit_quat(table: CsvTable, line: int, row: list[str], columns: Sequence[str]) -> F64:
     """A unit quaternion from four columns: finite, norm within QUAT_NORM_TOLERANCE of 1
-    (then normalised); DatasetError naming the row otherwise (a zero quaternion)."""
+    (kept as read); DatasetError naming the row otherwise (a zero quaternion)."""
     q = np.array([_float(table, line, row, c, -2.0, 2.0) for c in columns])
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
         where = table.where(line, "/".join(columns))
         raise DatasetError(f"{where}: not a unit quaternion (norm {norm:.6g})")
-    return q / norm
+    return q  # as recorded (a replay is bit-exact); the pipeline normalises it
 
 
 def _float(
@@ -324,9 +332,20 @@ def _time(table: CsvTable, line: int, row: list[str]) -> int:
 
 
 def _vector(
-    table: CsvTable, line: int, row: list[str], columns: Sequence[str], bound: float
+    table: CsvTable,
+    line: int,
+    row: list[str],
+    columns: Sequence[str],
+    bound: float,
+    allow_nan: bool = False,
 ) -> F64:
-    return np.array([_float(table, line, row, c, -bound, bound) for c in columns])
+    """Floats of ``columns`` within +-bound (``allow_nan``: an unknown value may be NaN)."""
+    return np.array(
+        [
+            parse_float(table.field(line, row, c), table.where(line, c), -bound, bound, allow_nan)
+            for c in columns
+        ]
+    )
 
 
 def _range_row(table: CsvTable, line: int, row: list[str]) -> tuple[RangeSample, float]:
@@ -343,7 +362,8 @@ def _range_row(table: CsvTable, line: int, row: list[str]) -> tuple[RangeSample,
         raise DatasetError(f"{table.where(line, 'max_m')}: not above min_m")
     truth = "true_distance_m"
     text = table.field(line, row, truth) if table.has(truth) else ""
-    true_m = parse_float(text, table.where(line, truth), 0.0, MAX_DISTANCE_M) if text else math.nan
+    where = table.where(line, truth)
+    true_m = parse_float(text, where, 0.0, MAX_DISTANCE_M, allow_nan=True) if text else math.nan
     return sample, true_m
 
 
@@ -376,7 +396,7 @@ def _pose_row_read(table: CsvTable, line: int, row: list[str]) -> PublishedPose:
         _time(table, line, row),
         _vector(table, line, row, PUBLISHED_COLUMNS[1:4], MAX_POSITION_M),
         _unit_quat(table, line, row, PUBLISHED_COLUMNS[4:8]),
-        _vector(table, line, row, PUBLISHED_COLUMNS[8:11], MAX_VELOCITY_M_S),
+        _vector(table, line, row, PUBLISHED_COLUMNS[8:11], MAX_VELOCITY_M_S, allow_nan=True),
         _int(table, line, row, "reset_counter", 0, 255),
         _int(table, line, row, "quality_pct", 0, 100),
     )
@@ -486,31 +506,49 @@ class _Frames:
     held: NDArray[np.bool_]
 
 
-def _read_frames(folder: SafeFolder, name: str = "frames.csv") -> _Frames:
+def _read_frames(folder: SafeFolder, complete: bool, name: str = "frames.csv") -> _Frames:
     """The frames of frames.csv; DatasetError naming the row and the field for any bad one
     (a frame's index is what the samples refer to: none may be left out), for a file name
-    outside the folder, and for a time that does not increase."""
+    outside the folder, and for a time that does not increase. ``complete``: False for a
+    recording that did not close, whose first bad row ends it (a writer killed mid-row)."""
     table = folder.read_csv(name, ["time_us", "seq", "filename"])
     times: list[int] = []
     seqs: list[int] = []
     names: list[str] = []
     held: list[bool] = []
-    has_held = table.has("held")
     for line, row in table.rows:
-        t = _time(table, line, row)
-        if times and t <= times[-1]:
-            raise DatasetError(f"{table.where(line, 'time_us')}: {t} not after {times[-1]}")
+        try:
+            t, seq, filename, is_held = _frame_row(folder, table, line, row)
+            if times and t <= times[-1]:
+                raise DatasetError(f"{table.where(line, 'time_us')}: {t} not after {times[-1]}")
+        except DatasetError:
+            if complete:
+                raise
+            break
         times.append(t)
-        seqs.append(_int(table, line, row, "seq", 0, MAX_SEQ))
-        filename = table.field(line, row, "filename")
-        folder.check_name(filename, table.where(line, "filename"))
+        seqs.append(seq)
         names.append(filename)
-        held.append(has_held and _int(table, line, row, "held", 0, 1) == 1)
+        held.append(is_held)
     return _Frames(
         np.array(times, dtype=np.int64),
         np.array(seqs, dtype=np.int64),
         names,
         np.array(held, dtype=bool),
+    )
+
+
+def _frame_row(
+    folder: SafeFolder, table: CsvTable, line: int, row: list[str]
+) -> tuple[int, int, str, bool]:
+    """time_us, seq, filename (a name inside the folder) and held (optional: 0) of a row."""
+    filename = table.field(line, row, "filename")
+    folder.check_name(filename, table.where(line, "filename"))
+    has_held = table.has("held") and table.columns["held"] < len(row)
+    return (
+        _time(table, line, row),
+        _int(table, line, row, "seq", 0, MAX_SEQ),
+        filename,
+        has_held and _int(table, line, row, "held", 0, 1) == 1,
     )
 
 
@@ -559,7 +597,7 @@ def _read_ours(folder: SafeFolder) -> Dataset:
     cfg, sitl = _ours_config(folder, meta)
     size = (cfg.camera.width, cfg.camera.height)
     complete = meta.get("complete", True) is not False
-    frames = _read_frames(folder)
+    frames = _read_frames(folder, complete)
     n = len(frames.names) if complete else _complete_frames(folder, frames.names, size)
     counts: dict[str, RowCount] = {}
 

@@ -42,6 +42,9 @@ def with_record(cfg: Config, folder: Path, **options: object) -> Config:
     )
 
 
+SYNTHETIC_CAMERA = {"camera": {"width": 160, "height": 120}}  # the size of synthetic_inputs' frames
+
+
 def synthetic_inputs(n: int, seed: int = 0) -> list[tuple[CameraFrame, list, list]]:
     """n frames of noise with ranges and attitudes, some fed out of time order (a late
     sample, a range newer than its frame) as a real link can deliver them."""
@@ -64,7 +67,7 @@ def synthetic_inputs(n: int, seed: int = 0) -> list[tuple[CameraFrame, list, lis
 
 
 def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) -> None:
-    cfg = with_record(load_config(), tmp_path / "rec")
+    cfg = with_record(load_config(overrides=SYNTHETIC_CAMERA), tmp_path / "rec")
     inputs = synthetic_inputs(12)
     rng = np.random.default_rng(7)
     imus = [  # SCALED_IMU samples for all but the first frame: one with the gyroscope and the
@@ -115,7 +118,9 @@ def test_recording_reads_back_exactly_in_the_order_it_was_fed(tmp_path: Path) ->
 
 def test_disk_budget_stops_recording_cleanly(tmp_path: Path) -> None:
     said: list[str] = []
-    cfg = with_record(load_config(), tmp_path / "rec", max_mb=0.5, png_compression=0)
+    cfg = with_record(
+        load_config(overrides=SYNTHETIC_CAMERA), tmp_path / "rec", max_mb=0.5, png_compression=0
+    )
     inputs = synthetic_inputs(40)  # 58 kB per uncompressed PNG: the budget holds about 8
     with Recorder(cfg.record, cfg).running(said.append) as rec:
         for frame, ranges, atts in inputs:
@@ -149,7 +154,7 @@ def test_a_full_queue_stops_the_recording_never_the_caller(
 
     monkeypatch.setattr(DatasetWriter, "write_frame", stalled)
     said: list[str] = []
-    cfg = with_record(load_config(), tmp_path / "rec", queue_frames=4)
+    cfg = with_record(load_config(overrides=SYNTHETIC_CAMERA), tmp_path / "rec", queue_frames=4)
     inputs = synthetic_inputs(20)
     rec = Recorder(cfg.record, cfg).running(said.append)
     rec.frame(*inputs[0])
@@ -174,7 +179,8 @@ KILLED = textwrap.dedent(
     from companion.config import load_config
     from companion.service.recorder import Recorder
     from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
-    cfg = load_config(overrides={"record": {"dir": sys.argv[1]}})
+    camera = {"width": 320, "height": 240}  # the frames' size below
+    cfg = load_config(overrides={"record": {"dir": sys.argv[1]}, "camera": camera})
     rec = Recorder(cfg.record, cfg).running()
     rng = np.random.default_rng(1)
     k = 0
@@ -233,7 +239,7 @@ def test_a_used_record_dir_records_into_a_new_sibling_and_says_so(tmp_path: Path
     rec = tmp_path / "rec"
     rec.mkdir()
     (rec / "meta.toml").write_text("earlier run")
-    cfg = with_record(load_config(), rec)
+    cfg = with_record(load_config(overrides=SYNTHETIC_CAMERA), rec)
     frame, ranges, atts = synthetic_inputs(1)[0]
     for sibling in ("rec-2", "rec-3"):
         said: list[str] = []
@@ -275,7 +281,7 @@ def test_planted_links_never_make_the_recorder_write_outside_its_folder(tmp_path
     (tmp_path / "linked").symlink_to(outside / "empty")
     frame, ranges, atts = synthetic_inputs(1)[0]
     for folder in (used, tmp_path / "linked"):
-        cfg = with_record(load_config(), folder)
+        cfg = with_record(load_config(overrides=SYNTHETIC_CAMERA), folder)
         said: list[str] = []
         with Recorder(cfg.record, cfg).running(said.append) as recorder:
             recorder.frame(frame, ranges, atts)
@@ -290,7 +296,7 @@ def test_the_dataset_writer_creates_its_files_never_through_a_link(tmp_path: Pat
     fails (the recorder stops, the service runs on); the link's target is untouched."""
     victim = tmp_path / "victim"
     victim.write_bytes(b"not yours\n")
-    writer = DatasetWriter(tmp_path / "rec", load_config())
+    writer = DatasetWriter(tmp_path / "rec", load_config(overrides=SYNTHETIC_CAMERA))
     (tmp_path / "rec" / "images" / "000000.png").symlink_to(victim)
     frame, ranges, atts = synthetic_inputs(1)[0]
     with pytest.raises(FileExistsError):
