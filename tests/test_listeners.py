@@ -4,12 +4,15 @@ asked for, and a local process hammering the status socket."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 from hostile_mqtt import HostileBroker
+from test_status import SAMPLE
 
 ROOT = Path(__file__).resolve().parents[1]
 FLOOD_BYTES = 50 * 1024 * 1024
@@ -134,3 +137,128 @@ def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory() -> None
     # a sender starved for more than a few seconds would have dropped some)
     assert len(poses) >= 0.9 * POSE_HZ * (t1 - t0), (len(poses), t1 - t0)
     assert after["stats"]["dropped"] == 0
+
+
+# ---------------------------------------------------------------- the status socket
+
+# A local process opening and closing connections to a Unix socket as fast as it can
+# (non-blocking connects: one refused by a full backlog is retried at once), for N seconds.
+CONNECTION_FLOOD = """
+import json, socket, sys, time
+path, seconds = sys.argv[1], float(sys.argv[2])
+end = time.monotonic() + seconds
+attempts = connected = 0
+while time.monotonic() < end:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.setblocking(False)
+    attempts += 1
+    try:
+        s.connect(path)
+        connected += 1
+    except OSError:
+        pass
+    s.close()
+print(json.dumps({"attempts": attempts, "connected": connected}))
+"""
+FLOOD_S = 3.0
+
+
+async def connection_flood(path: Path, seconds: float) -> dict:
+    """Run CONNECTION_FLOOD against ``path``; its counts."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-c",
+        CONNECTION_FLOOD,
+        str(path),
+        str(seconds),
+        stdout=asyncio.subprocess.PIPE,
+    )
+    out, _ = await proc.communicate()
+    return dict(json.loads(out))
+
+
+def test_a_status_socket_connection_flood_leaves_the_event_loop_to_the_service(tmp_path) -> None:
+    """Another local process connects as fast as it can for 3 s. The event loop (the pose
+    path's) spends a small share of its time on it, the status is made a few times a second
+    for that process (not thousands), and `companion status` is answered right after it
+    (in it, its connection may find the kernel's backlog full). Before: every connection was
+    served (6,600/s here), the loop thread spent 74 % of the flood on it and a 10 ms sleep
+    woke up to 140 ms late."""
+    from companion.service.status import REPLIES_PER_PEER_S, REPLY_PEER_BURST, StatusServer
+    from drivers.status import read_status
+
+    path = tmp_path / "status.sock"
+    made: list[float] = []
+
+    def provider() -> dict:
+        made.append(time.monotonic())
+        return SAMPLE
+
+    async def run() -> tuple[dict, float, int, dict | None]:
+        async with StatusServer(path, provider):
+            loop = asyncio.get_running_loop()
+            flood = asyncio.create_task(connection_flood(path, FLOOD_S))
+            await asyncio.sleep(0.5)  # the flood is on
+            cpu0, wall0, made0 = time.thread_time(), loop.time(), len(made)
+            await asyncio.sleep(2.0)
+            share = (time.thread_time() - cpu0) / (loop.time() - wall0)
+            made_in_flood = len(made) - made0
+            counts = await flood
+            await asyncio.sleep(0.2)  # the backlog the flood left: 17 / ACCEPTS_PER_S
+            after = await asyncio.to_thread(read_status, path, 1.0)
+        return counts, share, made_in_flood, after
+
+    counts, share, made_in_flood, after = asyncio.run(run())
+    print(counts, f"loop thread busy {share:.1%}", made_in_flood)
+    assert counts["attempts"] >= 1000, counts  # a real flood
+    # 2 s measured: the flooder's replies at its rate (and its burst)
+    assert made_in_flood <= REPLIES_PER_PEER_S * 2.0 + REPLY_PEER_BURST, made_in_flood
+    assert share <= 0.25, share
+    assert after == SAMPLE
+
+
+def test_a_client_that_never_reads_is_dropped_and_others_are_served(tmp_path) -> None:
+    """Clients that connect and never read a status larger than the socket's buffer: each
+    is closed within the write timeout (before: held open forever, one task and one
+    descriptor each), and a client that reads is served meanwhile."""
+    import socket
+
+    from companion.service.status import WRITE_TIMEOUT_S, StatusServer
+    from drivers.status import read_status
+
+    path = tmp_path / "status.sock"
+    big = {**SAMPLE, "warnings": ["x" * 1000] * 4000}  # 4 MB
+
+    reply_bytes = len(json.dumps(big)) + 1
+
+    async def run() -> tuple[list[int], dict | None, object]:
+        async with StatusServer(path, lambda: big) as srv:
+            idle = []
+            for _ in range(4):
+                s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                s.connect(str(path))
+                idle.append(s)
+            await asyncio.sleep(0.2)
+            reader = await asyncio.to_thread(read_status, path, 5.0, 8 << 20)
+
+            def bytes_until_closed(s: socket.socket) -> int:
+                """What this client gets of its reply (now reading) before the end."""
+                s.settimeout(10.0)
+                got = 0
+                with contextlib.suppress(OSError):
+                    while chunk := s.recv(1 << 20):  # then EOF, or a reset
+                        got += len(chunk)
+                s.close()
+                return got
+
+            await asyncio.sleep(WRITE_TIMEOUT_S + 0.5)
+            got = [await asyncio.to_thread(bytes_until_closed, s) for s in idle]
+            return got, reader, srv.stats
+
+    got, reader, stats = asyncio.run(run())
+    print(reply_bytes, got, stats)
+    assert reader == big
+    # cut off: only what the socket's buffer took before the timeout (before: all of it,
+    # once the client read at last, the server having waited for it)
+    assert all(n < reply_bytes for n in got), got
+    assert stats.timed_out == 4, stats  # type: ignore[attr-defined]
