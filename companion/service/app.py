@@ -1067,6 +1067,8 @@ class Service:
             "recorder": self.recorder.status(),
             "signing": self.link.signing.counters() if self.link.signing else None,
             "statustext": vars(self.statustext.stats),
+            "mqtt": dataclasses.asdict(self.mqtt.stats) if self.mqtt else None,
+            "status_socket": dataclasses.asdict(self.status_server.stats),
         }
 
     def status(self) -> dict[str, Any]:
@@ -1117,7 +1119,9 @@ class Service:
                 "queued": self.mqtt.queued if self.mqtt else 0,
                 "dropped": self.mqtt.stats.dropped if self.mqtt else 0,
                 "published": self.mqtt.stats.published if self.mqtt else 0,
+                "unasked": self.mqtt.stats.unasked if self.mqtt else 0,  # dropped, counted
             },
+            "status_socket": dataclasses.asdict(self.status_server.stats),  # floods refused
             "recorder": self.recorder.status(),
             "warnings": list(s.warnings),
         }
