@@ -771,6 +771,23 @@ class SimAutopilot:
             for f in self.opts.faults
         ]
         out["reboots"] = self.stats.reboots
+        # the heading we sent against the truth, each segment on its own: the ATE aligns each
+        # segment's rotation away, so a map whose north was the camera's (180 deg off after a
+        # stall) kept a small ATE; EKF2 fuses the yaw as sent
+        yaw_err = np.degrees(
+            np.abs(
+                np.remainder(np.array([r.rpy[2] - r.true_rpy[2] for r in rec]) + np.pi, 2 * np.pi)
+                - np.pi
+            )
+        )
+        out["heading_error_deg_max_by_segment"] = {
+            str(v): float(yaw_err[resets == v].max()) for v in np.unique(resets)
+        }
+        # and as each map started (the median of its first 10 poses): its north's error
+        out["heading_error_deg_start_by_segment"] = {
+            str(v): float(np.median(yaw_err[resets == v][:10])) for v in np.unique(resets)
+        }
+        out["heading_error_deg_p50"] = float(np.percentile(yaw_err, 50))
         main_seg = resets == np.bincount(resets - resets.min()).argmax() + resets.min()
         sim3 = umeyama(est[main_seg], gt[main_seg], with_scale=True)
         err = err[np.isfinite(err)]
