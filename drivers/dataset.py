@@ -599,6 +599,7 @@ def _read_ours(folder: SafeFolder) -> Dataset:
     complete = meta.get("complete", True) is not False
     frames = _read_frames(folder, complete)
     n = len(frames.names) if complete else _complete_frames(folder, frames.names, size)
+    folder.check_files(frames.names[:n], "frame")
     counts: dict[str, RowCount] = {}
 
     def samples(name: str, required: list[str], parse: Any) -> tuple[list[Any], I64 | None]:
@@ -784,6 +785,7 @@ def _read_euroc(folder: SafeFolder) -> Dataset:
     model, T_imu_cam = _euroc_camera(yaml_text)
     F = np.diag([1.0, -1.0, -1.0, 1.0])
     times, names = _euroc_frames(folder, cam)
+    folder.check_files(names, "frame")
     gt_name = f"{mav}/state_groundtruth_estimate0/data.csv".lstrip("/")
     counts: dict[str, RowCount] = {}
     gt_times = np.zeros(0, dtype=np.int64)

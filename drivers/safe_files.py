@@ -22,13 +22,14 @@ import csv
 import math
 import os
 import re
+import stat
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from companion.config import decode_utf8, parse_toml, read_regular_file
+from companion.config import decode_utf8, file_kind, parse_toml, read_regular_file
 from companion.errors import DatasetError
 
 MAX_TOML_BYTES = 1 << 20  # meta.toml, calibration.toml, config.toml: a few kB
@@ -230,6 +231,22 @@ class SafeFolder:
                 f"{where}: {_shown(name)} resolves outside the dataset folder: not read"
             )
         return real
+
+    def check_files(self, names: Sequence[str], what: str) -> None:
+        """Refuse at once (DatasetError naming the ``what`` index and the name) any of
+        ``names`` that resolves outside the folder or is there but not a regular file (a FIFO
+        or a device as a frame): checked by name, nothing opened; missing files are left to
+        the reader (an unfinished recording)."""
+        for i, name in enumerate(names):
+            real = self.resolve(name, f"{what} {i}")
+            try:
+                mode = os.stat(real).st_mode
+            except OSError:
+                continue
+            if not stat.S_ISREG(mode):
+                raise DatasetError(
+                    f"{what} {i} ({name}): is {file_kind(mode)}, not a regular file: not read"
+                )
 
     def exists(self, name: str) -> bool:
         """Whether ``name`` is there (as a link or anything else; not opened)."""

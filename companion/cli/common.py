@@ -9,10 +9,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
 import signal
 import sys
+import threading
+import time
 import typing
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -188,3 +192,112 @@ def options(args: argparse.Namespace, cls: type[T]) -> T:
         if getattr(args, f.name, None) is not None
     }
     return from_dict(cls, given)
+
+
+# ------------------------------------------------------------------------------ budgets
+DEFAULT_MAX_MEMORY_MB = 2048.0  # half a 4 GB board: the OS and the service keep the rest
+DEFAULT_TIMEOUT_S = 4 * 3600.0  # an hour of flight replays in well under this on a Pi 4
+BUDGET_POLL_S = 0.05  # how often the watchdog looks at the resident memory and the clock
+BUDGET_GRACE_S = 5.0  # after the interrupt, how long the command may take to end by itself
+
+
+@dataclasses.dataclass
+class Budget:
+    """What an unattended command may use: resident memory [MB] and wall time [s] (0: no
+    limit); ``exceeded``: why the watchdog stopped it (empty while within)."""
+
+    max_memory_mb: float
+    timeout_s: float
+    exceeded: str = ""
+    peak_mb: float = 0.0
+
+
+def add_budget_flags(p: argparse.ArgumentParser) -> None:
+    """--max-memory-mb and --timeout-s (the command fails cleanly with exit 2 beyond them)."""
+    p.add_argument(
+        "--max-memory-mb",
+        type=float,
+        default=DEFAULT_MAX_MEMORY_MB,
+        help=f"stop with exit 2 above this resident memory [MB] (default "
+        f"{DEFAULT_MAX_MEMORY_MB:g}: fits a 4 GB board; 0 = no limit)",
+    )
+    p.add_argument(
+        "--timeout-s",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        help=f"stop with exit 2 after this long [s] (default {DEFAULT_TIMEOUT_S:g}; 0 = none)",
+    )
+
+
+def resident_mb() -> float:
+    """This process's resident memory now [MB] (Linux /proc; elsewhere its peak)."""
+    try:
+        with open("/proc/self/statm", "rb") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@contextmanager
+def resource_budget(max_memory_mb: float, timeout_s: float) -> Iterator[Budget]:
+    """Hold the block to a memory and time budget. A watchdog thread polls the resident
+    memory and the clock; past either it interrupts the main thread (KeyboardInterrupt, with
+    ``Budget.exceeded`` saying why: the command turns it into exit 2) and, should the main
+    thread be stuck in C code, ends the process with exit 2 after BUDGET_GRACE_S. The address
+    space is also capped at twice the memory budget (RLIMIT_AS, restored after), so that one
+    enormous allocation fails at once (MemoryError) instead of swapping the machine."""
+    if not math.isfinite(max_memory_mb) or not math.isfinite(timeout_s):
+        raise ValueError("--max-memory-mb and --timeout-s must be finite")
+    budget = Budget(max(0.0, max_memory_mb), max(0.0, timeout_s))
+    done = threading.Event()
+    watchdog = threading.Thread(target=_watch, args=(budget, done), daemon=True)
+    restore = _cap_address_space(budget.max_memory_mb * 2)
+    watchdog.start()
+    try:
+        yield budget
+    finally:
+        done.set()
+        watchdog.join()
+        restore()
+
+
+def _watch(budget: Budget, done: threading.Event) -> None:
+    """The watchdog of :func:`resource_budget`."""
+    import _thread
+
+    start = time.monotonic()
+    while not done.wait(BUDGET_POLL_S):
+        rss = resident_mb()
+        budget.peak_mb = max(budget.peak_mb, rss)
+        elapsed = time.monotonic() - start
+        if budget.max_memory_mb and rss > budget.max_memory_mb:
+            budget.exceeded = (
+                f"resident memory {rss:.0f} MB above --max-memory-mb {budget.max_memory_mb:g}"
+            )
+        elif budget.timeout_s and elapsed > budget.timeout_s:
+            budget.exceeded = f"still running after --timeout-s {budget.timeout_s:g} s"
+        if budget.exceeded:
+            _thread.interrupt_main()
+            if not done.wait(BUDGET_GRACE_S):
+                os.write(2, f"companion: budget exceeded: {budget.exceeded}\n".encode())
+                os._exit(EXIT_USAGE)
+            return
+
+
+def _cap_address_space(limit_mb: float) -> Callable[[], None]:
+    """Lower RLIMIT_AS's soft limit to ``limit_mb`` (0: leave it); returns what restores it."""
+    try:
+        import resource
+    except ImportError:  # not a Unix
+        return lambda: None
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    want = int(limit_mb * 2**20)
+    if not want or (hard != resource.RLIM_INFINITY and want > hard):
+        return lambda: None
+    if soft != resource.RLIM_INFINITY and soft <= want:
+        return lambda: None
+    resource.setrlimit(resource.RLIMIT_AS, (want, hard))
+    return lambda: resource.setrlimit(resource.RLIMIT_AS, (soft, hard))

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,11 +18,26 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.cli import sim
-from companion.cli.common import EXIT_OK, add_sitl_flags, load, out_dir, progress, run_name
-from companion.cli.evaluate_dataset import dataset_config, eval_scale_no_world, write_replay
+from companion.cli.common import (
+    EXIT_OK,
+    EXIT_USAGE,
+    add_budget_flags,
+    add_sitl_flags,
+    load,
+    out_dir,
+    progress,
+    resource_budget,
+    run_name,
+)
+from companion.cli.evaluate_dataset import (
+    dataset_config,
+    eval_scale_no_world,
+    report_skipped,
+    write_replay,
+)
 from companion.cli.evaluate_dpose import eval_dpose
 from companion.config import STUDY_RANGEFINDERS, Config, triangle_rangefinders
-from companion.errors import CompanionError
+from companion.errors import CompanionError, DatasetError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
 from drivers.dataset import Dataset, dataset_steps, open_dataset, write_poses_csv, write_tum
 
@@ -30,7 +47,35 @@ if TYPE_CHECKING:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    """Run the pipeline over a dataset and write trajectories (TUM) and metrics."""
+    """Run the pipeline over a dataset and write trajectories (TUM) and metrics, within the
+    memory and time budget (--max-memory-mb, --timeout-s). A dataset the reader refuses
+    (DatasetError: the message names the file, the row and the field) and a budget exceeded
+    are one line on stderr and exit 2, never a traceback."""
+    limits = (args.max_memory_mb, args.timeout_s)
+    if not all(math.isfinite(v) and v >= 0 for v in limits):
+        return _refused("usage", "--max-memory-mb and --timeout-s: finite, >= 0 (0: no limit)")
+    try:
+        with resource_budget(*limits) as budget:
+            try:
+                return _eval(args)
+            except KeyboardInterrupt:
+                if not budget.exceeded:
+                    raise
+                return _refused("budget exceeded", budget.exceeded)
+            except MemoryError:
+                return _refused("budget exceeded", "out of memory (--max-memory-mb)")
+    except DatasetError as e:
+        return _refused("dataset error", str(e))
+
+
+def _refused(kind: str, message: str) -> int:
+    """Print one line ``companion: KIND: MESSAGE`` on stderr; return exit 2."""
+    print(f"companion: {kind}: {' '.join(message.split())}", file=sys.stderr)
+    return EXIT_USAGE
+
+
+def _eval(args: argparse.Namespace) -> int:
+    """The evaluation ``args`` ask for."""
     if args.dataset is not None and (args.phases or args.dpose):
         raise CompanionError("--phases and --dpose run on the simulator, not on a dataset")
     if args.phases:
@@ -92,6 +137,8 @@ def eval_vo(args: argparse.Namespace) -> int:
 
     inp = vo_input(args, lambda cfg: run_name(cfg.sitl))
     out = out_dir(args, Path("out") / "eval" / inp.name)
+    if inp.dataset is not None:
+        report_skipped(inp.dataset, out)
     with progress(inp.total, f"eval {inp.name}", not args.no_progress) as ticks:
         run = run_vo(
             inp.cfg,
@@ -292,4 +339,5 @@ def add_eval(sub: Any) -> None:
         "--phases", action="store_true", help="published poses by flight phase (SITL; issue 18)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_budget_flags(p)
     p.set_defaults(func=cmd_eval)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,18 @@ def dataset_config(ds: Dataset, config_path: Path | None) -> Config:
     return dataclasses.replace(
         cfg, rangefinders=(), attitude=dataclasses.replace(cfg.attitude, sensor_ids=())
     )
+
+
+def report_skipped(ds: Dataset, out: Path) -> None:
+    """The rows the reader left out (a word or NaN in a number, a zero quaternion, a short
+    row): one warning per file on stderr and their counts in ``out/skipped_rows.json``
+    (nothing when none was)."""
+    if not ds.skipped:
+        return
+    for line in ds.skipped_text():
+        print(f"companion: warning: {line}", file=sys.stderr)
+    counts = {name: {"skipped": c.skipped, "first": c.first} for name, c in ds.skipped.items()}
+    (out / "skipped_rows.json").write_text(json.dumps(counts, indent=2) + "\n")
 
 
 def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
@@ -115,6 +128,7 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
         raise CompanionError("--sensor-study needs a recording with six distance sensors")
     name = ds.path.name
     out = out_dir(args, Path("out") / "eval" / name)
+    report_skipped(ds, out)
     with progress(len(ds), f"eval {name}", not args.no_progress) as ticks:
         run = run_scale(
             cfg,

@@ -21,14 +21,56 @@ def cmd_config(args: argparse.Namespace) -> int:
     """Print every option with its value and help, after the checks `run` makes before it
     starts (files, URLs, the status socket path): a file that passes here starts there."""
     from companion.config import describe
+    from companion.errors import ConfigError, DatasetError
     from companion.service import preflight
 
     cfg = load(args)
-    warnings = preflight.check(cfg)
+    check_path_keys(cfg)
+    try:
+        warnings = preflight.check(cfg)
+    except DatasetError as e:  # folder:PATH on a dataset the reader refuses
+        raise ConfigError(f"service.camera_url: {e}") from None
     print("\n".join(describe(cfg)))
     for text in warnings:
         print(f"companion: warning: {text}", file=sys.stderr)
     return EXIT_OK
+
+
+def path_keys(cfg: Config) -> list[tuple[str, Path]]:
+    """The files the service reads or writes by the config's path keys (set ones only)."""
+    from companion.service.state import RESET_COUNTER_FILE, state_dir
+    from drivers.signing import default_timestamp_file
+
+    o = cfg.service
+    keys = [
+        ("service.signing.key_file", o.signing.key_file),
+        ("service.mqtt.ca_file", o.mqtt.ca_file),
+        ("service.report_path", o.report_path),
+    ]
+    paths = [(key, Path(value)) for key, value in keys if value]
+    if o.signing.key_file:
+        paths.append(("service.signing.timestamp_file", default_timestamp_file(o.signing)))
+    paths.append(("service.state_dir", state_dir(o.state_dir) / RESET_COUNTER_FILE))
+    return paths
+
+
+def check_path_keys(cfg: Config) -> None:
+    """ConfigError naming the key whose file is there but is not a regular file (a FIFO, a
+    device, a socket, a folder): reading one would block or never end. Checked by name,
+    nothing is opened."""
+    import os
+    import stat
+
+    from companion.config import file_kind
+    from companion.errors import ConfigError
+
+    for key, path in path_keys(cfg):
+        try:
+            mode = os.stat(path).st_mode
+        except (OSError, ValueError):
+            continue  # not there (yet): the checks that follow say whether that is fine
+        if not stat.S_ISREG(mode):
+            raise ConfigError(f"{key}: {path} is {file_kind(mode)}, not a regular file")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
