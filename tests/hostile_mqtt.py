@@ -75,8 +75,11 @@ class FloodReport:
 class HostileBroker:
     """``async with HostileBroker(flood_bytes) as b: ... b.port, b.report``."""
 
-    def __init__(self, flood_bytes: int, payload_bytes: int = 1000) -> None:
+    def __init__(
+        self, flood_bytes: int, payload_bytes: int = 1000, start: asyncio.Event | None = None
+    ) -> None:
         self.flood_total = flood_bytes
+        self.start = start  # the flood waits for it (None: at once after CONNACK)
         self.payload = b"x" * payload_bytes
         self.report = FloodReport()
         self.port = 0
@@ -143,6 +146,8 @@ class HostileBroker:
     async def _flood(self, writer: asyncio.StreamWriter, version: int) -> None:
         """PUBLISH on unsubscribed topics, QoS 0 and 1 alternately, as fast as the client
         reads (the transport's buffer is drained before the next batch)."""
+        if self.start is not None:
+            await self.start.wait()
         k = 0
         while self.report.flood_bytes < self.flood_total:
             for _ in range(64):
