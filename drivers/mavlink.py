@@ -26,7 +26,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -41,6 +41,18 @@ OnMessage = Callable[[Any, int], None]
 UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
 MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
 PEER_SILENCE_S = 1.0  # udpin: the autopilot may move to a new address after this much silence
+# udpin: sources claiming the autopilot's system id (its component 1) are tracked by address
+# (at most CLAIMANTS_MAX, the longest silent forgotten first) with the message kinds each sent
+# over the last CLAIM_WINDOW_S; see MavlinkLink.claimants for the rule that picks the autopilot
+CLAIM_WINDOW_S = 2.0
+CLAIMANTS_MAX = 8
+CLAIM_KINDS_MAX = 64  # message ids remembered per source (a flood of made-up ids is capped)
+HEARTBEAT_CHECK_S = 0.5  # a rival's HEARTBEAT is parsed at most this often
+# an autopilot's stream over CLAIM_WINDOW_S: this many kinds of message or more, and its
+# HEARTBEAT at an autopilot's cadence (1 Hz: 1 to HEARTBEATS_IN_WINDOW_MAX of them)
+STREAM_KINDS_MIN = 5
+HEARTBEATS_IN_WINDOW_MAX = 4
+MSG_ID_HEARTBEAT = 0
 # serial: the reader thread hands each chunk over as it arrives, stamped then; the event loop
 # parses at most SERIAL_TURN_BYTES per turn (bounded work per wake-up: a byte flood faster
 # than the parser cannot starve the loop, its signal handlers or its timers), and at most
@@ -92,6 +104,40 @@ class LinkStats:
     peer_changes: int = 0  # udpin: the autopilot's address changed (after its silence)
     last_error: str = ""  # why the transport is down (serial: cannot open; tcp: refused)
     rx_overflow_bytes: int = 0  # serial: received faster than parsed, the oldest dropped
+    rival_datagrams: int = 0  # udpin: from another address, claiming the autopilot's id
+    rivals_seen: int = 0  # udpin: addresses other than the autopilot's that claimed its id
+
+
+@dataclass
+class Claimant:
+    """A UDP source sending frames as the autopilot (its system id, component 1)."""
+
+    first_ns: int  # first heard [ns, our monotonic clock]
+    last_ns: int = 0  # last heard
+    checked_ns: int = 0  # its last HEARTBEAT parsed and checked (a rival's, rate-limited)
+    kinds: dict[int, int] = field(default_factory=dict)  # message id -> last heard [ns]
+    # its last HEARTBEAT frames (by header) [ns]
+    heartbeats_ns: deque[int] = field(default_factory=lambda: deque(maxlen=8))
+
+    def kinds_since(self, since_ns: int) -> int:
+        """How many message kinds it sent since ``since_ns``."""
+        return sum(1 for t in self.kinds.values() if t >= since_ns)
+
+    def is_stream(self, now_ns: int) -> bool:
+        """Whether it sent an autopilot's stream over the last CLAIM_WINDOW_S: at least
+        STREAM_KINDS_MIN kinds of message, and HEARTBEATs at an autopilot's 1 Hz (a flood,
+        or a spoofer in a hurry, sends them by the tens or hundreds)."""
+        since_ns = now_ns - int(CLAIM_WINDOW_S * 1e9)
+        heartbeats = sum(1 for t in self.heartbeats_ns if t >= since_ns)
+        return (
+            1 <= heartbeats <= HEARTBEATS_IN_WINDOW_MAX
+            and self.kinds_since(since_ns) >= STREAM_KINDS_MIN
+        )
+
+
+def address_text(addr: tuple[str, int] | None) -> str:
+    """``host:port`` of a UDP address ("" for None)."""
+    return "" if addr is None else f"{addr[0]}:{addr[1]}"
 
 
 def frame_spans(data: bytes) -> list[tuple[int, int, int, int]] | None:
@@ -250,6 +296,7 @@ class MavlinkLink:
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: tuple[str, int] | None = None
         self._peer_heard_ns = 0  # udpin: when the autopilot's address last sent us anything
+        self.claimants: dict[tuple[str, int], Claimant] = {}  # udpin: who claims the autopilot
         self._writer: asyncio.StreamWriter | None = None
         self._serial: Any = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -346,10 +393,14 @@ class MavlinkLink:
         self.stats.rx_bytes += len(data)
         now = time.monotonic_ns() if rx_ns is None else rx_ns
         moving = False  # udpin: a datagram from a new address while the autopilot is silent
+        spans = frame_spans(data) if addr is not None and self.url.kind == "udpin" else None
+        heartbeat = spans is not None and self._note_claims(addr, spans, data, now)
         if addr is not None and self._peer is not None and addr != self._peer:
             silent_s = (now - self._peer_heard_ns) * 1e-9
             if self.url.kind == "udpout" or silent_s < PEER_SILENCE_S:
                 self.stats.rx_other_address += 1  # a spoofer or a flood: not even parsed
+                if heartbeat:
+                    self._rival_heartbeat(addr, spans, data, now)
                 return
             moving = True
         for msg in self._parser.feed(data, self.stats, datagram):
@@ -373,6 +424,132 @@ class MavlinkLink:
             except Exception as e:  # a handler bug must not take the link down: said, counted
                 self.stats.handler_errors += 1
                 self._log_limited("handler failed on", msg.get_type(), e, self.stats.handler_errors)
+
+    def _note_claims(
+        self,
+        addr: tuple[str, int] | None,
+        spans: list[tuple[int, int, int, int]] | None,
+        data: bytes,
+        now_ns: int,
+    ) -> bool:
+        """Record the frames of a datagram that claim to be the autopilot's (its system id,
+        component 1, by header) under their source address; True when one is a HEARTBEAT."""
+        assert addr is not None and spans is not None
+        heartbeat = False
+        claimant = None
+        for start, _, sysid, msgid in spans:
+            component = data[start + 6] if data[start] == 0xFD else data[start + 4]
+            if sysid != self.peer_system_id or component != 1:
+                continue
+            if claimant is None:
+                claimant = self.claimants.get(addr) or self._new_claimant(addr, now_ns)
+                claimant.last_ns = now_ns
+            if msgid in claimant.kinds or len(claimant.kinds) < CLAIM_KINDS_MAX:
+                claimant.kinds[msgid] = now_ns
+            if msgid == MSG_ID_HEARTBEAT:
+                claimant.heartbeats_ns.append(now_ns)
+                heartbeat = True
+        return heartbeat
+
+    def _new_claimant(self, addr: tuple[str, int], now_ns: int) -> Claimant:
+        """A new source claiming the autopilot (the longest silent other one forgotten when
+        CLAIMANTS_MAX are known)."""
+        if len(self.claimants) >= CLAIMANTS_MAX:
+            others = [a for a in self.claimants if a != self._peer]
+            del self.claimants[min(others, key=lambda a: self.claimants[a].last_ns)]
+        claimant = self.claimants[addr] = Claimant(first_ns=now_ns)
+        return claimant
+
+    def _rival_heartbeat(
+        self,
+        addr: tuple[str, int],
+        spans: list[tuple[int, int, int, int]] | None,
+        data: bytes,
+        now_ns: int,
+    ) -> None:
+        """A HEARTBEAT as the autopilot from an address that is not the autopilot's while it
+        talks: said (the first time per address), and the link moves to it when it is the
+        better candidate (:meth:`better_than_peer`)."""
+        claimant = self.claimants[addr]
+        self.stats.rival_datagrams += 1
+        if claimant.checked_ns and now_ns - claimant.checked_ns < HEARTBEAT_CHECK_S * 1e9:
+            return
+        new = claimant.checked_ns == 0
+        claimant.checked_ns = now_ns
+        assert spans is not None
+        frames = [data[a:b] for a, b, _, msgid in spans if msgid == MSG_ID_HEARTBEAT]
+        msgs = self._parser.feed(frames[0], LinkStats(), datagram=True)
+        if not (msgs and self._is_autopilot_heartbeat(msgs[0])):
+            return  # not the autopilot's own (unsigned on a signed link, a ground station)
+        if new:
+            self.stats.rivals_seen += 1
+        if self.better_than_peer(addr, now_ns):
+            old = self._peer
+            log.warning(
+                "autopilot link: system %d now at %s, which sends the autopilot's stream "
+                "(%d message kinds in %.0f s against %d); %s claimed it first and is "
+                "ignored (a spoofer, or a second route to the autopilot)",
+                self.peer_system_id,
+                address_text(addr),
+                claimant.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9)),
+                CLAIM_WINDOW_S,
+                self._peer_kinds(now_ns),
+                address_text(old),
+            )
+            self._peer, self._peer_heard_ns = addr, now_ns
+            self.stats.peer_changes += 1
+        elif new:
+            log.warning(
+                "autopilot link: a second source claims system %d: %s (%d message kinds in "
+                "%.0f s); the link stays with %s (%d kinds)%s",
+                self.peer_system_id,
+                address_text(addr),
+                claimant.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9)),
+                CLAIM_WINDOW_S,
+                address_text(self._peer),
+                self._peer_kinds(now_ns),
+                "" if self.signing is None else ", the only one signed",
+            )
+
+    def _peer_kinds(self, now_ns: int) -> int:
+        """Message kinds the autopilot's address sent as the autopilot over CLAIM_WINDOW_S."""
+        peer = self.claimants.get(self._peer) if self._peer is not None else None
+        return 0 if peer is None else peer.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9))
+
+    def better_than_peer(self, addr: tuple[str, int], now_ns: int) -> bool:
+        """Whether the source at ``addr`` (whose authentic autopilot HEARTBEAT was just
+        checked) should be the autopilot's address instead of the current one.
+
+        Who spoke first proves nothing (a spoofer that did kept the link for a whole flight).
+        On a signed link only signed frames can move it (checked before): the signed source
+        wins. Unsigned, the autopilot is the source that sends an autopilot's stream
+        (:meth:`Claimant.is_stream`: PX4's onboard mode streams ~25 kinds of message to its
+        companion link, ArduPilot's SRn streams ~20, each with one HEARTBEAT a second),
+        where a spoofer that only wants the link sends a HEARTBEAT and what it means to
+        forge. A source that is not a stream holds the link only until a stream claims it; a
+        stream holds it while it talks (a later claimant, however rich, is named and never
+        followed: nobody takes the link from the autopilot by imitating it). A spoofer that
+        speaks first and imitates a whole stream cannot be told from the autopilot without
+        signing; it keeps the link, but is named in the status and the log."""
+        peer = self.claimants.get(self._peer) if self._peer is not None else None
+        peer_is_stream = peer is not None and peer.is_stream(now_ns)
+        return self.claimants[addr].is_stream(now_ns) and not peer_is_stream
+
+    def claimants_status(self, now_ns: int) -> list[dict[str, Any]]:
+        """The sources that claimed the autopilot's system id within the last 10 s (for the
+        status): address, whether the link sends to it, message kinds over CLAIM_WINDOW_S,
+        seconds since heard. More than one: somebody else speaks as the autopilot."""
+        since_ns = now_ns - int(CLAIM_WINDOW_S * 1e9)
+        return [
+            {
+                "address": address_text(addr),
+                "autopilot": addr == self._peer,
+                "kinds": c.kinds_since(since_ns),
+                "heard_s_ago": round((now_ns - c.last_ns) * 1e-9, 2),
+            }
+            for addr, c in self.claimants.items()
+            if now_ns - c.last_ns < 10_000_000_000
+        ]
 
     def _is_autopilot_heartbeat(self, msg: Any) -> bool:
         """The autopilot's own HEARTBEAT (its system id, component 1, a real autopilot type),

@@ -139,6 +139,98 @@ def test_the_autopilot_moves_port_only_with_its_own_heartbeat_after_silence(tmp_
     assert moved == new_addr and changes == 1
 
 
+def px4_stream(autopilot: Sender, k: int) -> None:
+    """One round of an autopilot's stream to its companion link (8 kinds, as PX4's onboard
+    mode sends ~25): attitude, position, IMU, altitude, HUD, a rangefinder, a TIMESYNC
+    request; its HEARTBEAT once a second (every tenth round, at 10 rounds a second)."""
+    m = autopilot.mav
+    if k % 10 == 0:
+        autopilot.heartbeat()
+    autopilot.send(m.attitude_encode(k, 0.01, 0.02, 0.3, 0.0, 0.0, 0.0))
+    autopilot.send(m.attitude_quaternion_encode(k, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    autopilot.send(m.local_position_ned_encode(k, 1.0, 2.0, -3.0, 0.0, 0.0, 0.0))
+    autopilot.send(m.highres_imu_encode(k, *([0.0] * 13), 0))
+    autopilot.send(m.altitude_encode(k, 0.0, 0.0, 0.0, 0.0, 3.0, 3.0))
+    autopilot.send(m.vfr_hud_encode(0.0, 0.0, 17, 0, 3.0, 0.0))
+    autopilot.send(m.distance_sensor_encode(k, 10, 4000, 300, 0, 0, 25, 0))
+    autopilot.send(m.timesync_encode(0, 50_000 + k))
+
+
+def test_a_spoofer_that_spoke_first_is_named_and_loses_the_link_to_the_autopilot(
+    tmp_path, caplog
+) -> None:
+    """A spoofer on its own UDP address that speaks before the autopilot took the link for
+    the whole flight (0 poses reached the autopilot; nothing said). The autopilot's stream
+    (many kinds of message as the autopilot) beats a source that only claims its id: within
+    2 s of the autopilot's first HEARTBEAT the link sends to the autopilot, and the status
+    and the log name the spoofer's address. Once the autopilot's stream holds the link, a
+    claimant that imitates it later does not take it."""
+    import logging
+
+    port = free_port(socket.SOCK_DGRAM)
+    cfg = service_config(tmp_path, mavlink_url=f"udpin:127.0.0.1:{port}")
+
+    async def main() -> dict[str, Any]:
+        async with Service(cfg) as service:
+            spoofer, autopilot = Sender(port), Sender(port)
+            spoofer_at = f"127.0.0.1:{spoofer.sock.getsockname()[1]}"
+
+            def spoof(k: int) -> None:  # a HEARTBEAT, forged ATTITUDE and TIMESYNC
+                spoofer.heartbeat()
+                spoofer.send(spoofer.mav.attitude_encode(k, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0))
+                spoofer.send(spoofer.mav.timesync_encode(0, 20_000 + k))
+
+            for k in range(10):  # it speaks first, for a second
+                spoof(k)
+                await asyncio.sleep(0.1)
+            taken = service.link._peer == spoofer.sock.getsockname()
+            first_heartbeat = time.monotonic()
+            named_after_s = None
+            for k in range(40):  # then the autopilot; the spoofer goes on
+                px4_stream(autopilot, k)
+                spoof(10 + k)
+                await asyncio.sleep(0.1)
+                claimants = service.status()["autopilot"]["claimants"]
+                rivals = [c["address"] for c in claimants if not c["autopilot"]]
+                logged = any(spoofer_at in r.getMessage() for r in caplog.records)
+                if named_after_s is None and rivals == [spoofer_at] and logged:
+                    named_after_s = time.monotonic() - first_heartbeat
+            for k in range(15):  # now it imitates the whole stream: too late, still named
+                px4_stream(autopilot, 40 + k)
+                px4_stream(spoofer, 40 + k)
+                await asyncio.sleep(0.1)
+            spoofer.drain()
+            n_spoofer = len(spoofer.got)
+            autopilot.drain()
+            n_autopilot = len(autopilot.got)
+            await asyncio.sleep(1.2)  # a heartbeat and time-sync requests of ours: to whom
+            out = {
+                "taken": taken,
+                "named_after_s": named_after_s,
+                "peer": service.link._peer,
+                "autopilot_port": autopilot.sock.getsockname(),
+                "to_spoofer_after": len(spoofer.drain()) - n_spoofer,
+                "to_autopilot_after": len(autopilot.drain()) - n_autopilot,
+                "status": service.status()["autopilot"],
+                "link": copy.copy(service.link.stats),
+            }
+            spoofer.close()
+            autopilot.close()
+            return out
+
+    with caplog.at_level(logging.WARNING, logger="companion.mavlink"):
+        r = asyncio.run(main())
+    print(f"spoofer named {r['named_after_s']} s after the autopilot's first HEARTBEAT")
+    assert r["taken"]  # speaking first took the link, as it does on a fresh link
+    assert r["named_after_s"] is not None and r["named_after_s"] <= 2.0, r["named_after_s"]
+    assert r["peer"] == r["autopilot_port"]
+    assert r["to_spoofer_after"] == 0 and r["to_autopilot_after"] >= 2
+    assert r["link"].peer_changes == 1 and r["link"].rivals_seen >= 1
+    assert [c["kinds"] >= 8 for c in r["status"]["claimants"]] == [True, True]
+    ours = [c for c in r["status"]["claimants"] if c["autopilot"]]
+    assert len(ours) == 1 and ours[0]["kinds"] >= 8, r["status"]["claimants"]
+
+
 MAV_AUTOPILOT_PX4, MAV_AUTOPILOT_ARDUPILOTMEGA = 12, 3
 
 

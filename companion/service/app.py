@@ -1157,6 +1157,9 @@ class Service:
             "foreign_messages": s.foreign_messages + link.rx_foreign,
             "other_address": link.rx_other_address,
             "rx_overflow_bytes": link.rx_overflow_bytes,  # serial: faster than parsed, dropped
+            # udpin: every source claiming the autopilot's system id (two: a spoofer, say)
+            "claimants": self.link.claimants_status(now),
+            "rivals_seen": link.rivals_seen,
             "attitudes_rejected": s.attitudes_rejected,
             "imus_rejected": s.imus_rejected,
             "signing": self.link.signing.counters() if self.link.signing else None,
