@@ -19,6 +19,7 @@ row and the field.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import re
@@ -35,7 +36,6 @@ from companion.errors import DatasetError
 MAX_TOML_BYTES = 1 << 20  # meta.toml, calibration.toml, config.toml: a few kB
 MAX_TEXT_BYTES = 1 << 20  # EuRoC's sensor.yaml and the like
 MAX_CSV_BYTES = 512 << 20  # an hour of 100 Hz attitude and 6 x 50 Hz ranges: ~150 MB
-MAX_CSV_FIELD_CHARS = 256  # the longest field of ours is a file name or a float's repr
 MAX_IMAGE_BYTES = 64 << 20  # an encoded frame (a 4k PNG stored without compression: 25 MB)
 MAX_DECODED_BYTES = 256 << 20  # what a frame may take once decoded (8192 x 8192 x 3: 192 MB)
 MAX_INT_DIGITS = 19  # int64
@@ -254,12 +254,12 @@ class SafeFolder:
 
     def read_bytes(self, name: str, max_bytes: int, where: str = "") -> bytes:
         """The bytes of the regular file ``name`` inside the folder (see the module)."""
-        shown = where or name
+        shown = where or f"{self.shown}/{name}"
         real = self.resolve(name, shown)
         try:
             return read_regular_file(real, max_bytes, DatasetError, follow_symlinks=False)
-        except DatasetError as e:  # the message names the real path: name the folder's
-            raise DatasetError(str(e).replace(str(real), f"{self.shown}/{name}", 1)) from None
+        except DatasetError as e:  # the message names the real path: name it as given
+            raise DatasetError(f"{shown}{str(e).removeprefix(str(real))}") from None
 
     def read_text(self, name: str, max_bytes: int = MAX_TEXT_BYTES) -> str:
         """The UTF-8 text of ``name`` (strict; NUL refused)."""
@@ -291,7 +291,7 @@ class SafeFolder:
         lines = _csv_rows(text, name)
         header = next(lines, None)
         if header is None:
-            if required:
+            if required and not optional:
                 raise DatasetError(f"{name}: empty (no header with {', '.join(required)})")
             return CsvTable(name, {}, [], torn)
         columns = {c.strip(): i for i, c in reversed(list(enumerate(header[1])))}
@@ -306,8 +306,9 @@ class SafeFolder:
 
 def _csv_rows(text: str, name: str) -> Iterator[tuple[int, list[str]]]:
     """(line number, fields) of each non-empty CSV row; DatasetError naming the line for a
-    field longer than MAX_CSV_FIELD_CHARS or a malformed row (a NUL, an open quote)."""
-    reader = csv.reader(text.splitlines(keepends=True), strict=True)
+    malformed row (an open quote, a field above the csv module's 128 kB limit). The fields'
+    values are bounded by their parsers."""
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
     while True:
         try:
             row = next(reader)
@@ -315,12 +316,5 @@ def _csv_rows(text: str, name: str) -> Iterator[tuple[int, list[str]]]:
             return
         except csv.Error as e:
             raise DatasetError(f"{name} row {reader.line_num}: malformed CSV: {e}") from None
-        if not row:
-            continue
-        long = next((f for f in row if len(f) > MAX_CSV_FIELD_CHARS), None)
-        if long is not None:
-            raise DatasetError(
-                f"{name} row {reader.line_num}: a field of {len(long)} characters "
-                f"(at most {MAX_CSV_FIELD_CHARS}): not a value of ours"
-            )
-        yield reader.line_num, row
+        if row:
+            yield reader.line_num, row

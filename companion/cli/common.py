@@ -201,6 +201,14 @@ BUDGET_POLL_S = 0.05  # how often the watchdog looks at the resident memory and 
 BUDGET_GRACE_S = 5.0  # after the interrupt, how long the command may take to end by itself
 
 
+BUDGET_SIGNAL = signal.SIGUSR1  # how the watchdog interrupts the main thread
+
+
+class BudgetExceeded(BaseException):
+    """Raised in the main thread when the watchdog finds the budget exceeded (a BaseException:
+    no ``except Exception`` on the way swallows it)."""
+
+
 @dataclasses.dataclass
 class Budget:
     """What an unattended command may use: resident memory [MB] and wall time [s] (0: no
@@ -241,33 +249,51 @@ def resident_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def mapped_mb() -> float:
+    """This process's address space now [MB] (Linux /proc; 0 elsewhere)."""
+    try:
+        with open("/proc/self/statm", "rb") as fh:
+            return int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
 @contextmanager
 def resource_budget(max_memory_mb: float, timeout_s: float) -> Iterator[Budget]:
     """Hold the block to a memory and time budget. A watchdog thread polls the resident
-    memory and the clock; past either it interrupts the main thread (KeyboardInterrupt, with
+    memory and the clock; past either it interrupts the main thread (BudgetExceeded, with
     ``Budget.exceeded`` saying why: the command turns it into exit 2) and, should the main
     thread be stuck in C code, ends the process with exit 2 after BUDGET_GRACE_S. The address
-    space is also capped at twice the memory budget (RLIMIT_AS, restored after), so that one
-    enormous allocation fails at once (MemoryError) instead of swapping the machine."""
+    space is also capped at what is mapped now plus twice the memory budget (RLIMIT_AS,
+    restored after), so that one enormous allocation fails at once (MemoryError) instead of
+    swapping the machine before the watchdog sees it."""
     if not math.isfinite(max_memory_mb) or not math.isfinite(timeout_s):
         raise ValueError("--max-memory-mb and --timeout-s must be finite")
     budget = Budget(max(0.0, max_memory_mb), max(0.0, timeout_s))
     done = threading.Event()
     watchdog = threading.Thread(target=_watch, args=(budget, done), daemon=True)
-    restore = _cap_address_space(budget.max_memory_mb * 2)
+    restore = _cap_address_space(budget.max_memory_mb and mapped_mb() + 2 * budget.max_memory_mb)
+    in_main = threading.current_thread() is threading.main_thread()  # else: _exit alone
+    previous = signal.signal(BUDGET_SIGNAL, _raise_exceeded) if in_main else None
     watchdog.start()
     try:
         yield budget
     finally:
         done.set()
         watchdog.join()
+        if in_main:
+            signal.signal(BUDGET_SIGNAL, previous)
         restore()
+
+
+def _raise_exceeded(_signum: int, _frame: Any) -> None:
+    raise BudgetExceeded()
 
 
 def _watch(budget: Budget, done: threading.Event) -> None:
     """The watchdog of :func:`resource_budget`."""
-    import _thread
-
+    main_thread = threading.main_thread().ident
+    assert main_thread is not None
     start = time.monotonic()
     while not done.wait(BUDGET_POLL_S):
         rss = resident_mb()
@@ -280,7 +306,8 @@ def _watch(budget: Budget, done: threading.Event) -> None:
         elif budget.timeout_s and elapsed > budget.timeout_s:
             budget.exceeded = f"still running after --timeout-s {budget.timeout_s:g} s"
         if budget.exceeded:
-            _thread.interrupt_main()
+            if signal.getsignal(BUDGET_SIGNAL) is _raise_exceeded:
+                signal.pthread_kill(main_thread, BUDGET_SIGNAL)  # also ends a blocking syscall
             if not done.wait(BUDGET_GRACE_S):
                 os.write(2, f"companion: budget exceeded: {budget.exceeded}\n".encode())
                 os._exit(EXIT_USAGE)

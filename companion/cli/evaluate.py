@@ -21,6 +21,7 @@ from companion.cli import sim
 from companion.cli.common import (
     EXIT_OK,
     EXIT_USAGE,
+    BudgetExceeded,
     add_budget_flags,
     add_sitl_flags,
     load,
@@ -57,13 +58,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     try:
         with resource_budget(*limits) as budget:
             try:
-                return _eval(args)
-            except KeyboardInterrupt:
-                if not budget.exceeded:
-                    raise
+                code = _eval(args)
+            except BudgetExceeded:
                 return _refused("budget exceeded", budget.exceeded)
             except MemoryError:
                 return _refused("budget exceeded", "out of memory (--max-memory-mb)")
+        return _refused("budget exceeded", budget.exceeded) if budget.exceeded else code
     except DatasetError as e:
         return _refused("dataset error", str(e))
 
