@@ -48,6 +48,8 @@ CLAIM_WINDOW_S = 2.0
 CLAIMANTS_MAX = 8
 CLAIM_KINDS_MAX = 64  # message ids remembered per source (a flood of made-up ids is capped)
 HEARTBEAT_CHECK_S = 0.5  # a rival's HEARTBEAT is parsed at most this often
+RIVAL_CHECKS_INTERVAL_S = 0.02  # and rivals' HEARTBEATs altogether (a flood from many ports)
+RIVAL_LOG_INTERVAL_S = 10.0  # new rivals are logged at most this often (the rest counted)
 # an autopilot's stream over CLAIM_WINDOW_S: this many kinds of message or more, and its
 # HEARTBEAT at an autopilot's cadence (1 Hz: 1 to HEARTBEATS_IN_WINDOW_MAX of them)
 STREAM_KINDS_MIN = 5
@@ -297,6 +299,9 @@ class MavlinkLink:
         self._peer: tuple[str, int] | None = None
         self._peer_heard_ns = 0  # udpin: when the autopilot's address last sent us anything
         self.claimants: dict[tuple[str, int], Claimant] = {}  # udpin: who claims the autopilot
+        self._rival_checked_ns = 0  # the last rival HEARTBEAT parsed
+        self._rival_logged_ns = 0  # the last new rival logged
+        self._rivals_logged = 0  # stats.rivals_seen when it was logged
         self._writer: asyncio.StreamWriter | None = None
         self._serial: Any = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -468,22 +473,29 @@ class MavlinkLink:
         now_ns: int,
     ) -> None:
         """A HEARTBEAT as the autopilot from an address that is not the autopilot's while it
-        talks: said (the first time per address), and the link moves to it when it is the
-        better candidate (:meth:`better_than_peer`)."""
+        talks: said (the first time per address, at most once per RIVAL_LOG_INTERVAL_S, the
+        others counted), and the link moves to it when it is the better candidate
+        (:meth:`better_than_peer`). On a signed link an unsigned one is said, never followed.
+        Parsed at most every HEARTBEAT_CHECK_S per address, RIVAL_CHECKS_INTERVAL_S in all."""
         claimant = self.claimants[addr]
         self.stats.rival_datagrams += 1
-        if claimant.checked_ns and now_ns - claimant.checked_ns < HEARTBEAT_CHECK_S * 1e9:
+        if (claimant.checked_ns and now_ns - claimant.checked_ns < HEARTBEAT_CHECK_S * 1e9) or (
+            now_ns - self._rival_checked_ns < RIVAL_CHECKS_INTERVAL_S * 1e9
+        ):
             return
         new = claimant.checked_ns == 0
-        claimant.checked_ns = now_ns
+        claimant.checked_ns = self._rival_checked_ns = now_ns
         assert spans is not None
         frames = [data[a:b] for a, b, _, msgid in spans if msgid == MSG_ID_HEARTBEAT]
         msgs = self._parser.feed(frames[0], LinkStats(), datagram=True)
-        if not (msgs and self._is_autopilot_heartbeat(msgs[0])):
-            return  # not the autopilot's own (unsigned on a signed link, a ground station)
-        if new:
+        if not msgs or msgs[0].get_type() != "HEARTBEAT":
+            return
+        own = self._is_autopilot_heartbeat(msgs[0])
+        if not own and (self.signing is None or msgs[0].autopilot == MAV_AUTOPILOT_INVALID):
+            return  # a ground station's or a companion's HEARTBEAT with that id: not a claim
+        if new:  # the autopilot's, or unsigned on a signed link
             self.stats.rivals_seen += 1
-        if self.better_than_peer(addr, now_ns):
+        if own and self.better_than_peer(addr, now_ns):
             old = self._peer
             log.warning(
                 "autopilot link: system %d now at %s, which sends the autopilot's stream "
@@ -498,18 +510,22 @@ class MavlinkLink:
             )
             self._peer, self._peer_heard_ns = addr, now_ns
             self.stats.peer_changes += 1
-        elif new:
+        elif new and now_ns - self._rival_logged_ns >= RIVAL_LOG_INTERVAL_S * 1e9:
             log.warning(
-                "autopilot link: a second source claims system %d: %s (%d message kinds in "
-                "%.0f s); the link stays with %s (%d kinds)%s",
+                "autopilot link: a second source claims system %d: %s (%s%d message kinds "
+                "in %.0f s); the link stays with %s (%d kinds)%s",
                 self.peer_system_id,
                 address_text(addr),
+                "" if own else "not signed, ",
                 claimant.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9)),
                 CLAIM_WINDOW_S,
                 address_text(self._peer),
                 self._peer_kinds(now_ns),
-                "" if self.signing is None else ", the only one signed",
+                f" ({self.stats.rivals_seen - self._rivals_logged - 1} more since the last said)"
+                if self.stats.rivals_seen - self._rivals_logged > 1
+                else "",
             )
+            self._rival_logged_ns, self._rivals_logged = now_ns, self.stats.rivals_seen
 
     def _peer_kinds(self, now_ns: int) -> int:
         """Message kinds the autopilot's address sent as the autopilot over CLAIM_WINDOW_S."""

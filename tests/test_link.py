@@ -494,3 +494,53 @@ def test_a_busy_listening_port_is_a_config_error_naming_the_key(tmp_path) -> Non
         assert "service.mavlink_url" in run.stderr and "Traceback" not in run.stderr
     finally:
         taken.close()
+
+
+def test_on_a_signed_link_an_unsigned_claimant_is_named_and_never_followed(
+    tmp_path, caplog
+) -> None:
+    """Signing decides who the autopilot is: an unsigned source streaming as the autopilot
+    (a full stream, more than the signed autopilot sends) never takes the link, and is
+    named in the log and among the claimants, where before it was dropped unsaid."""
+    import logging
+
+    from drivers.mavlink import MavlinkLink
+    from drivers.signing import Signing, TimestampStore, wall_units
+
+    key = bytes(range(7, 39))
+    port = free_port(socket.SOCK_DGRAM)
+    signing = Signing(key, TimestampStore(tmp_path / "ts"), link_id=0)
+
+    async def main() -> dict[str, Any]:
+        link = MavlinkLink(f"udpin:127.0.0.1:{port}", 1, 197, lambda m, t: None, signing)
+        async with link:
+            autopilot, spoofer = Sender(port), Sender(port)
+            s = autopilot.mav.signing
+            s.secret_key, s.link_id, s.sign_outgoing = key, 3, True
+            s.timestamp = wall_units()
+            for k in range(25):  # the signed autopilot: a HEARTBEAT a second, an ATTITUDE
+                if k % 10 == 0:
+                    autopilot.heartbeat()
+                autopilot.send(autopilot.mav.attitude_encode(k, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+                if k >= 5:
+                    px4_stream(spoofer, k)
+                await asyncio.sleep(0.1)
+            out = {
+                "peer": link._peer,
+                "autopilot": autopilot.sock.getsockname(),
+                "spoofer": f"127.0.0.1:{spoofer.sock.getsockname()[1]}",
+                "claimants": link.claimants_status(time.monotonic_ns()),
+                "stats": copy.copy(link.stats),
+            }
+            autopilot.close()
+            spoofer.close()
+            return out
+
+    with caplog.at_level(logging.WARNING, logger="companion.mavlink"):
+        r = asyncio.run(main())
+    assert r["peer"] == r["autopilot"] and r["stats"].peer_changes == 0
+    assert r["stats"].rivals_seen == 1
+    rivals = [c for c in r["claimants"] if not c["autopilot"]]
+    assert [c["address"] for c in rivals] == [r["spoofer"]] and rivals[0]["kinds"] >= 8
+    said = [rec.getMessage() for rec in caplog.records if r["spoofer"] in rec.getMessage()]
+    assert len(said) == 1 and "not signed" in said[0], said
