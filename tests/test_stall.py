@@ -18,6 +18,7 @@ new reset_counter, none from the stopped time.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import csv
 import json
 import os
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from peers import sitl_flight
+from serial_bridge import PtySerialBridge
 
 from sitl.autopilot import SimAutopilot
 from sitl.faults import Fault
@@ -54,8 +56,13 @@ asyncio.run(main())
 
 @pytest.mark.slow
 @pytest.mark.timeout(400)
-def test_sigstop_mid_flight_keeps_every_segments_heading(tmp_path: Path) -> None:
-    cfg, opts = sitl_flight(tmp_path, SECONDS, small=True, faults=UNPLUGGED)
+@pytest.mark.parametrize("link", ["udp", "serial"])
+def test_sigstop_mid_flight_keeps_every_segments_heading(tmp_path: Path, link: str) -> None:
+    """The autopilot over UDP, or over a serial line (a pty relayed to the SITL autopilot's
+    UDP port one MAVLink frame per datagram: tests/serial_bridge.py)."""
+    bridge = PtySerialBridge() if link == "serial" else None
+    service = {"mavlink_url": f"serial:{bridge.path}:921600"} if bridge is not None else None
+    cfg, opts = sitl_flight(tmp_path, SECONDS, service=service, small=True, faults=UNPLUGGED)
     cfg_file = tmp_path / "config.pickle"
     cfg_file.write_bytes(pickle.dumps(cfg))
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
@@ -80,9 +87,14 @@ def test_sigstop_mid_flight_keeps_every_segments_heading(tmp_path: Path) -> None
                     stopped.append((t0, stub.t_sim_of_mono(time.monotonic_ns())))
 
             try:
-                task = asyncio.create_task(stall())
-                report = await stub.run(tmp_path / "autopilot")
-                await task
+                async with contextlib.AsyncExitStack() as stack:
+                    if bridge is not None:
+                        await stack.enter_async_context(
+                            bridge.relay(opts.listen_port, opts.companion_port)
+                        )
+                    task = asyncio.create_task(stall())
+                    report = await stub.run(tmp_path / "autopilot")
+                    await task
             finally:
                 proc.send_signal(signal.SIGCONT)
                 proc.terminate()
