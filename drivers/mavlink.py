@@ -729,7 +729,11 @@ class MavlinkLink:
                     data = data[:budget]
                 self._rx_backlog_bytes -= len(data)
             budget -= len(data)
-            self._received(data, rx_ns=rx_ns)
+            try:
+                self._received(data, rx_ns=rx_ns)
+            except Exception as e:  # a bug: said, and the link keeps draining
+                self.stats.handler_errors += 1
+                self._log_limited("serial chunk failed in", "_received", e, 1)
         assert self._loop is not None
         self._loop.call_soon(self._drain_serial)
 

@@ -21,7 +21,8 @@ from pymavlink.dialects.v20 import common as mavlink
 ROOT = Path(__file__).resolve().parents[1]
 
 # The autopilot's side: PX4's TIMESYNC requests at 50 Hz (ts1 = its monotonic clock, which is
-# the machine's, as ours) among an ATTITUDE stream; the round trip of every answer [ns].
+# the machine's, as ours) among an ATTITUDE stream; for every answer [ns], its round trip and
+# how long after the request's sending we answered (tc1 - ts1: our share of the round trip).
 AUTOPILOT = r"""
 import json, os, select, sys, time
 from pymavlink.dialects.v20 import common as mavlink
@@ -42,7 +43,7 @@ while time.monotonic() < end_s and len(rtt_ns) < n:
         now_ns = time.monotonic_ns()
         for m in mav.parse_buffer(data) or []:
             if m.get_type() == "TIMESYNC" and m.tc1 != 0:
-                rtt_ns.append(now_ns - m.ts1)
+                rtt_ns.append((now_ns - m.ts1, m.tc1 - m.ts1))
 print(json.dumps(rtt_ns))
 """
 
@@ -91,9 +92,11 @@ def _pty() -> tuple[int, str]:
 
 def test_timesync_round_trips_over_a_serial_link_stay_within_px4s_limit() -> None:
     """PX4 fuses an answer only when its round trip is below 10 ms (MAX_RTT_SAMPLE). Through
-    MavlinkLink's serial reader on a pty (no wire delay), the round trip is our reader's and
-    our loop's doing: p99 <= 5 ms. Before, ``read(4096)`` returned at its 0.1 s time-out: p50
-    52 ms, p90 91 ms (8-9 % of answers fused; PX4 converged in ~2 min instead of ~10 s)."""
+    MavlinkLink's serial reader on a pty (no wire delay), our share of it (the request's
+    sending to our answer, tc1 - ts1: the reader and our loop) is p99 <= 5 ms, and 98 % of
+    the round trips are within PX4's limit. Before, ``read(4096)`` returned at its 0.1 s
+    time-out: round trips p50 52 ms, p90 91 ms (8-9 % of answers fused; PX4 converged in
+    ~2 min instead of ~10 s)."""
     import asyncio
 
     from drivers.mavlink import MavlinkLink
@@ -102,7 +105,7 @@ def test_timesync_round_trips_over_a_serial_link_stay_within_px4s_limit() -> Non
     master, dev = _pty()
     arrivals_ms: list[float] = []  # the request's stamp at reception - its sending
 
-    async def main() -> list[int]:
+    async def main() -> list[list[int]]:
         def on_message(msg, rx_ns: int) -> None:
             if msg.get_type() == "TIMESYNC":
                 reply = reply_for(msg.tc1, msg.ts1, time.monotonic_ns())
@@ -132,12 +135,19 @@ def test_timesync_round_trips_over_a_serial_link_stay_within_px4s_limit() -> Non
             os.close(master)
         return list(json.loads(out))
 
-    rtt_ns = asyncio.run(main())
-    assert len(rtt_ns) >= 490, len(rtt_ns)  # every answer came back (a few may be cut at end)
-    rtt_ms = np.array(rtt_ns) * 1e-6
-    p50, p99 = np.percentile(rtt_ms, [50, 99])
-    print(f"serial TIMESYNC round trip: p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {rtt_ms.max():.1f}")
-    assert p99 <= 5.0, (p50, p99)
+    answers = np.array(asyncio.run(main())) * 1e-6
+    assert len(answers) >= 490, len(answers)  # every answer came back (a few may be cut)
+    rtt_ms, answered_ms = answers[:, 0], answers[:, 1]
+    p50, p99 = np.percentile(answered_ms, [50, 99])
+    rtt_p50, rtt_p99 = np.percentile(rtt_ms, [50, 99])
+    print(
+        f"serial TIMESYNC: answered p50 {p50:.2f} ms, p99 {p99:.2f} ms after the request; "
+        f"round trip p50 {rtt_p50:.2f} ms, p99 {rtt_p99:.2f} ms, max {rtt_ms.max():.1f} ms"
+    )
+    assert p99 <= 5.0, (p50, p99)  # our share: the reader and the loop
+    # the whole round trip also counts the peer's own wake-up on this shared machine: PX4's
+    # limit, nearly always
+    assert np.mean(rtt_ms < 10.0) >= 0.98, (rtt_p50, rtt_p99)
     # each chunk is stamped at its arrival, not when the loop got to it
     assert np.percentile(arrivals_ms, 99) <= 5.0, np.percentile(arrivals_ms, [50, 99])
 
