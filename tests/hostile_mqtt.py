@@ -76,10 +76,17 @@ class HostileBroker:
     """``async with HostileBroker(flood_bytes) as b: ... b.port, b.report``."""
 
     def __init__(
-        self, flood_bytes: int, payload_bytes: int = 1000, start: asyncio.Event | None = None
+        self,
+        flood_bytes: int,
+        payload_bytes: int = 1000,
+        start: asyncio.Event | None = None,
+        qos_levels: tuple[int, ...] = (0, 1),
+        oversized_bytes: int = 0,
     ) -> None:
         self.flood_total = flood_bytes
         self.start = start  # the flood waits for it (None: at once after CONNACK)
+        self.qos_levels = qos_levels  # cycled through (QoS 2: never a PUBREL)
+        self.oversized_bytes = oversized_bytes  # > 0: one PUBLISH this long instead
         self.payload = b"x" * payload_bytes
         self.report = FloodReport()
         self.port = 0
@@ -148,14 +155,31 @@ class HostileBroker:
         reads (the transport's buffer is drained before the next batch)."""
         if self.start is not None:
             await self.start.wait()
+        if self.oversized_bytes:
+            await self._oversized(writer, version)
+            return
         k = 0
         while self.report.flood_bytes < self.flood_total:
             for _ in range(64):
                 k += 1
-                qos = k % 2
+                qos = self.qos_levels[k % len(self.qos_levels)]
                 data = publish(f"hostile/{k % 1000}", self.payload, qos, k % 65535 + 1, version)
                 writer.write(data)
                 self.report.flood_bytes += len(data)
                 self.report.flood_messages += 1
             await writer.drain()
+        self.report.flood_done = True
+
+    async def _oversized(self, writer: asyncio.StreamWriter, version: int) -> None:
+        """One PUBLISH of ``oversized_bytes``, its body sent 64 kB at a time."""
+        head = utf8("hostile/big") + (b"\x00" if version == MQTT_V5 else b"")
+        body_bytes = self.oversized_bytes - len(head)
+        writer.write(bytes([PUBLISH]) + encode_length(self.oversized_bytes) + head)
+        chunk = b"x" * 65536
+        while body_bytes > 0:
+            writer.write(chunk[:body_bytes])
+            self.report.flood_bytes += min(body_bytes, len(chunk))
+            body_bytes -= len(chunk)
+            await writer.drain()
+        self.report.flood_messages += 1
         self.report.flood_done = True

@@ -98,15 +98,17 @@ async def figures_until(proc: asyncio.subprocess.Process, done, timeout_s: float
                 return figures
 
 
-def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory() -> None:
-    """A broker pushing 50 MB of PUBLISH on topics never subscribed to (QoS 0 and 1): the
+@pytest.mark.parametrize("qos_levels", [(0, 1), (2,)], ids=["qos0+1", "qos2"])
+def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory(qos_levels) -> None:
+    """A broker pushing 50 MB of PUBLISH on topics never subscribed to (QoS 0 and 1, or QoS 2
+    without the PUBREL that would deliver them: paho held every one for it): the
     publisher drops and counts them, its memory stays flat, it keeps its one connection and
     keeps sending poses at the camera's rate, reading the broker within its share of the
     event loop's time. Before: every message was kept in aiomqtt's incoming queue, which
     nobody reads (+75 MB here), each was acknowledged, and reading took all the CPU it could."""
 
     async def run() -> tuple[dict, dict, HostileBroker, tuple[float, float]]:
-        async with HostileBroker(FLOOD_BYTES, FLOOD_PAYLOAD_BYTES) as broker:
+        async with HostileBroker(FLOOD_BYTES, FLOOD_PAYLOAD_BYTES, None, qos_levels) as broker:
             proc = await start_publisher(broker.port)
             try:
                 start = await figures_until(proc, lambda f: f["stats"]["connected"], 30)
@@ -138,7 +140,7 @@ def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory() -> None
     assert growth_mb <= 20.0, growth_mb
     assert report.connections == 1 and report.closed_by_client_during_flood == 0
     assert stats["connects"] == 1 and stats["errors"] == 0 and after["stats"]["connected"]
-    assert report.pubacks_from_client == 0  # nothing unasked is acknowledged
+    assert report.pubacks_from_client == 0  # nothing unasked is acknowledged (no PUBACK)
     # the poses went out on the camera's schedule all through the flood (the queue holds 200:
     # a sender starved for more than a few seconds would have dropped some)
     assert len(poses) >= 0.9 * POSE_HZ * (t1 - t0), (len(poses), t1 - t0)
@@ -146,6 +148,34 @@ def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory() -> None
     # the publisher's process (its event loop) was busy a fraction of the time, not flat out
     # reading (READ_SHARE, and the poses; before: 100 % of a core until the flood was read)
     assert busy <= 0.3, busy
+
+
+def test_an_oversized_packet_from_the_broker_is_never_read() -> None:
+    """A broker announcing a 100 MB PUBLISH (and sending it): the connection is closed before
+    its body is read, the publisher's memory stays flat, it says so and connects again.
+    Before: paho read all of it into memory, and aiomqtt queued it."""
+    from companion.service.mqtt import MAX_PACKET_BYTES
+
+    big = 100 * 1024 * 1024
+
+    async def run() -> tuple[dict, HostileBroker]:
+        async with HostileBroker(FLOOD_BYTES, oversized_bytes=big) as broker:
+            proc = await start_publisher(broker.port)
+            try:
+                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
+                end = await figures_until(proc, lambda f: f["stats"]["connects"] >= 3, 60)
+            finally:
+                assert proc.stdin is not None
+                proc.stdin.write(b"stop\n")
+                await proc.wait()
+            return end, broker
+
+    end, broker = asyncio.run(run())
+    print(end, broker.report.flood_bytes, broker.report.connections)
+    assert big > 100 * MAX_PACKET_BYTES
+    assert (end["hwm_kb"] - end["base_kb"]) / 1024 <= 20.0, end
+    assert end["stats"]["oversized"] >= 2 and broker.report.connections >= 3
+    assert end["stats"]["unasked"] == 0  # nothing of it was taken as a message
 
 
 # ---------------------------------------------------------------- the status socket

@@ -3,20 +3,23 @@ last will ``offline``), ``.../pose`` and ``.../events``.
 
 It never blocks or slows the pipeline: ``publish_*`` only append to a bounded queue (the oldest
 message is dropped and counted when it is full) and wake the sender task. The sender connects
-with capped, jittered backoff (0.5 s doubling to 30 s), announces ``online`` (retained), and
+with capped, jittered backoff (0.5 s doubling to 10 s), announces ``online`` (retained), and
 drains the queue; when the broker goes away it reconnects and carries on with what is queued.
 The password is passed to the client only, never logged.
 
 Nothing is subscribed, so every PUBLISH the broker sends is unasked (a hostile or broken
-broker): it is dropped as it is parsed and counted (``MqttStats.unasked``), never queued
+broker): it is counted as it is parsed (``MqttStats.unasked``) and dropped, never queued
 (aiomqtt's incoming queue, which nobody reads, held every one: 50 MB pushed cost 75 MB of
-memory and more at each reconnection), and never acknowledged (no PUBACK queued per message
-for a broker that does not read them; a compliant broker stops at its in-flight window). The
-retained ``online`` goes out at QoS 1 without waiting for its PUBACK: behind a flood it came
-later than aiomqtt's 5 s timeout, which dropped the connection (the flapping every 5 s).
-Reading the broker's socket takes at most ``READ_SHARE`` of the event loop's time (the loop
-that sends the poses): past it the socket is left unread for the rest of the window, and TCP
-slows the broker down (a 50 MB flood, parsed flat out, cut the pose rate from 30 to 26 Hz).
+memory, and more at each reconnection) and never acknowledged (no PUBACK queued per message
+for a broker that does not read them; a compliant broker stops at its in-flight window);
+QoS 2 ones, which paho holds until their PUBREL, are dropped after each read. A packet
+longer than ``MAX_PACKET_BYTES`` closes the connection before its body is read (paho would
+read all of it, up to 256 MB, into memory). Reading the broker's socket takes at most
+``READ_SHARE`` of the event loop's time (the loop that sends the poses): past it the socket
+is left unread for the rest of the window and TCP slows the broker down (a 50 MB flood,
+parsed flat out, cut the pose rate from 30 to 26 Hz in a SITL flight). The retained
+``online`` goes out at QoS 1 without waiting for its PUBACK: behind a flood it came later
+than aiomqtt's 5 s timeout, which dropped the connection (the flapping every 5 s).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" s
 OFFLINE = b'{"state": "offline"}'
 ONLINE = b'{"state": "online"}'
 MAX_TOPIC_SHOWN = 80  # characters of an unasked topic quoted in the log (the broker's text)
+MAX_PACKET_BYTES = 256 * 1024  # the largest packet read from the broker (it owes us none)
 READ_SHARE = 0.1  # of the event loop's time that reading the broker's socket may take
 READ_WINDOW_S = 0.1  # the window that share is held over [s]
 
@@ -59,6 +63,7 @@ class MqttStats:
     errors: int = 0  # failed connections and lost ones
     unasked: int = 0  # PUBLISH from the broker on topics never subscribed to: dropped
     unasked_bytes: int = 0  # their payloads [bytes]
+    oversized: int = 0  # connections closed on a packet larger than MAX_PACKET_BYTES
 
 
 class MqttPublisher:
@@ -127,7 +132,7 @@ class MqttPublisher:
                 tls_context = ssl.create_default_context(cafile=o.ca_file or None)
             except (OSError, ssl.SSLError) as e:  # it went away after the config check
                 raise OSError(f"CA file {o.ca_file or '(system)'}: {e}") from e
-        client = _client_class()(
+        return _client_class()(
             o.host,
             o.port,
             username=o.username or None,
@@ -136,24 +141,32 @@ class MqttPublisher:
             keepalive=o.keepalive_s,
             tls_context=tls_context,
             timeout=5.0,
-            queue_type=_dropping_queue(self._unasked),
+            unasked=self._unasked,
+            oversized=self._oversized,
         )
-        client._client.manual_ack_set(True)  # paho's own client: acknowledge nothing unasked
-        return client
 
-    def _unasked(self, message: Any) -> None:
+    def _unasked(self, topic: bytes, payload_bytes: int) -> None:
         """Count a PUBLISH nobody asked for (dropped as it arrives); say so once per
-        connection, with its topic shortened (the broker's text)."""
-        payload = message.payload
+        connection, with its topic shortened (the broker's bytes, shown escaped)."""
         self.stats.unasked += 1
-        self.stats.unasked_bytes += len(payload) if isinstance(payload, (bytes, str)) else 0
+        self.stats.unasked_bytes += payload_bytes
         if not self._unasked_logged:
             self._unasked_logged = True
             log.warning(
                 "MQTT: the broker sends messages on topics never subscribed to (first: %r); "
                 "dropped and counted",
-                str(message.topic)[:MAX_TOPIC_SHOWN],
+                topic[:MAX_TOPIC_SHOWN].decode(errors="replace"),
             )
+
+    def _oversized(self, packet_bytes: int) -> None:
+        """The broker announced a packet larger than MAX_PACKET_BYTES: the connection is
+        closed before its body is read (and opened again after the backoff)."""
+        self.stats.oversized += 1
+        log.warning(
+            "MQTT: the broker sent a packet of %d bytes (at most %d are read): disconnecting",
+            packet_bytes,
+            MAX_PACKET_BYTES,
+        )
 
     async def _run(self) -> None:
         """Connect, drain, reconnect: every failure (the broker, TLS, a bad CA file, a bug) is
@@ -250,15 +263,46 @@ class ReadBudget:
 
 @functools.cache
 def _client_class() -> type[Any]:
-    """aiomqtt's Client, its socket read within ``READ_SHARE`` of the loop's time (its own
-    reader callback, aiomqtt 2's ``_on_socket_open`` with a ReadBudget)."""
+    """aiomqtt's Client for a publisher that subscribes to nothing (aiomqtt 2's private
+    hooks, covered by tests/test_listeners.py): every PUBLISH from the broker goes to
+    ``unasked(topic, payload bytes)`` as it is parsed, none is queued or acknowledged, QoS 2
+    ones held for their PUBREL are dropped after each read, a packet longer than
+    MAX_PACKET_BYTES closes the connection before its body is read (``oversized(length)``),
+    and reading takes at most ``READ_SHARE`` of the loop's time."""
     import aiomqtt
 
     class Client(aiomqtt.Client):
+        def __init__(
+            self,
+            *args: Any,
+            unasked: Callable[[bytes, int], None],
+            oversized: Callable[[int], None],
+            **kwargs: Any,
+        ) -> None:
+            super().__init__(*args, **kwargs)
+            self._unasked = unasked
+            self._oversized = oversized
+            self._client.manual_ack_set(True)  # no PUBACK queued per unasked message
+
+        def _on_message(self, client: Any, userdata: Any, message: Any) -> None:
+            """paho's on_message: counted, never converted nor queued."""
+            self._unasked(message._topic, len(message.payload))
+
         def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
             loop = self._loop
             fd = sock.fileno()
             budget = ReadBudget(READ_SHARE, READ_WINDOW_S)
+            recv = client._sock_recv
+
+            def bounded_recv(bufsize: int) -> bytes:
+                """paho's socket read, refused for the body of an oversized packet."""
+                length = int(client._in_packet["remaining_length"])
+                if length > MAX_PACKET_BYTES:
+                    self._oversized(length)
+                    raise OSError(f"a packet of {length} bytes from the broker")
+                return bytes(recv(bufsize))
+
+            client._sock_recv = bounded_recv
 
             def read() -> None:
                 start_s = time.perf_counter()
@@ -273,6 +317,10 @@ def _client_class() -> type[Any]:
                     if not self._disconnected.done():
                         self._disconnected.set_exception(exc)
                     return
+                held = client._in_messages  # QoS 2 messages waiting for their PUBREL
+                for message in held.values():
+                    self._unasked(message._topic, len(message.payload))
+                held.clear()  # (a PUBREL for one of them is then ignored)
                 pause_s = budget.spend(start_s, time.perf_counter())
                 if pause_s > 0.0 and client._sock is sock:
                     loop.remove_reader(fd)
@@ -290,14 +338,3 @@ def _client_class() -> type[Any]:
             loop.call_soon_threadsafe(create_misc_task)
 
     return Client
-
-
-def _dropping_queue(drop: Callable[[Any], None]) -> type[asyncio.Queue[Any]]:
-    """A queue class for aiomqtt's incoming messages that keeps none: each is handed to
-    ``drop`` as it is parsed (nothing is subscribed, so nothing is read from it)."""
-
-    class Unasked(asyncio.Queue[Any]):
-        def put_nowait(self, item: Any) -> None:
-            drop(item)
-
-    return Unasked
