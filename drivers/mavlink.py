@@ -551,6 +551,16 @@ class MavlinkLink:
         peer_is_stream = peer is not None and peer.is_stream(now_ns)
         return self.claimants[addr].is_stream(now_ns) and not peer_is_stream
 
+    def rival_address(self, now_ns: int) -> str | None:
+        """``host:port`` of the source other than the autopilot's that claimed its system id
+        most recently within the last 10 s (None: nobody else), for the operator."""
+        rivals = [
+            (c.last_ns, addr)
+            for addr, c in self.claimants.items()
+            if addr != self._peer and c.checked_ns and now_ns - c.last_ns < 10_000_000_000
+        ]
+        return address_text(max(rivals)[1]) if rivals else None
+
     def claimants_status(self, now_ns: int) -> list[dict[str, Any]]:
         """The sources that claimed the autopilot's system id within the last 10 s (for the
         status): address, whether the link sends to it, message kinds over CLAIM_WINDOW_S,

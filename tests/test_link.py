@@ -213,6 +213,8 @@ def test_a_spoofer_that_spoke_first_is_named_and_loses_the_link_to_the_autopilot
                 "to_autopilot_after": len(autopilot.drain()) - n_autopilot,
                 "status": service.status()["autopilot"],
                 "link": copy.copy(service.link.stats),
+                "rival": service.link.rival_address(time.monotonic_ns()),
+                "spoofer_at": spoofer_at,
             }
             spoofer.close()
             autopilot.close()
@@ -226,6 +228,7 @@ def test_a_spoofer_that_spoke_first_is_named_and_loses_the_link_to_the_autopilot
     assert r["peer"] == r["autopilot_port"]
     assert r["to_spoofer_after"] == 0 and r["to_autopilot_after"] >= 2
     assert r["link"].peer_changes == 1 and r["link"].rivals_seen >= 1
+    assert r["rival"] == r["spoofer_at"]  # what the operator is to be told
     assert [c["kinds"] >= 8 for c in r["status"]["claimants"]] == [True, True]
     ours = [c for c in r["status"]["claimants"] if c["autopilot"]]
     assert len(ours) == 1 and ours[0]["kinds"] >= 8, r["status"]["claimants"]
