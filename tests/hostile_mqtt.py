@@ -30,13 +30,14 @@ def packet(first_byte: int, body: bytes) -> bytes:
     return bytes([first_byte]) + encode_length(len(body)) + body
 
 
-def utf8(text: str) -> bytes:
-    """An MQTT UTF-8 string: 2-byte big-endian length + bytes."""
-    raw = text.encode()
+def utf8(text: str | bytes) -> bytes:
+    """An MQTT UTF-8 string: 2-byte big-endian length + bytes (given as bytes: sent as they
+    are, valid UTF-8 or not)."""
+    raw = text.encode() if isinstance(text, str) else text
     return struct.pack("!H", len(raw)) + raw
 
 
-def publish(topic: str, payload: bytes, qos: int, mid: int, version: int) -> bytes:
+def publish(topic: str | bytes, payload: bytes, qos: int, mid: int, version: int) -> bytes:
     """A PUBLISH packet (no properties on MQTT 5)."""
     body = utf8(topic) + (struct.pack("!H", mid) if qos else b"")
     if version == MQTT_V5:
@@ -82,11 +83,13 @@ class HostileBroker:
         start: asyncio.Event | None = None,
         qos_levels: tuple[int, ...] = (0, 1),
         oversized_bytes: int = 0,
+        topic: bytes = b"hostile/",
     ) -> None:
         self.flood_total = flood_bytes
         self.start = start  # the flood waits for it (None: at once after CONNACK)
         self.qos_levels = qos_levels  # cycled through (QoS 2: never a PUBREL)
         self.oversized_bytes = oversized_bytes  # > 0: one PUBLISH this long instead
+        self.topic = topic  # the flood's topics start with it (not UTF-8 if so wished)
         self.payload = b"x" * payload_bytes
         self.report = FloodReport()
         self.port = 0
@@ -163,7 +166,8 @@ class HostileBroker:
             for _ in range(64):
                 k += 1
                 qos = self.qos_levels[k % len(self.qos_levels)]
-                data = publish(f"hostile/{k % 1000}", self.payload, qos, k % 65535 + 1, version)
+                topic = self.topic + str(k % 1000).encode()
+                data = publish(topic, self.payload, qos, k % 65535 + 1, version)
                 writer.write(data)
                 self.report.flood_bytes += len(data)
                 self.report.flood_messages += 1

@@ -178,6 +178,32 @@ def test_an_oversized_packet_from_the_broker_is_never_read() -> None:
     assert end["stats"]["unasked"] == 0  # nothing of it was taken as a message
 
 
+def test_topics_that_are_not_utf8_are_counted_and_the_connection_kept() -> None:
+    """A broker pushing messages whose topics are not UTF-8 (QoS 0 and 1): counted and
+    dropped like the others, on one connection. Before: aiomqtt decoded each topic in paho's
+    on_message; the first UnicodeDecodeError dropped the connection, and so at each one."""
+
+    async def run() -> tuple[dict, HostileBroker]:
+        async with HostileBroker(1024 * 1024, topic=b"hostile/\xff\xfe/") as broker:
+            proc = await start_publisher(broker.port)
+            try:
+                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
+                while not broker.report.flood_done:
+                    await asyncio.sleep(0.1)
+                n = broker.report.flood_messages
+                end = await figures_until(proc, lambda f: f["stats"]["unasked"] >= n, 30)
+            finally:
+                assert proc.stdin is not None
+                proc.stdin.write(b"stop\n")
+                await proc.wait()
+            return end, broker
+
+    end, broker = asyncio.run(run())
+    print(end["stats"], broker.report.connections)
+    assert end["stats"]["unasked"] == broker.report.flood_messages >= 1000
+    assert broker.report.connections == 1 and end["stats"]["errors"] == 0
+
+
 # ---------------------------------------------------------------- the status socket
 
 # A local process opening and closing connections to a Unix socket as fast as it can
