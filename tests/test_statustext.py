@@ -130,6 +130,19 @@ TRACKING = OperatorState(vo_state="TRACKING", scale_ready=True, scale_sensors=4)
             OperatorState(dpose_armed=True),
             [("dpose", 5, "d-Pose lock lost")],
         ),
+        # a second source speaking as the autopilot (a spoofer, a second router): named
+        (
+            INITIAL,
+            OperatorState(link_rival="127.0.0.1:14555"),
+            [("rival", 4, "second autopilot at 127.0.0.1:14555")],
+        ),
+        (
+            OperatorState(armed=True, link_rival="127.0.0.1:14555"),
+            OperatorState(armed=True, link_rival="10.0.0.9:14550"),
+            [("rival", 2, "second autopilot at 10.0.0.9:14550")],  # CRITICAL in flight
+        ),
+        (OperatorState(link_rival="127.0.0.1:1"), OperatorState(link_rival="127.0.0.1:1"), []),
+        (OperatorState(link_rival="127.0.0.1:1"), INITIAL, []),
     ],
 )
 def test_each_transition_gives_its_event(

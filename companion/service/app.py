@@ -682,6 +682,7 @@ class Service:
             dpose_armed=dpose_armed,
             dpose_locked=self._dpose_lock.update(dpose_used, t_s),
             armed=s.autopilot_armed,
+            link_rival=self.link.rival_address(now),
         )
 
     async def _statustext_loop(self) -> None:
@@ -1061,6 +1062,8 @@ class Service:
             "mag_heading_samples": ps.mag_heading_samples,
             "mag_heading_sigma_deg": ps.mag_heading_sigma_deg,
             "vo_gaps": ps.gaps,  # resets forced by > vo.max_gap_ms without frames
+            "vo_held_for_attitude": ps.held_for_attitude,
+            "vo_heading_restarts": ps.heading_restarts,
             "reset_counter": s.last_reset_counter,
             "scale": ps.scale,
             "link": vars(self.link.stats),
@@ -1088,6 +1091,10 @@ class Service:
                 "resets": p.vo_resets,
                 "heading_deg": p.vo_heading_deg,
                 "heading_from_compass": p.mag_heading_samples > 0,
+                # frames kept from a VO that was not tracking for want of an attitude, and
+                # maps dropped for starting before the attitude stream: north is the autopilot's
+                "held_for_attitude": p.held_for_attitude,
+                "heading_restarts": p.heading_restarts,
             },
             "scale": {
                 "method": p.method,

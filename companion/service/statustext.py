@@ -71,7 +71,8 @@ class OperatorState:
     from the distance sensors available (held over short gaps); ``autopilot_silent_s``: since
     the autopilot's last HEARTBEAT (None: never heard); ``rangefinder_faults``: ids of serial
     rangefinders that cannot be read; ``dpose_armed`` / ``dpose_locked``: d-Pose's pattern is
-    set / it corrects the pose now; ``armed``: the autopilot says it is armed (in flight)."""
+    set / it corrects the pose now; ``armed``: the autopilot says it is armed (in flight);
+    ``link_rival``: another source speaking as the autopilot."""
 
     camera: str | None = None
     vo_state: str = "INITIALIZING"
@@ -85,6 +86,9 @@ class OperatorState:
     dpose_armed: bool = False
     dpose_locked: bool = False
     armed: bool = False
+    # ``host:port`` of a source other than the autopilot's that sends as the autopilot (its
+    # system id) within the last 10 s, None: nobody (drivers/mavlink.py rival_address)
+    link_rival: str | None = None
 
     @property
     def tracking(self) -> bool:
@@ -110,8 +114,12 @@ def transitions(prev: OperatorState, cur: OperatorState) -> list[Event]:
     (INFO) / lost while tracking (NOTICE). Autopilot link: silent (WARNING; said for when the
     link is one-way, replaced by "back" if it could not be sent) / back after N s (NOTICE).
     Serial rangefinders: fault (WARNING) / back (INFO). d-Pose: armed, lock (INFO), lock
-    lost (NOTICE)."""
+    lost (NOTICE). A second source speaking as the autopilot: named when it appears or
+    changes (CRITICAL while armed, else WARNING), sent to the autopilot the link follows."""
     out: list[Event] = []
+    if cur.link_rival is not None and cur.link_rival != prev.link_rival:
+        sev = Severity.CRITICAL if cur.armed else Severity.WARNING
+        out.append(Event("rival", sev, f"second autopilot at {cur.link_rival}"))
     if cur.camera != prev.camera:
         if cur.camera is None:
             out.append(Event("camera", Severity.INFO, "camera ok"))
