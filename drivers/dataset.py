@@ -625,6 +625,9 @@ def _read_ours(folder: SafeFolder) -> Dataset:
     )
     fed = None
     if fed_r is not None or fed_a is not None or meta.get("ingest_order", False) is True:
+        _check_fed_columns(
+            {"ranges.csv": (ranges, fed_r), "attitude.csv": (atts, fed_a), "imu.csv": (imus, fed_i)}
+        )
         empty = np.zeros(0, dtype=np.int64)
         fed = (empty if fed_r is None else fed_r, empty if fed_a is None else fed_a)
     last_us = int(frames.times_us[n - 1]) if n else -1
@@ -662,6 +665,17 @@ def _read_ours(folder: SafeFolder) -> Dataset:
         frame_names=frames.names[:n],
         skipped={k: c for k, c in counts.items() if c.skipped},
     )
+
+
+def _check_fed_columns(files: dict[str, tuple[list[Any], I64 | None]]) -> None:
+    """A recording replays in its ingest order: every samples file with rows needs its
+    fed_before_frame column (DatasetError naming the first without)."""
+    for name, (samples, fed) in files.items():
+        if samples and fed is None:
+            raise DatasetError(
+                f"{name} row 1 (header): missing column {FED!r} (a recording in its ingest "
+                "order needs it in every samples file)"
+            )
 
 
 def _read_published(

@@ -25,6 +25,7 @@ import os
 import re
 import stat
 import struct
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,6 +99,32 @@ class ImageHeader:
     decoded_bytes: int
 
 
+def png_damage(data: bytes) -> str:
+    """What is wrong with a PNG's chunk layout (empty when nothing): a chunk cut short, a CRC
+    that does not match, no IDAT or no IEND. Checked before decoding, so that a damaged file
+    is refused by name instead of reaching libpng (which prints its own errors)."""
+    pos, n, idat = 8, len(data), False
+    while pos + 12 <= n:
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > n:
+            return f"chunk {kind!r} cut short"
+        (crc,) = struct.unpack(">I", data[end - 4 : end])
+        if zlib.crc32(data[pos + 4 : end - 4]) & 0xFFFFFFFF != crc:
+            return f"chunk {kind!r}: CRC mismatch"
+        idat = idat or kind == b"IDAT"
+        if kind == b"IEND":
+            return "" if idat else "no IDAT chunk"
+        pos = end
+    return "no IEND chunk (cut short)"
+
+
+def jpeg_damage(data: bytes) -> str:
+    """What is wrong with a JPEG's end (empty when nothing): a file cut short has no EOI."""
+    return "" if data.rstrip(b"\x00").endswith(b"\xff\xd9") else "no end-of-image marker"
+
+
 def png_header(data: bytes) -> ImageHeader | None:
     """The IHDR of a PNG (the first chunk, by the format), or None if ``data`` is not one."""
     if len(data) < 33 or not data.startswith(PNG_SIGNATURE) or data[12:16] != b"IHDR":
@@ -156,6 +183,9 @@ def check_image_header(
             f"{where}: {header.kind} of {header.width} x {header.height} px, but the "
             f"calibration's camera is {size[0]} x {size[1]}: not decoded"
         )
+    damage = png_damage(data) if header.kind == "PNG" else jpeg_damage(data)
+    if damage:
+        raise DatasetError(f"{where}: damaged {header.kind} ({damage}): not decoded")
     if header.decoded_bytes > max_decoded:
         raise DatasetError(
             f"{where}: would take {header.decoded_bytes} bytes decoded (more than "

@@ -160,3 +160,285 @@ def make_fifo(path: Path) -> None:
     if path.exists() or path.is_symlink():
         path.unlink()
     os.mkfifo(path)
+
+
+# ------------------------------------------------------------------------------ fuzzing
+HOSTILE_TOKENS = (
+    "nan",
+    "inf",
+    "-inf",
+    "",
+    " ",
+    "x",
+    "1e999",
+    "-1",
+    "0",
+    "1.5",
+    "-0",
+    "9" * 30,
+    "9" * 5000,
+    "0x10",
+    "1_000",
+    "\u00e9",
+    '"',
+    "../x.png",
+    "/etc/passwd",
+    "/dev/zero",
+    "99999999999999999999",
+    "1,2",
+    "true",
+    "[1, 2]",
+    "{a = 1}",
+    "\t",
+    "NaN",
+    "1e-320",
+    "x" * 3000,
+)
+TOML_VALUES = (
+    "nan",
+    "inf",
+    "-1",
+    "0",
+    "9" * 400,
+    "9" * 5000,
+    '"x"',
+    "true",
+    "[]",
+    "{}",
+    "[[[[1]]]]",
+    '"\\u0000"',
+    "1e400",
+    "[" * 40 + "]" * 40,
+    "'../x'",
+    "30000",
+)
+
+
+def _pick_file(rng: np.random.Generator, files: Files, suffixes: tuple[str, ...]) -> str | None:
+    names = sorted(n for n in files if n.endswith(suffixes))
+    return names[int(rng.integers(len(names)))] if names else None
+
+
+def _flip_bytes(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, ("",))
+    if name and files[name]:
+        data = bytearray(files[name])
+        for _ in range(int(rng.integers(1, 9))):
+            data[int(rng.integers(len(data)))] = int(rng.integers(256))
+        files[name] = bytes(data)
+
+
+def _truncate(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, ("",))
+    if name:
+        files[name] = files[name][: int(rng.integers(len(files[name]) + 1))]
+
+
+def _csv_field(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, (".csv", ".txt", ".yaml"))
+    if not name:
+        return
+    lines = files[name].decode("utf-8", "replace").split("\n")
+    row = int(rng.integers(len(lines)))
+    fields = lines[row].split(",")
+    fields[int(rng.integers(len(fields)))] = HOSTILE_TOKENS[int(rng.integers(len(HOSTILE_TOKENS)))]
+    lines[row] = ",".join(fields)
+    files[name] = "\n".join(lines).encode()
+
+
+def _csv_rows(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, (".csv", ".txt"))
+    if not name:
+        return
+    lines = files[name].decode("utf-8", "replace").split("\n")
+    a, b = (int(v) for v in rng.integers(len(lines), size=2))
+    op = int(rng.integers(5))
+    if op == 0:
+        lines.insert(a, lines[b])  # a duplicated row (or header)
+    elif op == 1:
+        lines[a], lines[b] = lines[b], lines[a]  # decreasing times
+    elif op == 2:
+        del lines[a]
+    elif op == 3:
+        lines = [line + ",extra" for line in lines]  # an extra column
+    else:
+        header = lines[0].split(",")
+        del header[int(rng.integers(len(header)))]  # a missing column
+        lines[0] = ",".join(header)
+    files[name] = "\n".join(lines).encode()
+
+
+def _toml(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, (".toml",))
+    if not name:
+        return
+    lines = files[name].decode("utf-8", "replace").split("\n")
+    row = int(rng.integers(len(lines)))
+    op = int(rng.integers(4))
+    if op == 0 and "=" in lines[row]:
+        key = lines[row].split("=")[0]
+        lines[row] = f"{key}= {TOML_VALUES[int(rng.integers(len(TOML_VALUES)))]}"
+    elif op == 1:
+        del lines[row]
+    elif op == 2:
+        lines.insert(row, lines[int(rng.integers(len(lines)))])  # a duplicated key or table
+    else:
+        depth = int(rng.choice([20, 1000, 30_000]))
+        lines.insert(row, "[" + ".".join(["t"] * depth) + "]" if rng.random() < 0.5 else "")
+        lines.insert(row, "deep = " + "[" * depth + "]" * depth)
+    files[name] = "\n".join(lines).encode()
+
+
+def _image(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, (".png", ".jpg"))
+    if not name:
+        return
+    op = int(rng.integers(5))
+    if op == 0:
+        files[name] = png_of(WIDTH + int(rng.integers(1, 9)), HEIGHT)
+    elif op == 1:
+        side = int(rng.choice([30_000, 65_535, 2**31 - 1]))
+        files[name] = set_png_size(files[name], side, side)  # a bomb's header
+    elif op == 2:
+        files[name] = bytes(cv2.imencode(".jpg", textured(0))[1])  # a JPEG named .png
+    elif op == 3:
+        files[name] = files[name][: int(rng.integers(8, 64))]
+    else:
+        files[name] = bytes(rng.integers(0, 256, int(rng.integers(1, 200)), dtype=np.uint8))
+
+
+def _drop_or_empty(rng: np.random.Generator, files: Files) -> None:
+    name = _pick_file(rng, files, ("",))
+    if name and rng.random() < 0.5:
+        del files[name]
+    elif name:
+        files[name] = b""
+
+
+MUTATIONS = (
+    _flip_bytes,
+    _truncate,
+    _csv_field,
+    _csv_field,
+    _csv_rows,
+    _toml,
+    _image,
+    _drop_or_empty,
+)
+
+
+def _place(rng: np.random.Generator, folder: Path, outside: Path) -> None:
+    """Now and then, a file-system hazard: a frame as a FIFO or a link out of the folder."""
+    frames = sorted(p for p in folder.rglob("*.png"))
+    if not frames or rng.random() > 0.05:
+        return
+    victim = frames[int(rng.integers(len(frames)))]
+    if rng.random() < 0.5:
+        make_fifo(victim)
+    else:
+        victim.unlink()
+        victim.symlink_to(outside / "x.png")
+
+
+def mutant(rng: np.random.Generator, base: Files) -> Files:
+    """``base`` with 1 to 3 random mutations."""
+    files = dict(base)
+    for _ in range(int(rng.integers(1, 4))):
+        MUTATIONS[int(rng.integers(len(MUTATIONS)))](rng, files)
+    return files
+
+
+class HangError(Exception):
+    """A fuzz case that took longer than its bound."""
+
+
+def _on_alarm(_signum: int, _frame: object) -> None:
+    raise HangError()
+
+
+def _read_all(folder: Path) -> None:
+    """What `eval` reads: the dataset and every frame, in the pipeline's order."""
+    from drivers.dataset import open_dataset
+
+    for _ in open_dataset(folder).events():
+        pass
+
+
+def _eval(folder: Path, out: Path) -> tuple[int, list[str]]:
+    """`companion eval folder` in this process: its exit code and its stderr lines."""
+    import contextlib
+    import io
+
+    from companion.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = main(["eval", str(folder), "--out", str(out), "--no-progress"])
+    return code, err.getvalue().splitlines()
+
+
+def fuzz(count: int, seed: int, eval_every: int, workdir: Path, case_limit_s: float) -> dict:
+    """``count`` seeded mutants of a small recording of ours (3 in 4) and of a EuRoC folder,
+    each read in full by the reader (every ``eval_every``-th through `companion eval`
+    instead); returns the tally: cases, refusals (DatasetError), evals by exit code, and
+    the failures: tracebacks, hangs (over ``case_limit_s``), messages of more than a line,
+    plus the slowest case [s] and the process's peak RSS [MB]."""
+    import resource
+    import shutil
+    import signal
+    import time
+    import traceback
+
+    from companion.errors import DatasetError
+
+    rng = np.random.default_rng(seed)
+    write_recording(workdir / "ours")
+    write_euroc(workdir / "euroc")
+    bases = {"ours": snapshot(workdir / "ours"), "euroc": snapshot(workdir / "euroc")}
+    outside = materialise(bases["ours"], workdir / "outside")
+    (outside / "x.png").write_bytes(bases["ours"]["images/000000.png"])
+    tally: dict = {
+        "cases": 0,
+        "read": 0,
+        "refused": 0,
+        "evals": {},
+        "tracebacks": [],
+        "hangs": [],
+        "multiline": [],
+        "slowest_s": 0.0,
+    }
+    signal.signal(signal.SIGALRM, _on_alarm)
+    start = time.monotonic()
+    for i in range(count):
+        files = mutant(rng, bases["euroc" if rng.random() < 0.25 else "ours"])
+        folder = materialise(files, workdir / "case")
+        _place(rng, folder, outside)
+        began = time.monotonic()
+        signal.setitimer(signal.ITIMER_REAL, case_limit_s)
+        try:
+            if i % eval_every == 0:
+                code, lines = _eval(folder, workdir / "out")
+                tally["evals"][code] = tally["evals"].get(code, 0) + 1
+                errors = [x for x in lines if not x.startswith("companion: warning:")]
+                if code not in (0, 2) or (code == 2 and len(errors) != 1):
+                    tally["multiline"].append((i, code, lines[:5]))
+            else:
+                _read_all(folder)
+                tally["read"] += 1
+        except DatasetError as e:
+            tally["refused"] += 1
+            if "\n" in str(e):
+                tally["multiline"].append((i, str(e)[:300]))
+        except HangError:
+            tally["hangs"].append(i)
+        except BaseException:  # every escape is what the fuzz looks for
+            tally["tracebacks"].append((i, traceback.format_exc()[-2000:]))
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+        tally["slowest_s"] = max(tally["slowest_s"], time.monotonic() - began)
+        tally["cases"] += 1
+        shutil.rmtree(folder)
+        shutil.rmtree(workdir / "out", ignore_errors=True)
+    tally["seconds"] = time.monotonic() - start
+    tally["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return tally

@@ -241,7 +241,7 @@ CASES = [
     Case("image-not-an-image", "not a PNG or JPEG", _set(IMG0, b"hello\n")),
     Case(
         "image-truncated",
-        "frame 0 (images/000000.png): the image does not decode",
+        "frame 0 (images/000000.png): damaged PNG (no IEND",
         lambda f: f.__setitem__(IMG0, f[IMG0][:40]),
     ),
     Case("image-empty", "not a PNG or JPEG", _set(IMG0, b"")),

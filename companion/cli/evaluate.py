@@ -158,7 +158,7 @@ def eval_vo(args: argparse.Namespace) -> int:
     replay = write_replay(inp.dataset, run.poses, out) if inp.dataset is not None else None
     if replay is not None:
         print(replay)
-    if inp.gt_at is not None:  # the camera's true trajectory, to compare with the VO's poses
+    if inp.gt_at is not None and len(times):  # the camera's true trajectory, vs the VO's
         T_body_cam = inp.cfg.camera.T_body_cam() if inp.T_body_cam is None else inp.T_body_cam
         gt = np.array([inp.gt_at(int(t)) @ T_body_cam for t in times])
         write_tum(out / "groundtruth.tum", times * 1e-6, gt)
