@@ -69,7 +69,8 @@ typecheck: venv
 # tests/peers.py keep the real autopilots on one worker and give every real-time flight the
 # machine to itself (its camera prerendered beside the other worker's tests), so the second
 # core runs the CPU-bound tests while no flight is on: 14:55 against 20:38 serial on this
-# 2-core machine (docs/BENCHMARKS.md, session 14; docs/decisions.md, "Two test workers").
+# 2-core machine (docs/BENCHMARKS.md, "Later on 2026-11-25 (8eac457)"; docs/decisions.md,
+# "Two test workers").
 PYTEST_WORKERS ?= 2
 unit: venv sysdeps
 	$(BIN)/python -m pytest $(if $(filter-out 0,$(PYTEST_WORKERS)),-n $(PYTEST_WORKERS) --dist loadgroup)

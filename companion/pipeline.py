@@ -697,7 +697,7 @@ class Pipeline:
         # Position: a 2 cm floor plus the scale's relative sigma over one metre (the part of
         # our error that changes from sample to sample: a scale update moves the local map by
         # that much per metre). Not the drift since the map's origin (that sigma times the
-        # distance travelled, until session 22): drift is correlated over minutes, no filter
+        # distance travelled, until 2026-11-28): drift is correlated over minutes, no filter
         # averages it away, and as noise it only weighed our later samples less than the
         # earlier ones (docs/decisions.md, "What EKF2 adds to our height"). Roll/pitch from
         # the fused tilt (else a VO default); yaw from the VO default

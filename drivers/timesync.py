@@ -27,7 +27,7 @@ conversions extrapolate the offset to the time asked. Its gains follow the sampl
   the fading-memory polynomial filter of degree 1),
 
 whichever gain is larger; offset += alpha r, skew += beta r / dt for a residual r. Fixed
-per-sample gains (0.05 and 0.025, before session 18) were underdamped and made the skew's noise
+per-sample gains (0.05 and 0.025, before 4d4d589) were underdamped and made the skew's noise
 grow with the request rate: at PX4's 50 Hz on a busy host it swung by +-7000 ppm (a 60 ppm
 clock), and any pause in the answers (a port change, a stall) was extrapolated with it, 2-13
 ms off. Several successive samples far from the estimate (an autopilot reboot: its clock jumps

@@ -47,7 +47,7 @@ SETTLE_M, SETTLE_S, SETTLE_TIMEOUT_S = 0.15, 1.0, 20.0
 # The loop puts three machines' work on one: the autopilot with its simulated vehicle, the
 # world's camera and sensors (the bridge) and the companion. On a vehicle they never compete
 # for a core; here, on a busy 2-core host, the companion's load starved PX4 itself (its
-# receipt of our messages 100-1,200 ms late, EKF2 refusing them as too old: session 16).
+# receipt of our messages 100-1,200 ms late, EKF2 refusing them as too old: 2026-11-27, bfdc1dc).
 # The companion runs at a lower priority, so that when the host is short of CPU it is the
 # companion that drops frames (counted and reported), not the world or the autopilot.
 SERVICE_NICE = 5

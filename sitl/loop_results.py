@@ -73,8 +73,8 @@ def segment_errors(
     ``vertical_error_m_p95`` and ``horizontal_error_m_max`` into ``s``. Beside them the same
     p95s after one translation for the whole flight (``*_one_translation``): a reset that
     restarts the autopilot's fusion leaves our frame where it was, and a stretch's own offset
-    would take the drift before it out of the figure (docs/RESULTS.md, session 20). Returns
-    the longest stretch's translation (3,) (zeros if none)."""
+    would take the drift before it out of the figure (docs/RESULTS.md, "2026-11-27 (d7a0c08)").
+    Returns the longest stretch's translation (3,) (zeros if none)."""
     err = np.full_like(est, np.nan)
     offset = np.zeros(3)
     best = 0

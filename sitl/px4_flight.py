@@ -80,9 +80,10 @@ BOOT_PARAMS = {
     "EKF2_RNG_CTRL": "0",
     # without GPS EKF2 takes the declination from this parameter (default 0); a user sets their
     # site's: SIH's at its home, the same as our compass's (config/px4_sitl.toml,
-    # vo.mag_declination_deg). Sessions 9-19 tuned it (4.7, 3.5, 4.1) to PX4's own heading
-    # error, which wanders from boot to boot; since session 20 PX4's heading before our start
-    # no longer matters: our frame takes our compass's, and EKF2 fuses our yaw
+    # vo.mag_declination_deg). From 2026-11-25 to e751c17 it was tuned (4.7, 3.5, 4.1) to PX4's
+    # own heading error, which wanders from boot to boot; since 6059243 (2026-11-27) PX4's
+    # heading before our start no longer matters: our frame takes our compass's, and EKF2 fuses
+    # our yaw
     "EKF2_MAG_DECL": "3.3",
     # the floor EKF2 puts under our position variance (default 0.1 m): ours is ~4 cm here (as
     # its covariance says); with the floor PX4's position lagged ours more (docs/decisions.md)
@@ -95,7 +96,7 @@ BOOT_PARAMS = {
     # climb's velocity errors (0.1-0.2 m/s) as 0.15-0.2 m/s^2 of bias, a 1 deg tilt error that
     # lasted the flight; SIH's accelerometer has none to speak of (its SCALED_IMU against the
     # truth: < 0.02 m/s^2). With 0.05, six missions: PX4's tilt error 1.01-1.10 deg RMS
-    # against SIH's truth, 1.05-1.42 with 0.2 (docs/RESULTS.md, session 11)
+    # against SIH's truth, 1.05-1.42 with 0.2 (docs/RESULTS.md, "2026-11-25 (c1a0250)")
     "EKF2_ABIAS_INIT": "0.05",
     # EKF2's fusion horizon, 300 ms back (default 200): EKF2 fuses a sample when its delayed
     # horizon passes the sample's stamp, measured at EKF2_DELAY_MAX - 44 ms (156 ms with 200,

@@ -322,7 +322,7 @@ def _px4_clock_truth(ulog: dict[str, np.ndarray], span: np.ndarray) -> np.ndarra
     without either topic. No clock mapping: the line through the arrival delays that maps PX4's
     time to ours (clock_line) was off by up to 35 ms in parts of a flight (SIH's lockstep pace
     varies), and at 3 m/s that alone put 0.1 m into the horizontal figure (docs/RESULTS.md,
-    session 22)."""
+    "2026-11-28 (e28df69)")."""
     vlp = ulog.get("vehicle_local_position")
     g = ulog.get("vehicle_local_position_groundtruth")
     if vlp is None or g is None or len(g) < 2 or len(vlp) != len(span):
@@ -363,7 +363,8 @@ def _frame_heading_error(
     magnetometer, else the autopilot's at the VO's start) minus SIH's true yaw on the ground
     (the median before ``before``, our clock [ns]; the vehicle rests until it arms). Every
     position we send is turned by it about home, and no estimator of ours sees it
-    (docs/RESULTS.md, sessions 19 and 20). None without either."""
+    (docs/RESULTS.md, "2026-11-27 (e751c17)" and "2026-11-27 (d7a0c08)"). None without
+    either."""
     rest = t_tr < before
     if vo_heading_deg is None or rest.sum() < 10:
         return None

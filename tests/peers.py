@@ -60,7 +60,7 @@ def _not_counted(since: float) -> float:
     pytest-timeout's alarm (its signal method, ITIMER_REAL) moves on by as much, so that a
     test's limit counts its own work, not the other tests' (of this run or another run).
     Returns now (monotonic): a wait calls it after every poll, so that the alarm never goes
-    off while it waits (session 19: with two runs on the machine, three autopilot tests
+    off while it waits (2026-11-27: with two runs on the machine, three autopilot tests
     timed out in their wait for the other run's autopilots, 60-300 s)."""
     now = time.monotonic()
     remaining_s, interval_s = signal.getitimer(signal.ITIMER_REAL)

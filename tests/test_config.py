@@ -71,7 +71,7 @@ def test_bad_values_name_their_key(overrides: dict, message: str) -> None:
 
 def test_a_retired_key_loads_with_a_warning_and_a_typo_still_fails(caplog) -> None:
     """A recording's config.toml carries every option it ran with; one removed since (here
-    dpose.blend, session 12) must not make the recording unreadable."""
+    dpose.blend, 743f76c on 2026-11-25) must not make the recording unreadable."""
     with caplog.at_level("WARNING"):
         cfg = load_config(overrides={"dpose": {"blend": 0.3, "reset_m": 0.04}})
     assert cfg.dpose.reset_m == 0.04

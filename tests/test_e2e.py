@@ -10,7 +10,7 @@ received, latency, the 1 ms time-sync error and 5 ms round trip of a quiet machi
 benchmarks: `make demo`, docs/BENCHMARKS.md. A service that stalls or drops every other frame
 still fails here (received rate >= half what its pipeline could do, up to the camera's rate).
 
-Slow motion (session 17): here the SITL autopilot runs in the service's process (the test reads
+Slow motion (2026-11-27): here the SITL autopilot runs in the service's process (the test reads
 its internals), which a real one never does, and on a slow 2-core host that process turned a
 frame over in 40-60 ms with stalls of 150 ms: in real time the VO lost its map up to 13 times
 in a flight (`vo_resets` 13, `vo_gaps` 0) and the pad's flight published nothing over the pad
@@ -81,7 +81,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert seen["autopilot"]["rates_acknowledged"] == [30, 111, 132]
     assert seen["autopilot"]["rates_refused"] == [26]
     # what the machine let the pipeline do (a slow or shared host turns a frame over in
-    # 60-80 ms, session 16): the service must publish at least half of that, up to the camera
+    # 60-80 ms, 2026-11-27): the service must publish at least half of that, up to the camera
     keep_up = min(rate, summary["pipeline_capacity_hz"])
     assert seen["scale"]["value"] > 0 and seen["output"]["rate_hz"] > 0.5 * keep_up
     rates = seen["scale"]["match_rate"]  # per sensor: 35-50 % of frames match on hills
@@ -93,7 +93,7 @@ def test_service_and_sitl_autopilot_end_to_end(tmp_path) -> None:
     assert report["received"] >= summary["published"] - 2 * rate
     # the time sync is as good as the round trip allows: a sample is off by at most half its
     # round trip, and from the start (the first samples' line) within one (0.16 ms on a slow
-    # host, session 18; 4-6 ms before its skew's gains followed the samples' spacing)
+    # host, 2026-11-27; 4-6 ms before its skew's gains followed the samples' spacing)
     assert report["timesync_error_ms_p99"] <= 1.0 + 0.5 * report["timesync_rtt_ms_max"]
     assert report["timesync_error_ms_max"] <= 1.0 + report["timesync_rtt_ms_max"]
     assert report["timesync_rtt_ms_p50"] <= 20.0  # requests are answered from the loop

@@ -144,7 +144,7 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
     assert silence["rate_requests_after"] >= 1 and reboot["rate_requests_after"] >= 1
     # from 2 s after the fault the time sync is as good as the round trip allows: a sample is
     # off by at most half its round trip, and the filter averages them (0.12-0.19 ms on a
-    # loaded slow host, session 18; its skew, swinging by +-7000 ppm before, made it 2-13 ms)
+    # loaded slow host, 2026-11-27; its skew, swinging by +-7000 ppm before, made it 2-13 ms)
     sync_bound_ms = 1.0 + 0.5 * report["timesync_rtt_ms_p99"]
     for m in (silence, port, reboot):
         assert m["resume_s"] is not None and m["resume_s"] <= 5.0, m
@@ -157,7 +157,7 @@ def test_the_service_survives_camera_link_and_broker_faults(tmp_path) -> None:
     assert extra["ranges"] >= 0.8 * 4 * 50 * 10, extra["ranges"]
     # the output rate away from the faults, with the broker down and after it is back: at
     # least half of what the machine let the pipeline do, up to the camera's rate (a slow host,
-    # session 16: 14.8 poses/s in the first window)
+    # 2026-11-27: 14.8 poses/s in the first window)
     keep_up = min(cfg.camera.rate_hz, summary["pipeline_capacity_hz"])
     rec = [r for r in stub.stats.received if r.kind == report["message"]]
     t_pose = np.array([r.t_sim_s for r in rec])

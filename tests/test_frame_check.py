@@ -112,10 +112,10 @@ def test_a_gap_without_frames_resets(steps: list[object]) -> None:
 
 def test_gaps_shorter_than_max_gap_are_tracked_across(steps: list[object]) -> None:
     """A busy machine's camera path loses runs of frames: the PX4 loop on a slow 2-core host
-    (session 16) had gaps of up to 433 ms, and each one over the old 250 ms limit re-initialised
+    (2026-11-27) had gaps of up to 433 ms, and each one over the old 250 ms limit re-initialised
     the VO in the air. 0.8 s without frames every 3 s of a lawnmower over hills: no reset, and
-    the positions stay within 0.15 m of the flight without gaps (6.6 cm measured in session
-    16; 10.9 cm on session 22's machine with the code of session 21 as well: a reset or a lost
+    the positions stay within 0.15 m of the flight without gaps (6.6 cm measured on
+    2026-11-27; 10.9 cm on the machine of 2026-11-28 with b6f1fd7's code as well: a reset or a lost
     map is metres)."""
     gaps = {k for k in range(120, len(steps)) if (k - 120) % 90 < 24}  # 24 frames = 0.8 s
     pipe, poses = _run(steps, dict.fromkeys(gaps))

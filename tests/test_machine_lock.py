@@ -86,8 +86,8 @@ def test_a_wait_longer_than_the_tests_limit_does_not_end_the_test(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The alarm moves on while the test waits, not only once it has the lock: here the other
-    run holds the autopilots 2.5 s against a limit of 1 s left (three tests of session 19's
-    second run ended in their wait so, 60-300 s)."""
+    run holds the autopilots 2.5 s against a limit of 1 s left (three tests of the second of
+    two runs on 2026-11-27 ended in their wait so, 60-300 s)."""
     env = {**os.environ, AUTOPILOTS_LOCK_ENV: str(tmp_path / "autopilots.lock")}
     monkeypatch.setenv(AUTOPILOTS_LOCK_ENV, env[AUTOPILOTS_LOCK_ENV])
     monkeypatch.setattr(peers, "_autopilots", [])  # this worker's own hold, if any, aside

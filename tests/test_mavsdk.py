@@ -101,7 +101,7 @@ def test_mavsdk_sees_sitl_stub_as_px4_with_downward_distance_sensors() -> None:
                 telemetry = TelemetryAsync(system)
                 # The flight (and the distance sensors' stream) starts warmup_s after the
                 # stub's camera process is up: on a loaded machine (two runs of the suite at
-                # once, session 19) that took longer than the 10 s given to the readings, so
+                # once, 2026-11-27) that took longer than the 10 s given to the readings, so
                 # the 10 s count from the flight's start
                 async with asyncio.timeout(45.0):
                     while stub.flight_start_ns > time.monotonic_ns() + 10**14:

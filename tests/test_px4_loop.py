@@ -18,11 +18,11 @@ import pytest
 
 from sitl.px4_flight import SHARED_PX4, Flight, FlightOptions
 
-# PX4 SIH's lockstep clock against ours: ~0.1 % on session 15's host, 0.9-2.3 % over session
-# 16's hovers on a slower one (docs/RESULTS.md, session 16), 0.6-0.8 % in every hover of
-# sessions 19-20 here. Up to 1 % the 99 % is asserted: since EKF2's longer horizon (session
-# 20: EKF2_DELAY_MAX 300, poses up to 200 ms old) the late, bunched samples of a slow clock
-# are fused (hovers at 0.64 / 0.77 % off: 100.0 % fused; the six missions 100.0 %)
+# PX4 SIH's lockstep clock against ours: ~0.1 % on the host of 2026-11-25, 0.9-2.3 % over the
+# hovers of 2026-11-27 on a slower one (docs/RESULTS.md, "2026-11-27 (bfdc1dc)"), 0.6-0.8 % in
+# every hover here from e751c17 to d7a0c08. Up to 1 % the 99 % is asserted: since EKF2's longer
+# horizon (5451f47: EKF2_DELAY_MAX 300, poses up to 200 ms old) the late, bunched samples of a
+# slow clock are fused (hovers at 0.64 / 0.77 % off: 100.0 % fused; the six missions 100.0 %)
 PX4_REAL_TIME_PPM = 10_000
 
 pytestmark = [
@@ -70,10 +70,10 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
         assert s["ev_pos_fused_pct_whole_airborne"] >= 99.0, detail
     else:
         # PX4's own simulation could not keep real time on this host: its lockstep clock ran
-        # slow and unsteadily (PX4 alone, nothing else running: 2.2-3.3 % slow in session 16),
+        # slow and unsteadily (PX4 alone, nothing else running: 2.2-3.3 % slow on 2026-11-27),
         # so our real-time samples reach EKF2 bunched and late and it drops some of them; the
         # 99 % is not a property of the companion there. What must still hold: EKF2 never goes
-        # long without our position (0.7-3.0 s at most, 48-92 % fused, in session 16's hovers
+        # long without our position (0.7-3.0 s at most, 48-92 % fused, in the hovers of bfdc1dc
         # there) and the loop stays safe (the assertions above and below).
         warnings.warn(
             f"PX4 SIH's clock ran {s['px4_clock_rate_vs_ours_ppm'] / 1e4:.1f} % off real time "
@@ -85,13 +85,13 @@ def test_px4_hovers_on_our_estimate(tmp_path: Path) -> None:
         )
         assert s.get("ev_pos_unfused_max_s", float("inf")) <= 5.0, detail
         assert s["ev_pos_fused_pct"] >= 40.0, detail
-    # issue 19's p95 <= 0.25 m. Every hover at 20 Hz since session 17 met it: 0.136-0.209 m
-    # by hand and in CI, 0.153 / 0.156 m in session 19's two CI runs side by side (load average
-    # 4-7). Before (30 Hz, the fusion gaps of a slow host) it was 0.141-0.376 m (sessions
-    # 12-16). PX4's own rangefinder mixed into our sensor 0 gave 0.44-1.09 m
+    # issue 19's p95 <= 0.25 m. Every hover at 20 Hz since 06612af met it: 0.136-0.209 m
+    # by hand and in CI, 0.153 / 0.156 m in two CI runs side by side on 2026-11-27 (load average
+    # 4-7). Before (30 Hz, the fusion gaps of a slow host) it was 0.141-0.376 m (2026-11-25
+    # to 2026-11-27). PX4's own rangefinder mixed into our sensor 0 gave 0.44-1.09 m
     assert s["horizontal_error_m_p95"] <= 0.25, detail
     # our frame's heading comes from our compass at rest (vo.heading_source = magnetometer):
-    # within 0.6 deg of SIH's yaw (session 20's six missions: -0.08 to +0.24 deg, sigma 0.10;
+    # within 0.6 deg of SIH's yaw (the six missions of d7a0c08: -0.08 to +0.24 deg, sigma 0.10;
     # PX4's heading at our start, which the frame took before, was up to 1.15 deg off)
     assert abs(s["frame_heading_error_deg"]) <= 0.6, detail
     # ... from PX4's SCALED_IMU through the service: >= 10 s of field samples at 50 Hz (the

@@ -376,7 +376,7 @@ def test_real_px4_gives_each_broken_set_up_its_reason(vision_px4: RealPx4, case:
         if case == "ev_delay_200ms":
             # EKF2 fuses a sample shifted 200 ms back only while it arrives younger than its
             # delayed horizon + 100 ms - 200 ms (~52 ms here: horizon 152 ms): on a loaded
-            # machine (65 ms, session 19's two runs at once) it stops. The check must say
+            # machine (65 ms, two runs at once on 2026-11-27) it stops. The check must say
             # what PX4 does, and flag the delay either way
             s = replace(s, fused=bool(ev_pos(r.px4)))
     finally:
@@ -395,7 +395,7 @@ def test_real_px4_stamps_on_arrival_exactly_while_our_model_says_so(vision_px4: 
     Whenever the model says PX4 converts our stamps, PX4's vehicle_visual_odometry carries a
     converted timestamp_sample (never the arrival's); a 300 ms jump of our clock makes PX4
     reset its filter and stamp on arrival, and the model says so; both converge again, the
-    model never before PX4. Session 23 met the jump in a flight: SIH stalled 187 ms."""
+    model never before PX4. A flight on 2026-11-28 met the jump: SIH stalled 187 ms."""
     r = vision_px4
     set_up(r, Scenario(VPE, fused=True))
     sender = r.sender

@@ -652,7 +652,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
 
     Slow motion, because the 80 % is about the service, not the machine: in real time on a
     2-core host that turns a frame over in 45 ms with the SITL autopilot in its process
-    (session 17), the pipeline had no time to spare before the flood, and the CPU the flood
+    (2026-11-27), the pipeline had no time to spare before the flood, and the CPU the flood
     takes (its sender and the reading of 5,000 datagrams/s) came straight off the output
     rate (22.8 poses/s before, 14.5 in it). At half the camera rate the pipeline has the
     slack a vehicle's companion has; a service that stalls in the flood still fails."""
@@ -710,7 +710,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     assert extra["flood"]["rate"] >= 2500, extra["flood"]  # the attacker really flooded
     assert extra["link"]["rx_other_address"] >= 0.5 * extra["flood"]["sent"]
     # at least half of what the machine let the pipeline do, up to the camera's rate (a slow
-    # host turned a frame over in 60-80 ms in session 16)
+    # host turned a frame over in 60-80 ms on 2026-11-27)
     keep_up = min(cfg.camera.rate_hz, summary["pipeline_capacity_hz"] / scale)
     assert during >= 0.8 * before and during >= 0.5 * keep_up, (before, during, keep_up)
     assert report["resets"] <= summary["vo_gaps"]

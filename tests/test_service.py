@@ -64,7 +64,7 @@ def test_clock_sync_converges_with_drift_and_jitter() -> None:
 
 def test_clock_sync_skew_stays_true_at_50_hz_on_a_busy_host_and_bridges_a_pause() -> None:
     """PX4 asks at 50 Hz; on a busy host most answers wait a few ms on one side. The skew must
-    stay near the crystal's (the per-sample gains before session 18 swung it by 2000-6000 ppm
+    stay near the crystal's (the per-sample gains before 4d4d589 swung it by 2000-6000 ppm
     here, +-7000 in a recorded fault flight) so that a 2 s pause in the answers (a port change)
     is bridged within a fraction of a millisecond (those gains: 0.5-2 ms; 13 ms in CI)."""
     for seed in range(3):
@@ -94,7 +94,7 @@ def test_clock_sync_follows_a_lockstep_autopilot_whose_pace_changes_at_2_hz() ->
     """PX4 SITL's lockstep clock ran 0.5-1.5 % slow on a slow host, its pace varying with the
     load, and answers in 4 ms steps (round trips spread over 0-4 ms). Asked at the service's
     2 Hz, the conversion between answers must stay within a few ms after the pace changes
-    (the gains before session 18: 22-4,600 ms; a minimum-round-trip precision filter that let
+    (the gains before 4d4d589: 22-4,600 ms; a minimum-round-trip precision filter that let
     one answer in ten through: up to 26 ms)."""
 
     def px4_ns(t: int) -> int:  # 1.0 % slow, then 0.5 % slow from 30 s
@@ -141,7 +141,7 @@ def test_clock_sync_sees_a_clock_jump_through_slow_answers() -> None:
     """A rebooted autopilot answers a busy host's requests slower than twice the fastest
     round trip seen (the precision filter skips those): the jump must still be confirmed
     after max_consecutive_deviations answers, not wait for a fast one (8 s of readings
-    refused "from the past" after a reboot in session 17's fault flight)."""
+    refused "from the past" after a reboot in a fault flight of 2026-11-27)."""
     peer = PeerClock(offset_ns=5_000_000_000, drift_ppm=0.0)
     sync = ClockSync()
     t = 0
@@ -198,7 +198,7 @@ def test_px4s_time_sync_is_modelled_to_its_convergence_and_tracks_a_slow_lockste
 
 
 def test_px4s_time_sync_reset_on_a_jump_of_its_clock_is_modelled() -> None:
-    """A lockstep PX4 whose simulator stalled 187 ms (session 23's lawnmower 1): PX4 resets
+    """A lockstep PX4 whose simulator stalled 187 ms (lawnmower 1, 2026-11-28): PX4 resets
     its filter on the sixth answer in a row over 100 ms off, then stamps our samples on
     arrival for ~500 answers. A 60 ms step is no reset (PX4's filter takes it slowly)."""
     model = RequesterModel()
@@ -567,7 +567,7 @@ def test_centred_pose_velocity_is_exact_under_constant_acceleration() -> None:
     assert messages.centred_pose(poses[:2]) is None
     assert messages.centred_pose([*poses[:4], pose(1_200_000, reset=5)]) is None
     # a pause in publishing (a slow moment): a window over it would be stamped half the pause
-    # old (PX4 received 1.5 s old samples so, session 19); one skipped frame is no pause
+    # old (PX4 received 1.5 s old samples so, 2026-11-27); one skipped frame is no pause
     late = [poses[0], poses[1], pose(poses[1].time_us + 2_000_000)]
     assert messages.centred_pose(late) is not None  # without a bound: the old behaviour
     assert messages.centred_pose(late, max_gap_us=100_000) is None
@@ -805,7 +805,7 @@ def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) ->
 def test_centred_odometry_after_a_pause_is_never_stamped_across_it(tmp_path, monkeypatch) -> None:
     """The service's ODOMETRY with centred velocity (the PX4 loop's output): through a pause
     in publishing (frames too old on a slow moment) no message carries a stamp reaching back
-    over it. Before session 19 the first poses after a 2 s pause went out 1.0 s and 0.98 s
+    over it. Before 18cc29a (2026-11-27) the first poses after a 2 s pause went out 1.0 s and 0.98 s
     old (the mean of a window over the pause), which PX4 SITL received 1.5 s old."""
     from peers import service_config
 
@@ -844,7 +844,7 @@ def test_centred_odometry_is_never_older_than_its_oldest_stamp(tmp_path, monkeyp
     limit (``service.stale_frame_ms``) plus (N - 1) / 2 frames, what `companion px4 check`
     holds EKF2's horizon to. A window over a skipped frame is centred further back: published
     near the age limit, it would reach past EKF2's horizon (one went out 275 ms old against
-    236 ms, session 20), so such a window sends the newest pose with the window's velocity."""
+    236 ms, 2026-11-27), so such a window sends the newest pose with the window's velocity."""
     from peers import service_config
 
     from companion.service import app
@@ -902,7 +902,7 @@ def test_poses_go_out_as_of_their_sending_while_px4_stamps_them_on_arrival(
 ) -> None:
     """PX4 stamps our samples with their arrival until its time sync has converged on ~500 of
     our answers, and again for as long after a jump of its clock (a stalled SIH: 187 ms in
-    session 23's lawnmower 1, 0.3-0.5 m of error at 3 m/s for 10 s). Meanwhile the service
+    lawnmower 1 on 2026-11-28, 0.3-0.5 m of error at 3 m/s for 10 s). Meanwhile the service
     sends each pose carried to its sending and stamped then (ODOMETRY and
     VISION_POSITION_ESTIMATE); once its model of PX4's filter has converged, the exposure's
     stamp again; PX4's clock jumping puts it back. Off (``px4_stamp_at_send`` false), or with

@@ -31,9 +31,9 @@ What it assumes: the pad is one plane under every hit point from rest up to the 
 (a floor, a landing mat, a flat clearing), which it cannot check from three or four hits alone.
 Over a pad that is not one plane the correction is wrong: on our clipped hills, whose take-off
 point sits on the edge of a 6 deg slope, the hits' plane moved 2-6 deg as they crossed it in the
-climb (docs/RESULTS.md, session 15). Samples that disagree with the autopilot by more than
-``max_error_rad`` are refused (a hit on a box, a person's foot). Only keyframes within a radius of
-where the vehicle rested use it (the caller's check, :meth:`PadLevel.near`).
+climb (docs/RESULTS.md, "2026-11-25 (f7f4e68)"). Samples that disagree with the autopilot by
+more than ``max_error_rad`` are refused (a hit on a box, a person's foot). Only keyframes within
+a radius of where the vehicle rested use it (the caller's check, :meth:`PadLevel.near`).
 """
 
 from __future__ import annotations

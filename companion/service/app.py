@@ -941,7 +941,7 @@ class Service:
                     # back: past the oldest stamp `px4 check` holds EKF2's horizon to, the
                     # newest pose goes out with the window's velocity (EKF2 drops samples
                     # older than its horizon: one went out 275 ms old against its 236,
-                    # session 20)
+                    # 2026-11-27, d7a0c08)
                     centred = dataclasses.replace(pose, velocity_ned_m_s=centred.velocity_ned_m_s)
                 wire = (
                     centred
