@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -158,3 +160,89 @@ def test_config_validates_what_run_needs(
         path.write_text(f"[service]\n{extra}{line}\n")
         assert key in _config_error(path, capsys), line
     assert (tmp_path / "plain").read_text() == "not a socket\n"
+
+
+# ---------------------------------------------------- hostile configs (Reliability round 3)
+@pytest.mark.parametrize(
+    ("line", "key"),
+    [
+        ('mavlink_url = "udpin:127.0.0.1:99999"', "service.mavlink_url: port must be 1..65535"),
+        ('mavlink_url = "tcp:127.0.0.1:0"', "service.mavlink_url: port must be 1..65535"),
+        ('mavlink_url = "serial:/dev/ttyS0:99999999999"', "service.mavlink_url: baud rate"),
+        ("mqtt = { keepalive_s = 100000 }", "service.mqtt.keepalive_s: must be <= 65535"),
+        ('mqtt = { topic_prefix = "fleet/#" }', "service.mqtt.topic_prefix"),
+        ('mqtt = { topic_prefix = "a+b" }', "service.mqtt.topic_prefix"),
+        ('mqtt = { topic_prefix = "" }', "service.mqtt.topic_prefix"),
+        ('state_dir = "/tmp/a\\u0000b"', "service.state_dir: a NUL byte"),
+        ('camera_url = "folder:/tmp\\u0000x"', "service.camera_url: a NUL byte"),
+    ],
+)
+def test_config_refuses_what_run_would_refuse(
+    line: str, key: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Values that passed `companion config` and failed at `run` (OverflowError on the port,
+    a reader thread dying on the baud rate, a broker never reached or dropping the
+    connection, a NUL byte in a path): exit 2 naming the key."""
+    path = tmp_path / "c.toml"
+    path.write_text(f'[service]\nstatus_socket = "{tmp_path / "s.sock"}"\n{line}\n')
+    assert key in _config_error(path, capsys)
+
+
+def test_a_rangefinder_baud_rate_is_bounded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('[[rangefinders]]\nserial = "/dev/ttyUSB0:99999999999"\n')
+    assert "rangefinders[0].serial: baud rate" in _config_error(path, capsys)
+    path.write_text('[[rangefinders]]\nserial = "/dev/ttyUSB0:115200"\n')
+    assert load_config(path).rangefinders[0].serial == "/dev/ttyUSB0:115200"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "x = " + "[" * 30_000 + "]" * 30_000,
+        "x = " + "{a = " * 30_000 + "1" + "}" * 30_000,
+        "[" + ".".join(["a"] * 30_000) + "]\nx = 1",
+        ".".join(["a"] * 30_000) + " = 1",
+    ],
+    ids=["arrays", "inline-tables", "table-header", "dotted-key"],
+)
+def test_toml_nested_30000_deep_is_refused_before_parsing(
+    text: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A RecursionError traceback (or seconds of parsing) before; now exit 2 at once."""
+    path = tmp_path / "deep.toml"
+    path.write_text(text + "\n")
+    start = time.monotonic()
+    assert "nested deeper than 16" in _config_error(path, capsys)
+    assert time.monotonic() - start < 1.0
+
+
+def test_toml_nesting_ignores_strings_and_comments() -> None:
+    """Brackets and dots inside strings and comments are not nesting: a real config of
+    depth 3 reads as such, whatever its strings hold."""
+    from companion.config import toml_nesting
+
+    text = (
+        'a = "[[[[.]]]]"\nb = \'{{{{\'\n# [[[[[[[[[[\nc = """\n[[[[\n"""\n[t.u]\nv = [[1], [2]]\n'
+    )
+    assert toml_nesting(text) <= 3
+
+
+def test_a_fifo_config_or_state_file_is_refused_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A config file, or the state_dir's reset_counter, that is a FIFO: `companion config`
+    hung on it; now exit 2 naming the file or the key, without waiting for a writer."""
+    fifo = tmp_path / "config.toml"
+    os.mkfifo(fifo)
+    start = time.monotonic()
+    assert "is a FIFO, not a regular file" in _config_error(fifo, capsys)
+    state = tmp_path / "state"
+    state.mkdir()
+    os.mkfifo(state / "reset_counter")
+    path = tmp_path / "c.toml"
+    path.write_text(f'[service]\nstatus_socket = "{tmp_path / "s.sock"}"\nstate_dir = "{state}"\n')
+    assert "service.state_dir:" in _config_error(path, capsys)
+    assert time.monotonic() - start < 5.0
