@@ -10,10 +10,13 @@ folder anyone can write to (``/tmp``) the socket must be owned by us or root; at
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import stat
 import time
+import unicodedata
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -128,21 +131,73 @@ def read_status(
             data += chunk
             if len(data) > max_bytes:
                 raise StatusError(f"{path}: reply longer than {max_bytes} bytes: not a status")
-    try:
-        out = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise StatusError(f"{path}: the reply is not JSON ({e})") from None
+    out = parse_status(bytes(data), str(path))
     validate_status(out)
     return out  # type: ignore[no-any-return]
 
 
+MAX_STATUS_DEPTH = 8  # a status nests 3 deep; more is not a status
+
+
+def parse_status(data: bytes, where: str) -> Any:
+    """The JSON value of a reply; StatusError for anything that is not bounded JSON: bad
+    UTF-8 or syntax, an integer too long to read (ValueError), nesting that recurses
+    (RecursionError) or deeper than MAX_STATUS_DEPTH."""
+    try:
+        out = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:  # JSONDecodeError: ValueError
+        raise StatusError(f"{where}: the reply is not JSON ({str(e)[:200]})") from None
+    if _nesting(out) > MAX_STATUS_DEPTH:
+        raise StatusError(f"{where}: the reply nests deeper than {MAX_STATUS_DEPTH}: not a status")
+    return out
+
+
+def _nesting(value: Any) -> int:
+    """How deeply ``value`` (parsed JSON) nests, without recursion."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if isinstance(item, dict):
+            stack.extend((v, depth + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, depth + 1) for v in item)
+    return deepest
+
+
 # The shape `companion status` relies on: section -> key -> accepted types (None allowed
-# where a value may be unknown). Extra keys are fine (newer services add some).
+# where a value may be unknown); Opt(...) for keys a service may leave out (older ones), whose
+# value is checked when present; ListOf / MapOf for the lists and tables the table prints.
+# Extra keys are fine (newer services add some) and are not printed.
+@dataclass(frozen=True)
+class Opt:
+    """A key that may be absent; when present its value must be ``spec``."""
+
+    spec: Any
+
+
+@dataclass(frozen=True)
+class ListOf:
+    """A list whose items are all ``item`` (types)."""
+
+    item: Any
+
+
+@dataclass(frozen=True)
+class MapOf:
+    """A table of string keys whose values are all ``value`` (types)."""
+
+    value: Any
+
+
 _NUM = (int, float)
 _OPT_NUM = (int, float, type(None))
+MAX_STATUS_INT = 2**53  # counters and ids: within what JSON numbers carry exactly
+MAX_STATUS_TEXT = 4096  # characters of one string
 STATUS_SCHEMA: dict[str, Any] = {
     "uptime_s": _NUM,
-    "warnings": list,
+    "warnings": ListOf(str),
     "autopilot": {
         "url": str,
         "heartbeat_age_s": _OPT_NUM,
@@ -152,6 +207,9 @@ STATUS_SCHEMA: dict[str, Any] = {
         "timesync_rtt_ms": _OPT_NUM,
         "rx_messages": int,
         "rx_bad": int,
+        "px4_converts_stamps": Opt((bool, type(None))),
+        "stamped_at_send": Opt(int),
+        "signing": Opt((MapOf(_NUM), type(None))),
     },
     "camera": {
         "url": str,
@@ -159,6 +217,9 @@ STATUS_SCHEMA: dict[str, Any] = {
         "frames": int,
         "dropped": int,
         "last_frame_age_s": _OPT_NUM,
+        "stamps": Opt((str, type(None))),
+        "problem": Opt((str, type(None))),
+        "rejected": Opt((MapOf(int), type(None))),
     },
     "vo": {"state": str, "features": int, "keyframes": int, "resets": int},
     "scale": {
@@ -168,12 +229,14 @@ STATUS_SCHEMA: dict[str, Any] = {
         "sensors_used": int,
         "ranges_in": int,
         "ranges_rejected": int,
+        "match_rate": Opt((MapOf(_NUM), type(None))),
     },
     "attitude": {
         "roll_deg": _OPT_NUM,
         "pitch_deg": _OPT_NUM,
         "sigma_deg": _OPT_NUM,
         "compensation": bool,
+        "reasons": Opt(ListOf(str)),
     },
     "output": {
         "message": str,
@@ -182,22 +245,73 @@ STATUS_SCHEMA: dict[str, Any] = {
         "reset_counter": int,
         "latency_ms_p50": _OPT_NUM,
     },
-    "mqtt": {"enabled": bool},
+    "mqtt": {
+        "enabled": bool,
+        "connected": Opt(bool),
+        "queued": Opt(int),
+        "dropped": Opt(int),
+    },
 }
 
 
 def validate_status(obj: Any, schema: dict[str, Any] = STATUS_SCHEMA, where: str = "") -> None:
-    """StatusError naming the first key whose value is missing or of the wrong type."""
+    """StatusError naming the first key whose value is missing or of the wrong type, an
+    integer beyond MAX_STATUS_INT, a number that is not finite (NaN: unknown, allowed) or a
+    string longer than MAX_STATUS_TEXT."""
     if not isinstance(obj, dict):
         raise StatusError(f"status{where}: expected an object, got {type(obj).__name__}")
     for key, want in schema.items():
         name = f"{where}.{key}" if where else key
         if key not in obj:
+            if isinstance(want, Opt):
+                continue
             raise StatusError(f"status: missing {name!r}")
-        value = obj[key]
-        if isinstance(want, dict):
-            validate_status(value, want, name)
-        elif isinstance(value, bool) and bool not in (want if isinstance(want, tuple) else (want,)):
-            raise StatusError(f"status: {name!r} is a boolean, expected a number")
-        elif not isinstance(value, want):
-            raise StatusError(f"status: {name!r} has type {type(value).__name__}")
+        _check_value(obj[key], want.spec if isinstance(want, Opt) else want, name)
+
+
+def _check_value(value: Any, want: Any, name: str) -> None:
+    """StatusError unless ``value`` is what ``want`` (a type, a tuple of them, a nested
+    schema, ListOf, MapOf) accepts."""
+    if isinstance(want, dict):
+        validate_status(value, want, name)
+        return
+    options = want if isinstance(want, tuple) else (want,)
+    for option in options:
+        if isinstance(option, ListOf) and isinstance(value, list):
+            for i, item in enumerate(value):
+                _check_value(item, option.item, f"{name}[{i}]")
+            return
+        if isinstance(option, MapOf) and isinstance(value, dict):
+            for k, item in value.items():
+                _check_value(item, option.value, f"{name}.{printable(k, 40)}")
+            return
+    plain = tuple(o for o in options if isinstance(o, type))
+    if isinstance(value, bool) and bool not in plain:
+        raise StatusError(f"status: {name!r} is a boolean, expected a number")
+    if not plain or not isinstance(value, plain):
+        raise StatusError(f"status: {name!r} has type {type(value).__name__}")
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > MAX_STATUS_INT:
+        raise StatusError(f"status: {name!r} is an integer beyond {MAX_STATUS_INT}")
+    if isinstance(value, float) and math.isinf(value):
+        raise StatusError(f"status: {name!r} is not finite")
+    if isinstance(value, str) and len(value) > MAX_STATUS_TEXT:
+        raise StatusError(f"status: {name!r} is longer than {MAX_STATUS_TEXT} characters")
+
+
+def printable(text: str, limit: int = 300) -> str:
+    """``text`` safe to print on a terminal: control and format characters (ESC and the
+    terminal sequences it starts, C1 controls, bidirectional overrides) shown as ``?``, and
+    cut to ``limit`` characters. A hostile camera's error text reaches the status verbatim."""
+    cut = text if len(text) <= limit else text[: limit - 3] + "..."
+    return "".join("?" if unicodedata.category(c) in ("Cc", "Cf") else c for c in cut)
+
+
+def printable_status(value: Any) -> Any:
+    """A copy of a (validated) status with every string, keys included, :func:`printable`."""
+    if isinstance(value, str):
+        return printable(value)
+    if isinstance(value, list):
+        return [printable_status(v) for v in value]
+    if isinstance(value, dict):
+        return {printable(str(k), 80): printable_status(v) for k, v in value.items()}
+    return value

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, json_error, load
-from drivers.status import find_status_socket, read_status
+from drivers.status import find_status_socket, printable_status, read_status
 
 if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/test_cli.py)
     from companion.config import Config
@@ -145,7 +145,8 @@ def cmd_status(args: argparse.Namespace) -> int:
                 text = json_error(text, EXIT_NOT_RUNNING, "not running", socket=str(path))
             print(text, flush=True)
             return EXIT_NOT_RUNNING
-        text = json.dumps(st, indent=2) if args.json else format_status(st)
+        # JSON escapes control characters itself; the table prints them made printable
+        text = json.dumps(st, indent=2) if args.json else format_status(printable_status(st))
         if args.watch:
             print("\033[H\033[2J" + text, flush=True)
             time.sleep(1.0)
@@ -175,8 +176,9 @@ def _signing_text(ap: dict[str, Any]) -> str:
     if not sg:
         return ", unsigned link"
     far = f", {sg['far_ahead']} stamped too far ahead" if sg.get("far_ahead") else ""
-    return f", signed: {sg['good_signatures']} good, {sg['bad_signatures']} bad signatures, " + (
-        f"{sg['refused']} refused{far}"
+    return (
+        f", signed: {sg.get('good_signatures', 0)} good, {sg.get('bad_signatures', 0)} bad "
+        f"signatures, {sg.get('refused', 0)} refused{far}"
     )
 
 
