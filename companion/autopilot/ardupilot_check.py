@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -19,7 +20,13 @@ from companion.autopilot.ardupilot_link import ArduPilotLink, Watched
 from companion.autopilot.ardupilot_rules import ArduPilotContext, evaluate
 from companion.config import Config
 from companion.errors import Px4Error
-from companion.px4.check import autopilot_line, format_report, resolve, service_status
+from companion.px4.check import (
+    autopilot_line,
+    finite_params,
+    format_report,
+    resolve,
+    service_status,
+)
 from companion.px4.configure import Change, ConfigureReport, ask, format_plan
 from companion.px4.fusion import Verdict
 from companion.px4.options import Px4Options
@@ -81,7 +88,7 @@ def _session(
 ) -> tuple[ArduPilotLink, dict[str, Param], bool, Watched | None, dict[str, Any] | None]:
     link = ArduPilotLink(url, opts.timeout_s).__enter__()
     try:
-        params = link.params()
+        params = link.params()  # NaN and infinities included: finite_params() sorts them out
         armed = link.armed()
         seen = link.watch(opts.watch_s) if opts.watch_s > 0 else None
     finally:
@@ -96,10 +103,11 @@ async def run_check(cfg: Config, opts: Px4Options) -> ArduPilotReport:
         _session, cfg, opts, target.url, target.socket
     )
     ctx = context(cfg, opts, status, seen)
-    rows = tuple(evaluate(params, ctx))
+    finite, not_finite = finite_params(params)
+    rows = not_finite + tuple(evaluate(finite, ctx))
     verdict = None
     if seen is not None:
-        verdict = diagnose(ArduPilotObservations(opts.watch_s, seen, status), params, ctx)
+        verdict = diagnose(ArduPilotObservations(opts.watch_s, seen, status), finite, ctx)
     return ArduPilotReport(
         link.url,
         link.system_id,
@@ -142,7 +150,7 @@ def _write_all(link: ArduPilotLink, planned: tuple[Change, ...]) -> list[Change]
         after: int | float | None = None
         try:
             value = link.read(c.target.name)
-            after = int(round(value)) if c.target.is_int else value
+            after = int(round(value)) if c.target.is_int and math.isfinite(value) else value
         except Px4Error as e:
             error = error or str(e)
         changes.append(Change(c.target, c.before, after, error))
@@ -170,7 +178,8 @@ async def run_configure(
         seen = await asyncio.to_thread(link.watch, GPS_WATCH_S)
         ctx = context(cfg, opts, status, seen)
         head = header(link.url, link.system_id, link.autopilot, armed, len(params), ctx)
-        rows = evaluate(params, ctx)
+        finite, not_finite = finite_params(params)
+        rows = [*not_finite, *evaluate(finite, ctx)]
         planned = tuple(
             Change(t, params[t.name].value if t.name in params else None, None)
             for t in targets_of(rows)
@@ -189,4 +198,6 @@ async def run_configure(
     finally:
         link.close()
     ctx = dataclasses.replace(ctx)
-    return ConfigureReport(head, planned, True, tuple(changes), tuple(evaluate(fresh, ctx)))
+    fresh_finite, fresh_not_finite = finite_params(fresh)
+    rows_after = fresh_not_finite + tuple(evaluate(fresh_finite, ctx))
+    return ConfigureReport(head, planned, True, tuple(changes), rows_after)

@@ -12,6 +12,7 @@ to every other link): their frame ids, quality and rate, as the autopilot receiv
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -196,7 +197,9 @@ class ArduPilotLink:
         if not self.param_values:
             raise Px4Error(f"cannot read the parameter list from {self.url}")
         return {
-            name: Param(name, int(round(v)) if t in INT_TYPES else v, t in INT_TYPES)
+            name: Param(
+                name, int(round(v)) if t in INT_TYPES and math.isfinite(v) else v, t in INT_TYPES
+            )
             for name, (v, t) in self.param_values.items()
         }
 

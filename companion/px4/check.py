@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,10 +22,10 @@ from companion.errors import ConfigError
 from companion.px4.fusion import Observations, ShellView, Verdict, diagnose
 from companion.px4.link import Px4Link, mavsdk_url
 from companion.px4.options import Px4Options
-from companion.px4.rules import LinkContext, Row, Status, evaluate
+from companion.px4.rules import LinkContext, Param, Row, Status, evaluate
 from drivers.mavlink import LinkUrl
 from drivers.px4_shell_text import parse_listener, parse_uorb_top
-from drivers.status import StatusError, find_status_socket, read_status
+from drivers.status import StatusError, find_status_socket, printable, read_status
 
 SHELL_TOPICS = (
     "vehicle_visual_odometry",
@@ -139,6 +140,25 @@ def shell_commands() -> list[str]:
     return [f"listener {t}" for t in SHELL_TOPICS] + ["uorb top -1 " + " ".join(SHELL_TOPICS[:2])]
 
 
+def finite_params(params: dict[str, Param]) -> tuple[dict[str, Param], tuple[Row, ...]]:
+    """The parameters whose value is a finite number, and a FAIL row for each other one: a
+    NaN or an infinity as read (a damaged parameter store, a hostile peer) is no value any
+    rule can judge, and must not reach one (``int(nan)`` raised a traceback)."""
+    finite = {k: p for k, p in params.items() if math.isfinite(p.value)}
+    bad = tuple(
+        Row(
+            printable(name, 16),
+            str(p.value),
+            "a finite number",
+            "not a number as read: set it (companion autopilot configure, or the GCS)",
+            Status.FAIL,
+        )
+        for name, p in sorted(params.items())
+        if name not in finite
+    )
+    return finite, bad
+
+
 async def run_check(cfg: Config, opts: Px4Options) -> CheckReport:
     """Connect, read every parameter, watch for ``opts.watch_s`` seconds, diagnose."""
     target = await asyncio.to_thread(resolve, cfg, opts)  # a blocking socket read
@@ -153,7 +173,8 @@ async def run_check(cfg: Config, opts: Px4Options) -> CheckReport:
                 view = shell_view(await px4.shell(shell_commands()))
         system_id, autopilot = px4.system_id, px4.autopilot
     ctx = dataclasses.replace(target.ctx, gps_seen=bool(seen["gps_seen"]) if seen else None)
-    rows = tuple(evaluate(params, ctx))
+    params, not_finite = finite_params(params)
+    rows = not_finite + tuple(evaluate(params, ctx))
     verdict = None
     if seen is not None:
         obs = Observations(
@@ -169,8 +190,9 @@ async def run_check(cfg: Config, opts: Px4Options) -> CheckReport:
             service=await asyncio.to_thread(service_status, target.socket),
         )
         verdict = diagnose(obs, params, ctx)
+    n_params = len(params) + len(not_finite)
     return CheckReport(
-        target.url, system_id, autopilot, armed, len(params), ctx, rows, verdict, opts.watch_s
+        target.url, system_id, autopilot, armed, n_params, ctx, rows, verdict, opts.watch_s
     )
 
 
