@@ -228,8 +228,14 @@ class SitlStream(CameraSource):
                 self._sock.shutdown(socket.SHUT_RDWR)
 
 
+MAX_REPLAY_GAP_S = 1.0  # FolderSource: a longer gap between two frames is replayed as this
+
+
 class FolderSource(CameraSource):
-    """A recorded dataset (ours or EuRoC) replayed at its rate (or as fast as possible)."""
+    """A recorded dataset (ours or EuRoC) replayed at its rate (or as fast as possible), read
+    under drivers/safe_files.py's discipline (nothing outside the folder, regular files only,
+    each image's size checked before it is decoded); a gap in its time stamps is replayed as
+    MAX_REPLAY_GAP_S at most."""
 
     finite = True
 
@@ -255,6 +261,10 @@ class FolderSource(CameraSource):
                 t_start, shift = ev.time_us, now_us - ev.time_us
             if self.realtime:
                 wait = (ev.time_us + shift - now_us) * 1e-6
+                if wait > MAX_REPLAY_GAP_S:  # a gap in the recording (or a hostile time
+                    # stamp, 2**62 us ahead): replayed as a short pause, not slept through
+                    shift -= int((wait - MAX_REPLAY_GAP_S) * 1e6)
+                    wait = MAX_REPLAY_GAP_S
                 if wait > 0:
                     time.sleep(wait)
             else:

@@ -525,3 +525,29 @@ def test_the_time_budget_stops_eval_cleanly(bases: dict[str, Files], tmp_path: P
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "--timeout-s 0.05" in lines[0], r.stderr
+
+
+def test_the_folder_camera_replays_a_hostile_time_gap_as_a_short_pause(
+    bases: dict[str, Files], tmp_path: Path
+) -> None:
+    """A frame stamped 2**61 us after the one before (a valid, increasing time): the `folder:`
+    camera of `companion run` slept through it (forever); now a pause of at most
+    MAX_REPLAY_GAP_S."""
+    from drivers.camera import MAX_REPLAY_GAP_S, FolderSource
+
+    files = dict(bases["ours"])
+    lines = files["frames.csv"].decode().split("\n")
+    for row in range(3, len([x for x in lines if x])):
+        fields = lines[row].split(",")
+        fields[0] = str(int(fields[0]) + 2**61)
+        lines[row] = ",".join(fields)
+    files["frames.csv"] = "\n".join(lines).encode()
+    source = FolderSource(materialise(files, tmp_path / "gap"), realtime=True)
+    start = time.monotonic()
+    frames = []
+    for frame in source.frames():
+        frames.append(frame)
+        if len(frames) == 4:
+            break
+    source.close()
+    assert len(frames) == 4 and time.monotonic() - start < MAX_REPLAY_GAP_S + 2.0
