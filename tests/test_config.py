@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -246,3 +248,10 @@ def test_a_fifo_config_or_state_file_is_refused_at_once(
     path.write_text(f'[service]\nstatus_socket = "{tmp_path / "s.sock"}"\nstate_dir = "{state}"\n')
     assert "service.state_dir:" in _config_error(path, capsys)
     assert time.monotonic() - start < 5.0
+    run = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(path), "--duration", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 2 and "service.state_dir:" in run.stderr, run.stderr

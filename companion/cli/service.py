@@ -86,6 +86,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     log = logging.getLogger("companion")
     cfg = load(args)
+    check_path_keys(cfg)  # a FIFO state or timestamp file would block the start forever
     if args.record is not None:  # --record DIR: the [record] options, into this folder
         import dataclasses
 
