@@ -4,14 +4,16 @@ strict text, bounded numbers, and every failure a :class:`DatasetError` naming t
 row and the field.
 
 - Names: a name from a file (frames.csv's ``filename``) is refused when absolute, when it has
-  a ``..`` part or a NUL byte, or when it resolves (symlinks followed by name, nothing opened)
-  outside the folder. The resolved path is then opened with ``O_NOFOLLOW | O_NONBLOCK`` and
-  checked with ``fstat``: a FIFO, a device, a socket or a directory is refused at once
-  (``companion.config.read_regular_file``, which the config file goes through too).
-- Sizes: every file has a byte limit; CSV fields and rows too; TOML nesting is bounded
-  before it is parsed (``companion.config.parse_toml``).
-- Numbers: integers of at most 19 digits within int64, floats as plain decimal text (no
-  ``nan``, ``inf`` or 5,000 digits), each within the bounds its caller gives.
+  a ``..`` part or a control character, or when it resolves (symlinks followed by name,
+  nothing opened) outside the folder. The resolved path is then opened with ``O_NOFOLLOW |
+  O_NONBLOCK`` and checked with ``fstat``: a FIFO, a device, a socket or a directory is
+  refused at once (``companion.config.read_regular_file``, which the config file goes
+  through too).
+- Sizes: every file has a byte limit (a CSV field: the csv module's 128 kB); TOML nesting is
+  bounded before it is parsed (``companion.config.parse_toml``).
+- Numbers: integers of at most 19 digits within int64, floats as decimal text of at most 40
+  characters (no ``inf``, no 5,000 digits, ``nan`` only where the caller allows an unknown),
+  each within the bounds its caller gives.
 - Images: the size in the header (PNG IHDR, JPEG SOF) is read from the bytes and checked
   against the calibration, and the decoded size against a cap, **before** anything decodes.
 """
@@ -39,7 +41,6 @@ MAX_TEXT_BYTES = 1 << 20  # EuRoC's sensor.yaml and the like
 MAX_CSV_BYTES = 512 << 20  # an hour of 100 Hz attitude and 6 x 50 Hz ranges: ~150 MB
 MAX_IMAGE_BYTES = 64 << 20  # an encoded frame (a 4k PNG stored without compression: 25 MB)
 MAX_DECODED_BYTES = 256 << 20  # what a frame may take once decoded (8192 x 8192 x 3: 192 MB)
-MAX_INT_DIGITS = 19  # int64
 MAX_FLOAT_CHARS = 40  # "-1.2345678901234567e-308" is 24
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 _INT = re.compile(r"[+-]?[0-9]{1,19}")
@@ -210,7 +211,7 @@ class CsvTable:
         return column in self.columns
 
     def where(self, line: int, column: str) -> str:
-        """ "file row N, column" for a message."""
+        """The text "FILE row N, COLUMN" that messages start with."""
         return f"{self.name} row {line}, {column}"
 
     def field(self, line: int, row: list[str], column: str) -> str:
