@@ -84,12 +84,14 @@ class HostileBroker:
         qos_levels: tuple[int, ...] = (0, 1),
         oversized_bytes: int = 0,
         topic: bytes = b"hostile/",
+        puback_delay_s: float = 0.0,
     ) -> None:
         self.flood_total = flood_bytes
         self.start = start  # the flood waits for it (None: at once after CONNACK)
         self.qos_levels = qos_levels  # cycled through (QoS 2: never a PUBREL)
         self.oversized_bytes = oversized_bytes  # > 0: one PUBLISH this long instead
         self.topic = topic  # the flood's topics start with it (not UTF-8 if so wished)
+        self.puback_delay_s = puback_delay_s  # our PUBACK to the client's QoS 1, this late
         self.payload = b"x" * payload_bytes
         self.report = FloodReport()
         self.port = 0
@@ -126,7 +128,9 @@ class HostileBroker:
                 if kind == PUBLISH:
                     mid = self._client_published(first, body)
                     if mid is not None:
-                        writer.write(packet(PUBACK, struct.pack("!H", mid)))
+                        ack = packet(PUBACK, struct.pack("!H", mid))
+                        loop = asyncio.get_running_loop()
+                        loop.call_later(self.puback_delay_s, writer.write, ack)
                 elif kind == PUBACK:
                     self.report.pubacks_from_client += 1
                 elif kind == SUBSCRIBE:
