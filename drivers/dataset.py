@@ -733,7 +733,7 @@ def _euroc_frames(folder: SafeFolder, cam: str) -> tuple[I64, list[str]]:
     for a bad one, a file name outside the folder or a repeated time."""
     table = folder.read_csv(f"{cam}/data.csv")
     rows: list[tuple[int, str]] = []
-    for line, row in table.rows:
+    for line, row in table.all_rows():
         if row[0].lstrip().startswith("#"):
             continue
         where = f"{cam}/data.csv row {line}"
@@ -758,7 +758,7 @@ def _euroc_truth(
     count = counts.setdefault(name, RowCount())
     times: list[int] = []
     poses: list[F64] = []
-    for line, row in table.rows:
+    for line, row in table.all_rows():
         if row[0].lstrip().startswith("#"):
             continue
         where = f"{name} row {line}"

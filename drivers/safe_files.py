@@ -205,6 +205,12 @@ class CsvTable:
     columns: dict[str, int]
     rows: list[tuple[int, list[str]]]
     torn: bool = False
+    header: tuple[str, ...] = ()
+
+    def all_rows(self) -> list[tuple[int, list[str]]]:
+        """The rows with the header as the first one (for a format whose header is a
+        comment that a file may lack: EuRoC's)."""
+        return [(1, list(self.header)), *self.rows] if self.header else self.rows
 
     def has(self, column: str) -> bool:
         """Whether the header has ``column``."""
@@ -287,6 +293,12 @@ class SafeFolder:
         """The bytes of the regular file ``name`` inside the folder (see the module)."""
         shown = where or f"{self.shown}/{name}"
         real = self.resolve(name, shown)
+        try:  # by name first (``real`` has no links left): a device is not even opened
+            mode = os.stat(real).st_mode
+        except OSError:
+            mode = stat.S_IFREG  # missing or unreadable: the open below says which
+        if not stat.S_ISREG(mode):
+            raise DatasetError(f"{shown}: is {file_kind(mode)}, not a regular file: not read")
         try:
             return read_regular_file(real, max_bytes, DatasetError, follow_symlinks=False)
         except DatasetError as e:  # the message names the real path: name it as given
@@ -332,7 +344,7 @@ class SafeFolder:
                 f"{name} row 1 (header): missing column {missing[0]!r} "
                 f"(header: {_shown(','.join(header[1]), 120)})"
             )
-        return CsvTable(name, columns, list(lines), torn)
+        return CsvTable(name, columns, list(lines), torn, tuple(header[1]))
 
 
 def _csv_rows(text: str, name: str) -> Iterator[tuple[int, list[str]]]:

@@ -551,3 +551,17 @@ def test_the_folder_camera_replays_a_hostile_time_gap_as_a_short_pause(
             break
     source.close()
     assert len(frames) == 4 and time.monotonic() - start < MAX_REPLAY_GAP_S + 2.0
+
+
+def test_a_euroc_data_csv_without_its_header_comment_keeps_every_frame(
+    bases: dict[str, Files], tmp_path: Path
+) -> None:
+    files = dict(bases["euroc"])
+    edit_text(files, f"{EUROC_CAM}/data.csv", lambda t: t.split("\n", 1)[1])
+    edit_text(
+        files,
+        "mav0/state_groundtruth_estimate0/data.csv",
+        lambda t: t.split("\n", 1)[1],
+    )
+    ds = open_dataset(materialise(files, tmp_path / "euroc"))
+    assert len(ds) == 8 and len(ds.gt_times_us) == 8 and not ds.skipped
