@@ -51,6 +51,9 @@ from companion.vo.odometry import Down, VisualOdometry
 F64 = NDArray[np.float64]
 
 ATTITUDE_MAX_GAP_US = 100_000  # an attitude older than this is not used for a frame
+# the longest gap between two attitude samples that a frame's attitude is interpolated over
+# (an autopilot's slowest default stream, ArduPilot's 4 Hz, is; a stall of seconds is not)
+ATTITUDE_MAX_SPAN_US = 500_000
 MIN_GROUND_SIGMA_REL = 0.01  # a ground start's scale is trusted to 1 % at best (the plane fit)
 LANDED_HEIGHT_SIGMA_M = 0.02  # a configured landing-gear height: its uncertainty [m]
 GROUND_REST_SPREAD_M = 0.02  # readings spreading more than this (or 3 sigma) are not at rest
@@ -198,8 +201,9 @@ class Pipeline:
         self.ranges.add(sample)
 
     def attitude_at(self, time_us: int) -> F64 | None:
-        """R_world_body at ``time_us`` by slerp between the bracketing samples (or the nearest
-        one within ATTITUDE_MAX_GAP_US), None when there is none close enough."""
+        """R_world_body at ``time_us`` by slerp between the bracketing samples when they are at
+        most ATTITUDE_MAX_SPAN_US apart, else the nearest one within ATTITUDE_MAX_GAP_US; None
+        when there is none close enough."""
         if not self._attitude:
             return None
         # from the newest end: the times asked for are the last few frames' (a scan of the
@@ -210,21 +214,18 @@ class Pipeline:
                 before = a
                 break
             after = a
-        if before is not None and after is not None and after.time_us > before.time_us:
-            alpha = (time_us - before.time_us) / (after.time_us - before.time_us)
-            R0 = so3.quat_to_matrix(before.quat_wxyz)
-            R1 = so3.quat_to_matrix(after.quat_wxyz)
-            return R0 @ so3.exp(alpha * so3.log(R0.T @ R1))
-        if (
-            before is not None
-            and after is not None
-            and (after.time_us - before.time_us > 2 * ATTITUDE_MAX_GAP_US)
-        ):  # a gap in the stream (a stall): no slerp across it, the nearest if close enough
-            before, after = (
-                (before, None)
-                if time_us - before.time_us <= after.time_us - time_us
-                else (None, after)
-            )
+        if before is not None and after is not None:
+            span_us = after.time_us - before.time_us
+            if 0 < span_us <= ATTITUDE_MAX_SPAN_US:
+                alpha = (time_us - before.time_us) / span_us
+                R0 = so3.quat_to_matrix(before.quat_wxyz)
+                R1 = so3.quat_to_matrix(after.quat_wxyz)
+                return R0 @ so3.exp(alpha * so3.log(R0.T @ R1))
+            # a gap in the stream (a stall): no slerp across it, the nearer if close enough
+            if time_us - before.time_us <= after.time_us - time_us:
+                after = None
+            else:
+                before = None
         near = before or after
         assert near is not None
         if abs(near.time_us - time_us) > ATTITUDE_MAX_GAP_US:

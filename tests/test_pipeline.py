@@ -231,7 +231,8 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
 def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
     """Pipeline.attitude_at searches from the newest sample: at, between, before and after the
     samples it gives the rotation between the bracketing two (the geodesic at the time's
-    fraction), the nearest one within ATTITUDE_MAX_GAP_US past either end, else None."""
+    fraction), the nearest one within ATTITUDE_MAX_GAP_US past either end or across a gap of
+    more than ATTITUDE_MAX_SPAN_US (a stall), else None."""
     from companion.pipeline import ATTITUDE_MAX_GAP_US
 
     rng = np.random.default_rng(8)
@@ -255,6 +256,15 @@ def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
     assert pipe.attitude_at(int(kept[-1]) + ATTITUDE_MAX_GAP_US + 1) is None
     before = pipe.attitude_at(int(kept[0]) - 5_000)
     assert before is not None and np.allclose(before, R_kept[0], atol=1e-9)
+    # a stall: the stream resumes 2 s later; no rotation is made up across the gap
+    t_gap = int(kept[-1]) + 2_000_000
+    R_gap = so3.rpy_to_matrix(0.0, 0.0, 2.5)
+    pipe.feed_attitude(AttitudeSample(t_gap, so3.matrix_to_quat(R_gap), np.zeros(3)))
+    assert pipe.attitude_at(int(kept[-1]) + 1_000_000) is None
+    near_end = pipe.attitude_at(int(kept[-1]) + 60_000)
+    assert near_end is not None and np.allclose(near_end, R_kept[-1], atol=1e-9)
+    near_new = pipe.attitude_at(t_gap - 60_000)
+    assert near_new is not None and np.allclose(near_new, R_gap, atol=1e-9)
 
 
 def _heading_error_deg(pose, R_world_body) -> float:
