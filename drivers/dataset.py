@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config, SitlConfig, from_dict, to_dict
-from companion.errors import ConfigError, DatasetError
+from companion.errors import ConfigError, DatasetError, GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.types import (
@@ -589,12 +589,28 @@ def _decode_frame(
     return np.asarray(img, dtype=np.uint8)
 
 
+def check_lens(model: CameraModel, where: str) -> None:
+    """DatasetError naming ``where`` unless the camera model can serve the pipeline: finite,
+    positive intrinsics, and a distortion that inverts (undistortion converges) over the whole
+    image: its border and a grid inside (a hostile or broken calibration made the VO raise
+    deep inside a run)."""
+    try:
+        model.validate()
+        u = np.linspace(0.0, model.width - 1.0, 33)
+        v = np.linspace(0.0, model.height - 1.0, 25)
+        grid = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+        model.pixels_to_normalized(grid)
+    except (GeometryError, FloatingPointError, ValueError) as e:
+        raise DatasetError(f"{where}: the camera model cannot be used: {e}") from None
+
+
 def _read_ours(folder: SafeFolder) -> Dataset:
     path = folder.shown
     meta = folder.read_toml("meta.toml")
     if meta.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path}: not a {FORMAT_NAME} folder")
     cfg, sitl = _ours_config(folder, meta)
+    check_lens(cfg.camera.model(), "calibration.toml [camera]")
     size = (cfg.camera.width, cfg.camera.height)
     complete = meta.get("complete", True) is not False
     frames = _read_frames(folder, complete)
@@ -725,6 +741,7 @@ def _euroc_camera(text: str) -> tuple[CameraModel, F64]:
         [parse_float(v, f"sensor.yaml, T_BS[{i}]", -1e6, 1e6) for i, v in enumerate(parts)]
     )
     model = CameraModel(width, height, fu, fv, cu, cv, *dist)
+    check_lens(model, "sensor.yaml")
     return model, T.reshape(4, 4)
 
 

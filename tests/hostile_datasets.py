@@ -364,8 +364,8 @@ def _read_all(folder: Path) -> None:
         pass
 
 
-def _eval(folder: Path, out: Path) -> tuple[int, list[str]]:
-    """`companion eval folder` in this process: its exit code and its stderr lines."""
+def _eval(folder: Path, out: Path, *flags: str) -> tuple[int, list[str]]:
+    """`companion eval folder [flags]` in this process: its exit code and stderr lines."""
     import contextlib
     import io
 
@@ -373,16 +373,17 @@ def _eval(folder: Path, out: Path) -> tuple[int, list[str]]:
 
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        code = main(["eval", str(folder), "--out", str(out), "--no-progress"])
+        code = main(["eval", str(folder), "--out", str(out), "--no-progress", *flags])
     return code, err.getvalue().splitlines()
 
 
 def fuzz(count: int, seed: int, eval_every: int, workdir: Path, case_limit_s: float) -> dict:
     """``count`` seeded mutants of a small recording of ours (3 in 4) and of a EuRoC folder,
     each read in full by the reader (every ``eval_every``-th through `companion eval`
-    instead); returns the tally: cases, refusals (DatasetError), evals by exit code, and
-    the failures: tracebacks, hangs (over ``case_limit_s``), messages of more than a line,
-    plus the slowest case [s] and the process's peak RSS [MB]."""
+    instead, every other one of those with ``--methods all``); returns the tally: cases,
+    refusals (DatasetError), evals by exit code, and the failures: tracebacks, hangs (over
+    ``case_limit_s``), messages of more than a line; the slowest case [s] and the process's
+    peak RSS [MB]."""
     import resource
     import shutil
     import signal
@@ -417,7 +418,9 @@ def fuzz(count: int, seed: int, eval_every: int, workdir: Path, case_limit_s: fl
         signal.setitimer(signal.ITIMER_REAL, case_limit_s)
         try:
             if i % eval_every == 0:
-                code, lines = _eval(folder, workdir / "out")
+                every_scale_method = (i // eval_every) % 2 == 1
+                flags = ("--methods", "all") if every_scale_method else ()
+                code, lines = _eval(folder, workdir / "out", *flags)
                 tally["evals"][code] = tally["evals"].get(code, 0) + 1
                 errors = [x for x in lines if not x.startswith("companion: warning:")]
                 if code not in (0, 2) or (code == 2 and len(errors) != 1):

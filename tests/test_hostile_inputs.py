@@ -177,6 +177,11 @@ CASES = [
         _text("calibration.toml", lambda t: t.replace("fx = ", "fx = nan #")),
     ),
     Case(
+        "calibration-lens-not-invertible",
+        "calibration.toml [camera]: the camera model cannot be used: undistortion did not",
+        _text("calibration.toml", lambda t: t.replace("dist = [-0.12,", "dist = [-40.0,")),
+    ),
+    Case(
         "config-unknown-table",
         "config.toml: unexpected tables",
         _text("config.toml", lambda t: t + "\n[service]\nx = 1\n"),

@@ -212,7 +212,8 @@ def _write_no_world(rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path) 
 
     t = np.array(run.time_us) * 1e-6
     if ds.has_ground_truth:
-        write_tum(out / "groundtruth.tum", t, poses_from_positions(np.array(run.gt_position)))
+        gt = np.array(run.gt_position).reshape(-1, 3)
+        write_tum(out / "groundtruth.tum", t, poses_from_positions(gt))
     for n in run.methods:
         p = np.array(run.position[n]).reshape(-1, 3)
         ok = np.all(np.isfinite(p), axis=1)
