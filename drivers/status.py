@@ -306,6 +306,18 @@ def printable(text: str, limit: int = 300) -> str:
     return "".join("?" if unicodedata.category(c) in ("Cc", "Cf") else c for c in cut)
 
 
+def json_safe(value: Any) -> Any:
+    """A copy of a status with NaN (an unknown value) as null: standard JSON for ``--json``
+    (Python writes NaN, which strict parsers such as jq refuse)."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, list):
+        return [json_safe(v) for v in value]
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    return value
+
+
 def printable_status(value: Any) -> Any:
     """A copy of a (validated) status with every string, keys included, :func:`printable`."""
     if isinstance(value, str):

@@ -181,3 +181,14 @@ def test_printable_keeps_text_and_cuts_it() -> None:
     assert printable("caméra 3 ✓") == "caméra 3 ✓"
     assert printable("a\tb\nc") == "a?b?c"
     assert len(printable("x" * 1000, 50)) == 50
+
+
+def test_json_mode_prints_standard_json(serve: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """An unknown value (NaN) is null under --json: Python wrote NaN, which jq refuses."""
+
+    def refuse(constant: str) -> None:
+        raise ValueError(f"{constant} is not standard JSON")
+
+    code, out, err = _status(serve(json.dumps(SAMPLE).encode()), capsys, "--json")
+    assert code == 0, err
+    assert json.loads(out, parse_constant=refuse)["scale"]["sigma"] is None

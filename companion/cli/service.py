@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, json_error, load
-from drivers.status import find_status_socket, printable_status, read_status
+from drivers.status import find_status_socket, json_safe, printable_status, read_status
 
 if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/test_cli.py)
     from companion.config import Config
@@ -147,7 +147,11 @@ def cmd_status(args: argparse.Namespace) -> int:
             print(text, flush=True)
             return EXIT_NOT_RUNNING
         # JSON escapes control characters itself; the table prints them made printable
-        text = json.dumps(st, indent=2) if args.json else format_status(printable_status(st))
+        text = (
+            json.dumps(json_safe(st), indent=2)
+            if args.json
+            else format_status(printable_status(st))
+        )
         if args.watch:
             print("\033[H\033[2J" + text, flush=True)
             time.sleep(1.0)
