@@ -33,6 +33,7 @@ from companion.dpose.options import DposeOptions
 from companion.errors import CompanionError, ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
+from companion.nesting import data_nesting
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
@@ -556,20 +557,6 @@ def toml_nesting(text: str) -> int:
         elif tok == ",":
             in_key = bool(open_brackets) and open_brackets[-1] == "{"
         deepest = max(deepest, len(open_brackets) + key_dots)
-    return deepest
-
-
-def data_nesting(value: Any) -> int:
-    """How deeply ``value`` (parsed TOML or JSON: dicts and lists) nests, without recursion."""
-    deepest = 0
-    stack: list[tuple[Any, int]] = [(value, 0)]
-    while stack:
-        item, depth = stack.pop()
-        deepest = max(deepest, depth)
-        if isinstance(item, dict):
-            stack.extend((v, depth + 1) for v in item.values())
-        elif isinstance(item, list):
-            stack.extend((v, depth + 1) for v in item)
     return deepest
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.errors import CompanionError
+from companion.nesting import data_nesting
 
 MAX_STATUS_BYTES = 1 << 20  # a real status is a few kB
 
@@ -147,23 +148,9 @@ def parse_status(data: bytes, where: str) -> Any:
         out = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as e:  # JSONDecodeError: ValueError
         raise StatusError(f"{where}: the reply is not JSON ({str(e)[:200]})") from None
-    if _nesting(out) > MAX_STATUS_DEPTH:
+    if data_nesting(out) > MAX_STATUS_DEPTH:
         raise StatusError(f"{where}: the reply nests deeper than {MAX_STATUS_DEPTH}: not a status")
     return out
-
-
-def _nesting(value: Any) -> int:
-    """How deeply ``value`` (parsed JSON) nests, without recursion."""
-    deepest = 0
-    stack: list[tuple[Any, int]] = [(value, 0)]
-    while stack:
-        item, depth = stack.pop()
-        deepest = max(deepest, depth)
-        if isinstance(item, dict):
-            stack.extend((v, depth + 1) for v in item.values())
-        elif isinstance(item, list):
-            stack.extend((v, depth + 1) for v in item)
-    return deepest
 
 
 # The shape `companion status` relies on: section -> key -> accepted types (None allowed

@@ -425,3 +425,15 @@ def test_px4_check_sees_the_service_at_the_fixed_path(fixed: Path) -> None:
         halt(stop, t)
     target = resolve(cfg, Px4Options())
     assert target.socket == find_status_socket("") != fixed
+
+
+def test_a_refused_dataset_is_exit_2_for_every_command(tmp_path: Path) -> None:
+    """A dataset the reader refuses (here a meta.toml that is not TOML) is a bad input naming
+    its file, exit 2, for every command that reads one (`sitl sheet` said exit 1), and one
+    JSON object with --json."""
+    (tmp_path / "meta.toml").write_text("x = [[[\n")
+    for args in (["sitl", "sheet", str(tmp_path)], ["eval", str(tmp_path), "--no-progress"]):
+        proc = companion(*args)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert "meta.toml" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr

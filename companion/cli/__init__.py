@@ -49,7 +49,7 @@ from companion.cli.common import (
     EXIT_USAGE,
     json_error,
 )
-from companion.errors import CompanionError, ConfigError, UnreachableError
+from companion.errors import CompanionError, ConfigError, DatasetError, UnreachableError
 
 __all__ = [
     "COMMANDS",
@@ -350,6 +350,8 @@ def _run(argv: Sequence[str] | None) -> int:
         return code
     except ConfigError as e:
         return _fail(str(e), EXIT_USAGE, "config error", as_json)
+    except DatasetError as e:  # a refused input file (the message names file, row and field)
+        return _fail(str(e), EXIT_USAGE, "dataset error", as_json)
     except UnreachableError as e:
         return _fail(str(e), EXIT_UNREACHABLE, "unreachable", as_json)
     except CompanionError as e:

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 # Exit codes of every command (docs/service.md, "Exit codes"; `companion --help` lists them)
 EXIT_OK = 0
 EXIT_PROBLEMS = 1  # problems found (px4 check, calibrate lasers), or the command failed
-EXIT_USAGE = 2  # bad arguments or a bad configuration (the message names the flag or key)
+EXIT_USAGE = 2  # bad arguments, configuration or input file (the message names flag, key or file)
 EXIT_UNREACHABLE = 3  # no service on the status socket / no autopilot on the link
 EXIT_INTERRUPTED = 130  # SIGINT (128 + 2)
 EXIT_BROKEN_PIPE = 141  # stdout closed by the reader (`companion config | head`): 128 + SIGPIPE
@@ -35,7 +35,7 @@ EXIT_ERROR, EXIT_CONFIG, EXIT_NOT_RUNNING = EXIT_PROBLEMS, EXIT_USAGE, EXIT_UNRE
 EXIT_CODES: tuple[tuple[int, str], ...] = (
     (EXIT_OK, "ok"),
     (EXIT_PROBLEMS, "problems found (px4 check, calibrate lasers) or the command failed"),
-    (EXIT_USAGE, "bad arguments or configuration (the message names the flag or key)"),
+    (EXIT_USAGE, "bad arguments, configuration or dataset (the message names flag, key or file)"),
     (EXIT_UNREACHABLE, "no service answers on the status socket, or no autopilot on the link"),
     (EXIT_INTERRUPTED, "interrupted (SIGINT)"),
     (EXIT_BROKEN_PIPE, "the reader closed stdout (as a program killed by SIGPIPE)"),
