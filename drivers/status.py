@@ -102,8 +102,28 @@ def read_status(
     path = Path(path)
     check_trusted(path)
     deadline = time.monotonic() + timeout_s
+    while True:  # a busy server (a local connection flood) is asked again until the deadline
+        data = _read_once(path, deadline, timeout_s, max_bytes)
+        if data is None:
+            return None
+        if data or time.monotonic() >= deadline:
+            break
+        time.sleep(RETRY_S)  # closed without a reply: its reply rate was spent; again
+    if not data:
+        raise StatusError(f"{path}: no reply within {timeout_s:g} s (the service is busy)")
+    out = parse_status(bytes(data), str(path))
+    validate_status(out)
+    return out  # type: ignore[no-any-return]
+
+
+RETRY_S = 0.05  # between two connections to a busy status socket
+
+
+def _read_once(path: Path, deadline: float, timeout_s: float, max_bytes: int) -> bytes | None:
+    """One connection's reply (b"" when the server closed it without one, or its backlog was
+    full); None when nothing listens at ``path``."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(timeout_s)
+        s.settimeout(max(deadline - time.monotonic(), 0.001))
         try:
             s.connect(str(path))
         except (FileNotFoundError, ConnectionRefusedError):
@@ -113,6 +133,8 @@ def read_status(
                 f"{path}: permission denied: run as the service's user or a member of its "
                 "group (`sudo usermod -aG companion $USER`, then log in again)"
             ) from None
+        except (BlockingIOError, TimeoutError):  # the listen backlog is full: busy
+            return b""
         except OSError as e:
             raise StatusError(f"{path}: cannot connect: {e.strerror or e}") from None
         data = bytearray()
@@ -128,13 +150,10 @@ def read_status(
             except OSError as e:
                 raise StatusError(f"{path}: read failed: {e.strerror or e}") from None
             if not chunk:
-                break
+                return bytes(data)
             data += chunk
             if len(data) > max_bytes:
                 raise StatusError(f"{path}: reply longer than {max_bytes} bytes: not a status")
-    out = parse_status(bytes(data), str(path))
-    validate_status(out)
-    return out  # type: ignore[no-any-return]
 
 
 MAX_STATUS_DEPTH = 8  # a status nests 3 deep; more is not a status

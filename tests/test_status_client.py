@@ -192,3 +192,42 @@ def test_json_mode_prints_standard_json(serve: Any, capsys: pytest.CaptureFixtur
     code, out, err = _status(serve(json.dumps(SAMPLE).encode()), capsys, "--json")
     assert code == 0, err
     assert json.loads(out, parse_constant=refuse)["scale"]["sigma"] is None
+
+
+def test_a_busy_service_is_asked_again_until_it_answers(tmp_path: Path) -> None:
+    """The status server closes connections without a reply while a local flood has spent its
+    reply rate (companion/service/status.py): the client connects again until its deadline
+    and shows the status the service gives then (before: "reply is not JSON" at once), and
+    says the service is busy when no reply came in time."""
+    from drivers.status import StatusError, read_status
+
+    path = tmp_path / "busy.sock"
+    srv = socket.socket(socket.AF_UNIX)
+    srv.bind(str(path))
+    srv.listen(16)
+    refused = 5  # the first connections closed without a reply
+    seen: list[int] = []
+
+    def run() -> None:
+        while True:
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            with conn:
+                seen.append(1)
+                if len(seen) > refused:
+                    conn.sendall(json.dumps(SAMPLE).encode())
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        status = read_status(path, timeout_s=5.0)
+        assert status is not None and status["vo"]["state"] == "TRACKING"
+        assert len(seen) == refused + 1
+        refused = 10**9  # never answers now
+        with pytest.raises(StatusError, match=r"reply within 0\.3 s"):
+            read_status(path, timeout_s=0.3)
+    finally:
+        srv.close()
+        thread.join(2)
