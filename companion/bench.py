@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import platform
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -18,6 +17,7 @@ import cv2
 import numpy as np
 
 from companion.config import Config, TerrainName
+from companion.offline import peak_rss_mb
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +76,7 @@ def bench_render(
         results.append(
             RenderBench(terrain, frames, med, float(np.percentile(ms, 99)), 1000.0 / med)
         )
-    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    rss_mb = peak_rss_mb()
     return {
         "machine": machine_description(),
         "width": cfg.camera.width,

@@ -384,13 +384,13 @@ def fuzz(count: int, seed: int, eval_every: int, workdir: Path, case_limit_s: fl
     refusals (DatasetError), evals by exit code, and the failures: tracebacks, hangs (over
     ``case_limit_s``), messages of more than a line; the slowest case [s] and the process's
     peak RSS [MB]."""
-    import resource
     import shutil
     import signal
     import time
     import traceback
 
     from companion.errors import DatasetError
+    from companion.offline import peak_rss_mb
 
     rng = np.random.default_rng(seed)
     write_recording(workdir / "ours")
@@ -443,5 +443,5 @@ def fuzz(count: int, seed: int, eval_every: int, workdir: Path, case_limit_s: fl
         shutil.rmtree(folder)
         shutil.rmtree(workdir / "out", ignore_errors=True)
     tally["seconds"] = time.monotonic() - start
-    tally["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    tally["peak_rss_mb"] = peak_rss_mb()  # this process's own peak (not its parent's)
     return tally
