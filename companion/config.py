@@ -13,12 +13,9 @@ top towards the nose (DESIGN.md section 2). A range sensor's beam is +z of its o
 from __future__ import annotations
 
 import dataclasses
-import errno
 import logging
 import math
-import os
 import re
-import stat
 import tomllib
 import types
 import typing
@@ -29,11 +26,11 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 
 from companion.attitude.options import AttitudeOptions
+from companion.bounded import data_nesting, read_regular_file
 from companion.dpose.options import DposeOptions
 from companion.errors import CompanionError, ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
-from companion.nesting import data_nesting
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
@@ -449,63 +446,6 @@ _TOML_STRING_END = {
     '"': re.compile(r'(?:[^"\\\n]|\\.)*"'),
     "'": re.compile(r"[^'\n]*'"),
 }
-_FILE_KINDS = (
-    (stat.S_ISFIFO, "a FIFO"),
-    (stat.S_ISCHR, "a character device"),
-    (stat.S_ISBLK, "a block device"),
-    (stat.S_ISSOCK, "a socket"),
-    (stat.S_ISDIR, "a directory"),
-)
-
-
-def file_kind(mode: int) -> str:
-    """What a file of st_mode ``mode`` is, in words ("a FIFO", "a regular file")."""
-    return next((name for test, name in _FILE_KINDS if test(mode)), "a regular file")
-
-
-def read_regular_file(
-    path: Path,
-    max_bytes: int,
-    error: type[CompanionError] = ConfigError,
-    *,
-    follow_symlinks: bool = True,
-) -> bytes:
-    """The bytes of the regular file ``path`` (at most ``max_bytes``), opened without blocking
-    and checked on the open descriptor (fstat, not by name): a FIFO, a device, a socket or a
-    directory is refused at once, as is a larger file; ``follow_symlinks=False``: a symlink
-    as the last component is refused (O_NOFOLLOW). Every failure raises ``error`` naming the
-    file."""
-    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY
-    if not follow_symlinks:
-        flags |= os.O_NOFOLLOW
-    try:
-        fd = os.open(path, flags)
-    except FileNotFoundError:
-        raise error(f"{path}: file not found") from None
-    except (OSError, ValueError) as e:  # ValueError: a NUL byte in the name
-        reason = "a symlink (not followed)" if getattr(e, "errno", 0) == errno.ELOOP else e
-        raise error(f"{path}: cannot read: {getattr(e, 'strerror', None) or reason}") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise error(f"{path}: is {file_kind(st.st_mode)}, not a regular file: not read")
-        if st.st_size > max_bytes:
-            raise error(f"{path}: larger than {max_bytes} bytes ({st.st_size}): not read")
-        chunks: list[bytes] = []
-        size = 0
-        while size <= max_bytes:
-            chunk = os.read(fd, min(1 << 20, max_bytes + 1 - size))
-            if not chunk:
-                break
-            chunks.append(chunk)
-            size += len(chunk)
-    except OSError as e:
-        raise error(f"{path}: cannot read: {e.strerror or e}") from None
-    finally:
-        os.close(fd)
-    if size > max_bytes:
-        raise error(f"{path}: larger than {max_bytes} bytes: not read")
-    return b"".join(chunks)
 
 
 def decode_utf8(raw: bytes, where: str, error: type[CompanionError] = ConfigError) -> str:

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from companion.config import decode_utf8, file_kind, parse_toml, read_regular_file
+from companion.bounded import file_kind, read_regular_file
+from companion.config import decode_utf8, parse_toml
 from companion.errors import DatasetError
 
 MAX_TOML_BYTES = 1 << 20  # meta.toml, calibration.toml, config.toml: a few kB

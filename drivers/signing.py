@@ -42,6 +42,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.bounded import read_regular_file
 from companion.errors import ConfigError
 from companion.service_options import SigningOptions
 from drivers.files import atomic_write
@@ -108,7 +109,7 @@ def load_key(path: str | Path, key: str = "service.signing.key_file") -> bytes:
             f"{key}: {p} has mode {stat.S_IMODE(st.st_mode):04o}; a signing key must be "
             f"readable by its owner only (chmod 600 {p})"
         )
-    data = p.read_bytes()
+    data = read_regular_file(p, 4096)  # checked again on the open descriptor: no FIFO
     if len(data) == 32:
         return data
     text = data.strip()
@@ -199,11 +200,11 @@ class TimestampStore:
         more than ``MAX_AHEAD_UNITS`` ahead of it. Accepting such a value would make every
         genuine signed frame look like a replay to the autopilot, so nothing would be sent."""
         key = "service.signing.timestamp_file"
-        try:
-            text = self.path.read_text(encoding="ascii").strip()
-        except FileNotFoundError:
+        if not self.path.exists() and not self.path.is_symlink():
             return 0
-        except (OSError, UnicodeDecodeError) as e:
+        try:  # a regular file only, opened without blocking (a FIFO planted there: refused)
+            text = read_regular_file(self.path, 64).decode("ascii").strip()
+        except (ConfigError, UnicodeDecodeError) as e:
             raise ConfigError(f"{key}: cannot read {self.path}: {e}") from None
         if not text.isdigit() or len(text) > 20:
             raise ConfigError(f"{key}: {self.path} does not hold a timestamp: {text[:40]!r}")

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from companion.bounded import data_nesting
 from companion.errors import CompanionError
-from companion.nesting import data_nesting
 
 MAX_STATUS_BYTES = 1 << 20  # a real status is a few kB
 

@@ -799,3 +799,51 @@ def test_a_used_record_dir_on_a_full_disk_is_a_warning_never_an_exit(tmp_path, f
     assert said and "Traceback" not in r.stderr
     assert any("cannot record into" in line for line in said), said
     assert sorted(p.name for p in rec.iterdir()) == ["meta.toml"]  # the earlier run: as it was
+
+
+def test_a_fifo_planted_at_a_state_or_key_file_is_refused_at_once(tmp_path) -> None:
+    """The service reads its reset counter, signing timestamp and key at start-up; a FIFO put
+    at one of those paths after `companion config` checked them (or by a hostile local user)
+    blocked the read for good (an open for reading waits for a writer). Each is now refused
+    at once: the reset counter takes its base from the clock, the timestamp and the key are a
+    config error naming the key."""
+    import threading
+
+    from companion.errors import ConfigError
+    from companion.service.state import ResetCounter
+    from drivers.signing import TimestampStore, load_key
+
+    outcomes: dict[str, str] = {}
+
+    def attempt(name: str, call: Any) -> threading.Thread:
+        def run() -> None:
+            try:
+                call()
+                outcomes[name] = "read"
+            except ConfigError as e:
+                outcomes[name] = f"refused: {e}"
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        return thread
+
+    fifos = {name: tmp_path / name for name in ("reset_counter", "timestamp", "key")}
+    for path in fifos.values():
+        os.mkfifo(path, 0o600)
+    threads = {
+        "reset_counter": attempt("reset_counter", lambda: ResetCounter(fifos["reset_counter"])),
+        "timestamp": attempt("timestamp", lambda: TimestampStore(fifos["timestamp"]).read()),
+        "key": attempt("key", lambda: load_key(fifos["key"])),
+    }
+    try:
+        for name, thread in threads.items():
+            thread.join(5.0)
+            assert not thread.is_alive(), f"{name}: blocked on the FIFO"
+    finally:  # a blocked reader (the old code) is let go: a writer opens and closes
+        for name, thread in threads.items():
+            if thread.is_alive():
+                with contextlib.suppress(OSError):
+                    os.close(os.open(fifos[name], os.O_WRONLY | os.O_NONBLOCK))
+    assert outcomes["reset_counter"] == "read", outcomes  # base from the clock, warned
+    assert outcomes["timestamp"].startswith("refused") and "FIFO" in outcomes["timestamp"]
+    assert outcomes["key"].startswith("refused") and "regular file" in outcomes["key"]

@@ -61,7 +61,7 @@ def check_path_keys(cfg: Config) -> None:
     import os
     import stat
 
-    from companion.config import file_kind
+    from companion.bounded import file_kind
     from companion.errors import ConfigError
 
     for key, path in path_keys(cfg):

@@ -16,6 +16,8 @@ import os
 import time
 from pathlib import Path
 
+from companion.bounded import read_regular_file
+from companion.errors import ConfigError
 from drivers.files import atomic_write
 
 log = logging.getLogger("companion.service")
@@ -50,11 +52,11 @@ class ResetCounter:
         self._written: int | None = None
 
     def _read(self) -> int | None:
-        try:
-            text = self.path.read_text(encoding="ascii").strip()
-        except FileNotFoundError:
+        if not self.path.exists() and not self.path.is_symlink():
             return -1
-        except (OSError, UnicodeDecodeError) as e:
+        try:  # a regular file only, opened without blocking (a FIFO planted there: refused)
+            text = read_regular_file(self.path, 64).decode("ascii").strip()
+        except (ConfigError, UnicodeDecodeError) as e:
             log.warning("reset counter state %s unreadable (%s): base from the clock", self.path, e)
             return None
         if not text.isdigit() or int(text) > 255:
