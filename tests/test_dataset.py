@@ -163,7 +163,9 @@ def test_bad_folders_give_clear_errors(tmp_path: Path) -> None:
 def test_cli_record_refuses_to_overwrite_and_writes_sheet(
     recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["sitl", "record", "--seconds", "1", "--out", str(recorded), "--no-progress"]) == 1
+    assert (
+        main(["sitl", "record", "--seconds", "1", "--out", str(recorded), "--no-progress"]) == 2
+    )  # a refused output folder: bad input
     assert "exists" in capsys.readouterr().err
     out = tmp_path / "rec"
     assert (
