@@ -66,7 +66,7 @@ ALGORITHM_SECTIONS = ("vo", "scale", "attitude", "dpose")
 RANGE_COLUMNS = ["time_us", "sensor_id", "distance_m", "min_m", "max_m", "signal_quality"]
 ATTITUDE_COLUMNS = ["time_us", "qw", "qx", "qy", "qz", "wx_rad_s", "wy_rad_s", "wz_rad_s"]
 IMU_COLUMNS = ["time_us", "ax_m_s2", "ay_m_s2", "az_m_s2"]  # specific force, body FRD
-# optional (recordings before session 20 lack them; empty when the autopilot sent none):
+# optional (recordings made before 2026-11-27 lack them; empty when the autopilot sent none):
 # body rates and the raw magnetic field, body FRD
 IMU_GYRO_COLUMNS = ["wx_rad_s", "wy_rad_s", "wz_rad_s"]
 IMU_MAG_COLUMNS = ["mx_gauss", "my_gauss", "mz_gauss"]
