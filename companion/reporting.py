@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.drivers.dataset import write_tum
 from companion.evaluation.attitude import rmse_summary, wrap_rad
 from companion.evaluation.dpose import BandErrors, RandomPoseStudy, dpose_metrics, pose_errors
 from companion.evaluation.scale import ScaleMetrics
@@ -18,7 +19,6 @@ from companion.evaluation.trajectory import poses_from_positions, umeyama
 from companion.evaluation.vo import VoMetrics
 from companion.geometry import so3
 from companion.offline import AttitudeRun, DposeRun, ScaleRun
-from drivers.dataset import write_tum
 
 F64 = NDArray[np.float64]
 

@@ -243,7 +243,7 @@ class FolderSource(CameraSource):
         self, path: Path, realtime: bool = True, request: CaptureRequest | None = None
     ) -> None:
         super().__init__(request)
-        from drivers.dataset import open_dataset
+        from companion.drivers.dataset import open_dataset
 
         self.dataset = open_dataset(path)
         self.realtime = realtime
@@ -503,12 +503,12 @@ def open_camera(
             raise ConfigError(f"{key}: no such folder {path!r}")
         return FolderSource(Path(path), realtime=flag != "fast", request=request)
     if is_gst_pipeline(url):
-        from drivers.camera_gst import GstSource
+        from companion.drivers.camera_gst import GstSource
 
         pipeline = url[len(GST_PREFIX) :] if url.startswith(GST_PREFIX) else url
         return GstSource(pipeline, key, request)
     if url.startswith(PICAMERA2_PREFIX):
-        from drivers.camera_picamera2 import Picamera2Source
+        from companion.drivers.camera_picamera2 import Picamera2Source
 
         num = url[len(PICAMERA2_PREFIX) :] or "0"
         if not num.isdigit():

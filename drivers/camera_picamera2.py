@@ -37,9 +37,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.drivers.camera import CameraError, CameraSource, CaptureRequest, plausible_stamp_us
 from companion.errors import ConfigError
 from companion.types import U8, CameraFrame
-from drivers.camera import CameraError, CameraSource, CaptureRequest, plausible_stamp_us
 
 log = logging.getLogger("companion.camera")
 

@@ -33,6 +33,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config, SitlConfig, from_dict, to_dict
+from companion.drivers.files import atomic_write, open_new
+from companion.drivers.safe_files import (
+    MAX_CSV_BYTES,
+    MAX_IMAGE_BYTES,
+    CsvTable,
+    SafeFolder,
+    check_image_header,
+    parse_float,
+    parse_int,
+)
 from companion.errors import ConfigError, DatasetError, GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
@@ -43,16 +53,6 @@ from companion.types import (
     PoseEstimate,
     RangeSample,
     RangeSensorSpec,
-)
-from drivers.files import atomic_write, open_new
-from drivers.safe_files import (
-    MAX_CSV_BYTES,
-    MAX_IMAGE_BYTES,
-    CsvTable,
-    SafeFolder,
-    check_image_header,
-    parse_float,
-    parse_int,
 )
 
 F64 = NDArray[np.float64]

@@ -31,9 +31,9 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.drivers.backoff import Backoff
+from companion.drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 from companion.errors import ConfigError
-from drivers.backoff import Backoff
-from drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
 
 log = logging.getLogger("companion.mavlink")
 

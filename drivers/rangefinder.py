@@ -20,8 +20,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from companion.drivers.backoff import Backoff
 from companion.types import RangeSample
-from drivers.backoff import Backoff
 
 HEADER = b"\x59\x59"
 FRAME_LEN = 9

@@ -43,9 +43,9 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.bounded import read_regular_file
+from companion.drivers.files import atomic_write
 from companion.errors import ConfigError
 from companion.service_options import SigningOptions
-from drivers.files import atomic_write
 
 EPOCH_2015_S = 1_420_070_400  # 2015-01-01 00:00:00 UTC, the signing timestamp's origin
 UNITS_PER_S = 100_000  # the timestamp counts 10 us units

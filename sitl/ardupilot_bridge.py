@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from sitl.px4_bridge import Bridge, TruthSample, ned_of, parse_bridge_args, serve
+from companion.sitl.px4_bridge import Bridge, TruthSample, ned_of, parse_bridge_args, serve
 
 MSG_ID_SIM_STATE = 108
 TRUTH_RATE_HZ = 100.0  # the camera waits for the first sample after each exposure: 10 ms at most

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from companion.errors import SitlError
-from sitl import loop_common as loop
-from sitl.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
+from companion.sitl import loop_common as loop
+from companion.sitl.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
 BOOT_PARAMS: dict[str, float] = {
@@ -172,7 +172,7 @@ class Flight(loop.LoopFlight):
         self.ap.stop()
 
     def summarise(self, ok: bool) -> dict[str, Any]:
-        from sitl.ardupilot_results import summarise
+        from companion.sitl.ardupilot_results import summarise
 
         return summarise(self, ok)
 
@@ -228,7 +228,7 @@ class Flight(loop.LoopFlight):
 
     def _start_bridge(self, cfg_path: Path) -> None:
         n = self.o.instance
-        argv = [sys.executable, "-m", "sitl.ardupilot_bridge", "--config", str(cfg_path)]
+        argv = [sys.executable, "-m", "companion.sitl.ardupilot_bridge", "--config", str(cfg_path)]
         argv += ["--truth-url", f"tcp:127.0.0.1:{port(2, n)}"]
         argv += ["--camera-port", str(CAMERA_PORT + n), "--out", str(self.out)]
         ptys = self._start_bridge_with(argv, cfg_path)

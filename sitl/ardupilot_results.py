@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl import loop_results
+from companion.sitl import loop_results
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)

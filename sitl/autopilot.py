@@ -53,15 +53,15 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, from_dict, to_dict
+from companion.drivers.camera import encode_frame
+from companion.drivers.mavlink import LinkStats, Parser
+from companion.drivers.signing import Signing
+from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.geometry import so3
+from companion.sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
 from companion.types import CameraFrame
-from drivers.camera import encode_frame
-from drivers.mavlink import LinkStats, Parser
-from drivers.signing import Signing
-from drivers.timesync import ClockSync, reply_for
-from sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
@@ -151,7 +151,7 @@ def camera_process(
     time_scale) wall-clock seconds after the flight start).
     ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
     (only valid for a flight that is periodic there: it renders first + n frames at most)."""
-    from sitl.scenario import Scenario
+    from companion.sitl.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
     scenario = Scenario(cfg)
@@ -195,7 +195,7 @@ def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any
     is seeded by k, the laser marks by its time), so each thread renders every workers-th
     frame with a Scenario of its own (its own buffers) over the same world, and the images are
     bit for bit those one thread renders (tests/test_render.py)."""
-    from sitl.scenario import Scenario, render_threads
+    from companion.sitl.scenario import Scenario, render_threads
 
     if workers <= 0:
         workers = render_threads()
@@ -322,9 +322,9 @@ class SimAutopilot:
     """The stub: ``await SimAutopilot(cfg, opts).run(out_dir)``."""
 
     def __init__(self, cfg: Config, opts: AutopilotOptions | None = None) -> None:
-        from sitl.sensors import RangeSimulator
-        from sitl.trajectory import Trajectory
-        from sitl.world import make_world
+        from companion.sitl.sensors import RangeSimulator
+        from companion.sitl.trajectory import Trajectory
+        from companion.sitl.world import make_world
 
         self.cfg = cfg
         self.opts = opts or AutopilotOptions()
@@ -351,7 +351,7 @@ class SimAutopilot:
         self.rates_hz = dict(DEFAULT_RATES_HZ)  # 0: stopped
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
-        from sitl.px4_services import Px4Services
+        from companion.sitl.px4_services import Px4Services
 
         self.px4 = Px4Services(self)  # parameters, EV fusion, shell, ground-station endpoint
 

@@ -34,9 +34,9 @@ from companion.config import Config, RangefinderConfig
 from companion.errors import SitlError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from sitl.render import Renderer
-from sitl.sensors import laser_hits
-from sitl.world import World, make_world
+from companion.sitl.render import Renderer
+from companion.sitl.sensors import laser_hits
+from companion.sitl.world import World, make_world
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]

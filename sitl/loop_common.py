@@ -384,7 +384,8 @@ class LoopFlight:
         over: dict[str, Any] = {"sitl": {"seed": self.o.seed}}
         if self.o.terrain:
             over["sitl"]["terrain"] = self.o.terrain
-        return to_dict(load_config(self.o.config, over))
+        loop: dict[str, Any] = to_dict(load_config(self.o.config, over))
+        return loop
 
     def _write_service_config(self, d: dict[str, Any]) -> Path:
         """OUT/service.toml from ``d``; its path."""
@@ -566,7 +567,7 @@ class LoopFlight:
                 return False
             if not since:
                 since.extend([time.monotonic(), vo.get("resets")])
-            return time.monotonic() - since[0] >= seconds
+            return bool(time.monotonic() - since[0] >= seconds)
 
         return cond
 

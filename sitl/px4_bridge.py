@@ -51,13 +51,13 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, RangefinderConfig, load_config
+from companion.drivers.camera import encode_frame
+from companion.drivers.rangefinder import tfmini_frame
 from companion.geometry import so3
+from companion.sitl.render import Renderer
+from companion.sitl.sensors import laser_hits
+from companion.sitl.world import World, make_world
 from companion.types import CameraFrame
-from drivers.camera import encode_frame
-from drivers.rangefinder import tfmini_frame
-from sitl.render import Renderer
-from sitl.sensors import laser_hits
-from sitl.world import World, make_world
 
 F64 = NDArray[np.float64]
 

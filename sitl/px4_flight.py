@@ -42,9 +42,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.drivers.px4_shell_text import parse_listener
 from companion.errors import SitlError
-from drivers.px4_shell_text import parse_listener
-from sitl.loop_common import (
+from companion.sitl.loop_common import (
     REPO,
     GcsBase,
     LoopFlight,
@@ -56,9 +56,9 @@ from sitl.loop_common import (
 )
 
 # names of this module before the loops shared sitl/loop_common.py, kept
-from sitl.loop_common import Procs as Procs
-from sitl.loop_common import leg_setpoints as leg_setpoints
-from sitl.loop_common import mission_path as mission_path
+from companion.sitl.loop_common import Procs as Procs
+from companion.sitl.loop_common import leg_setpoints as leg_setpoints
+from companion.sitl.loop_common import mission_path as mission_path
 
 SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
 BUILD_HELP = (
@@ -379,7 +379,7 @@ class Flight(LoopFlight):
         argv = [
             sys.executable,
             "-m",
-            "sitl.px4_bridge",
+            "companion.sitl.px4_bridge",
             "--config",
             str(cfg_path),
             "--instance",
@@ -445,7 +445,7 @@ class Flight(LoopFlight):
         self._arm()
         self.armed_mode = "POSCTL"
         here = self._offboard_here()
-        top = here + np.array([0.0, 0.0, -o.altitude_m])
+        top: np.ndarray = here + np.array([0.0, 0.0, -o.altitude_m])
         self._phase("climb in Offboard")
         self._follow([here, top], 1.0)
         return top
@@ -550,7 +550,7 @@ class Flight(LoopFlight):
 
     # ------------------------------------------------------------------ results
     def summarise(self, ok: bool) -> dict[str, Any]:
-        from sitl.px4_results import summarise
+        from companion.sitl.px4_results import summarise
 
         return summarise(self, ok)
 

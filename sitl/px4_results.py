@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl.loop_results import (
+from companion.sitl.loop_results import (
     camera_and_latency,
     clock_line,
     path_and_landing,
@@ -52,7 +52,7 @@ from sitl.loop_results import (
     touchdown,
     truth_at,
 )
-from sitl.ulog import read_topics
+from companion.sitl.ulog import read_topics
 
 SETTLE_NS = 2e9  # compared from this long after the first EV fusion
 TOPICS = {
@@ -101,7 +101,8 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
 
     def ours(t_us: np.ndarray) -> np.ndarray:
         """PX4 time [us] -> our monotonic clock [ns]."""
-        return clock[0] + clock[1] * np.asarray(t_us, dtype=np.float64) * 1e3
+        ns: np.ndarray = clock[0] + clock[1] * np.asarray(t_us, dtype=np.float64) * 1e3
+        return ns
 
     s["failsafes"] = _failsafes(out, tel, ulog)
     # ---- truth

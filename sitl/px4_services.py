@@ -30,14 +30,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from drivers.mavlink import LinkStats, Parser
-from sitl.ekf_fusion import EvFusion
-from sitl.faults import active
-from sitl.px4_params import ParamServer, ParamStore, px4_parameters
-from sitl.px4_shell import SERIAL_CONTROL_DEV_SHELL, NshShell, serial_control_replies
+from companion.drivers.mavlink import LinkStats, Parser
+from companion.sitl.ekf_fusion import EvFusion
+from companion.sitl.faults import active
+from companion.sitl.px4_params import ParamServer, ParamStore, px4_parameters
+from companion.sitl.px4_shell import SERIAL_CONTROL_DEV_SHELL, NshShell, serial_control_replies
 
 if TYPE_CHECKING:
-    from sitl.autopilot import SimAutopilot
+    from companion.sitl.autopilot import SimAutopilot
 
 log = logging.getLogger("sitl.px4")
 

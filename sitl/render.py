@@ -18,10 +18,10 @@ from numpy.typing import NDArray
 
 from companion.config import CameraConfig, RangefinderConfig, RenderConfig
 from companion.geometry import se3
-from sitl import _kernels
-from sitl.sensors import laser_hits
-from sitl.trajectory import Trajectory
-from sitl.world import World
+from companion.sitl import _kernels
+from companion.sitl.sensors import laser_hits
+from companion.sitl.trajectory import Trajectory
+from companion.sitl.world import World
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

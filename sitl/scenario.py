@@ -18,11 +18,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config
+from companion.sitl.render import RenderedFrame, Renderer
+from companion.sitl.sensors import AttitudeSimulator, RangeSimulator, TrueRange
+from companion.sitl.trajectory import Trajectory
+from companion.sitl.world import World, make_world
 from companion.types import AttitudeSample, CameraFrame
-from sitl.render import RenderedFrame, Renderer
-from sitl.sensors import AttitudeSimulator, RangeSimulator, TrueRange
-from sitl.trajectory import Trajectory
-from sitl.world import World, make_world
 
 F64 = NDArray[np.float64]
 

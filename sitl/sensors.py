@@ -20,9 +20,9 @@ from numpy.typing import NDArray
 
 from companion.config import RangefinderConfig
 from companion.geometry import so3
+from companion.sitl.trajectory import Trajectory
+from companion.sitl.world import World
 from companion.types import AttitudeSample, RangeSample
-from sitl.trajectory import Trajectory
-from sitl.world import World
 
 F64 = NDArray[np.float64]
 

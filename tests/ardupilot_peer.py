@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.drivers.ardupilot import Origin, OriginKeeper, set_gps_global_origin
 from companion.geometry import so3
-from drivers.ardupilot import Origin, OriginKeeper, set_gps_global_origin
-from sitl import ardupilot_sitl
+from companion.sitl import ardupilot_sitl
 
 SKIP_REASON = (
     f"ArduPilot SITL not found at {ardupilot_sitl.SHARED_ARDUPILOT} (the shared folder beside "

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from companion.config import load_config
+from companion.drivers.dataset import DatasetWriter
 from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
-from drivers.dataset import DatasetWriter
 
 WIDTH, HEIGHT = 96, 72  # small frames: a case costs milliseconds
 Files = dict[str, bytes]
@@ -358,7 +358,7 @@ def _on_alarm(_signum: int, _frame: object) -> None:
 
 def _read_all(folder: Path) -> None:
     """What `eval` reads: the dataset and every frame, in the pipeline's order."""
-    from drivers.dataset import open_dataset
+    from companion.drivers.dataset import open_dataset
 
     for _ in open_dataset(folder).events():
         pass

@@ -25,7 +25,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from drivers.timesync import RequesterModel
+from companion.drivers.timesync import RequesterModel
 
 REPO = Path(__file__).resolve().parent.parent
 PX4_SITL = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
@@ -175,7 +175,7 @@ class Px4Sitl:
 
     def listener(self, topic: str) -> dict[str, Any] | None:
         """The last message of a uORB topic, parsed as ``companion px4 check`` parses it."""
-        from drivers.px4_shell_text import parse_listener
+        from companion.drivers.px4_shell_text import parse_listener
 
         return parse_listener(self.console("listener", topic))
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.autopilot.ardupilot_link import pymavlink_url
-from drivers.ardupilot import (
+from companion.drivers.ardupilot import (
     ORIGIN_HOLD_S,
     ORIGIN_RESEND_S,
     Origin,

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from ardupilot_peer import SKIP_REASON
 
-from sitl import ardupilot_sitl
-from sitl.ardupilot_flight import Flight, FlightOptions
+from companion.sitl import ardupilot_sitl
+from companion.sitl.ardupilot_flight import Flight, FlightOptions
 
 pytestmark = [
     pytest.mark.skipif(not ardupilot_sitl.available(), reason=SKIP_REASON),

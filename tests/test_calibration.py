@@ -30,7 +30,12 @@ from companion.config import Config, MountConfig, load_config, to_dict
 from companion.errors import CalibrationError, NotEnoughViewsError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
-from sitl.calibration import BoardRenderer, laser_check_frames, random_board_poses, tilt_sensor
+from companion.sitl.calibration import (
+    BoardRenderer,
+    laser_check_frames,
+    random_board_poses,
+    tilt_sensor,
+)
 
 # the camera to recover: not the config default, fx != fy, off-centre, stronger barrel
 TRUTH = CameraModel(640, 480, 452.0, 455.0, 326.4, 236.9, -0.21, 0.08, 0.0008, -0.0005, 0.0)

@@ -24,9 +24,7 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.errors import ConfigError
-from companion.types import CameraFrame
-from drivers.camera import (
+from companion.drivers.camera import (
     CameraError,
     CaptureRequest,
     VideoCaptureSource,
@@ -37,6 +35,8 @@ from drivers.camera import (
     open_camera,
     uvc_readback_problems,
 )
+from companion.errors import ConfigError
+from companion.types import CameraFrame
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -145,7 +145,7 @@ def test_gst_each_raw_format_gives_the_same_bgr_image(fmt: str) -> None:
 def test_frame_to_bgr_undoes_every_layout_and_row_padding() -> None:
     """The pure conversion: a random BGR image packed into each layout, rows padded to a
     larger stride, comes back exactly; a short buffer or an unknown format is a CameraError."""
-    from drivers.camera_gst import FORMAT_LAYOUT, frame_to_bgr
+    from companion.drivers.camera_gst import FORMAT_LAYOUT, frame_to_bgr
 
     rng = np.random.default_rng(1)
     h, w = 7, 5
@@ -229,7 +229,7 @@ def test_gst_under_refused_writable_executable_memory(tmp_path) -> None:
             print("W+X allowed"); sys.exit(1)
         except OSError:
             pass
-        from drivers.camera import open_camera
+        from companion.drivers.camera import open_camera
         url = ("gst:videotestsrc num-buffers=5 pattern=smpte ! video/x-raw,format=I420,"
                "width=320,height=240 ! videoconvert ! video/x-raw,format=BGR ! appsink")
         frames = list(open_camera(url).frames())
@@ -350,7 +350,7 @@ def test_a_video_file_is_read_to_its_end_and_checked_against_the_intrinsics(tmp_
 
 
 def test_an_image_folder_replays_and_is_checked_against_the_intrinsics(tmp_path) -> None:
-    from drivers.dataset import DatasetWriter
+    from companion.drivers.dataset import DatasetWriter
 
     cfg = load_config(None, {"camera": {"width": 96, "height": 64}})
     writer = DatasetWriter(tmp_path / "ds", cfg)
@@ -593,13 +593,13 @@ class FakePicamera2:
 
 
 def picamera2_source(cam: FakePicamera2, request: CaptureRequest | None):
-    from drivers.camera_picamera2 import Picamera2Source
+    from companion.drivers.camera_picamera2 import Picamera2Source
 
     return Picamera2Source(cam.num, request=request, factory=lambda num: cam)
 
 
 def test_picamera2_configuration_pixels_and_time(monkeypatch) -> None:
-    from drivers.camera_picamera2 import sensor_stamp_us, video_configuration_args
+    from companion.drivers.camera_picamera2 import sensor_stamp_us, video_configuration_args
 
     args = video_configuration_args(CaptureRequest(640, 480, 25.0, "", 3000.0))
     assert args == {

@@ -17,14 +17,14 @@ import pytest
 from peers import free_port
 from test_status import SAMPLE, halt, serve_in_thread
 
-import drivers.status as status_mod
+import companion.drivers.status as status_mod
 from companion.cli import COMMANDS, build_parser, main
 from companion.cli.common import EXIT_CODES, EXIT_PROBLEMS, EXIT_UNREACHABLE, EXIT_USAGE
 from companion.config import load_config
+from companion.drivers.status import find_status_socket, status_path, user_status_path
 from companion.errors import ConfigError
 from companion.px4.check import resolve
 from companion.px4.options import Px4Options
-from drivers.status import find_status_socket, status_path, user_status_path
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("numpy", "scipy", "cv2", "sitl", "pymavlink", "mavsdk", "companion.pipeline")

@@ -28,10 +28,10 @@ import pytest
 from peers import sitl_flight, slow_motion_overrides
 
 from companion.config import load_config
+from companion.drivers.status import read_status
 from companion.geometry import so3
 from companion.service.app import Service
-from drivers.status import read_status
-from sitl.autopilot import SimAutopilot
+from companion.sitl.autopilot import SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "30"))
 SCALE = 0.5  # flight seconds per wall-clock second (AutopilotOptions.time_scale)

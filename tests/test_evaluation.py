@@ -13,10 +13,10 @@ import pytest
 
 from companion.cli import main
 from companion.config import load_config
+from companion.drivers.dataset import read_tum
 from companion.evaluation.trajectory import ate_rmse, path_length, umeyama
 from companion.geometry import so3
-from drivers.dataset import read_tum
-from sitl.dataset import record
+from companion.sitl.dataset import record
 
 
 def test_umeyama_recovers_a_similarity_exactly() -> None:
@@ -221,7 +221,7 @@ def test_eval_without_a_world_never_touches_the_simulator(evaluated: Path) -> No
     need a true scale are unavailable, never computed from a default world; `sitl` is never
     imported."""
     real = as_converted_recording(evaluated.parent / "urban", evaluated.parent / "converted")
-    from drivers.dataset import open_dataset
+    from companion.drivers.dataset import open_dataset
 
     ds = open_dataset(real)
     assert ds.sitl is None and not ds.has_world and ds.has_ground_truth
@@ -255,7 +255,7 @@ def test_eval_without_ranges_invents_no_sensors(evaluated: Path) -> None:
         evaluated.parent / "urban", evaluated.parent / "no-ranges", ranges=False
     )
     from companion.cli.evaluate_dataset import dataset_config
-    from drivers.dataset import open_dataset
+    from companion.drivers.dataset import open_dataset
 
     ds = open_dataset(real)
     assert ds.rangefinders == [] and ds.ranges == []

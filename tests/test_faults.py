@@ -30,10 +30,10 @@ import numpy as np
 import pytest
 from peers import MOSQUITTO, Broker, sitl_flight
 
+from companion.drivers.mavlink import PEER_SILENCE_S
 from companion.service.app import Service
-from drivers.mavlink import PEER_SILENCE_S
-from sitl.autopilot import SimAutopilot
-from sitl.faults import Fault
+from companion.sitl.autopilot import SimAutopilot
+from companion.sitl.faults import Fault
 
 SECONDS = 60.0
 CAMERA_FAULTS = (

@@ -10,9 +10,9 @@ import pytest
 from companion.config import load_config
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
+from companion.sitl.scenario import Scenario
 from companion.types import CameraFrame
 from companion.vo.frame_check import FrameCheck, FrameProblem
-from sitl.scenario import Scenario
 
 
 @pytest.fixture(scope="module")

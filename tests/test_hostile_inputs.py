@@ -35,9 +35,9 @@ from hostile_datasets import (
 )
 
 from companion.cli import main
+from companion.drivers.dataset import open_dataset
+from companion.drivers.safe_files import check_image_header, image_header
 from companion.errors import DatasetError
-from drivers.dataset import open_dataset
-from drivers.safe_files import check_image_header, image_header
 
 REPO = Path(__file__).resolve().parents[1]
 IMG0 = "images/000000.png"
@@ -405,7 +405,7 @@ def test_the_header_size_is_read_from_the_bytes() -> None:
 BOMB_PROBE = textwrap.dedent(
     """
     import sys, time
-    from drivers.dataset import open_dataset
+    from companion.drivers.dataset import open_dataset
     from companion.errors import DatasetError
     ds = open_dataset(sys.argv[1])
     start = time.monotonic()
@@ -540,7 +540,7 @@ def test_the_folder_camera_replays_a_hostile_time_gap_as_a_short_pause(
     """A frame stamped 2**61 us after the one before (a valid, increasing time): the `folder:`
     camera of `companion run` slept through it (forever); now a pause of at most
     MAX_REPLAY_GAP_S."""
-    from drivers.camera import MAX_REPLAY_GAP_S, FolderSource
+    from companion.drivers.camera import MAX_REPLAY_GAP_S, FolderSource
 
     files = dict(bases["ours"])
     lines = files["frames.csv"].decode().split("\n")

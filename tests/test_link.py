@@ -14,9 +14,9 @@ from typing import Any
 from peers import free_port, service_config
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion.drivers import messages
+from companion.drivers.mavlink import PEER_SILENCE_S, LinkStats, Parser, frame_spans
 from companion.service.app import Service
-from drivers import messages
-from drivers.mavlink import PEER_SILENCE_S, LinkStats, Parser, frame_spans
 
 
 class Sender:
@@ -407,7 +407,7 @@ def test_backoff_doubles_jitters_caps_and_resets() -> None:
 
     import pytest
 
-    from drivers.backoff import Backoff
+    from companion.drivers.backoff import Backoff
 
     b = Backoff(0.5, 4.0, random.Random(7))
     waits = [b.next_s() for _ in range(8)]
@@ -507,8 +507,8 @@ def test_on_a_signed_link_an_unsigned_claimant_is_named_and_never_followed(
     named in the log and among the claimants, where before it was dropped unsaid."""
     import logging
 
-    from drivers.mavlink import MavlinkLink
-    from drivers.signing import Signing, TimestampStore, wall_units
+    from companion.drivers.mavlink import MavlinkLink
+    from companion.drivers.signing import Signing, TimestampStore, wall_units
 
     key = bytes(range(7, 39))
     port = free_port(socket.SOCK_DGRAM)

@@ -283,8 +283,8 @@ def test_a_status_socket_connection_flood_leaves_the_event_loop_to_the_service(t
     (in it, its connection may find the kernel's backlog full). Before: every connection was
     served (6,600/s here), the loop thread spent 74 % of the flood on it and a 10 ms sleep
     woke up to 140 ms late."""
+    from companion.drivers.status import read_status
     from companion.service.status import REPLIES_PER_PEER_S, REPLY_PEER_BURST, StatusServer
-    from drivers.status import read_status
 
     path = tmp_path / "status.sock"
     made: list[float] = []
@@ -322,8 +322,8 @@ def test_a_client_that_never_reads_is_dropped_and_others_are_served(tmp_path) ->
     descriptor each), and a client that reads is served meanwhile."""
     import socket
 
+    from companion.drivers.status import read_status
     from companion.service.status import WRITE_TIMEOUT_S, StatusServer
-    from drivers.status import read_status
 
     path = tmp_path / "status.sock"
     big = {**SAMPLE, "warnings": ["x" * 1000] * 4000}  # 4 MB
@@ -394,7 +394,7 @@ def test_poses_keep_the_camera_rate_through_a_status_flood_and_a_hostile_broker(
     from peers import sitl_flight
 
     from companion.service.app import Service
-    from sitl.autopilot import SimAutopilot
+    from companion.sitl.autopilot import SimAutopilot
 
     start_mqtt = asyncio.Event()
 

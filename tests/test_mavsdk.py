@@ -29,11 +29,11 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
 from companion.config import load_config
+from companion.drivers import messages
+from companion.drivers.mavlink import MavlinkLink
 from companion.geometry import so3
+from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
 from companion.types import PoseEstimate
-from drivers import messages
-from drivers.mavlink import MavlinkLink
-from sitl.autopilot import AutopilotOptions, SimAutopilot
 
 T = TypeVar("T")
 

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import sitl.loop_common as lc
+import companion.sitl.loop_common as lc
 
 
 class FakeGcs:

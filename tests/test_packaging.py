@@ -19,7 +19,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 # what only the simulator (sim extra), the evaluation (eval extra) or their dependencies bring
-EXTRAS_ONLY = ("numba", "llvmlite", "skimage", "matplotlib", "evo", "pandas", "tomli_w", "sitl")
+EXTRAS_ONLY = ("numba", "llvmlite", "skimage", "matplotlib", "evo", "pandas", "tomli_w", "companion.sitl")
 
 # Runs in a fresh interpreter: a meta path finder refuses (and records) every import of the
 # extras' modules, then the board's whole product is imported and the service's commands run:
@@ -33,7 +33,7 @@ attempts = []
 
 class RefuseExtras(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in BLOCKED:
+        if any(name == b or name.startswith(b + ".") for b in BLOCKED):
             attempts.append(name)
             raise ModuleNotFoundError(f"blocked by the test: {name}", name=name)
         return None
@@ -42,17 +42,24 @@ class RefuseExtras(importlib.abc.MetaPathFinder):
 sys.meta_path.insert(0, RefuseExtras())
 out = {"exit": {}, "import_errors": {}}
 
-import companion, drivers
+import companion
 from companion.cli import main
 
-for pkg in (companion, drivers):
-    for mod in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
-        if mod.name.endswith(".__main__"):  # runs the CLI when imported
-            continue
+def walk(path, prefix):
+    # pkgutil.walk_packages imports every package to look inside: the simulator's too
+    for mod in pkgutil.iter_modules(path, prefix):
+        if mod.name.endswith(".__main__") or mod.name == "companion.sitl":
+            continue  # __main__ runs the CLI; the simulator is the sim extra (refused below)
         try:
-            importlib.import_module(mod.name)
+            module = importlib.import_module(mod.name)
         except ImportError as e:
             out["import_errors"][mod.name] = str(e)
+            continue
+        if mod.ispkg:
+            walk(module.__path__, mod.name + ".")
+
+
+walk(companion.__path__, "companion.")
 
 config = sys.argv[2]
 for name, argv in (
@@ -68,7 +75,7 @@ for name, argv in (
 out["service_path_attempts"] = list(attempts)
 # the finder itself works: the simulator is refused here, though this venv has it
 try:
-    import sitl.world  # noqa: F401
+    import companion.sitl.world  # noqa: F401
     out["sitl_refused"] = False
 except ModuleNotFoundError:
     out["sitl_refused"] = True
@@ -108,7 +115,7 @@ def test_the_service_never_imports_the_simulator_or_evaluation_extras(tmp_path: 
     assert line is not None, r.stdout[-3000:] + r.stderr[-3000:]
     out = json.loads(line[len("PROBE ") :])
     # the finder is not a no-op: with it, the simulator cannot be imported, and it was seen
-    assert out["sitl_refused"] and "sitl" in out["attempts_after_check"]
+    assert out["sitl_refused"] and "companion.sitl" in out["attempts_after_check"]
     # nothing on the service path (every module of companion and drivers, the commands a board
     # runs) even tried to import an extra, and every module imported
     assert out["service_path_attempts"] == [], out["service_path_attempts"]
@@ -161,12 +168,16 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "companion/cli/__init__.py",
         "companion/service/app.py",
         "companion/py.typed",
-        "drivers/camera.py",
-        "drivers/mavlink.py",
-        "drivers/rangefinder.py",
-        "sitl/world.py",  # for the sim extra
+        "companion/drivers/camera.py",
+        "companion/drivers/mavlink.py",
+        "companion/drivers/rangefinder.py",
+        "companion/sitl/world.py",  # for the sim extra
     ):
         assert path in names, path
+    # one import package: drivers/ and sitl/ install as companion.drivers and companion.sitl
+    # (docs/decisions.md, "One installed package")
+    top = {n.split("/", 1)[0] for n in names if not n.split("/", 1)[0].endswith(".dist-info")}
+    assert top == {"companion"}, top
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
     requires = [
         line.split(":", 1)[1].strip()
@@ -189,7 +200,7 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "systemd/board-install.sh",
         "docs/install.md",
         "companion/service/app.py",
-        "drivers/camera.py",
+        "companion/drivers/camera.py",
     ):
         assert path in members, path
 

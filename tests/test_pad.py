@@ -99,8 +99,8 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
     from companion.config import load_config
     from companion.offline import feed_step
     from companion.pipeline import Pipeline
+    from companion.sitl.scenario import Scenario
     from companion.types import AttitudeSample
-    from sitl.scenario import Scenario
 
     overrides = small_camera()
     overrides["vo"].update(gravity_sigma_deg=2.0, pad_gravity_sigma_deg=0.3)

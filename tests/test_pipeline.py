@@ -10,8 +10,8 @@ from companion.config import load_config
 from companion.geometry import se3, so3
 from companion.offline import feed_step
 from companion.pipeline import Pipeline, PipelineStatus
+from companion.sitl.scenario import Scenario
 from companion.types import AttitudeSample, VoState
-from sitl.scenario import Scenario
 
 
 def _ground_flight(seconds: float, terrain: str = "hills", **extra: object):

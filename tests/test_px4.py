@@ -25,6 +25,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion import cli
 from companion.config import Config, load_config
+from companion.drivers import messages
+from companion.drivers.mavlink import MavlinkLink
+from companion.drivers.timesync import reply_for
 from companion.errors import Px4Error
 from companion.geometry import so3
 from companion.px4.check import CheckReport, run_check
@@ -33,12 +36,9 @@ from companion.px4.encoding import float32_bits_as_int32, int32_bits_as_float32
 from companion.px4.link import Px4Link
 from companion.px4.options import Px4Options
 from companion.px4.rules import Row, Status
+from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 from companion.types import PoseEstimate
-from drivers import messages
-from drivers.mavlink import MavlinkLink
-from drivers.timesync import reply_for
-from sitl.autopilot import AutopilotOptions, SimAutopilot
-from sitl.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 
 WATCH_S = 2.0
 CONFIGURED = {  # what configure writes on the stub's PX4 v1.14 defaults (ODOMETRY output)
@@ -533,8 +533,8 @@ PX4_FLAGS = (
 
 
 def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
+    from companion.drivers.px4_shell_text import number, parse_listener, parse_uorb_top
     from companion.px4.fusion import sample_age_ms
-    from drivers.px4_shell_text import number, parse_listener, parse_uorb_top
 
     f = parse_listener(PX4_LISTENER)
     assert f is not None
@@ -576,10 +576,10 @@ def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
 
 
 def test_the_stub_prints_listener_output_in_px4s_format() -> None:
+    from companion.drivers.px4_shell_text import parse_listener
     from companion.px4.fusion import sample_age_ms
-    from drivers.px4_shell_text import parse_listener
-    from sitl.ekf_fusion import Topic
-    from sitl.px4_shell import format_listener
+    from companion.sitl.ekf_fusion import Topic
+    from companion.sitl.px4_shell import format_listener
 
     t = Topic("vehicle_visual_odometry", "vehicle_odometry")
     q = (0.70710678, 0.0, 0.0, 0.70710678)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from sitl.px4_flight import SHARED_PX4, Flight, FlightOptions
+from companion.sitl.px4_flight import SHARED_PX4, Flight, FlightOptions
 
 # PX4 SIH's lockstep clock against ours: ~0.1 % on the host of 2026-11-25, 0.9-2.3 % over the
 # hovers of 2026-11-27 on a slower one (docs/RESULTS.md, "2026-11-27 (bfdc1dc)"), 0.6-0.8 % in

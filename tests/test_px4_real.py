@@ -27,11 +27,11 @@ from pymavlink.dialects.v20 import common as mavlink
 from test_px4 import Sender, companion, set_params, sitl, until
 
 from companion.config import Config, load_config
+from companion.drivers import messages
 from companion.px4.check import CheckReport, format_check, run_check
 from companion.px4.configure import run_configure
 from companion.px4.options import Px4Options
 from companion.px4.rules import Row, Status
-from drivers import messages
 
 VPE, ODOMETRY = "vision_position_estimate", "odometry"
 VISION_ONLY = {**GPS_OFF, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 11}  # the README's VPE set-up

@@ -10,7 +10,7 @@ import tty
 
 import numpy as np
 
-from drivers.rangefinder import TfminiParser, TfminiSerial, tfmini_frame, to_sample
+from companion.drivers.rangefinder import TfminiParser, TfminiSerial, tfmini_frame, to_sample
 
 
 def stream(distances_cm, strength=800) -> bytes:

@@ -29,9 +29,9 @@ from peers import sitl_flight
 
 from companion.cli import main
 from companion.config import Config, load_config
+from companion.drivers.dataset import DatasetWriter, open_dataset, read_poses_csv
 from companion.service.recorder import Recorder, recording_dir
 from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
-from drivers.dataset import DatasetWriter, open_dataset, read_poses_csv
 
 FLIGHT_S = float(os.environ.get("COMPANION_RECORDER_SECONDS", "14"))
 
@@ -311,7 +311,7 @@ def fly_recording(tmp_path: Path, **record: object) -> Any:
     SITL flight of FLIGHT_S seconds against the SITL autopilot (peers.sitl_flight); returns
     the service after the flight."""
     from companion.service.app import Service
-    from sitl.autopilot import SimAutopilot
+    from companion.sitl.autopilot import SimAutopilot
 
     cfg, opts = sitl_flight(tmp_path, FLIGHT_S, small=True)  # the 320x240 camera
     cfg = with_record(cfg, tmp_path / "rec", **record)
@@ -410,7 +410,7 @@ def test_atomic_write_never_writes_through_a_planted_temporary_name(
     one at a name it draws (the next random name is taken instead)."""
     import secrets
 
-    from drivers import files
+    from companion.drivers import files
 
     victim = tmp_path / "victim"
     victim.write_bytes(b"not yours\n")

@@ -25,13 +25,13 @@ from peers import free_port, service_config
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
+from companion.drivers.mavlink import MavlinkLink
+from companion.drivers.status import read_status
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
 from companion.service.app import Service
+from companion.sitl.scenario import Scenario
 from companion.types import RangeSample
-from drivers.mavlink import MavlinkLink
-from drivers.status import read_status
-from sitl.scenario import Scenario
 
 
 def _absurd_float(rng: np.random.Generator) -> float:
@@ -410,7 +410,7 @@ def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
     """The camera port taken (a leftover run): the SITL must fail, not fly while somebody
     else's stream is measured as its own."""
     from companion.errors import SitlError
-    from sitl.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
 
     with socket.create_server(("127.0.0.1", 0)) as blocker:
         opts = AutopilotOptions(
@@ -581,8 +581,8 @@ def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
     """Frames, then the camera process is gone: a warning within seconds, fps 0 and the
     problem in the status; a serial autopilot port and a TFmini port that do not exist are
     said too (they used to be retried in silence)."""
+    from companion.drivers.camera import encode_frame
     from companion.types import CameraFrame
-    from drivers.camera import encode_frame
 
     srv = socket.socket()
     srv.bind(("127.0.0.1", 0))
@@ -658,7 +658,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     slack a vehicle's companion has; a service that stalls in the flood still fails."""
     from peers import sitl_flight
 
-    from sitl.autopilot import SimAutopilot
+    from companion.sitl.autopilot import SimAutopilot
 
     seconds, flood_s, scale = 16.0, (6.5, 15.5), 0.5
     cfg, opts = sitl_flight(tmp_path, seconds, small=True, time_scale=scale)  # 320x240
@@ -676,7 +676,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
-                    "sitl.flood",
+                    "companion.sitl.flood",
                     "--port",
                     str(port),
                     "--rate",
@@ -809,9 +809,9 @@ def test_a_fifo_planted_at_a_state_or_key_file_is_refused_at_once(tmp_path) -> N
     config error naming the key."""
     import threading
 
+    from companion.drivers.signing import TimestampStore, load_key
     from companion.errors import ConfigError
     from companion.service.state import ResetCounter
-    from drivers.signing import TimestampStore, load_key
 
     outcomes: dict[str, str] = {}
 

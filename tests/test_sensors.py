@@ -9,9 +9,9 @@ import numpy as np
 
 from companion.config import MountConfig, RangefinderConfig
 from companion.geometry import so3
-from sitl.sensors import AttitudeSimulator, RangeSimulator, laser_hits
-from sitl.trajectory import Trajectory
-from sitl.world import World
+from companion.sitl.sensors import AttitudeSimulator, RangeSimulator, laser_hits
+from companion.sitl.trajectory import Trajectory
+from companion.sitl.world import World
 
 
 def test_true_distance_is_exact_on_flat_ground(world: Callable[[str, int], World]) -> None:

@@ -52,8 +52,8 @@ print(json.dumps(rtt_ns))
 # handler ran [ns, monotonic] and the link's counters.
 COMPANION = r"""
 import asyncio, json, signal, sys, time
-from drivers.mavlink import MavlinkLink
-from drivers.timesync import reply_for
+from companion.drivers.mavlink import MavlinkLink
+from companion.drivers.timesync import reply_for
 sys.setswitchinterval(0.0005)  # as the service sets it
 dev = sys.argv[1]
 handled = {}
@@ -99,8 +99,8 @@ def test_timesync_round_trips_over_a_serial_link_stay_within_px4s_limit() -> Non
     ~2 min instead of ~10 s)."""
     import asyncio
 
-    from drivers.mavlink import MavlinkLink
-    from drivers.timesync import reply_for
+    from companion.drivers.mavlink import MavlinkLink
+    from companion.drivers.timesync import reply_for
 
     master, dev = _pty()
     arrivals_ms: list[float] = []  # the request's stamp at reception - its sending

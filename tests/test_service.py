@@ -9,13 +9,10 @@ import numpy as np
 import pytest
 
 from companion.config import DEFAULT_RANGEFINDERS
-from companion.errors import ConfigError
-from companion.geometry import so3
-from companion.types import CameraFrame, PoseEstimate
-from drivers import messages
-from drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
-from drivers.mavlink import LinkStats, LinkUrl, Parser
-from drivers.timesync import (
+from companion.drivers import messages
+from companion.drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
+from companion.drivers.mavlink import LinkStats, LinkUrl, Parser
+from companion.drivers.timesync import (
     PX4_CONVERGENCE_WINDOW,
     PX4_MAX_CONSECUTIVE_DEVIATIONS,
     PX4_MAX_RTT_SAMPLE_NS,
@@ -23,6 +20,9 @@ from drivers.timesync import (
     RequesterModel,
     reply_for,
 )
+from companion.errors import ConfigError
+from companion.geometry import so3
+from companion.types import CameraFrame, PoseEstimate
 
 
 class PeerClock:
@@ -685,7 +685,7 @@ def test_folder_source_replays_at_the_recorded_rate(tmp_path) -> None:
     import time
 
     from companion.config import load_config
-    from sitl.dataset import record
+    from companion.sitl.dataset import record
 
     cfg = load_config(overrides={"sitl": {"terrain": "flat", "seconds": 0.5}})
     path = record(cfg, tmp_path / "ds", image_format="png", progress=False)
@@ -708,7 +708,7 @@ def test_udpout_sends_from_the_fixed_local_port() -> None:
 
     from peers import free_port
 
-    from drivers.mavlink import MavlinkLink
+    from companion.drivers.mavlink import MavlinkLink
 
     autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     autopilot.bind(("127.0.0.1", 0))
@@ -1017,7 +1017,7 @@ def test_v4l2_buffer_stamps_are_used_when_they_are_our_clock(monkeypatch) -> Non
 
     import cv2
 
-    from drivers.camera import MAX_DRIVER_STAMP_AGE_US, driver_stamp_us
+    from companion.drivers.camera import MAX_DRIVER_STAMP_AGE_US, driver_stamp_us
 
     now_us = 5_000_000_000
     assert driver_stamp_us(now_us / 1e3 - 20.0, now_us) == now_us - 20_000

@@ -15,9 +15,8 @@ from peers import free_port
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
-from companion.errors import ConfigError
-from drivers.mavlink import LinkStats, MavlinkLink, Parser
-from drivers.signing import (
+from companion.drivers.mavlink import LinkStats, MavlinkLink, Parser
+from companion.drivers.signing import (
     RESERVE_UNITS,
     UNITS_PER_S,
     Signing,
@@ -25,6 +24,7 @@ from drivers.signing import (
     load_key,
     wall_units,
 )
+from companion.errors import ConfigError
 
 KEY = bytes(range(100, 132))
 
@@ -398,7 +398,7 @@ def test_what_a_far_ahead_peer_leaves_behind_passes_the_next_start(tmp_path) -> 
     """Whatever a peer moved us to is persisted ahead and must pass the next start's check
     (at most a year ahead of a set wall clock): followed up to there, refused beyond, also
     when our own timestamp was already far ahead of the wall clock."""
-    from drivers.signing import OWN_LIMIT_UNITS, SigningState
+    from companion.drivers.signing import OWN_LIMIT_UNITS, SigningState
 
     day = 86400 * UNITS_PER_S
     for days_ahead_of_wall in (0, 200, 340):  # where our stored timestamp already was
@@ -424,7 +424,7 @@ def test_our_timestamp_never_passes_the_48_bit_margin_whatever_the_wall_clock(tm
     """A board whose clock says 2110 (past 2**48 units since 2015): our timestamp stops a day
     short of 2**48 instead of wrapping (every frame after the wrap a replay), and what is
     persisted passes the next start's check."""
-    from drivers.signing import OWN_LIMIT_UNITS
+    from companion.drivers.signing import OWN_LIMIT_UNITS
 
     year_2110_s = 4_417_977_600.0
     assert wall_units(year_2110_s) >= 2**48

@@ -34,8 +34,8 @@ import pytest
 from peers import sitl_flight
 from serial_bridge import PtySerialBridge
 
-from sitl.autopilot import SimAutopilot
-from sitl.faults import Fault
+from companion.sitl.autopilot import SimAutopilot
+from companion.sitl.faults import Fault
 
 SECONDS = 34.0
 STALLS_S = ((10.0, 2.0), (19.0, 5.0))  # (flight time [s], how long stopped [s])

@@ -11,9 +11,9 @@ import threading
 import pytest
 
 from companion.cli import EXIT_NOT_RUNNING, format_status, main
+from companion.drivers.status import read_status, status_path
 from companion.errors import ConfigError
 from companion.service.status import StatusServer
-from drivers.status import read_status, status_path
 
 SAMPLE = {
     "uptime_s": 12.5,
@@ -281,7 +281,7 @@ def test_cli_status_refuses_what_is_not_a_status(tmp_path, capsys, payload, repe
 
 
 def test_a_socket_of_another_user_in_a_world_writable_folder_is_not_trusted(tmp_path) -> None:
-    from drivers.status import StatusError
+    from companion.drivers.status import StatusError
 
     shared = tmp_path / "tmp"
     shared.mkdir()

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from companion.cli import main
-from drivers.status import printable
+from companion.drivers.status import printable
 
 SAMPLE: dict[str, Any] = {
     "uptime_s": 12.5,
@@ -199,7 +199,7 @@ def test_a_busy_service_is_asked_again_until_it_answers(tmp_path: Path) -> None:
     reply rate (companion/service/status.py): the client connects again until its deadline
     and shows the status the service gives then (before: "reply is not JSON" at once), and
     says the service is busy when no reply came in time."""
-    from drivers.status import StatusError, read_status
+    from companion.drivers.status import StatusError, read_status
 
     path = tmp_path / "busy.sock"
     srv = socket.socket(socket.AF_UNIX)

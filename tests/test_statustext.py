@@ -18,10 +18,10 @@ from peers import free_port, service_config, sitl_flight
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
+from companion.drivers import messages
 from companion.service import statustext as st
 from companion.service.app import Service
 from companion.service.statustext import INITIAL, Event, Limiter, OperatorState, Severity
-from drivers import messages
 
 PREFIX = "CMP: "
 
@@ -468,7 +468,7 @@ def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None
     """A pipeline that raises on every frame ends the service after 30 frames; its last word,
     sent on the way out, names the loop and the exception (CRITICAL: armed)."""
     from companion.pipeline import Pipeline
-    from sitl.dataset import record
+    from companion.sitl.dataset import record
 
     ds = record(
         load_config(overrides={"sitl": {"terrain": "flat", "seconds": 2.0}}),
@@ -519,8 +519,8 @@ def test_sitl_stub_receives_and_forwards_camera_and_vo_statustexts(tmp_path) -> 
     the stub receives VO tracking and the scale ready, then the camera lost (CRITICAL) and
     back, the VO lost and tracking again, the pose reset; its ground-station endpoint
     forwards them as received (our system and component ids), as PX4 does with -f."""
-    from sitl.autopilot import SimAutopilot
-    from sitl.faults import Fault
+    from companion.sitl.autopilot import SimAutopilot
+    from companion.sitl.faults import Fault
 
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", 0))

@@ -11,15 +11,15 @@ import pytest
 from companion.config import Config, RenderConfig
 from companion.evaluation.trajectory import ate_rmse, path_length
 from companion.geometry import se3, so3
+from companion.sitl.render import Renderer
+from companion.sitl.scenario import Scenario
+from companion.sitl.world import World
 from companion.types import CameraFrame, VoState
 from companion.vo.ba import bundle_adjust, residuals
 from companion.vo.initializer import initialize
 from companion.vo.odometry import VisualOdometry
 from companion.vo.pose import estimate_pose
 from companion.vo.triangulation import triangulate
-from sitl.render import Renderer
-from sitl.scenario import Scenario
-from sitl.world import World
 
 F = 460.0
 

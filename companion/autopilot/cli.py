@@ -26,7 +26,7 @@ def detect(url: str, timeout_s: float) -> str:
     from pymavlink import mavutil
 
     from companion.autopilot.ardupilot_link import pymavlink_url
-    from drivers.ardupilot import autopilot_name
+    from companion.drivers.ardupilot import autopilot_name
 
     u = pymavlink_url(url)
     try:

@@ -38,9 +38,15 @@ from companion.cli.evaluate_dataset import (
 )
 from companion.cli.evaluate_dpose import eval_dpose
 from companion.config import STUDY_RANGEFINDERS, Config, triangle_rangefinders
+from companion.drivers.dataset import (
+    Dataset,
+    dataset_steps,
+    open_dataset,
+    write_poses_csv,
+    write_tum,
+)
 from companion.errors import CompanionError, DatasetError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
-from drivers.dataset import Dataset, dataset_steps, open_dataset, write_poses_csv, write_tum
 
 if TYPE_CHECKING:
     from companion.cli.sim import Flight

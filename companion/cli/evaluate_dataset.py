@@ -20,10 +20,10 @@ import numpy as np
 
 from companion.cli.common import EXIT_OK, out_dir, progress
 from companion.config import Config, load_config
+from companion.drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
 from companion.errors import CompanionError
 from companion.geometry import so3
 from companion.types import PoseEstimate
-from drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
 
 NO_RANGES = "the dataset has no distance sensors (ranges.csv): no metric scale"
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, json_error, load
-from drivers.status import find_status_socket, json_safe, printable_status, read_status
+from companion.drivers.status import find_status_socket, json_safe, printable_status, read_status
 
 if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/test_cli.py)
     from companion.config import Config
@@ -38,8 +38,8 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 def path_keys(cfg: Config) -> list[tuple[str, Path]]:
     """The files the service reads or writes by the config's path keys (set ones only)."""
+    from companion.drivers.signing import default_timestamp_file
     from companion.service.state import RESET_COUNTER_FILE, state_dir
-    from drivers.signing import default_timestamp_file
 
     o = cfg.service
     keys = [

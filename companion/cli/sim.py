@@ -24,18 +24,18 @@ from numpy.typing import NDArray
 
 from companion.cli.common import EXIT_OK, add_sitl_flags, exit_on_sigterm, load
 from companion.config import Config, RangefinderConfig
+from companion.drivers.dataset import Dataset, open_dataset
+from companion.drivers.signing import load_key
 from companion.errors import CompanionError
 from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, CameraFrame, RangeSample
-from drivers.dataset import Dataset, open_dataset
-from drivers.signing import load_key
 
 if TYPE_CHECKING:
     from companion.calibration.board import BoardSpec
     from companion.calibration.lasers import LaserFrame
-    from sitl.scenario import Scenario
-    from sitl.sensors import RangeSimulator
-    from sitl.world import World
+    from companion.sitl.scenario import Scenario
+    from companion.sitl.sensors import RangeSimulator
+    from companion.sitl.world import World
 
 Event = CameraFrame | RangeSample | AttitudeSample
 Flight: TypeAlias = "Scenario"  # a simulated flight, for the other command modules' annotations
@@ -44,7 +44,7 @@ Flight: TypeAlias = "Scenario"  # a simulated flight, for the other command modu
 # ------------------------------------------------------------------------------ the gateway
 def scenario(cfg: Config) -> Flight:
     """The simulated flight of ``cfg.sitl`` with the sensors of ``cfg``."""
-    from sitl.scenario import Scenario
+    from companion.sitl.scenario import Scenario
 
     return Scenario(cfg)
 
@@ -64,7 +64,7 @@ def flight_events(sc: Flight, gt_poses: dict[int, Any] | None = None) -> Iterato
 
 def recorded_world(ds: Dataset) -> World:
     """The world of a recorded SITL flight, rebuilt from its meta.toml."""
-    from sitl.world import make_world
+    from companion.sitl.world import make_world
 
     assert ds.sitl is not None
     s = ds.sitl
@@ -75,14 +75,14 @@ def range_simulator(
     sc: Flight, rangefinders: Sequence[RangefinderConfig], seed: int
 ) -> RangeSimulator:
     """Other distance sensors over the same flight (``valid_at(time_us)``: their readings)."""
-    from sitl.sensors import RangeSimulator
+    from companion.sitl.sensors import RangeSimulator
 
     return RangeSimulator(sc.world, sc.trajectory, rangefinders, seed)
 
 
 def soak(minutes: float, out: Path, config: str) -> dict[str, Any]:
     """The soak flight (sitl/soak.py): the service as its own process against the SITL."""
-    from sitl.soak import run_soak
+    from companion.sitl.soak import run_soak
 
     return run_soak(minutes, out, config)
 
@@ -91,7 +91,7 @@ def board_photos(
     camera: CameraModel, spec: BoardSpec, views: int, seed: int
 ) -> list[NDArray[np.uint8]]:
     """Synthetic photographs of a calibration board through ``camera``."""
-    from sitl.calibration import BoardRenderer, random_board_poses
+    from companion.sitl.calibration import BoardRenderer, random_board_poses
 
     poses = random_board_poses(camera, spec, views, seed)
     return BoardRenderer(camera).render(spec, poses, seed)
@@ -102,7 +102,7 @@ def laser_frames(
 ) -> list[LaserFrame]:
     """Synthetic laser-check frames of the config's vehicle, one sensor's mount pitched by
     ``tilt`` = (sensor id, degrees) on the simulated vehicle."""
-    from sitl.calibration import laser_check_frames, tilt_sensor
+    from companion.sitl.calibration import laser_check_frames, tilt_sensor
 
     hardware = cfg.rangefinders if tilt is None else tilt_sensor(cfg.rangefinders, *tilt)
     return laser_check_frames(cfg, frames, seed, hardware)
@@ -111,7 +111,7 @@ def laser_frames(
 # ------------------------------------------------------------------------------ commands
 def cmd_sitl_record(args: argparse.Namespace) -> int:
     """Record a SITL dataset."""
-    from sitl.dataset import record
+    from companion.sitl.dataset import record
 
     out = record(
         load(args),
@@ -126,7 +126,7 @@ def cmd_sitl_record(args: argparse.Namespace) -> int:
 
 def cmd_sitl_sheet(args: argparse.Namespace) -> int:
     """Write a PNG contact sheet of a dataset and print its path."""
-    from sitl.dataset import contact_sheet
+    from companion.sitl.dataset import contact_sheet
 
     print(contact_sheet(open_dataset(args.dataset), args.out))
     return EXIT_OK
@@ -134,8 +134,8 @@ def cmd_sitl_sheet(args: argparse.Namespace) -> int:
 
 def cmd_sitl_run(args: argparse.Namespace) -> int:
     """The PX4-like SITL autopilot with its camera stream (sitl/autopilot.py)."""
-    from sitl.autopilot import AutopilotOptions, SimAutopilot
-    from sitl.faults import Fault
+    from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.faults import Fault
 
     cfg = load(args)
     out = Path(args.out) if args.out else Path("out") / "sitl-run"
@@ -170,13 +170,13 @@ def cmd_sitl_px4(args: argparse.Namespace) -> int:
     """Fly the real PX4 SITL (SIH) on our estimate (sitl/px4_flight.py)."""
     # by name, as before the split: sitl/px4_flight.py and px4_results.py are not strict-mypy
     # clean, and a plain import would have mypy check them with companion/
-    flight = importlib.import_module("sitl.px4_flight")
+    flight = importlib.import_module("companion.sitl.px4_flight")
     return int(flight.cli_main(args))
 
 
 def cmd_sitl_ardupilot(args: argparse.Namespace) -> int:
     """Fly the real ArduCopter SITL on our estimate (sitl/ardupilot_flight.py)."""
-    flight = importlib.import_module("sitl.ardupilot_flight")  # by name, as sitl px4
+    flight = importlib.import_module("companion.sitl.ardupilot_flight")  # by name, as sitl px4
     return int(flight.cli_main(args))
 
 

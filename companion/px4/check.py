@@ -18,14 +18,14 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from companion.config import Config
+from companion.drivers.mavlink import LinkUrl
+from companion.drivers.px4_shell_text import parse_listener, parse_uorb_top
+from companion.drivers.status import StatusError, find_status_socket, printable, read_status
 from companion.errors import ConfigError
 from companion.px4.fusion import Observations, ShellView, Verdict, diagnose
 from companion.px4.link import Px4Link, mavsdk_url
 from companion.px4.options import Px4Options
 from companion.px4.rules import LinkContext, Param, Row, Status, evaluate
-from drivers.mavlink import LinkUrl
-from drivers.px4_shell_text import parse_listener, parse_uorb_top
-from drivers.status import StatusError, find_status_socket, printable, read_status
 
 SHELL_TOPICS = (
     "vehicle_visual_odometry",

@@ -33,9 +33,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from companion.drivers.px4_shell_text import Fields, flag, number
 from companion.px4.encoding import float_encoded_int
 from companion.px4.rules import EV_HPOS, EV_VEL, LinkContext, Param
-from drivers.px4_shell_text import Fields, flag, number
 
 MIN_RATE_HZ = 5.0  # EKF2's EV_MAX_INTERVAL = 200 ms
 GOOD_RATE_HZ = 20.0  # PX4's docs ask for 30-50 Hz

@@ -19,10 +19,10 @@ import time
 from collections.abc import AsyncGenerator
 from typing import Any, TypeVar
 
+from companion.drivers.mavlink import LinkUrl
+from companion.drivers.px4_shell_text import clean
 from companion.errors import AutopilotUnreachableError, Px4Error
 from companion.px4.rules import Param, Target
-from drivers.mavlink import LinkUrl
-from drivers.px4_shell_text import clean
 
 log = logging.getLogger("companion.px4")
 T = TypeVar("T")

@@ -45,6 +45,11 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
+from companion.drivers import ardupilot, messages
+from companion.drivers.backoff import Backoff
+from companion.drivers.files import atomic_write
+from companion.drivers.status import status_path
+from companion.drivers.timesync import ClockSync, RequesterModel, reply_for
 from companion.pipeline import Pipeline, PipelineStatus
 from companion.redact import redact_text, redact_url, url_secrets
 from companion.service import preflight, statustext
@@ -62,11 +67,6 @@ from companion.types import (
     VoState,
 )
 from companion.vo.frame_check import FrameCheck, FrameProblem
-from drivers import ardupilot, messages
-from drivers.backoff import Backoff
-from drivers.files import atomic_write
-from drivers.status import status_path
-from drivers.timesync import ClockSync, RequesterModel, reply_for
 
 log = logging.getLogger("companion.service")
 
@@ -130,8 +130,8 @@ class Service:
     """``async with Service(cfg) as s: await s.run(duration_s)``."""
 
     def __init__(self, config: Config) -> None:
-        from drivers.camera import open_camera
-        from drivers.mavlink import MavlinkLink
+        from companion.drivers.camera import open_camera
+        from companion.drivers.mavlink import MavlinkLink
 
         self.config = config
         o = config.service
@@ -149,7 +149,7 @@ class Service:
         self.px4_stamps = RequesterModel(clock=self.sync)  # its round trips by our clock sync
         self.stats = ServiceStats()
         self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
-        from drivers.signing import Signing
+        from companion.drivers.signing import Signing
 
         self.link = MavlinkLink(
             o.mavlink_url,
@@ -217,7 +217,7 @@ class Service:
 
     def _tfmini(self, rf: Any) -> Any:
         """A rangefinder wired to the companion (drivers.rangefinder)."""
-        from drivers.rangefinder import TfminiSerial
+        from companion.drivers.rangefinder import TfminiSerial
 
         device, baud = rf.serial, 115200
         head, _, tail = rf.serial.rpartition(":")

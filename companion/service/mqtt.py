@@ -37,8 +37,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from companion.drivers.backoff import Backoff
 from companion.service_options import MqttOptions
-from drivers.backoff import Backoff
 
 MAX_BACKOFF_S = 10.0  # reconnection attempts at least this often (before the jitter)
 STOP_TIMEOUT_S = 2.0  # a clean stop waits this long at most for the "offline" status to go out

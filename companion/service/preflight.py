@@ -13,13 +13,13 @@ import ssl
 from pathlib import Path
 
 from companion.config import Config
+from companion.drivers.camera import check_camera_url, open_camera
+from companion.drivers.mavlink import LinkUrl
+from companion.drivers.signing import Signing, TimestampStore, default_timestamp_file
+from companion.drivers.status import status_path
 from companion.errors import ConfigError
 from companion.service.state import state_dir
 from companion.service.status import check_socket_path
-from drivers.camera import check_camera_url, open_camera
-from drivers.mavlink import LinkUrl
-from drivers.signing import Signing, TimestampStore, default_timestamp_file
-from drivers.status import status_path
 
 
 def check(cfg: Config) -> list[str]:

@@ -39,9 +39,9 @@ from typing import Any
 
 from companion import __version__
 from companion.config import Config, RecordOptions
+from companion.drivers.dataset import DatasetWriter
 from companion.errors import DatasetError
 from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
-from drivers.dataset import DatasetWriter
 
 log = logging.getLogger("companion.recorder")
 

@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from companion.bounded import read_regular_file
+from companion.drivers.files import atomic_write
 from companion.errors import ConfigError
-from drivers.files import atomic_write
 
 log = logging.getLogger("companion.service")
 

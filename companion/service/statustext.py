@@ -26,7 +26,7 @@ import enum
 import math
 from dataclasses import dataclass, field
 
-from drivers.messages import statustext_chunk_count
+from companion.drivers.messages import statustext_chunk_count
 
 STATUSTEXT_PERIOD_S = 0.1  # the service compares snapshots this often
 AUTOPILOT_LOST_S = 3.0  # no autopilot HEARTBEAT this long: the link is lost
