@@ -66,7 +66,7 @@ typecheck: venv
 	$(BIN)/mypy
 
 # Two pytest-xdist workers by default (PYTEST_WORKERS=0: serial). tests/conftest.py and
-# tests/peers.py keep the real autopilots on one worker and give every real-time flight the
+# tests/peers/__init__.py keep the real autopilots on one worker and give every real-time flight the
 # machine to itself (its camera prerendered beside the other worker's tests), so the second
 # core runs the CPU-bound tests while no flight is on: 14:55 against 20:38 serial on this
 # 2-core machine (docs/BENCHMARKS.md, "Later on 2026-11-25 (8eac457)"; docs/decisions.md,

@@ -99,7 +99,7 @@ class AutopilotOptions:
     has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
     camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
     # awaited once the camera is ready (prerendered), before the flight clock starts: a test
-    # run on several workers flies one real-time flight at a time (tests/peers.py)
+    # run on several workers flies one real-time flight at a time (tests/peers/)
     flight_gate: Callable[[], Awaitable[None]] | None = None
 
 
@@ -194,7 +194,7 @@ def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any
     The render kernels run without the GIL and frame k's image depends on k alone (its noise
     is seeded by k, the laser marks by its time), so each thread renders every workers-th
     frame with a Scenario of its own (its own buffers) over the same world, and the images are
-    bit for bit those one thread renders (tests/test_render.py)."""
+    bit for bit those one thread renders (tests/sitl/world/test_render.py)."""
     from companion.sitl.scenario import Scenario, render_threads
 
     if workers <= 0:

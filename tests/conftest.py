@@ -22,7 +22,7 @@ from peers import (
 # matplotlib's FreeType module is loaded before anything in this process can load GStreamer:
 # once GStreamer was initialised (its plugins bring the system's libfreetype), the first
 # `import matplotlib.ft2font` (any plot) aborted the whole pytest process (SIGABRT, reproduced:
-# tests/test_camera.py's GStreamer tests, then the ArduPilot loop's plot). Loading it first
+# tests/drivers/test_camera.py's GStreamer tests, then the ArduPilot loop's plot). Loading it first
 # avoids that, whatever order the tests run in.
 with contextlib.suppress(ImportError):  # no eval extra: nothing plots, nothing to protect
     import matplotlib.ft2font  # noqa: F401
@@ -63,27 +63,33 @@ def default_config() -> Config:
 # plugin do (the marks are silently ignored there: every test became its own unit).
 _AUTOPILOTS = "autopilots"
 _GROUP_OF_MODULE = {
-    "tests/test_px4_loop.py": _AUTOPILOTS,
-    "tests/test_px4_real.py": _AUTOPILOTS,
-    "tests/test_ardupilot_check.py": _AUTOPILOTS,
-    "tests/test_ardupilot_loop.py": _AUTOPILOTS,
-    "tests/test_ardupilot_service.py": _AUTOPILOTS,
-    "tests/test_calibration.py": "tests/test_calibration.py",
-    "tests/test_dataset.py": "tests/test_dataset.py",
-    "tests/test_evaluation.py": "tests/test_evaluation.py",
-    "tests/test_frame_check.py": "tests/test_frame_check.py",
+    "test_px4_loop.py": _AUTOPILOTS,
+    "test_px4_real.py": _AUTOPILOTS,
+    "test_ardupilot_check.py": _AUTOPILOTS,
+    "test_ardupilot_loop.py": _AUTOPILOTS,
+    "test_ardupilot_service.py": _AUTOPILOTS,
+    "test_calibration.py": "test_calibration.py",
+    "test_dataset.py": "test_dataset.py",
+    "test_evaluation.py": "test_evaluation.py",
+    "test_frame_check.py": "test_frame_check.py",
 }
-_MACHINE_EXCLUSIVE = {"tests/test_px4_loop.py", "tests/test_ardupilot_loop.py"}
+_MACHINE_EXCLUSIVE = {"test_px4_loop.py", "test_ardupilot_loop.py"}
 _GROUP_OF_TEST = {
-    "tests/test_statustext.py::test_real_px4_forwards_our_statustext_to_its_ground_station_port": (
+    "test_statustext.py::test_real_px4_forwards_our_statustext_to_its_ground_station_port": (
         _AUTOPILOTS
     ),
 }
 
 
+def _file_name(nodeid: str) -> str:
+    """A test's file name: the keys above (file names are unique in tests/)."""
+    return nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+
+
 def xdist_unit(nodeid: str) -> str:
     """The work unit of a test under `--dist loadgroup`: its group, else the test itself."""
-    return _GROUP_OF_TEST.get(nodeid) or _GROUP_OF_MODULE.get(nodeid.split("::", 1)[0]) or nodeid
+    test = _file_name(nodeid) + "::" + nodeid.split("::", 1)[-1]
+    return _GROUP_OF_TEST.get(test) or _GROUP_OF_MODULE.get(_file_name(nodeid)) or nodeid
 
 
 @pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist (absent: nothing calls it)
@@ -103,7 +109,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """The machine's locks (tests/peers.py): one pair per machine and user, in the system's
+    """The machine's locks (tests/peers/): one pair per machine and user, in the system's
     temp folder, so that the workers of this run and any other run of the suite on this
     machine share them (an environment that sets them already keeps its own)."""
     folder = Path(tempfile.gettempdir()) / f"companion-tests-{os.getuid()}"
@@ -115,11 +121,11 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.hookimpl(tryfirst=True)  # before the test's fixtures (module fixtures render too)
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """Every test holds the machine shared, a closed loop with a real autopilot alone; a SITL
-    flight asks for it alone once its camera is prerendered (tests/peers.py). The real
+    flight asks for it alone once its camera is prerendered (tests/peers/). The real
     autopilots' tests first hold their instance numbers against another run of the suite."""
     if xdist_unit(item.nodeid) == _AUTOPILOTS:
         hold_autopilots()
-    hold_machine(exclusive=item.nodeid.split("::", 1)[0] in _MACHINE_EXCLUSIVE)
+    hold_machine(exclusive=_file_name(item.nodeid) in _MACHINE_EXCLUSIVE)
 
 
 @pytest.hookimpl(wrapper=True)
@@ -143,7 +149,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         return
 
     def rank(item: pytest.Item) -> int:
-        if item.nodeid.split("::", 1)[0] in _MACHINE_EXCLUSIVE:
+        if _file_name(item.nodeid) in _MACHINE_EXCLUSIVE:
             return 0  # at the start: the other worker waits for them once, not mid-test
         return 1 if xdist_unit(item.nodeid) == _AUTOPILOTS else 2
 

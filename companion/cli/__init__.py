@@ -16,7 +16,7 @@ One module per group of commands; each parses its arguments and calls functions 
 Start-up is lazy (docs/BENCHMARKS.md, "CLI start-up"): :data:`COMMANDS` names each command,
 its one-line help and the module that defines its flags; ``companion --help`` and
 ``--version`` import none of those modules, and a command imports only its own when it runs
-(or shows its own help). ``tests/test_cli.py`` fails when NumPy, SciPy, OpenCV or the
+(or shows its own help). ``tests/companion/cli/test_cli.py`` fails when NumPy, SciPy, OpenCV or the
 simulator load for ``--help``, ``--version`` or ``status``. A new command is one more
 :class:`Command` row (its module's ``add_*(sub)`` calls ``sub.add_parser(name, help=...)``
 once, with the same help as the row).
@@ -73,7 +73,7 @@ __all__ = [
 class Command:
     """A subcommand of ``companion``: ``register(sub)`` in ``module`` adds its parser (flags
     and handler) when the command is used; ``help`` is what ``companion --help`` shows without
-    importing ``module`` (tests/test_cli.py checks that it is the module's own help)."""
+    importing ``module`` (tests/companion/cli/test_cli.py checks that it is the module's own help)."""
 
     name: str
     help: str

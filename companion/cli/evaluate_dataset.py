@@ -2,7 +2,7 @@
 with (its own calibration and declared sensors, nothing invented), the replay check of a
 flight recording (``companion run --record``), and the scale methods side by side on a dataset
 without a simulated world (``--methods all``). Nothing here reaches the simulator: a dataset
-that declares no world is evaluated without one (tests/test_evaluation.py checks that ``sitl``
+that declares no world is evaluated without one (tests/companion/evaluation/test_evaluation.py checks that ``sitl``
 is never imported).
 """
 

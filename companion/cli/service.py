@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from companion.cli.common import EXIT_NOT_RUNNING, EXIT_OK, json_error, load
 from companion.drivers.status import find_status_socket, json_safe, printable_status, read_status
 
-if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/test_cli.py)
+if TYPE_CHECKING:  # `companion status` starts without NumPy (tests/companion/cli/test_cli.py)
     from companion.config import Config
 
 

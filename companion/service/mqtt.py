@@ -264,7 +264,7 @@ class ReadBudget:
 @functools.cache
 def _client_class() -> type[Any]:
     """aiomqtt's Client for a publisher that subscribes to nothing (aiomqtt 2's private
-    hooks, covered by tests/test_listeners.py): every PUBLISH from the broker goes to
+    hooks, covered by tests/e2e/test_listeners.py): every PUBLISH from the broker goes to
     ``unasked(topic, payload bytes)`` as it is parsed, none is queued or acknowledged, QoS 2
     ones held for their PUBREL are dropped after each read, a packet longer than
     MAX_PACKET_BYTES closes the connection before its body is read (``oversized(length)``),
