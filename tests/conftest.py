@@ -28,7 +28,7 @@ with contextlib.suppress(ImportError):  # no eval extra: nothing plots, nothing 
     import matplotlib.ft2font  # noqa: F401
 
 from companion.config import Config, load_config
-from companion.sitl.world import World, make_world
+from companion.sitl.world.terrain import World, make_world
 
 
 @cache

@@ -33,9 +33,9 @@ from companion.types import AttitudeSample, CameraFrame, RangeSample
 if TYPE_CHECKING:
     from companion.calibration.board import BoardSpec
     from companion.calibration.lasers import LaserFrame
-    from companion.sitl.scenario import Scenario
-    from companion.sitl.sensors import RangeSimulator
-    from companion.sitl.world import World
+    from companion.sitl.world.scenario import Scenario
+    from companion.sitl.world.sensors import RangeSimulator
+    from companion.sitl.world.terrain import World
 
 Event = CameraFrame | RangeSample | AttitudeSample
 Flight: TypeAlias = "Scenario"  # a simulated flight, for the other command modules' annotations
@@ -44,7 +44,7 @@ Flight: TypeAlias = "Scenario"  # a simulated flight, for the other command modu
 # ------------------------------------------------------------------------------ the gateway
 def scenario(cfg: Config) -> Flight:
     """The simulated flight of ``cfg.sitl`` with the sensors of ``cfg``."""
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     return Scenario(cfg)
 
@@ -64,7 +64,7 @@ def flight_events(sc: Flight, gt_poses: dict[int, Any] | None = None) -> Iterato
 
 def recorded_world(ds: Dataset) -> World:
     """The world of a recorded SITL flight, rebuilt from its meta.toml."""
-    from companion.sitl.world import make_world
+    from companion.sitl.world.terrain import make_world
 
     assert ds.sitl is not None
     s = ds.sitl
@@ -75,14 +75,14 @@ def range_simulator(
     sc: Flight, rangefinders: Sequence[RangefinderConfig], seed: int
 ) -> RangeSimulator:
     """Other distance sensors over the same flight (``valid_at(time_us)``: their readings)."""
-    from companion.sitl.sensors import RangeSimulator
+    from companion.sitl.world.sensors import RangeSimulator
 
     return RangeSimulator(sc.world, sc.trajectory, rangefinders, seed)
 
 
 def soak(minutes: float, out: Path, config: str) -> dict[str, Any]:
-    """The soak flight (sitl/soak.py): the service as its own process against the SITL."""
-    from companion.sitl.soak import run_soak
+    """The soak flight (sitl/stub/soak.py): the service as its own process against the SITL."""
+    from companion.sitl.stub.soak import run_soak
 
     return run_soak(minutes, out, config)
 
@@ -91,7 +91,7 @@ def board_photos(
     camera: CameraModel, spec: BoardSpec, views: int, seed: int
 ) -> list[NDArray[np.uint8]]:
     """Synthetic photographs of a calibration board through ``camera``."""
-    from companion.sitl.calibration import BoardRenderer, random_board_poses
+    from companion.sitl.world.calibration import BoardRenderer, random_board_poses
 
     poses = random_board_poses(camera, spec, views, seed)
     return BoardRenderer(camera).render(spec, poses, seed)
@@ -102,7 +102,7 @@ def laser_frames(
 ) -> list[LaserFrame]:
     """Synthetic laser-check frames of the config's vehicle, one sensor's mount pitched by
     ``tilt`` = (sensor id, degrees) on the simulated vehicle."""
-    from companion.sitl.calibration import laser_check_frames, tilt_sensor
+    from companion.sitl.world.calibration import laser_check_frames, tilt_sensor
 
     hardware = cfg.rangefinders if tilt is None else tilt_sensor(cfg.rangefinders, *tilt)
     return laser_check_frames(cfg, frames, seed, hardware)
@@ -111,7 +111,7 @@ def laser_frames(
 # ------------------------------------------------------------------------------ commands
 def cmd_sitl_record(args: argparse.Namespace) -> int:
     """Record a SITL dataset."""
-    from companion.sitl.dataset import record
+    from companion.sitl.world.dataset import record
 
     out = record(
         load(args),
@@ -126,16 +126,16 @@ def cmd_sitl_record(args: argparse.Namespace) -> int:
 
 def cmd_sitl_sheet(args: argparse.Namespace) -> int:
     """Write a PNG contact sheet of a dataset and print its path."""
-    from companion.sitl.dataset import contact_sheet
+    from companion.sitl.world.dataset import contact_sheet
 
     print(contact_sheet(open_dataset(args.dataset), args.out))
     return EXIT_OK
 
 
 def cmd_sitl_run(args: argparse.Namespace) -> int:
-    """The PX4-like SITL autopilot with its camera stream (sitl/autopilot.py)."""
-    from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
-    from companion.sitl.faults import Fault
+    """The PX4-like SITL autopilot with its camera stream (sitl/stub/autopilot.py)."""
+    from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.stub.faults import Fault
 
     cfg = load(args)
     out = Path(args.out) if args.out else Path("out") / "sitl-run"
@@ -167,16 +167,18 @@ def cmd_sitl_run(args: argparse.Namespace) -> int:
 
 
 def cmd_sitl_px4(args: argparse.Namespace) -> int:
-    """Fly the real PX4 SITL (SIH) on our estimate (sitl/px4_flight.py)."""
-    # by name, as before the split: sitl/px4_flight.py and px4_results.py are not strict-mypy
+    """Fly the real PX4 SITL (SIH) on our estimate (sitl/loops/px4_flight.py)."""
+    # by name, as before the split: sitl/loops/px4_flight.py and px4_results.py are not strict-mypy
     # clean, and a plain import would have mypy check them with companion/
-    flight = importlib.import_module("companion.sitl.px4_flight")
+    flight = importlib.import_module("companion.sitl.loops.px4_flight")
     return int(flight.cli_main(args))
 
 
 def cmd_sitl_ardupilot(args: argparse.Namespace) -> int:
-    """Fly the real ArduCopter SITL on our estimate (sitl/ardupilot_flight.py)."""
-    flight = importlib.import_module("companion.sitl.ardupilot_flight")  # by name, as sitl px4
+    """Fly the real ArduCopter SITL on our estimate (sitl/loops/ardupilot_flight.py)."""
+    flight = importlib.import_module(
+        "companion.sitl.loops.ardupilot_flight"
+    )  # by name, as sitl px4
     return int(flight.cli_main(args))
 
 
@@ -257,7 +259,7 @@ def add_sitl(sub: Any) -> None:
         action="append",
         metavar="KIND@START+DURATION",
         help="inject a fault (repeatable): camera_freeze, camera_black, camera_saturated, "
-        "camera_unplug, link_silence, link_port_change, autopilot_reboot (sitl/faults.py)",
+        "camera_unplug, link_silence, link_port_change, autopilot_reboot (sitl/stub/faults.py)",
     )
     p_srun.add_argument(
         "--signing-key", help="sign with this 32-byte key file and refuse unsigned frames"
@@ -331,7 +333,7 @@ def time_scale(text: str) -> float:
 
 
 def add_time_scale(p: Any) -> None:
-    """The SITL flight's --time-scale (sitl/autopilot.py, AutopilotOptions.time_scale)."""
+    """The SITL flight's --time-scale (sitl/stub/autopilot.py, AutopilotOptions.time_scale)."""
     p.add_argument(
         "--time-scale",
         type=time_scale,

@@ -13,8 +13,8 @@ from companion.cli import main
 from companion.config import load_config
 from companion.drivers.dataset import open_dataset
 from companion.errors import DatasetError
-from companion.sitl.dataset import contact_sheet, record
-from companion.sitl.trajectory import Trajectory
+from companion.sitl.world.dataset import contact_sheet, record
+from companion.sitl.world.trajectory import Trajectory
 from companion.types import AttitudeSample, CameraFrame, RangeSample
 
 SHORT = {"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 2.0, "seed": 4}}
@@ -47,7 +47,7 @@ def test_round_trip(recorded: Path) -> None:
     assert len(ds.attitudes) == int(last_s * 100) + 1
     # ground truth equals the trajectory (to the file's printed precision)
     assert ds.sitl is not None
-    from companion.sitl.world import make_world
+    from companion.sitl.world.terrain import make_world
 
     traj = Trajectory("lawnmower", make_world("hills", 4), 2.0)
     for i in (0, 31, 59):

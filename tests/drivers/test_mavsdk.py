@@ -3,7 +3,7 @@
 MAVSDK is an independent MAVLink implementation, so it checks both ends of our wire format
 against somebody else's decoder, over real UDP on loopback, without mocks:
 
-- the SITL autopilot stub (:mod:`sitl.autopilot`) looks like a PX4 autopilot with downward
+- the SITL autopilot stub (:mod:`sitl.stub.autopilot`) looks like a PX4 autopilot with downward
   distance sensors to a MAVSDK client in the companion's place;
 - what our encoders (:mod:`drivers.messages`) send through :class:`drivers.mavlink.MavlinkLink`
   is decoded by MAVSDK into the same values: ODOMETRY by its telemetry plugin, ODOMETRY and
@@ -32,7 +32,7 @@ from companion.config import load_config
 from companion.drivers import messages
 from companion.drivers.mavlink import MavlinkLink
 from companion.geometry import so3
-from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
 from companion.types import PoseEstimate
 
 T = TypeVar("T")

@@ -20,8 +20,8 @@ from companion.autopilot.cli import detect
 from companion.cli import main
 from companion.config import load_config, to_dict
 from companion.service.app import Service
-from companion.sitl import ardupilot_sitl
-from companion.sitl.ardupilot_sitl import ArduPilotSitl, port
+from companion.sitl.loops import ardupilot_sitl
+from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, port
 
 INSTANCE = 4
 

@@ -31,7 +31,7 @@ from companion.config import load_config
 from companion.drivers.status import read_status
 from companion.geometry import so3
 from companion.service.app import Service
-from companion.sitl.autopilot import SimAutopilot
+from companion.sitl.stub.autopilot import SimAutopilot
 
 SECONDS = float(os.environ.get("COMPANION_E2E_SECONDS", "30"))
 SCALE = 0.5  # flight seconds per wall-clock second (AutopilotOptions.time_scale)

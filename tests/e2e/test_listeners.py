@@ -394,7 +394,7 @@ def test_poses_keep_the_camera_rate_through_a_status_flood_and_a_hostile_broker(
     from peers import sitl_flight
 
     from companion.service.app import Service
-    from companion.sitl.autopilot import SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
 
     start_mqtt = asyncio.Event()
 

@@ -84,7 +84,7 @@ for name, argv in (
 out["service_path_attempts"] = list(attempts)
 # the finder itself works: the simulator is refused here, though this venv has it
 try:
-    import companion.sitl.world  # noqa: F401
+    import companion.sitl.world.terrain  # noqa: F401
     out["sitl_refused"] = False
 except ModuleNotFoundError:
     out["sitl_refused"] = True

@@ -30,7 +30,7 @@ from companion.drivers.status import read_status
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
 from companion.service.app import Service
-from companion.sitl.scenario import Scenario
+from companion.sitl.world.scenario import Scenario
 from companion.types import RangeSample
 
 
@@ -410,7 +410,7 @@ def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
     """The camera port taken (a leftover run): the SITL must fail, not fly while somebody
     else's stream is measured as its own."""
     from companion.errors import SitlError
-    from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
 
     with socket.create_server(("127.0.0.1", 0)) as blocker:
         opts = AutopilotOptions(
@@ -658,7 +658,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
     slack a vehicle's companion has; a service that stalls in the flood still fails."""
     from peers import sitl_flight
 
-    from companion.sitl.autopilot import SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
 
     seconds, flood_s, scale = 16.0, (6.5, 15.5), 0.5
     cfg, opts = sitl_flight(tmp_path, seconds, small=True, time_scale=scale)  # 320x240
@@ -676,7 +676,7 @@ def test_poses_keep_flowing_through_a_5000_packet_per_second_flood(tmp_path) -> 
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
-                    "companion.sitl.flood",
+                    "companion.sitl.stub.flood",
                     "--port",
                     str(port),
                     "--rate",

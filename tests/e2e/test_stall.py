@@ -34,8 +34,8 @@ import pytest
 from peers import sitl_flight
 from peers.serial_bridge import PtySerialBridge
 
-from companion.sitl.autopilot import SimAutopilot
-from companion.sitl.faults import Fault
+from companion.sitl.stub.autopilot import SimAutopilot
+from companion.sitl.stub.faults import Fault
 
 SECONDS = 34.0
 STALLS_S = ((10.0, 2.0), (19.0, 5.0))  # (flight time [s], how long stopped [s])

@@ -206,7 +206,7 @@ def sitl_flight(
     ``overrides``: more config tables; ``autopilot``: more AutopilotOptions fields (a
     ``time_scale`` < 1 flies in slow motion: slow_motion_overrides() for the durations)."""
     from companion.config import load_config, merge
-    from companion.sitl.autopilot import AutopilotOptions
+    from companion.sitl.stub.autopilot import AutopilotOptions
 
     udp_stub, udp_us, tcp_cam = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM), 0
     tcp_cam = free_port()
@@ -235,7 +235,7 @@ def sitl_flight(
 def slow_motion_overrides(config: str, time_scale: float) -> dict:
     """The service's options that are durations of flight (d-Pose's arming after and over a
     hover, its drift per second), as the same stretch of flight lasts at ``time_scale``
-    (sitl/autopilot.py: the service lives on the wall clock, the scenario in flight time)."""
+    (sitl/stub/autopilot.py: the service lives on the wall clock, the scenario in flight time)."""
     from companion.config import load_config
 
     d = load_config(config).dpose

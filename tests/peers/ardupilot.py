@@ -1,4 +1,4 @@
-"""A small companion stand-in for the real ArduPilot SITL (``sitl/ardupilot_sitl.py``).
+"""A small companion stand-in for the real ArduPilot SITL (``sitl/loops/ardupilot_sitl.py``).
 
 ``TruthSender`` is a real MAVLink peer (system 1, component 197) on one of ArduCopter's TCP
 ports: it asks ArduPilot for its true state (SIM_STATE, 30 Hz) and sends it back as our external
@@ -21,7 +21,7 @@ import numpy as np
 
 from companion.drivers.ardupilot import Origin, OriginKeeper, set_gps_global_origin
 from companion.geometry import so3
-from companion.sitl import ardupilot_sitl
+from companion.sitl.loops import ardupilot_sitl
 
 SKIP_REASON = (
     f"ArduPilot SITL not found at {ardupilot_sitl.SHARED_ARDUPILOT} (the shared folder beside "

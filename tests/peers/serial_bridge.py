@@ -1,6 +1,6 @@
 """A serial cable to the UDP SITL autopilot: a pty the service opens as ``serial:PATH:BAUD``.
 
-The SITL autopilot (sitl/autopilot.py) speaks UDP: it listens on one port and sends to the
+The SITL autopilot (sitl/stub/autopilot.py) speaks UDP: it listens on one port and sends to the
 companion's. :class:`PtySerialBridge` binds the companion's port and relays, on the running
 event loop: each datagram from the autopilot is written to the pty's near end (a serial line
 carries bytes, not datagrams), and the bytes the service writes to its end are cut back into

@@ -247,7 +247,7 @@ def test_sitl_compensation_and_fusion(terrain: str) -> None:
     per-sample error (over hills the 20 s error depends on the stretch flown: the 60 s
     figures are in docs/RESULTS.md)."""
     from companion.offline import run_attitude
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     cfg = load_config(overrides={"sitl": {"terrain": terrain, "seconds": 20.0, "seed": 2}})
     cfg = dataclasses.replace(cfg, rangefinders=triangle_rangefinders(0.5, 0.01))

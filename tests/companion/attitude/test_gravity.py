@@ -197,7 +197,7 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
 
     from companion.config import load_config
     from companion.pipeline import Pipeline
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
     from companion.types import ImuSample
 
     cfg = load_config(
@@ -297,7 +297,7 @@ def test_the_axial_prior_holds_the_vo_frame_level_through_a_take_off(seed: int) 
     from companion.config import load_config
     from companion.offline import feed_step
     from companion.pipeline import Pipeline
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     overrides = small_camera()
     overrides["vo"].update(gravity_sigma_deg=2.0, axial_gravity_sigma_deg=0.5)

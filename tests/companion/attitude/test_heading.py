@@ -130,7 +130,7 @@ def test_the_pipeline_takes_its_frames_heading_from_the_compass_before_the_take_
 
     from companion.config import load_config
     from companion.pipeline import Pipeline
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     decl = math.radians(3.3)
 

@@ -99,7 +99,7 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
     from companion.config import load_config
     from companion.offline import feed_step
     from companion.pipeline import Pipeline
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
     from companion.types import AttitudeSample
 
     overrides = small_camera()

@@ -34,8 +34,8 @@ from companion.autopilot.ardupilot_rules import ArduPilotContext, evaluate
 from companion.config import Config, load_config
 from companion.px4.options import Px4Options
 from companion.px4.rules import Param, Status
-from companion.sitl import ardupilot_sitl
-from companion.sitl.ardupilot_sitl import ArduPilotSitl, port
+from companion.sitl.loops import ardupilot_sitl
+from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, port
 
 INSTANCES = {  # one ArduCopter per test, all running at once
     "right": 3,

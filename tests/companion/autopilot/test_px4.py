@@ -1,6 +1,6 @@
 """``companion px4 check | configure`` against the SITL autopilot, through MAVSDK, on 127.0.0.1.
 
-The stub (``sitl/autopilot.py`` with ``sitl/px4_*.py`` and ``sitl/ekf_fusion.py``) serves PX4's
+The stub (``sitl/stub/autopilot.py`` with ``sitl/stub/px4_*.py`` and ``ekf_fusion.py``) serves PX4's
 parameter protocol, its MAVLink shell and an emulated EKF2 vision fusion on a ground-station
 endpoint; check and configure reach it with MAVSDK exactly as they reach a real PX4. A fake
 companion (our MAVLink link and message encoders, answering TIMESYNC as the service does)
@@ -36,8 +36,8 @@ from companion.px4.encoding import float32_bits_as_int32, int32_bits_as_float32
 from companion.px4.link import Px4Link
 from companion.px4.options import Px4Options
 from companion.px4.rules import Row, Status
-from companion.sitl.autopilot import AutopilotOptions, SimAutopilot
-from companion.sitl.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
+from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.stub.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 from companion.types import PoseEstimate
 
 WATCH_S = 2.0
@@ -578,8 +578,8 @@ def test_px4_shell_output_is_parsed_as_px4_prints_it() -> None:
 def test_the_stub_prints_listener_output_in_px4s_format() -> None:
     from companion.drivers.px4_shell_text import parse_listener
     from companion.px4.fusion import sample_age_ms
-    from companion.sitl.ekf_fusion import Topic
-    from companion.sitl.px4_shell import format_listener
+    from companion.sitl.stub.ekf_fusion import Topic
+    from companion.sitl.stub.px4_shell import format_listener
 
     t = Topic("vehicle_visual_odometry", "vehicle_odometry")
     q = (0.70710678, 0.0, 0.0, 0.70710678)

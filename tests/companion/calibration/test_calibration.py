@@ -30,7 +30,7 @@ from companion.config import Config, MountConfig, load_config, to_dict
 from companion.errors import CalibrationError, NotEnoughViewsError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
-from companion.sitl.calibration import (
+from companion.sitl.world.calibration import (
     BoardRenderer,
     laser_check_frames,
     random_board_poses,

@@ -136,7 +136,7 @@ def test_random_poses_give_no_wrong_vertex_map() -> None:
 
 
 def test_marks_are_detected_on_rendered_frames(world) -> None:
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     cfg = load_config(
         overrides={"sitl": {"terrain": "hills", "trajectory": "spiral", "seconds": 20.0}}

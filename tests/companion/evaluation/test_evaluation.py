@@ -16,7 +16,7 @@ from companion.config import load_config
 from companion.drivers.dataset import read_tum
 from companion.evaluation.trajectory import ate_rmse, path_length, umeyama
 from companion.geometry import so3
-from companion.sitl.dataset import record
+from companion.sitl.world.dataset import record
 
 
 def test_umeyama_recovers_a_similarity_exactly() -> None:

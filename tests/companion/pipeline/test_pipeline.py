@@ -10,7 +10,7 @@ from companion.config import load_config
 from companion.geometry import se3, so3
 from companion.offline import feed_step
 from companion.pipeline import Pipeline, PipelineStatus
-from companion.sitl.scenario import Scenario
+from companion.sitl.world.scenario import Scenario
 from companion.types import AttitudeSample, VoState
 
 

@@ -312,7 +312,7 @@ def test_b7_window_ml_closed_form() -> None:
 
 def test_pipeline_publishes_metric_poses_on_a_hills_flight() -> None:
     from companion.offline import run_scale
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     cfg = load_config(
         overrides={

@@ -311,7 +311,7 @@ def fly_recording(tmp_path: Path, **record: object) -> Any:
     SITL flight of FLIGHT_S seconds against the SITL autopilot (peers.sitl_flight); returns
     the service after the flight."""
     from companion.service.app import Service
-    from companion.sitl.autopilot import SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
 
     cfg, opts = sitl_flight(tmp_path, FLIGHT_S, small=True)  # the 320x240 camera
     cfg = with_record(cfg, tmp_path / "rec", **record)

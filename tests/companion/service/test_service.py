@@ -685,7 +685,7 @@ def test_folder_source_replays_at_the_recorded_rate(tmp_path) -> None:
     import time
 
     from companion.config import load_config
-    from companion.sitl.dataset import record
+    from companion.sitl.world.dataset import record
 
     cfg = load_config(overrides={"sitl": {"terrain": "flat", "seconds": 0.5}})
     path = record(cfg, tmp_path / "ds", image_format="png", progress=False)

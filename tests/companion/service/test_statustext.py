@@ -468,7 +468,7 @@ def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None
     """A pipeline that raises on every frame ends the service after 30 frames; its last word,
     sent on the way out, names the loop and the exception (CRITICAL: armed)."""
     from companion.pipeline import Pipeline
-    from companion.sitl.dataset import record
+    from companion.sitl.world.dataset import record
 
     ds = record(
         load_config(overrides={"sitl": {"terrain": "flat", "seconds": 2.0}}),
@@ -519,8 +519,8 @@ def test_sitl_stub_receives_and_forwards_camera_and_vo_statustexts(tmp_path) -> 
     the stub receives VO tracking and the scale ready, then the camera lost (CRITICAL) and
     back, the VO lost and tracking again, the pose reset; its ground-station endpoint
     forwards them as received (our system and component ids), as PX4 does with -f."""
-    from companion.sitl.autopilot import SimAutopilot
-    from companion.sitl.faults import Fault
+    from companion.sitl.stub.autopilot import SimAutopilot
+    from companion.sitl.stub.faults import Fault
 
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", 0))

@@ -10,7 +10,7 @@ import pytest
 from companion.config import load_config
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
-from companion.sitl.scenario import Scenario
+from companion.sitl.world.scenario import Scenario
 from companion.types import CameraFrame
 from companion.vo.frame_check import FrameCheck, FrameProblem
 

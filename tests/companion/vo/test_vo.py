@@ -11,9 +11,9 @@ import pytest
 from companion.config import Config, RenderConfig
 from companion.evaluation.trajectory import ate_rmse, path_length
 from companion.geometry import se3, so3
-from companion.sitl.render import Renderer
-from companion.sitl.scenario import Scenario
-from companion.sitl.world import World
+from companion.sitl.world.render import Renderer
+from companion.sitl.world.scenario import Scenario
+from companion.sitl.world.terrain import World
 from companion.types import CameraFrame, VoState
 from companion.vo.ba import bundle_adjust, residuals
 from companion.vo.initializer import initialize

@@ -1,10 +1,10 @@
 """The real ArduCopter (SITL) flies on our estimate: EKF3 on our external navigation, arm in
 GUIDED, take off to 5 m, hover 20 s, land.
 
-ArduCopter SITL, the bridge (sitl/ardupilot_bridge.py: SIM_STATE truth -> our camera stream and
-TFmini ptys) and the service (`companion run`, a subprocess, sending ODOMETRY and the EKF origin)
-run for real; nothing is mocked. ArduPilot instance 2 (TCP 5780-5783, camera on TCP 15702) so
-that a `companion sitl ardupilot` on instance 0 can run beside it. About 100 s of wall time.
+ArduCopter SITL, the bridge (sitl/loops/ardupilot_bridge.py: SIM_STATE truth -> our camera stream
+and TFmini ptys) and the service (`companion run`, a subprocess, sending ODOMETRY and the EKF
+origin) run for real; nothing is mocked. ArduPilot instance 2 (TCP 5780-5783, camera on TCP
+15702) so that a `companion sitl ardupilot` on instance 0 can run beside it. About 100 s of wall time.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from peers.ardupilot import SKIP_REASON
 
-from companion.sitl import ardupilot_sitl
-from companion.sitl.ardupilot_flight import Flight, FlightOptions
+from companion.sitl.loops import ardupilot_sitl
+from companion.sitl.loops.ardupilot_flight import Flight, FlightOptions
 
 pytestmark = [
     pytest.mark.skipif(not ardupilot_sitl.available(), reason=SKIP_REASON),

@@ -1,4 +1,4 @@
-"""The closed loops' summary figures (sitl/px4_results.py): our frame's heading error and the
+"""The closed loops' summary figures (sitl/loops/px4_results.py): our frame's heading error and the
 error in that frame's axes, on a seeded synthetic flight whose frame is turned by a known
 angle."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.geometry import so3
-from companion.sitl.px4_results import _frame_heading_error, _turned_p95
+from companion.sitl.loops.px4_results import _frame_heading_error, _turned_p95
 
 
 def _square(n: int = 400, side_m: float = 20.0) -> np.ndarray:
@@ -51,7 +51,7 @@ def test_one_translation_for_the_flight_beside_the_per_stretch_figures() -> None
     """A flight whose estimate is 0.2 m higher after a fusion restart (counted as a position
     reset, our frame unmoved): each stretch after its own translation shows none of it, one
     translation for the whole flight shows it (0.1 m each way of the median)."""
-    from companion.sitl.loop_results import segment_errors
+    from companion.sitl.loops.loop_results import segment_errors
 
     gt = _square()
     est = gt.copy()
@@ -68,8 +68,8 @@ def test_px4_truth_is_read_in_px4s_own_clock() -> None:
     """PX4's estimate is compared with SIH's ground truth at the same PX4 timestamps: a clock
     line that is 35 ms off (SIH's lockstep pace varies) would put 0.1 m of error at 3 m/s into
     the figure; the truth in PX4's clock leaves only the estimate's own."""
-    from companion.sitl.loop_results import segment_errors
-    from companion.sitl.px4_results import _px4_clock_truth
+    from companion.sitl.loops.loop_results import segment_errors
+    from companion.sitl.loops.px4_results import _px4_clock_truth
 
     rng = np.random.default_rng(22)
     gt = _square(n=800)  # 80 m in 26.7 s at 3 m/s

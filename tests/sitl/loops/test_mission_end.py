@@ -1,5 +1,5 @@
-"""The closed loops' mission end (sitl/loop_common.py, ``LoopFlight._settle_over``): the landing
-waits until the autopilot's own position has settled over the last waypoint."""
+"""The closed loops' mission end (sitl/loops/loop_common.py, ``LoopFlight._settle_over``): the
+landing waits until the autopilot's own position has settled over the last waypoint."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import companion.sitl.loop_common as lc
+import companion.sitl.loops.loop_common as lc
 
 
 class FakeGcs:

@@ -1,6 +1,6 @@
 """The real PX4 (SIH) flies on our estimate: vision only, arm, take off, hover 20 s, land.
 
-PX4 SITL, the bridge (sitl/px4_bridge.py: SIH truth -> our camera stream and TFmini ptys) and
+PX4 SITL, the bridge (sitl/loops/px4_bridge.py: SIH truth -> our camera stream and TFmini ptys) and
 the service (`companion run`, a subprocess) run for real; nothing is mocked. PX4 instance 1
 (ports 18571, 14581/14541, 19451/19411; camera stream on TCP 15601) so that a `make demo-px4`
 on instance 0 can run beside it. About 105 s of wall time: PX4's time sync converges ~11 s
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.sitl.px4_flight import SHARED_PX4, Flight, FlightOptions
+from companion.sitl.loops.px4_flight import SHARED_PX4, Flight, FlightOptions
 
 # PX4 SIH's lockstep clock against ours: ~0.1 % on the host of 2026-11-25, 0.9-2.3 % over the
 # hovers of 2026-11-27 on a slower one (docs/RESULTS.md, "2026-11-27 (bfdc1dc)"), 0.6-0.8 % in

@@ -12,10 +12,10 @@ import pytest
 
 from companion.config import Config, RenderConfig
 from companion.geometry import se3, so3
-from companion.sitl.render import Renderer
-from companion.sitl.sensors import laser_hits
-from companion.sitl.trajectory import Trajectory
-from companion.sitl.world import World
+from companion.sitl.world.render import Renderer
+from companion.sitl.world.sensors import laser_hits
+from companion.sitl.world.terrain import World
+from companion.sitl.world.trajectory import Trajectory
 
 
 def red_blobs(img: np.ndarray) -> np.ndarray:
@@ -173,7 +173,7 @@ def test_direct_8bit_output_equals_linear_plus_noise(
 ) -> None:
     """The fused kernel (used per frame) and linear + finish (used for blur) agree: the same
     noise samples, differing only where float32 storage of the linear value flips a rounding."""
-    from companion.sitl import _kernels
+    from companion.sitl.world import _kernels
 
     cfg = default_config
     w = world("urban", 1)
@@ -193,13 +193,13 @@ def test_direct_8bit_output_equals_linear_plus_noise(
 def test_rendering_ahead_on_threads_gives_what_one_thread_renders(
     marks: str, blur: bool, workers: int
 ) -> None:
-    """The SITL camera prerenders a flight on one thread per core (sitl/autopilot.py) and
+    """The SITL camera prerenders a flight on one thread per core (sitl/stub/autopilot.py) and
     ``Scenario.steps(workers=N)`` renders ahead on N threads: every frame must be bit for bit
     the image a single thread renders in order (noise, motion blur, laser marks), and every
     step the same samples and pose (2 threads, and 3 for an uneven share)."""
     from companion.config import load_config
-    from companion.sitl.autopilot import prerender_frames
-    from companion.sitl.scenario import Scenario, Step
+    from companion.sitl.stub.autopilot import prerender_frames
+    from companion.sitl.world.scenario import Scenario, Step
 
     cfg = load_config(
         "config/sitl.toml",

@@ -9,9 +9,9 @@ import numpy as np
 
 from companion.config import MountConfig, RangefinderConfig
 from companion.geometry import so3
-from companion.sitl.sensors import AttitudeSimulator, RangeSimulator, laser_hits
-from companion.sitl.trajectory import Trajectory
-from companion.sitl.world import World
+from companion.sitl.world.sensors import AttitudeSimulator, RangeSimulator, laser_hits
+from companion.sitl.world.terrain import World
+from companion.sitl.world.trajectory import Trajectory
 
 
 def test_true_distance_is_exact_on_flat_ground(world: Callable[[str, int], World]) -> None:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from companion.geometry import so3
-from companion.sitl.trajectory import GRAVITY_M_S2, LANDED_HEIGHT_M, TRAJECTORIES, Trajectory
-from companion.sitl.world import World
+from companion.sitl.world.terrain import World
+from companion.sitl.world.trajectory import GRAVITY_M_S2, LANDED_HEIGHT_M, TRAJECTORIES, Trajectory
 
 
 @pytest.mark.parametrize("name", TRAJECTORIES)

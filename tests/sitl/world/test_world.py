@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from companion.sitl.world import World
+from companion.sitl.world.terrain import World
 
 RNG = np.random.default_rng(7)
 
@@ -110,7 +110,7 @@ def test_terrains_have_their_character(world: Callable[[str, int], World]) -> No
 
 
 def test_same_seed_same_world_other_seed_other_world(world: Callable[[str, int], World]) -> None:
-    from companion.sitl.world import make_world
+    from companion.sitl.world.terrain import make_world
 
     a = make_world("hills", 5)
     b = make_world("hills", 5)

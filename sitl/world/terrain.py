@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from companion.errors import SitlError
-from companion.sitl import _kernels
+from companion.sitl.world import _kernels
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

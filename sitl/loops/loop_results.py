@@ -1,5 +1,5 @@
 """The figures both closed loops share (``companion sitl px4`` and ``companion sitl ardupilot``:
-sitl/px4_results.py, sitl/ardupilot_results.py), from the truth the bridge logged
+sitl/loops/px4_results.py, sitl/loops/ardupilot_results.py), from the truth the bridge logged
 (``truth.csv``: t_ns, NED position [m], attitude wxyz, NED velocity [m/s]; our monotonic clock),
 the ground station's telemetry, the service's exit report and the bridge's stats.
 

@@ -20,8 +20,8 @@ from numpy.typing import NDArray
 
 from companion.config import RangefinderConfig
 from companion.geometry import so3
-from companion.sitl.trajectory import Trajectory
-from companion.sitl.world import World
+from companion.sitl.world.terrain import World
+from companion.sitl.world.trajectory import Trajectory
 from companion.types import AttitudeSample, RangeSample
 
 F64 = NDArray[np.float64]

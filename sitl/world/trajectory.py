@@ -22,7 +22,7 @@ from scipy.interpolate import make_interp_spline
 
 from companion.errors import SitlError
 from companion.geometry import se3
-from companion.sitl.world import World
+from companion.sitl.world.terrain import World
 
 F64 = NDArray[np.float64]
 

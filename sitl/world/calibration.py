@@ -16,7 +16,7 @@ its white margin) is inside the image.
 Laser-check frames: the vehicle at seeded poses (height above ground, roll, pitch, yaw) over a
 world; the distance sensors of ``hardware`` (the real mounts, which may differ from the
 config under test) give the readings (exact ray cast + the sensor's Gaussian noise) and leave
-red dots rendered by :class:`sitl.render.Renderer`.
+red dots rendered by :class:`sitl.world.render.Renderer`.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from companion.config import Config, RangefinderConfig
 from companion.errors import SitlError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from companion.sitl.render import Renderer
-from companion.sitl.sensors import laser_hits
-from companion.sitl.world import World, make_world
+from companion.sitl.world.render import Renderer
+from companion.sitl.world.sensors import laser_hits
+from companion.sitl.world.terrain import World, make_world
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]

@@ -31,13 +31,13 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.drivers.mavlink import LinkStats, Parser
-from companion.sitl.ekf_fusion import EvFusion
-from companion.sitl.faults import active
-from companion.sitl.px4_params import ParamServer, ParamStore, px4_parameters
-from companion.sitl.px4_shell import SERIAL_CONTROL_DEV_SHELL, NshShell, serial_control_replies
+from companion.sitl.stub.ekf_fusion import EvFusion
+from companion.sitl.stub.faults import active
+from companion.sitl.stub.px4_params import ParamServer, ParamStore, px4_parameters
+from companion.sitl.stub.px4_shell import SERIAL_CONTROL_DEV_SHELL, NshShell, serial_control_replies
 
 if TYPE_CHECKING:
-    from companion.sitl.autopilot import SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
 
 log = logging.getLogger("sitl.px4")
 

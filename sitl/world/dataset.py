@@ -22,7 +22,7 @@ from companion.drivers.dataset import F64, FORMAT_NAME, FORMAT_VERSION, Dataset,
 from companion.errors import DatasetError
 
 if TYPE_CHECKING:
-    from companion.sitl.scenario import Scenario, Step
+    from companion.sitl.world.scenario import Scenario, Step
 
 # ----------------------------------------------------------------------------- recording
 
@@ -48,7 +48,7 @@ def record(
     progress: bool = True,
 ) -> Path:
     """Fly the SITL scenario of ``cfg.sitl`` and write a dataset folder; returns its path."""
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     out_dir = _prepare_folder(Path(out), image_format, overwrite)
     scenario = Scenario(cfg)
@@ -77,7 +77,7 @@ def _write_flight(
     """Fly the scenario: frames.csv, ranges.csv, attitude.csv and the images; the truth back."""
     from tqdm import tqdm
 
-    from companion.sitl.scenario import render_threads
+    from companion.sitl.world.scenario import render_threads
 
     enc = (
         [cv2.IMWRITE_JPEG_QUALITY, 95]

@@ -24,7 +24,7 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from companion.sitl.ekf_fusion import Topic
+from companion.sitl.stub.ekf_fusion import Topic
 
 SERIAL_CONTROL_DEV_SHELL = 10
 SERIAL_CONTROL_FLAG_REPLY = 1

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from companion.errors import SitlError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SHARED_ARDUPILOT = REPO.parent / "shared" / "ardupilot-sitl" / "ardupilot-sitl"
 BUILD_HELP = (
     "ArduPilot SITL not found: pass --ardupilot PATH or set ARDUPILOT_SITL to a launcher with "

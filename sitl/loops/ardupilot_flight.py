@@ -2,11 +2,11 @@
 
 Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM or failure):
 
-1. ArduCopter SITL (sitl/ardupilot_sitl.py, the ``odom`` profile: GPS off, EK3_SRC1_* = 6,
+1. ArduCopter SITL (sitl/loops/ardupilot_sitl.py, the ``odom`` profile: GPS off, EK3_SRC1_* = 6,
    VISO_TYPE = 1) with BOOT_PARAMS on top; this process is its ground station on SERIAL0.
 2. ``companion autopilot configure --yes`` on SERIAL1 before the service holds it (reported;
    the flight goes on with the boot parameters when it fails).
-3. The bridge (``python -m sitl.ardupilot_bridge`` on SERIAL2): SIM_STATE truth -> our camera
+3. The bridge (``python -m sitl.loops.ardupilot_bridge`` on SERIAL2): SIM_STATE truth -> our camera
    stream and TFmini ptys (the PX4 bridge's code).
 4. The service, unchanged: ``companion run --config OUT/service.toml`` on SERIAL1, sending
    ODOMETRY and the EKF origin ([service.ardupilot]).
@@ -17,7 +17,8 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    back to where the mission started, lands (LAND) and waits for the auto-disarm.
 
 Afterwards: ``summary.json`` (the fields of the PX4 loop's summary where they apply;
-sitl/ardupilot_results.py) from the truth the bridge logged and the ground station's telemetry.
+sitl/loops/ardupilot_results.py) from the truth the bridge logged and the ground station's
+telemetry.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from companion.errors import SitlError
-from companion.sitl import loop_common as loop
-from companion.sitl.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
+from companion.sitl.loops import loop_common as loop
+from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
 BOOT_PARAMS: dict[str, float] = {
@@ -172,7 +173,7 @@ class Flight(loop.LoopFlight):
         self.ap.stop()
 
     def summarise(self, ok: bool) -> dict[str, Any]:
-        from companion.sitl.ardupilot_results import summarise
+        from companion.sitl.loops.ardupilot_results import summarise
 
         return summarise(self, ok)
 
@@ -228,7 +229,13 @@ class Flight(loop.LoopFlight):
 
     def _start_bridge(self, cfg_path: Path) -> None:
         n = self.o.instance
-        argv = [sys.executable, "-m", "companion.sitl.ardupilot_bridge", "--config", str(cfg_path)]
+        argv = [
+            sys.executable,
+            "-m",
+            "companion.sitl.loops.ardupilot_bridge",
+            "--config",
+            str(cfg_path),
+        ]
         argv += ["--truth-url", f"tcp:127.0.0.1:{port(2, n)}"]
         argv += ["--camera-port", str(CAMERA_PORT + n), "--out", str(self.out)]
         ptys = self._start_bridge_with(argv, cfg_path)

@@ -60,7 +60,7 @@ from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.geometry import so3
-from companion.sitl.faults import CAMERA_KINDS, Fault, active, fault_metrics
+from companion.sitl.stub.faults import CAMERA_KINDS, Fault, active, fault_metrics
 from companion.types import CameraFrame
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
@@ -88,12 +88,14 @@ class AutopilotOptions:
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
-    faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/faults.py)
+    faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/stub/faults.py)
     loop_from_frame: int = 0  # with loop_frames: where the repeated stretch of frames starts
     loop_frames: int = 0  # > 0: frames repeat with this period (a periodic flight: soak runs)
     signing_key: bytes = b""  # MAVLink 2 signing with this 32-byte key (empty: unsigned)
     require_signed: bool = True  # with a key: refuse unsigned frames except HEARTBEAT
-    gcs_listen_port: int = 18570  # the ground-station endpoint (sitl/px4_services.py); 0 = none
+    gcs_listen_port: int = (
+        18570  # the ground-station endpoint (sitl/stub/px4_services.py); 0 = none
+    )
     gcs_port: int = 14550  # where the ground-station endpoint sends (QGroundControl, MAVSDK)
     armed: bool = False  # report the vehicle armed in HEARTBEAT
     has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
@@ -151,7 +153,7 @@ def camera_process(
     time_scale) wall-clock seconds after the flight start).
     ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
     (only valid for a flight that is periodic there: it renders first + n frames at most)."""
-    from companion.sitl.scenario import Scenario
+    from companion.sitl.world.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
     scenario = Scenario(cfg)
@@ -188,14 +190,14 @@ def camera_process(
 
 def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:
     """Images (BGR uint8, H x W x 3) of frames 0 .. n_frames - 1 of ``scenario`` (a
-    :class:`sitl.scenario.Scenario` that has rendered once: kernels compiled, textures built),
+    :class:`sitl.world.scenario.Scenario` that has rendered once: kernels compiled, textures built),
     rendered by ``workers`` threads (0: one per core this process may use, at most 4).
 
     The render kernels run without the GIL and frame k's image depends on k alone (its noise
     is seeded by k, the laser marks by its time), so each thread renders every workers-th
     frame with a Scenario of its own (its own buffers) over the same world, and the images are
     bit for bit those one thread renders (tests/sitl/world/test_render.py)."""
-    from companion.sitl.scenario import Scenario, render_threads
+    from companion.sitl.world.scenario import Scenario, render_threads
 
     if workers <= 0:
         workers = render_threads()
@@ -322,9 +324,9 @@ class SimAutopilot:
     """The stub: ``await SimAutopilot(cfg, opts).run(out_dir)``."""
 
     def __init__(self, cfg: Config, opts: AutopilotOptions | None = None) -> None:
-        from companion.sitl.sensors import RangeSimulator
-        from companion.sitl.trajectory import Trajectory
-        from companion.sitl.world import make_world
+        from companion.sitl.world.sensors import RangeSimulator
+        from companion.sitl.world.terrain import make_world
+        from companion.sitl.world.trajectory import Trajectory
 
         self.cfg = cfg
         self.opts = opts or AutopilotOptions()
@@ -351,7 +353,7 @@ class SimAutopilot:
         self.rates_hz = dict(DEFAULT_RATES_HZ)  # 0: stopped
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
-        from companion.sitl.px4_services import Px4Services
+        from companion.sitl.stub.px4_services import Px4Services
 
         self.px4 = Px4Services(self)  # parameters, EV fusion, shell, ground-station endpoint
 

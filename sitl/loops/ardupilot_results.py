@@ -1,5 +1,5 @@
-"""The summary of an ArduPilot flight (sitl/ardupilot_flight.py): the PX4 loop's figures where
-they apply (sitl/loop_results.py: the path, landing, camera and latency parts both share).
+"""The summary of an ArduPilot flight (sitl/loops/ardupilot_flight.py): the PX4 loop's figures where
+they apply (sitl/loops/loop_results.py: the path, landing, camera and latency parts both share).
 
 - EKF3's estimate: LOCAL_POSITION_NED (its time_boot_ms moved into our clock through the
   smallest arrival delay, loop_results.clock_line) against the truth the bridge logged, from
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.sitl import loop_results
+from companion.sitl.loops import loop_results
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)

@@ -92,7 +92,7 @@ def fault_metrics(
     time-sync conversion error [us]. Poses are put before/during/after the fault by their
     frame index, as the camera decides which frames are faulty (``seq / rate`` in the
     window); the settled time-sync window ends at the next fault's start. ``time_scale``:
-    flight seconds per wall-clock second (sitl/autopilot.py); the durations the service is
+    flight seconds per wall-clock second (sitl/stub/autopilot.py); the durations the service is
     judged by (``stop_after_last_good_frame_ms``, ``resume_s``) are wall-clock, the windows
     flight time."""
     start, end = fault.start_s, fault.end_s

@@ -1,4 +1,4 @@
-"""The figures and plots of a ``companion sitl px4`` flight (sitl/px4_flight.py).
+"""The figures and plots of a ``companion sitl px4`` flight (sitl/loops/px4_flight.py).
 
 Sources: ``truth.csv`` (the bridge: SIH's true state, our clock), the ground station's
 LOCAL_POSITION_NED (PX4's own estimate, stamped on arrival), PX4's .ulg log (EKF2's
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.sitl.loop_results import (
+from companion.sitl.loops.loop_results import (
     camera_and_latency,
     clock_line,
     path_and_landing,
@@ -52,7 +52,7 @@ from companion.sitl.loop_results import (
     touchdown,
     truth_at,
 )
-from companion.sitl.ulog import read_topics
+from companion.sitl.loops.ulog import read_topics
 
 SETTLE_NS = 2e9  # compared from this long after the first EV fusion
 TOPICS = {

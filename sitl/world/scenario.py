@@ -18,10 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config
-from companion.sitl.render import RenderedFrame, Renderer
-from companion.sitl.sensors import AttitudeSimulator, RangeSimulator, TrueRange
-from companion.sitl.trajectory import Trajectory
-from companion.sitl.world import World, make_world
+from companion.sitl.world.render import RenderedFrame, Renderer
+from companion.sitl.world.sensors import AttitudeSimulator, RangeSimulator, TrueRange
+from companion.sitl.world.terrain import World, make_world
+from companion.sitl.world.trajectory import Trajectory
 from companion.types import AttitudeSample, CameraFrame
 
 F64 = NDArray[np.float64]
@@ -81,7 +81,8 @@ class Scenario:
         """Frames start..stop-1 in order. ``workers`` > 1: rendered ahead (at most 2 x workers
         steps) on that many threads, each with a Scenario of its own over this world; the render
         kernels run without the GIL and step k depends on k alone (every noise is seeded by
-        its frame or sample time), so the steps are those of one thread (tests/sitl/world/test_render.py)."""
+        its frame or sample time), so the steps are those of one thread
+        (tests/sitl/world/test_render.py)."""
         stop = self.n_frames if stop is None else min(stop, self.n_frames)
         if workers <= 1:
             for seq in range(start, stop):

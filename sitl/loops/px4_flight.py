@@ -10,7 +10,7 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    in the loop").
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
-3. The bridge (``python -m sitl.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
+3. The bridge (``python -m sitl.loops.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
 4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port.
 5. This process: the ground station (pymavlink on PX4's GCS port 18570+N). By default (the
    ground start of issue 18) it starts the service on the ground, waits until the service has
@@ -44,7 +44,7 @@ import numpy as np
 
 from companion.drivers.px4_shell_text import parse_listener
 from companion.errors import SitlError
-from companion.sitl.loop_common import (
+from companion.sitl.loops.loop_common import (
     REPO,
     GcsBase,
     LoopFlight,
@@ -55,10 +55,10 @@ from companion.sitl.loop_common import (
     options_from_args,
 )
 
-# names of this module before the loops shared sitl/loop_common.py, kept
-from companion.sitl.loop_common import Procs as Procs
-from companion.sitl.loop_common import leg_setpoints as leg_setpoints
-from companion.sitl.loop_common import mission_path as mission_path
+# names of this module before the loops shared sitl/loops/loop_common.py, kept
+from companion.sitl.loops.loop_common import Procs as Procs
+from companion.sitl.loops.loop_common import leg_setpoints as leg_setpoints
+from companion.sitl.loops.loop_common import mission_path as mission_path
 
 SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
 BUILD_HELP = (
@@ -379,7 +379,7 @@ class Flight(LoopFlight):
         argv = [
             sys.executable,
             "-m",
-            "companion.sitl.px4_bridge",
+            "companion.sitl.loops.px4_bridge",
             "--config",
             str(cfg_path),
             "--instance",
@@ -550,7 +550,7 @@ class Flight(LoopFlight):
 
     # ------------------------------------------------------------------ results
     def summarise(self, ok: bool) -> dict[str, Any]:
-        from companion.sitl.px4_results import summarise
+        from companion.sitl.loops.px4_results import summarise
 
         return summarise(self, ok)
 

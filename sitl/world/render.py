@@ -1,7 +1,7 @@
 """Camera rendering by exact ray casting, with noise, optional motion blur and laser marks.
 
 Every pixel centre's ray (from the full camera model, distortion included) is cast against the
-world (:mod:`sitl._kernels`); the surface is textured and Lambert-shaded, then Gaussian sensor
+world (:mod:`sitl.world._kernels`); the surface is textured and Lambert-shaded, then Gaussian sensor
 noise is added and the result quantised to 8-bit BGR. Laser marks are drawn as Gaussian red
 spots centred on the exact projection of the lasers' 3D hit points, hidden when the surface
 occludes them. ``live`` marks follow the beams; ``painted`` marks are the four hit points at
@@ -18,10 +18,10 @@ from numpy.typing import NDArray
 
 from companion.config import CameraConfig, RangefinderConfig, RenderConfig
 from companion.geometry import se3
-from companion.sitl import _kernels
-from companion.sitl.sensors import laser_hits
-from companion.sitl.trajectory import Trajectory
-from companion.sitl.world import World
+from companion.sitl.world import _kernels
+from companion.sitl.world.sensors import laser_hits
+from companion.sitl.world.terrain import World
+from companion.sitl.world.trajectory import Trajectory
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

@@ -32,8 +32,8 @@ from peers import MOSQUITTO, Broker, sitl_flight
 
 from companion.drivers.mavlink import PEER_SILENCE_S
 from companion.service.app import Service
-from companion.sitl.autopilot import SimAutopilot
-from companion.sitl.faults import Fault
+from companion.sitl.stub.autopilot import SimAutopilot
+from companion.sitl.stub.faults import Fault
 
 SECONDS = 60.0
 CAMERA_FAULTS = (

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from companion.drivers.timesync import ClockSync
-from companion.sitl.px4_params import ParamStore
+from companion.sitl.stub.px4_params import ParamStore
 
 EV_MAX_INTERVAL_US = 200_000  # EKF2 common.h: >= 5 Hz to start
 BUFFER_MATCH_US = 100_000  # RingBuffer::pop_first_older_than: time <= horizon < time + 100 ms

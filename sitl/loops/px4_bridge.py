@@ -1,4 +1,4 @@
-"""The bridge between PX4's SIH simulator and our sensors (``python -m sitl.px4_bridge``).
+"""The bridge between PX4's SIH simulator and our sensors (``python -m sitl.loops.px4_bridge``).
 
 PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stands:
 
@@ -6,9 +6,9 @@ PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stan
   arrival with our monotonic clock (its ``time_usec`` is 0); lat/lon/alt around the first
   sample (the vehicle at rest at home) -> local NED (azimuthal equidistant, PX4's Earth radius);
   attitude quaternion (body FRD -> NED, wxyz).
-- World: our seeded terrain (sitl/world.py) with its heights clipped to <= 0 (the home level,
-  h(0, 0) = 0): SIH's ground is flat at the home altitude, so the vehicle never flies into one
-  of our hills and lands on our ground where it lands on SIH's. Around home it is flat, as
+- World: our seeded terrain (sitl/world/terrain.py) with its heights clipped to <= 0 (the home
+  level, h(0, 0) = 0): SIH's ground is flat at the home altitude, so the vehicle never flies
+  into one of our hills and lands on our ground where it lands on SIH's. Around home it is flat, as
   SIH's is (a pad of PAD_FLAT_M, eased into the terrain over PAD_EASE_M more): clipped alone,
   home sat on the edge of a slope, and our sensors saw a 6 deg slope where SIH's vehicle stood
   level on its flat ground. SIH's body origin rests on its
@@ -17,7 +17,7 @@ PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stan
   flights of this build; our ground stays solid).
 - Camera: frame k is exposed at ``t0 + k / rate``; the bridge waits for the first truth sample
   after the exposure (<= 10 ms at 100 Hz; after 12 ms it extrapolates the latest with its
-  velocity), interpolates the pose (linear position, slerp attitude), renders (sitl/render.py,
+  velocity), interpolates the pose (linear position, slerp attitude), renders (sitl/world/render.py,
   live laser dots) and releases the frame on the SITL camera stream (drivers/camera.py format,
   TCP) at exposure + readout, or as soon as it is rendered. A frame that cannot be out within
   60 ms of its exposure (the service's frame_wait_ms) is dropped and counted.
@@ -54,9 +54,9 @@ from companion.config import Config, RangefinderConfig, load_config
 from companion.drivers.camera import encode_frame
 from companion.drivers.rangefinder import tfmini_frame
 from companion.geometry import so3
-from companion.sitl.render import Renderer
-from companion.sitl.sensors import laser_hits
-from companion.sitl.world import World, make_world
+from companion.sitl.world.render import Renderer
+from companion.sitl.world.sensors import laser_hits
+from companion.sitl.world.terrain import World, make_world
 from companion.types import CameraFrame
 
 F64 = NDArray[np.float64]
@@ -279,7 +279,8 @@ class Bridge:
     def tfmini_reading(
         self, rf: RangefinderConfig, T_world_body: F64, rng: np.random.Generator
     ) -> bytes | None:
-        """One TFmini frame with the sensor's noise model (sitl/sensors.py's), None = dropout."""
+        """One TFmini frame with the sensor's noise model (sitl/world/sensors.py's); None: a
+        dropout."""
         t, _ = laser_hits(self.world, T_world_body, [rf])
         true_d = float(t[0])
         if rng.uniform() < rf.dropout_prob:
@@ -449,7 +450,7 @@ def serve(bridge: Bridge) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args, cfg = parse_bridge_args(
-        "python -m sitl.px4_bridge",
+        "python -m sitl.loops.px4_bridge",
         __doc__,
         argv,
         lambda ap: ap.add_argument("--instance", type=int, default=0),

@@ -1,6 +1,6 @@
-"""What the two closed loops share (``companion sitl px4``: sitl/px4_flight.py, ``companion sitl
-ardupilot``: sitl/ardupilot_flight.py): the processes they start, the missions and their
-setpoints, a minimal ground station's pump and common telemetry, and :class:`LoopFlight`, the
+"""What the two closed loops share (``companion sitl px4``: sitl/loops/px4_flight.py,
+``companion sitl ardupilot``: sitl/loops/ardupilot_flight.py): the processes they start, the
+missions and their setpoints, a minimal ground station's pump and common telemetry, and :class:`LoopFlight`, the
 flight's skeleton (start, fly, stop everything, summarise) with the steps both fly alike: the
 bridge and the service started and waited for, the service's status socket polled until it
 tracks with a metric scale, the autopilot's fusion of our estimate held, arming, the mission
@@ -35,7 +35,7 @@ import tomli_w
 from companion.config import load_config, to_dict
 from companion.errors import SitlError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 # SET_POSITION_TARGET_LOCAL_NED type_mask: position + velocity; no acceleration, no yaw, no
 # yaw rate
 POS_VEL_TYPE_MASK = 0b0000_1101_1100_0000
