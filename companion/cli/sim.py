@@ -134,8 +134,9 @@ def cmd_sitl_sheet(args: argparse.Namespace) -> int:
 
 def cmd_sitl_run(args: argparse.Namespace) -> int:
     """The PX4-like SITL autopilot with its camera stream (sitl/stub/autopilot.py)."""
-    from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
     from companion.sitl.stub.faults import Fault
+    from companion.sitl.stub.options import AutopilotOptions
 
     cfg = load(args)
     out = Path(args.out) if args.out else Path("out") / "sitl-run"

@@ -26,42 +26,48 @@ simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
   its default rate, < 0: stopped); for HEARTBEAT or a message it does not stream FAILED.
 - Camera: a child process renders the flight ahead of time and releases frame k at its
   exposure time plus ``readout_ms`` (a real camera delivers a frame after its readout); a
-  frame that is not ready in time is dropped and counted, as a camera would drop it.
+  frame that is not ready in time is dropped and counted, as a camera would drop it
+  (:mod:`companion.sitl.stub.camera`).
 - Receives STATUSTEXT (kept in ``stats.statustexts``, forwarded to the ground-station endpoint
   as PX4 forwards an onboard link's messages with ``mavlink start -f``).
 - Receives VISION_POSITION_ESTIMATE and ODOMETRY, moves their time_usec into its clock through
   its time sync (as PX4's mavlink_receiver does), looks up the true pose at that time and
-  keeps live errors; at the end writes ``report.json``, ``received.csv`` and ``autopilot.png``.
+  keeps live errors; at the end writes ``report.json``, ``received.csv`` and ``autopilot.png``
+  (:mod:`companion.sitl.stub.report`).
+
+Options: :mod:`companion.sitl.stub.options`; PX4's parameters, EV fusion, shell and the
+ground-station endpoint: :mod:`companion.sitl.stub.px4_services`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import csv
-import json
 import multiprocessing as mp
-import socket
 import time
-from collections.abc import Awaitable, Callable
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.config import Config, from_dict, to_dict
-from companion.drivers.camera import encode_frame
-from companion.drivers.mavlink import LinkStats, Parser
+from companion.config import Config, to_dict
+from companion.drivers.mavlink import Parser
 from companion.drivers.signing import Signing
 from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError
-from companion.evaluation.trajectory import path_length, umeyama
+from companion.evaluation.trajectory import umeyama
 from companion.geometry import so3
-from companion.sitl.stub.faults import CAMERA_KINDS, Fault, active, fault_metrics
-from companion.types import CameraFrame
+from companion.sitl.stub.camera import camera_process
+from companion.sitl.stub.faults import active
+from companion.sitl.stub.options import AutopilotOptions
+from companion.sitl.stub.px4_services import Px4Services
+from companion.sitl.stub.report import (
+    AutopilotStats,
+    Received,
+    flight_report,
+    main_kind,
+    write_report,
+)
 
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
@@ -71,253 +77,6 @@ MSG_DISTANCE_SENSOR = 132
 # the streams whose rate MAV_CMD_SET_MESSAGE_INTERVAL sets, at their default rates [Hz] (PX4's
 # onboard link: TIMESYNC at 10 Hz, mavlink_main.cpp's configure_stream_local)
 DEFAULT_RATES_HZ = {MSG_ATTITUDE: 10.0, MSG_TIMESYNC: 10.0, MSG_DISTANCE_SENSOR: 10.0}
-
-
-@dataclass(frozen=True, slots=True)
-class AutopilotOptions:
-    """Where and how the stub talks (PX4 SITL's onboard ports by default)."""
-
-    host: str = "127.0.0.1"
-    listen_port: int = 14580
-    companion_port: int = 14540
-    camera_port: int = 5600
-    boot_offset_s: float = 37.25  # the autopilot booted this long before the stub started
-    drift_ppm: float = 60.0  # its crystal against the companion's clock
-    readout_ms: float = 4.0  # a frame leaves the camera this long after its exposure
-    time_scale: float = 1.0  # flight seconds per wall-clock second (< 1: slow motion)
-    warmup_s: float = 3.0  # the flight starts this long after the stub
-    linger_s: float = 2.0  # keep listening this long after the flight
-    prerender: bool = False  # render every frame before the flight (frees the CPU during it)
-    faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/stub/faults.py)
-    loop_from_frame: int = 0  # with loop_frames: where the repeated stretch of frames starts
-    loop_frames: int = 0  # > 0: frames repeat with this period (a periodic flight: soak runs)
-    signing_key: bytes = b""  # MAVLink 2 signing with this 32-byte key (empty: unsigned)
-    require_signed: bool = True  # with a key: refuse unsigned frames except HEARTBEAT
-    gcs_listen_port: int = (
-        18570  # the ground-station endpoint (sitl/stub/px4_services.py); 0 = none
-    )
-    gcs_port: int = 14550  # where the ground-station endpoint sends (QGroundControl, MAVSDK)
-    armed: bool = False  # report the vehicle armed in HEARTBEAT
-    has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
-    camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
-    # awaited once the camera is ready (prerendered), before the flight clock starts: a test
-    # run on several workers flies one real-time flight at a time (tests/peers/)
-    flight_gate: Callable[[], Awaitable[None]] | None = None
-
-
-@dataclass
-class Received:
-    """One pose message from the companion, with its truth."""
-
-    rx_ns: int  # reception, our monotonic clock
-    kind: str
-    time_usec: int  # as sent (companion clock)
-    t_sim_s: float  # the same instant in flight time, through our time sync
-    position: tuple[float, float, float]
-    rpy: tuple[float, float, float]
-    reset_counter: int
-    true_position: tuple[float, float, float]
-    true_rpy: tuple[float, float, float]
-    sync_error_us: float  # time sync's conversion minus the exact one
-
-
-@dataclass
-class AutopilotStats:
-    received: list[Received] = field(default_factory=list)
-    timesync_rtt_ns: list[int] = field(default_factory=list)
-    timesync_answers: int = 0
-    heartbeats_from_companion: int = 0
-    rates_set: dict[int, float] = field(default_factory=dict)
-    rate_requests_s: list[float] = field(default_factory=list)  # flight times of requests
-    reboots: int = 0
-    link: LinkStats = field(default_factory=LinkStats)
-    # STATUSTEXT from the companion: (rx_ns, severity, text, id, chunk_seq)
-    statustexts: list[tuple[int, int, str, int, int]] = field(default_factory=list)
-
-
-def camera_process(
-    cfg_dict: dict[str, Any],
-    port: int,
-    flight_start_ns: int,
-    readout_ms: float,
-    counters: Any,
-    prerender: bool = False,
-    ready: Any = None,
-    faults: tuple[Fault, ...] = (),
-    loop: tuple[int, int] = (0, 0),
-    time_scale: float = 1.0,
-) -> None:
-    """Child process: render the flight (ahead of time, or all of it before the flight with
-    ``prerender``) and stream each frame at exposure + readout; camera faults applied.
-    ``time_scale``: flight seconds per wall-clock second (frame k is exposed k / (rate x
-    time_scale) wall-clock seconds after the flight start).
-    ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
-    (only valid for a flight that is periodic there: it renders first + n frames at most)."""
-    from companion.sitl.world.scenario import Scenario
-
-    cfg = from_dict(Config, cfg_dict)
-    scenario = Scenario(cfg)
-    scenario.step(0)  # compile the kernels before the flight
-    first, n_loop = loop
-
-    images: list[Any] = []
-    if prerender:
-        n_distinct = min(scenario.n_frames, first + n_loop) if n_loop > 0 else scenario.n_frames
-        images = prerender_frames(scenario, n_distinct)
-    if ready is not None:
-        ready.set()
-    while counters[2] == 0:  # the parent sets the flight start once everybody is ready
-        time.sleep(0.01)
-    flight_start_ns = int(counters[2])
-
-    def render(seq: int) -> Any:
-        """Frame seq's image (a looped flight shows frames first .. first + n - 1 again)."""
-        src = seq if n_loop <= 0 or seq < first + n_loop else first + (seq - first) % n_loop
-        return images[src] if prerender else scenario.step(src).frame.image_bgr
-
-    _stream_frames(
-        scenario.n_frames,
-        cfg.camera.rate_hz,
-        render,
-        port,
-        flight_start_ns,
-        readout_ms,
-        counters,
-        faults,
-        time_scale,
-    )
-
-
-def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:
-    """Images (BGR uint8, H x W x 3) of frames 0 .. n_frames - 1 of ``scenario`` (a
-    :class:`sitl.world.scenario.Scenario` that has rendered once: kernels compiled, textures built),
-    rendered by ``workers`` threads (0: one per core this process may use, at most 4).
-
-    The render kernels run without the GIL and frame k's image depends on k alone (its noise
-    is seeded by k, the laser marks by its time), so each thread renders every workers-th
-    frame with a Scenario of its own (its own buffers) over the same world, and the images are
-    bit for bit those one thread renders (tests/sitl/world/test_render.py)."""
-    from companion.sitl.world.scenario import Scenario, render_threads
-
-    if workers <= 0:
-        workers = render_threads()
-    workers = min(workers, max(1, n_frames))
-    images: list[Any] = [None] * n_frames
-    scenarios = [scenario] + [
-        Scenario(scenario.cfg, world=scenario.world) for _ in range(workers - 1)
-    ]
-
-    def render_every(i: int) -> None:
-        for k in range(i, n_frames, workers):
-            images[k] = scenarios[i].step(k).frame.image_bgr
-
-    if workers == 1:
-        render_every(0)
-        return images
-    with ThreadPoolExecutor(workers, thread_name_prefix="prerender") as pool:
-        for done in [pool.submit(render_every, i) for i in range(workers)]:
-            done.result()
-    return images
-
-
-def _stream_frames(
-    n_frames: int,
-    rate_hz: float,
-    render: Callable[[int], Any],
-    port: int,
-    flight_start_ns: int,
-    readout_ms: float,
-    counters: Any,
-    faults: tuple[Fault, ...],
-    time_scale: float = 1.0,
-) -> None:
-    """Serve frame seq at its exposure + readout to one client; a frame not ready or not
-    taken in time is dropped (counters[1]), a sent one counted (counters[0]). Frames are
-    ``1 / (rate_hz x time_scale)`` wall-clock seconds apart (the fault windows: flight time)."""
-    link = _CameraLink(port)
-    period_ns = int(1e9 / (rate_hz * time_scale))
-    last_good: Any = None
-    for seq in range(n_frames):
-        expose_ns = flight_start_ns + seq * period_ns
-        release_ns = expose_ns + int(readout_ms * 1e6)
-        now_faults = active(faults, seq / rate_hz) & CAMERA_KINDS
-        if "camera_unplug" in now_faults:  # gone from the bus: no stream, no connections
-            link.close()
-            counters[1] += 1
-            continue
-        server = link.listen()
-        if time.monotonic_ns() > release_ns + period_ns:
-            counters[1] += 1  # behind: this frame is lost, as a camera would lose it
-            continue
-        image, last_good = _faulted(render(seq), now_faults, last_good)
-        payload = encode_frame(CameraFrame(expose_ns // 1000, seq, image))
-        link.accept(server, release_ns + period_ns)
-        wait = (release_ns - time.monotonic_ns()) * 1e-9
-        if wait > 0:
-            time.sleep(wait)
-        if link.client is None:
-            counters[1] += 1
-            continue
-        if link.send(payload):
-            counters[0] += 1
-    link.close()
-
-
-def _faulted(image: Any, now_faults: set[str], last_good: Any) -> tuple[Any, Any]:
-    """The image a faulty camera shows (frozen, black or saturated), and the last good one."""
-    if "camera_freeze" in now_faults and last_good is not None:
-        return last_good, last_good
-    if "camera_black" in now_faults:
-        return np.zeros_like(image), last_good
-    if "camera_saturated" in now_faults:
-        return np.full_like(image, 255), last_good
-    return image, image
-
-
-class _CameraLink:
-    """The camera's TCP end on 127.0.0.1: a listening socket and at most one client, both
-    closed while the camera is unplugged."""
-
-    def __init__(self, port: int) -> None:
-        self.port = port
-        self.server: socket.socket | None = None
-        self.client: socket.socket | None = None
-        self.listen()
-
-    def listen(self) -> socket.socket:
-        """The listening socket, opened again after an unplug."""
-        if self.server is None:
-            self.server = socket.create_server(("127.0.0.1", self.port), reuse_port=False)
-            self.server.settimeout(0.2)
-        return self.server
-
-    def accept(self, server: socket.socket, deadline_ns: int) -> None:
-        """Wait for a client, if there is none, until ``deadline_ns`` (monotonic)."""
-        while self.client is None:
-            try:
-                self.client, _ = server.accept()
-                self.client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            except TimeoutError:
-                if time.monotonic_ns() > deadline_ns:
-                    break
-
-    def send(self, payload: bytes) -> bool:
-        """Send to the client; on an error it is closed (a new one may connect)."""
-        assert self.client is not None
-        try:
-            self.client.sendall(payload)
-            return True
-        except OSError:
-            self.client.close()
-            self.client = None
-            return False
-
-    def close(self) -> None:
-        """Close the client, then the listening socket."""
-        for sock in (self.client, self.server):
-            if sock is not None:
-                sock.close()
-        self.client = self.server = None
 
 
 class SimAutopilot:
@@ -353,8 +112,6 @@ class SimAutopilot:
         self.rates_hz = dict(DEFAULT_RATES_HZ)  # 0: stopped
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
-        from companion.sitl.stub.px4_services import Px4Services
-
         self.px4 = Px4Services(self)  # parameters, EV fusion, shell, ground-station endpoint
 
     # ------------------------------------------------------------------ clocks
@@ -717,187 +474,21 @@ class SimAutopilot:
 
     # ------------------------------------------------------------------ results
     def report(self, frames_sent: int = 0, frames_dropped: int = 0) -> dict[str, Any]:
-        """Rates, latency, time-sync and accuracy figures of what was received."""
-        rec = self._main_received()
-        out: dict[str, Any] = {
-            "camera_frames_sent": frames_sent,
-            "camera_frames_dropped": frames_dropped,
-            "messages_received": len(self.stats.received),
-            "timesync_answers": self.stats.timesync_answers,
-            "rates_set_hz": {str(k): v for k, v in self.stats.rates_set.items()},
-            "link": vars(self.stats.link),
-            "signing": self.signing.counters() if self.signing else None,
-        }
-        rtt = np.array(self.stats.timesync_rtt_ns) * 1e-6
-        if len(rtt):
-            out["timesync_rtt_ms_p50"] = float(np.percentile(rtt, 50))
-            out["timesync_rtt_ms_p99"] = float(np.percentile(rtt, 99))
-            # the slowest round trip the filter took: one sample's offset is off by at most
-            # half of it (an asymmetric path), so the estimate is never further off than that
-            out["timesync_rtt_ms_max"] = float(np.max(rtt))
-        if len(rec) < 10:
-            out["error"] = "fewer than 10 pose messages received"
-            return out
-        rx = np.array([r.rx_ns for r in rec]) * 1e-9
-        t_sim = np.array([r.t_sim_s for r in rec])
-        est = np.array([r.position for r in rec])
-        gt = np.array([r.true_position for r in rec])
-        rx_sim = np.array([self.t_sim_of_mono(r.rx_ns) for r in rec])
-        latency_ms = (rx_sim - t_sim) * 1e3 / self.opts.time_scale  # wall-clock ms
-        # as EKF2 does on a reset_counter change (it re-anchors the vision frame), each segment
-        # between resets is aligned on its own (SE(3), no scale); segments of < 10 poses are
-        # left out of the ATE
-        resets = np.array([r.reset_counter for r in rec])
-        err = np.full(len(rec), np.nan)
-        for value in np.unique(resets):
-            seg = resets == value
-            if seg.sum() >= 10:
-                a = umeyama(est[seg], gt[seg], with_scale=False)
-                err[seg] = np.linalg.norm(a.apply(est[seg]) - gt[seg], axis=1)
-        out["faults"] = [
-            fault_metrics(
-                f,
-                rx_sim,
-                t_sim,
-                resets,
-                np.array([r.sync_error_us for r in rec]),
-                self.stats.rate_requests_s,
-                self.cfg.camera.rate_hz,
-                self.opts.readout_ms,
-                self.opts.time_scale,
-                min(
-                    (g.start_s for g in self.opts.faults if g.start_s >= f.end_s and g != f),
-                    default=float("inf"),
-                ),
-            )
-            for f in self.opts.faults
-        ]
-        out["reboots"] = self.stats.reboots
-        # the heading we sent against the truth, each segment on its own: the ATE aligns each
-        # segment's rotation away, so a map whose north was the camera's (180 deg off after a
-        # stall) kept a small ATE; EKF2 fuses the yaw as sent
-        yaw_err = np.degrees(
-            np.abs(
-                np.remainder(np.array([r.rpy[2] - r.true_rpy[2] for r in rec]) + np.pi, 2 * np.pi)
-                - np.pi
-            )
+        """Rates, latency, time-sync and accuracy figures of what was received
+        (:func:`companion.sitl.stub.report.flight_report`)."""
+        return flight_report(
+            self.stats,
+            self.opts,
+            self.cfg.camera.rate_hz,
+            self.t_sim_of_mono,
+            self.signing.counters() if self.signing else None,
+            frames_sent,
+            frames_dropped,
         )
-        out["heading_error_deg_max_by_segment"] = {
-            str(v): float(yaw_err[resets == v].max()) for v in np.unique(resets)
-        }
-        # and as each map started (the median of its first 10 poses): its north's error
-        out["heading_error_deg_start_by_segment"] = {
-            str(v): float(np.median(yaw_err[resets == v][:10])) for v in np.unique(resets)
-        }
-        out["heading_error_deg_p50"] = float(np.percentile(yaw_err, 50))
-        main_seg = resets == np.bincount(resets - resets.min()).argmax() + resets.min()
-        sim3 = umeyama(est[main_seg], gt[main_seg], with_scale=True)
-        err = err[np.isfinite(err)]
-        length = path_length(gt)
-        sync_err = np.abs([r.sync_error_us for r in rec])
-        out.update(
-            {
-                "message": self._main_kind(),
-                "received": len(rec),
-                "received_rate_hz": float((len(rx) - 1) / (rx[-1] - rx[0])),
-                "first_pose_s": float(t_sim[0]),
-                "latency_ms_p50": float(np.percentile(latency_ms, 50)),
-                "latency_ms_p99": float(np.percentile(latency_ms, 99)),
-                "timesync_error_ms_max": float(sync_err.max() * 1e-3),
-                "timesync_error_ms_p99": float(np.percentile(sync_err, 99) * 1e-3),
-                "ate_m": float(np.sqrt(np.mean(err**2))),
-                "path_m": length,
-                "ate_pct": float(100 * np.sqrt(np.mean(err**2)) / length) if length else None,
-                "scale_error_pct": float(100 * (1.0 / sim3.scale - 1.0)),
-                "resets": len({r.reset_counter for r in rec}) - 1,
-                "ate_segments": int(len(np.unique(resets))),
-            }
-        )
-        return out
-
-    def _main_received(self) -> list[Received]:
-        """The received poses of the main kind (the kind is looked up once, not per pose)."""
-        kind = self._main_kind()
-        return [r for r in self.stats.received if r.kind == kind]
 
     def _main_kind(self) -> str:
-        kinds = [r.kind for r in self.stats.received]
-        if "VISION_POSITION_ESTIMATE" in kinds:
-            return "VISION_POSITION_ESTIMATE"
-        return "ODOMETRY"
+        return main_kind(self.stats.received)
 
     def write(self, out: Path, report: dict[str, Any]) -> None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-        with (out / "received.csv").open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(
-                [
-                    "rx_ns",
-                    "kind",
-                    "time_usec",
-                    "t_sim_s",
-                    "x",
-                    "y",
-                    "z",
-                    "roll",
-                    "pitch",
-                    "yaw",
-                    "reset_counter",
-                    "x_true",
-                    "y_true",
-                    "z_true",
-                    "roll_true",
-                    "pitch_true",
-                    "yaw_true",
-                    "sync_error_us",
-                ]
-            )
-            for r in self.stats.received:
-                w.writerow(
-                    [
-                        r.rx_ns,
-                        r.kind,
-                        r.time_usec,
-                        f"{r.t_sim_s:.6f}",
-                        *r.position,
-                        *r.rpy,
-                        r.reset_counter,
-                        *r.true_position,
-                        *r.true_rpy,
-                        f"{r.sync_error_us:.1f}",
-                    ]
-                )
-        rec = self._main_received()
-        if len(rec) >= 10:
-            self._plot(rec, out / "autopilot.png")
-
-    def _plot(self, rec: list[Received], path: Path) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        est = np.array([r.position for r in rec])
-        gt = np.array([r.true_position for r in rec])
-        t = np.array([r.t_sim_s for r in rec])
-        aligned = umeyama(est, gt, with_scale=False).apply(est)
-        fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-        axes[0].plot(gt[:, 1], gt[:, 0], "k-", lw=1.5, label="truth")
-        axes[0].plot(aligned[:, 1], aligned[:, 0], "r-", lw=0.8, label="received (SE3-aligned)")
-        axes[0].set_xlabel("east [m]")
-        axes[0].set_ylabel("north [m]")
-        axes[0].axis("equal")
-        axes[0].legend()
-        axes[1].plot(t, np.linalg.norm(aligned - gt, axis=1), "r-", lw=0.8)
-        axes[1].set_xlabel("flight time [s]")
-        axes[1].set_ylabel("position error [m]")
-        axes[0].set_title("What the autopilot received")
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-
-
-def _suppress_cancel(task: asyncio.Task[None]) -> None:  # pragma: no cover - helper
-    with contextlib.suppress(asyncio.CancelledError):
-        task.result()
+        """``report.json``, ``received.csv`` and ``autopilot.png`` in ``out``."""
+        write_report(out, report, self.stats.received)

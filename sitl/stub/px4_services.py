@@ -25,19 +25,22 @@ import contextlib
 import logging
 import time
 from collections.abc import Coroutine
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.drivers.mavlink import LinkStats, Parser
+from companion.drivers.timesync import ClockSync
 from companion.sitl.stub.ekf_fusion import EvFusion
 from companion.sitl.stub.faults import active
+from companion.sitl.stub.options import AutopilotOptions
 from companion.sitl.stub.px4_params import ParamServer, ParamStore, px4_parameters
 from companion.sitl.stub.px4_shell import SERIAL_CONTROL_DEV_SHELL, NshShell, serial_control_replies
 
 if TYPE_CHECKING:
-    from companion.sitl.stub.autopilot import SimAutopilot
+    from companion.config import Config
+    from companion.sitl.world.trajectory import Trajectory
 
 log = logging.getLogger("sitl.px4")
 
@@ -51,10 +54,31 @@ GCS_STREAMS_HZ = {0: 1.0, 230: 1.0, 32: 10.0}  # HEARTBEAT, ESTIMATOR_STATUS, LO
 EKF_PERIOD_S = 0.01  # EKF2_PREDICT_US
 
 
-class Px4Services:
-    """Everything above, attached to one :class:`SimAutopilot` (``stub.px4``)."""
+class ServedAutopilot(Protocol):
+    """What the PX4 services use of the autopilot they serve
+    (:class:`companion.sitl.stub.autopilot.SimAutopilot`): its configuration and options, its
+    onboard MAVLink encoder and time sync, the flight's trajectory (the truth), its clocks
+    (boot clock [ns], monotonic [ns], flight time [s]) and its onboard link's send."""
 
-    def __init__(self, stub: SimAutopilot) -> None:
+    cfg: Config
+    opts: AutopilotOptions
+    mav: mavlink.MAVLink
+    sync: ClockSync
+    trajectory: Trajectory
+
+    def clock_ns(self, mono_ns: int) -> int: ...
+
+    def mono_of_clock_ns(self, clock_ns: float) -> float: ...
+
+    def t_sim_of_mono(self, mono_ns: float) -> float: ...
+
+    def send(self, msg: Any) -> None: ...
+
+
+class Px4Services:
+    """Everything above, attached to one autopilot (``stub.px4`` of a :class:`ServedAutopilot`)."""
+
+    def __init__(self, stub: ServedAutopilot) -> None:
         self.stub = stub
         o = stub.opts
         self.armed = o.armed

@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, load_config
-from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.stub.autopilot import SimAutopilot
+from companion.sitl.stub.options import AutopilotOptions
 from companion.sitl.world.trajectory import pattern_length_m
 
 LAP_START_S = 8.0  # the loop starts this long into the flight (after the smoothed start)

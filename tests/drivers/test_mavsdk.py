@@ -32,7 +32,8 @@ from companion.config import load_config
 from companion.drivers import messages
 from companion.drivers.mavlink import MavlinkLink
 from companion.geometry import so3
-from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.stub.autopilot import SimAutopilot
+from companion.sitl.stub.options import AutopilotOptions
 from companion.types import PoseEstimate
 
 T = TypeVar("T")

@@ -410,7 +410,8 @@ def test_the_sitl_autopilot_stops_when_its_camera_cannot_serve() -> None:
     """The camera port taken (a leftover run): the SITL must fail, not fly while somebody
     else's stream is measured as its own."""
     from companion.errors import SitlError
-    from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+    from companion.sitl.stub.autopilot import SimAutopilot
+    from companion.sitl.stub.options import AutopilotOptions
 
     with socket.create_server(("127.0.0.1", 0)) as blocker:
         opts = AutopilotOptions(

@@ -206,7 +206,7 @@ def sitl_flight(
     ``overrides``: more config tables; ``autopilot``: more AutopilotOptions fields (a
     ``time_scale`` < 1 flies in slow motion: slow_motion_overrides() for the durations)."""
     from companion.config import load_config, merge
-    from companion.sitl.stub.autopilot import AutopilotOptions
+    from companion.sitl.stub.options import AutopilotOptions
 
     udp_stub, udp_us, tcp_cam = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM), 0
     tcp_cam = free_port()

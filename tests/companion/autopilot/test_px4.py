@@ -36,7 +36,8 @@ from companion.px4.encoding import float32_bits_as_int32, int32_bits_as_float32
 from companion.px4.link import Px4Link
 from companion.px4.options import Px4Options
 from companion.px4.rules import Row, Status
-from companion.sitl.stub.autopilot import AutopilotOptions, SimAutopilot
+from companion.sitl.stub.autopilot import SimAutopilot
+from companion.sitl.stub.options import AutopilotOptions
 from companion.sitl.stub.px4_params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
 from companion.types import PoseEstimate
 

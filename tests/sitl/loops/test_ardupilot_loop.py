@@ -4,7 +4,8 @@ GUIDED, take off to 5 m, hover 20 s, land.
 ArduCopter SITL, the bridge (sitl/loops/ardupilot_bridge.py: SIM_STATE truth -> our camera stream
 and TFmini ptys) and the service (`companion run`, a subprocess, sending ODOMETRY and the EKF
 origin) run for real; nothing is mocked. ArduPilot instance 2 (TCP 5780-5783, camera on TCP
-15702) so that a `companion sitl ardupilot` on instance 0 can run beside it. About 100 s of wall time.
+15702) so that a `companion sitl ardupilot` on instance 0 can run beside it. About 100 s of
+wall time.
 """
 
 from __future__ import annotations

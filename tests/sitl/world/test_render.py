@@ -198,7 +198,7 @@ def test_rendering_ahead_on_threads_gives_what_one_thread_renders(
     the image a single thread renders in order (noise, motion blur, laser marks), and every
     step the same samples and pose (2 threads, and 3 for an uneven share)."""
     from companion.config import load_config
-    from companion.sitl.stub.autopilot import prerender_frames
+    from companion.sitl.stub.camera import prerender_frames
     from companion.sitl.world.scenario import Scenario, Step
 
     cfg = load_config(
