@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from companion.errors import SitlError
-from companion.sitl.loops import loop_common as loop
+from companion.sitl.loops import ground_station, loop_flight, processes
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
@@ -75,7 +75,7 @@ CAMERA_PORT = 15700  # + instance
 
 
 @dataclass
-class FlightOptions(loop.LoopOptions):
+class FlightOptions(loop_flight.LoopOptions):
     """The ArduPilot loop's options (``configure``: `companion autopilot configure`;
     ``settle_s``: the service tracks this long with a scale before arming)."""
 
@@ -87,7 +87,7 @@ class FlightOptions(loop.LoopOptions):
 
 
 @dataclass
-class Telemetry(loop.LoopTelemetry):
+class Telemetry(ground_station.LoopTelemetry):
     """What the ground station saw (arrival times: our monotonic clock [ns])."""
 
     ekf: list[tuple[int, int]] = field(default_factory=list)  # (t, EKF_STATUS_REPORT.flags)
@@ -95,7 +95,7 @@ class Telemetry(loop.LoopTelemetry):
     custom_mode: int = -1
 
 
-class Gcs(loop.GcsBase):
+class Gcs(ground_station.GcsBase):
     """A minimal ground station on ArduCopter's SERIAL0 (pymavlink), pumped from this thread."""
 
     def __init__(self, url: str, tel: Telemetry) -> None:
@@ -135,7 +135,7 @@ class Gcs(loop.GcsBase):
         return fresh and bool(flags & EKF_POS_HORIZ_REL) and not flags & EKF_CONST_POS_MODE
 
 
-class Flight(loop.LoopFlight):
+class Flight(loop_flight.LoopFlight):
     """ArduCopter SITL flown on our estimate (this module's docstring)."""
 
     AUTOPILOT, ARM_LOG, TELEMETRY = "ArduPilot", "statustext.log", Telemetry
@@ -217,7 +217,7 @@ class Flight(loop.LoopFlight):
         if not self.o.configure:
             return
         url = f"tcp:127.0.0.1:{port(1, self.o.instance)}"
-        argv = [*loop.companion_argv(), "autopilot", "configure", "--config", str(cfg_path)]
+        argv = [*processes.companion_argv(), "autopilot", "configure", "--config", str(cfg_path)]
         argv += ["--url", url, "--yes", "--no-gnss", "--timeout-s", "15"]
         label, log_name = "companion autopilot configure", "autopilot-configure.log"
         code = self._run_configure(label, argv, log_name, 90)
@@ -283,7 +283,7 @@ class Flight(loop.LoopFlight):
 def cli_main(args: Any) -> int:
     """``companion sitl ardupilot``: fly, print the summary, exit 0 when landed without
     failsafe."""
-    opts = loop.options_from_args(
+    opts = loop_flight.options_from_args(
         FlightOptions, args, ardupilot=args.ardupilot, heading=args.heading
     )
-    return loop.fly_from_cli(Flight(opts), lambda: find_ardupilot(opts.ardupilot))
+    return loop_flight.fly_from_cli(Flight(opts), lambda: find_ardupilot(opts.ardupilot))

@@ -44,21 +44,14 @@ import numpy as np
 
 from companion.drivers.px4_shell_text import parse_listener
 from companion.errors import SitlError
-from companion.sitl.loops.loop_common import (
-    REPO,
-    GcsBase,
+from companion.sitl.loops.ground_station import GcsBase, LoopTelemetry
+from companion.sitl.loops.loop_flight import (
     LoopFlight,
     LoopOptions,
-    LoopTelemetry,
-    companion_argv,
     fly_from_cli,
     options_from_args,
 )
-
-# names of this module before the loops shared sitl/loops/loop_common.py, kept
-from companion.sitl.loops.loop_common import Procs as Procs
-from companion.sitl.loops.loop_common import leg_setpoints as leg_setpoints
-from companion.sitl.loops.loop_common import mission_path as mission_path
+from companion.sitl.loops.processes import REPO, companion_argv
 
 SHARED_PX4 = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
 BUILD_HELP = (

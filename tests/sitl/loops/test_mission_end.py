@@ -1,4 +1,4 @@
-"""The closed loops' mission end (sitl/loops/loop_common.py, ``LoopFlight._settle_over``): the
+"""The closed loops' mission end (sitl/loops/loop_flight.py, ``LoopFlight._settle_over``): the
 landing waits until the autopilot's own position has settled over the last waypoint."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import companion.sitl.loops.loop_common as lc
+import companion.sitl.loops.loop_flight as lc
+from companion.sitl.loops.processes import REPO
 
 
 class FakeGcs:
@@ -33,7 +34,7 @@ class FakeGcs:
 
 
 def flight(path: Callable[[float], np.ndarray]) -> lc.LoopFlight:
-    f = lc.LoopFlight(SimpleNamespace(out=lc.REPO))
+    f = lc.LoopFlight(SimpleNamespace(out=REPO))
     f.gcs = FakeGcs(f.tel, path)
     f._check_alive = lambda: None  # type: ignore[method-assign]
     return f

@@ -1,10 +1,9 @@
-"""What the two closed loops share (``companion sitl px4``: sitl/loops/px4_flight.py,
-``companion sitl ardupilot``: sitl/loops/ardupilot_flight.py): the processes they start, the
-missions and their setpoints, a minimal ground station's pump and common telemetry, and :class:`LoopFlight`, the
-flight's skeleton (start, fly, stop everything, summarise) with the steps both fly alike: the
-bridge and the service started and waited for, the service's status socket polled until it
-tracks with a metric scale, the autopilot's fusion of our estimate held, arming, the mission
-along its legs, the landing and the disarm.
+"""The closed loops' flight (``companion sitl px4``: sitl/loops/px4_flight.py, ``companion sitl
+ardupilot``: sitl/loops/ardupilot_flight.py): :class:`LoopFlight`, the flight's skeleton (start,
+fly, stop everything, summarise) with the steps both fly alike: the bridge and the service
+started and waited for, the service's status socket polled until it tracks with a metric scale,
+the autopilot's fusion of our estimate held, arming, the mission along its legs, the landing
+and the disarm; the options both share and the command-line entry.
 
 Positions are NED [m] in the autopilot's local frame (ours once its EKF fuses our estimate);
 times [s] of our monotonic clock unless named ``*_ns``.
@@ -12,12 +11,8 @@ times [s] of our monotonic clock unless named ``*_ns``.
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import itertools
 import json
-import math
-import os
 import shutil
 import signal
 import socket
@@ -25,7 +20,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,121 +29,20 @@ import tomli_w
 
 from companion.config import load_config, to_dict
 from companion.errors import SitlError
+from companion.sitl.loops.ground_station import LoopTelemetry
+from companion.sitl.loops.mission import leg_setpoints, mission_path
+from companion.sitl.loops.processes import (
+    BRIDGE_NICE,
+    REPO,
+    SERVICE_NICE,
+    Procs,
+    companion_argv,
+    raise_interrupt,
+)
 
-REPO = Path(__file__).resolve().parents[2]
-# SET_POSITION_TARGET_LOCAL_NED type_mask: position + velocity; no acceleration, no yaw, no
-# yaw rate
-POS_VEL_TYPE_MASK = 0b0000_1101_1100_0000
 # the mission's end: the autopilot's position within SETTLE_M [m] of the last waypoint for
 # SETTLE_S [s] before the landing (at most SETTLE_TIMEOUT_S [s] of waiting)
 SETTLE_M, SETTLE_S, SETTLE_TIMEOUT_S = 0.15, 1.0, 20.0
-
-
-# The loop puts three machines' work on one: the autopilot with its simulated vehicle, the
-# world's camera and sensors (the bridge) and the companion. On a vehicle they never compete
-# for a core; here, on a busy 2-core host, the companion's load starved PX4 itself (its
-# receipt of our messages 100-1,200 ms late, EKF2 refusing them as too old: 2026-11-27, bfdc1dc).
-# The companion runs at a lower priority, so that when the host is short of CPU it is the
-# companion that drops frames (counted and reported), not the world or the autopilot.
-SERVICE_NICE = 5
-BRIDGE_NICE = 5
-
-
-class Procs:
-    """The processes this run started (own process groups), stopped in reverse order."""
-
-    def __init__(self) -> None:
-        self.items: list[tuple[str, subprocess.Popen[bytes], int]] = []
-
-    def start(
-        self, name: str, argv: list[str], log: Path, nice: int = 0, **kw: Any
-    ) -> subprocess.Popen[bytes]:
-        """Start ``argv`` in its own session, output to ``log``; ``nice`` > 0 lowers its CPU
-        priority (every thread it starts inherits it)."""
-        fh = log.open("wb")
-        pre = functools.partial(os.nice, nice) if nice else None
-        p = subprocess.Popen(
-            argv,
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            preexec_fn=pre,  # only os.nice: takes no lock in the forked child
-            **kw,
-        )
-        fh.close()
-        self.items.append((name, p, signal.SIGTERM))
-        return p
-
-    def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> None:
-        for n, p, _ in self.items:
-            if n == name and p.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, sig)
-                try:
-                    p.wait(timeout_s)
-                except subprocess.TimeoutExpired:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.killpg(p.pid, signal.SIGKILL)
-                    p.wait(5)
-
-    def stop_all(self) -> None:
-        for name, _, _ in reversed(self.items):
-            self.stop(name)
-
-
-def mission_path(name: str, start: np.ndarray, side_m: float) -> list[np.ndarray]:
-    """Waypoints (NED) of a mission from ``start`` at its altitude: a square of side side_m
-    (north, east, south, west, back), or a lawnmower of four 30 m legs 6 m apart and back."""
-    if name == "square":
-        offs = [(0, 0), (side_m, 0), (side_m, side_m), (0, side_m), (0, 0)]
-    elif name == "lawnmower":
-        offs = [(0, 0)]
-        for k in range(4):
-            e = 6.0 * k
-            offs += [(30.0, e), (30.0, e + 6.0)] if k % 2 == 0 else [(0.0, e), (0.0, e + 6.0)]
-        offs[-1] = (offs[-1][0], 18.0)
-        offs += [(0.0, 18.0), (0.0, 0.0)]
-    else:
-        offs = [(0, 0)]
-    return [start + np.array([n, e, 0.0]) for n, e in offs]
-
-
-def leg_setpoints(
-    a: np.ndarray, b: np.ndarray, speed: float, accel: float = 1.0
-) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """(t, position, velocity) along a straight leg with a trapezoidal speed profile."""
-    d = float(np.linalg.norm(b - a))
-    if d < 1e-6:
-        return []
-    u = (b - a) / d
-    v = min(speed, math.sqrt(accel * d))
-    t_acc = v / accel
-    d_acc = 0.5 * accel * t_acc**2
-    t_cruise = (d - 2 * d_acc) / v
-    total = 2 * t_acc + t_cruise
-    out = []
-    for t in np.arange(0.0, total + 1e-9, 0.05):
-        if t < t_acc:
-            s, sp = 0.5 * accel * t**2, accel * t
-        elif t < t_acc + t_cruise:
-            s, sp = d_acc + v * (t - t_acc), v
-        else:
-            tr = total - t
-            s, sp = d - 0.5 * accel * tr**2, accel * tr
-        out.append((float(t), a + u * s, u * sp))
-    out.append((total, b.copy(), np.zeros(3)))
-    return out
-
-
-def companion_argv() -> list[str]:
-    """How to run ``companion`` from this interpreter (its script, else ``-m companion.cli``)."""
-    exe = Path(sys.executable).parent / "companion"
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "companion.cli"]
-
-
-def raise_interrupt(signum: int, frame: Any) -> None:
-    """A signal handler (SIGTERM) that stops the flight as Ctrl-C does."""
-    raise KeyboardInterrupt
 
 
 @dataclass
@@ -183,114 +77,6 @@ def options_from_args(cls: type[Any], args: Any, **own: Any) -> Any:
     if args.config:
         opts.config = Path(args.config)
     return opts
-
-
-@dataclass
-class LoopTelemetry:
-    """What the ground station saw of either autopilot (arrival times: our monotonic clock
-    [ns]); each loop's Telemetry adds its own."""
-
-    lpos: list[tuple[int, int, float, float, float]] = field(default_factory=list)
-    texts: list[tuple[float, int, str]] = field(default_factory=list)
-    landed_state: int = 0
-    armed: bool = False
-    custom_mode: int = 0
-    heartbeat_ns: int = 0
-    version: str = ""
-    phases: dict[str, float] = field(default_factory=dict)  # name -> monotonic [s]
-
-
-class GcsBase:
-    """A minimal ground station (pymavlink connection ``conn`` to system ``sysid``, component
-    1), pumped from the flight's thread: a heartbeat a second, the subclass's periodic sends
-    (:meth:`_send`), and the telemetry of :class:`LoopTelemetry` (the subclass's messages:
-    :meth:`_on_other`)."""
-
-    def __init__(self, conn: Any, sysid: int, tel: LoopTelemetry) -> None:
-        self.conn = conn
-        self.mav = conn.mav
-        self.sysid = sysid
-        self.tel = tel
-        self.setpoint: tuple[np.ndarray, np.ndarray] | None = None  # NED position, velocity
-        self._last_hb = 0.0
-        self.t0 = time.monotonic()
-
-    def pump(self, seconds: float) -> None:
-        """Send and receive for ``seconds`` (at least one round)."""
-        end = time.monotonic() + seconds
-        while True:
-            now = time.monotonic()
-            if now - self._last_hb > 1.0:
-                self.mav.heartbeat_send(6, 8, 0, 0, 0)  # GCS, INVALID autopilot
-                self._last_hb = now
-            self._send(now)
-            if now >= end:
-                return
-            m = self.conn.recv_match(blocking=True, timeout=min(0.01, max(end - now, 0.001)))
-            while m is not None:
-                self._on(m)
-                m = self.conn.recv_match(blocking=False)
-
-    def _send(self, now: float) -> None:
-        """The subclass's periodic messages (sticks, setpoints), at monotonic time ``now``."""
-
-    def send_setpoint(self) -> None:
-        """SET_POSITION_TARGET_LOCAL_NED of :attr:`setpoint` (position + velocity, from the
-        EKF origin); nothing without one."""
-        if self.setpoint is None:
-            return
-        p, v = self.setpoint
-        self.mav.set_position_target_local_ned_send(
-            0,
-            self.sysid,
-            1,
-            1,  # MAV_FRAME_LOCAL_NED
-            POS_VEL_TYPE_MASK,
-            *(float(x) for x in p),
-            *(float(x) for x in v),
-            0,
-            0,
-            0,
-            0,
-            0,
-        )
-
-    def _on(self, m: Any) -> None:
-        if m.get_srcSystem() != self.sysid or m.get_srcComponent() != 1:
-            return
-        kind = m.get_type()
-        t = time.monotonic_ns()
-        if kind == "LOCAL_POSITION_NED":
-            self.tel.lpos.append((t, int(m.time_boot_ms), m.x, m.y, m.z))
-        elif kind == "HEARTBEAT":
-            self.tel.armed = bool(m.base_mode & 128)
-            self.tel.custom_mode = int(m.custom_mode)
-            self.tel.heartbeat_ns = t
-        elif kind == "EXTENDED_SYS_STATE":
-            self.tel.landed_state = int(m.landed_state)
-        elif kind == "STATUSTEXT":
-            self.tel.texts.append((time.monotonic() - self.t0, int(m.severity), str(m.text)))
-        else:
-            self._on_other(kind, m, t)
-
-    def _on_other(self, kind: str, m: Any, t: int) -> None:
-        """A message of another ``kind`` from the autopilot, arrived at ``t`` [ns]."""
-
-    def command(self, cmd: int, *params: float) -> None:
-        p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
-        self.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
-
-    def ask_streams(self, rates_hz: tuple[tuple[int, float], ...]) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for each (message id, rate [Hz]), then
-        MAV_CMD_REQUEST_MESSAGE AUTOPILOT_VERSION."""
-        for msg_id, hz in rates_hz:
-            self.command(511, msg_id, 1e6 / hz)
-            self.pump(0.1)
-        self.command(512, 148)
-
-    def position(self) -> np.ndarray | None:
-        """The autopilot's latest LOCAL_POSITION_NED (3,), None before the first."""
-        return np.array(self.tel.lpos[-1][2:5]) if self.tel.lpos else None
 
 
 class LoopFlight:
