@@ -1,6 +1,7 @@
-"""ArduCopter SITL physics -> our sensors (``python -m sitl.loops.ardupilot_bridge``).
+"""ArduCopter SITL physics -> our sensors
+(``python -m companion.sitl.loops.ardupilot_bridge``).
 
-The same bridge as PX4's (:mod:`sitl.loops.px4_bridge`, reused: its world clipped to the home level,
+The same bridge as PX4's (:mod:`.px4_bridge`, reused: its world clipped to the home level,
 camera rendering and release, TFmini pseudo-terminals, truth log), with the truth from
 ArduPilot instead of SIH: SIM_STATE (id 108, asked at 100 Hz with MAV_CMD_SET_MESSAGE_INTERVAL
 on a MAVLink link of its own, ArduCopter's SERIAL2 by default) stamped on arrival with our
@@ -26,7 +27,7 @@ TRUTH_RATE_HZ = 100.0  # the camera waits for the first sample after each exposu
 
 
 class ArduPilotBridge(Bridge):
-    """:class:`sitl.loops.px4_bridge.Bridge` with SIM_STATE as its truth."""
+    """:class:`companion.sitl.loops.px4_bridge.Bridge` with SIM_STATE as its truth."""
 
     def __init__(
         self, cfg: Config, truth_url: str, camera_port: int, out: Path, gear_m: float = 0.35
@@ -77,7 +78,7 @@ class ArduPilotBridge(Bridge):
 
 def main(argv: list[str] | None = None) -> int:
     args, cfg = parse_bridge_args(
-        "python -m sitl.loops.ardupilot_bridge",
+        "python -m companion.sitl.loops.ardupilot_bridge",
         __doc__,
         argv,
         lambda ap: ap.add_argument(

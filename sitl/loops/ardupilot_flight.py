@@ -6,8 +6,8 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    VISO_TYPE = 1) with BOOT_PARAMS on top; this process is its ground station on SERIAL0.
 2. ``companion autopilot configure --yes`` on SERIAL1 before the service holds it (reported;
    the flight goes on with the boot parameters when it fails).
-3. The bridge (``python -m sitl.loops.ardupilot_bridge`` on SERIAL2): SIM_STATE truth -> our camera
-   stream and TFmini ptys (the PX4 bridge's code).
+3. The bridge (``python -m companion.sitl.loops.ardupilot_bridge`` on SERIAL2): SIM_STATE
+   truth -> our camera stream and TFmini ptys (the PX4 bridge's code).
 4. The service, unchanged: ``companion run --config OUT/service.toml`` on SERIAL1, sending
    ODOMETRY and the EKF origin ([service.ardupilot]).
 5. This process: waits until the service tracks with a metric scale on the ground and EKF3 uses

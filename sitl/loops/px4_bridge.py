@@ -1,4 +1,5 @@
-"""The bridge between PX4's SIH simulator and our sensors (``python -m sitl.loops.px4_bridge``).
+"""The bridge between PX4's SIH simulator and our sensors
+(``python -m companion.sitl.loops.px4_bridge``).
 
 PX4 SIH flies the vehicle; this process stands where the vehicle's hardware stands:
 
@@ -450,7 +451,7 @@ def serve(bridge: Bridge) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args, cfg = parse_bridge_args(
-        "python -m sitl.loops.px4_bridge",
+        "python -m companion.sitl.loops.px4_bridge",
         __doc__,
         argv,
         lambda ap: ap.add_argument("--instance", type=int, default=0),

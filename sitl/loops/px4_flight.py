@@ -10,7 +10,8 @@ Processes (each in its own process group, all stopped on exit, Ctrl-C, SIGTERM o
    in the loop").
 2. ``companion px4 configure`` on the onboard link (before the service holds it): reported,
    and the flight goes on with the boot parameters when it fails.
-3. The bridge (``python -m sitl.loops.px4_bridge``): SIH truth -> our camera stream and TFmini ptys.
+3. The bridge (``python -m companion.sitl.loops.px4_bridge``): SIH truth -> our camera stream
+   and TFmini ptys.
 4. The service, unchanged: ``companion run --config OUT/service.toml`` on PX4's onboard port.
 5. This process: the ground station (pymavlink on PX4's GCS port 18570+N). By default (the
    ground start of issue 18) it starts the service on the ground, waits until the service has

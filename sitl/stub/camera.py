@@ -79,8 +79,9 @@ def camera_process(
 
 def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:
     """Images (BGR uint8, H x W x 3) of frames 0 .. n_frames - 1 of ``scenario`` (a
-    :class:`sitl.world.scenario.Scenario` that has rendered once: kernels compiled, textures built),
-    rendered by ``workers`` threads (0: one per core this process may use, at most 4).
+    :class:`companion.sitl.world.scenario.Scenario` that has rendered once: kernels compiled,
+    textures built), rendered by ``workers`` threads (0: one per core this process may use, at
+    most 4).
 
     The render kernels run without the GIL and frame k's image depends on k alone (its noise
     is seeded by k, the laser marks by its time), so each thread renders every workers-th

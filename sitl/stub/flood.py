@@ -1,4 +1,5 @@
-"""A MAVLink flood, as an attacker or a broken radio would send it: ``python -m sitl.stub.flood``.
+"""A MAVLink flood, as an attacker or a broken radio would send it
+(``python -m companion.sitl.stub.flood``).
 
 From its own UDP socket (a process of its own, so that it takes no time from the process it
 floods), ``rate`` datagrams per second for ``seconds``, in a seeded mix:

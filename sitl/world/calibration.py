@@ -16,7 +16,7 @@ its white margin) is inside the image.
 Laser-check frames: the vehicle at seeded poses (height above ground, roll, pitch, yaw) over a
 world; the distance sensors of ``hardware`` (the real mounts, which may differ from the
 config under test) give the readings (exact ray cast + the sensor's Gaussian noise) and leave
-red dots rendered by :class:`sitl.world.render.Renderer`.
+red dots rendered by :class:`companion.sitl.world.render.Renderer`.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Camera rendering by exact ray casting, with noise, optional motion blur and laser marks.
 
 Every pixel centre's ray (from the full camera model, distortion included) is cast against the
-world (:mod:`sitl.world._kernels`); the surface is textured and Lambert-shaded, then Gaussian sensor
+world (:mod:`._kernels`); the surface is textured and Lambert-shaded, then Gaussian sensor
 noise is added and the result quantised to 8-bit BGR. Laser marks are drawn as Gaussian red
 spots centred on the exact projection of the lasers' 3D hit points, hidden when the surface
 occludes them. ``live`` marks follow the beams; ``painted`` marks are the four hit points at
