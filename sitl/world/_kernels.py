@@ -76,28 +76,7 @@ def height_at(hmap, inv_res, x0, y0, xs, ys):
 
 
 @nb.njit(inline="always", **_JIT)
-def _cast_ground(
-    ox,
-    oy,
-    oz,
-    dx,
-    dy,
-    dz,
-    hmap,
-    inv_res,
-    x0,
-    y0,
-    hmin,
-    hmax,
-    plane,
-    lip_x,
-    lip_y,
-    blocks,
-    b_inv,
-    b_reach,
-    tmax,
-    t_guess,
-):
+def _cast_ground(ox, oy, oz, dx, dy, dz, ground, t_guess):
     """First height-field hit along a unit ray: (t, dh/dx, dh/dy) there, t = inf on a miss.
 
     ``blocks[by, bx] = (max height, Lipschitz x, Lipschitz y)`` hold, for every block of the
@@ -107,7 +86,13 @@ def _cast_ground(
     faster along the ray); steps approach the first hit from above, Newton's method ends it.
     When the global slope bounds (lip_x, lip_y) prove the hit unique, a bracketed Newton
     iteration from ``t_guess`` (the neighbouring pixel's distance) replaces the stepping.
+
+    ``ground`` = (hmap, inv_res, x0, y0, hmin, hmax, plane, lip_x, lip_y, blocks, b_inv,
+    b_reach, tmax): the height grid [m, up] and its origin [m] and 1 / resolution [1/m], its
+    height range [m], the plane (a, b, c, flag) when it is one, the global slope bounds, the
+    blocks with 1 / block size [1/m] and their reach [m], the longest ray [m].
     """
+    hmap, inv_res, x0, y0, hmin, hmax, plane, lip_x, lip_y, blocks, b_inv, b_reach, tmax = ground
     if plane[3] > 0.0:
         # the terrain is the plane h = a + b x + c y: closed form
         denom = dz + plane[1] * dx + plane[2] * dy
@@ -189,25 +174,14 @@ def _cast_ground(
 
 
 @nb.njit(inline="always", **_JIT)
-def _cast_boxes(
-    ox,
-    oy,
-    oz,
-    dx,
-    dy,
-    dz,
-    t_best,
-    boxes,
-    box_top,
-    cell_start,
-    cell_boxes,
-    g_x0,
-    g_y0,
-    g_inv,
-    g_nx,
-    g_ny,
-):
-    """First box hit before t_best: (t, box index or -1, face axis 0/1/2, face sign)."""
+def _cast_boxes(ox, oy, oz, dx, dy, dz, t_best, box_geo):
+    """First box hit before t_best: (t, box index or -1, face axis 0/1/2, face sign).
+
+    ``box_geo`` = (boxes, box_top, cell_start, cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny): the
+    boxes (K, 6), the highest roof [m, up], the CSR grid of box indices (cell starts, indices),
+    its origin [m], 1 / cell size [1/m] and size in cells.
+    """
+    boxes, box_top, cell_start, cell_boxes, g_x0, g_y0, g_inv, g_nx, g_ny = box_geo
     hit_box = -1
     axis = 0
     sign = 0.0
@@ -272,72 +246,12 @@ def _cast_boxes(
 
 @nb.njit(inline="always", **_JIT)
 def _cast(ox, oy, oz, dx, dy, dz, geo, t_guess):
-    """First hit of a unit ray on the ground or a building, from the packed geometry ``geo``
-    (World.kernel_geometry): (t, t of the ground alone, dh/dx, dh/dy, box, face axis, sign)."""
-    (
-        hmap,
-        inv_res,
-        x0,
-        y0,
-        hmin,
-        hmax,
-        plane,
-        lip_x,
-        lip_y,
-        blocks,
-        b_inv,
-        b_reach,
-        tmax,
-        boxes,
-        box_top,
-        cell_start,
-        cell_boxes,
-        g_x0,
-        g_y0,
-        g_inv,
-        g_nx,
-        g_ny,
-    ) = geo
-    t_ground, hx, hy = _cast_ground(
-        ox,
-        oy,
-        oz,
-        dx,
-        dy,
-        dz,
-        hmap,
-        inv_res,
-        x0,
-        y0,
-        hmin,
-        hmax,
-        plane,
-        lip_x,
-        lip_y,
-        blocks,
-        b_inv,
-        b_reach,
-        tmax,
-        t_guess,
-    )
-    t, k, axis, sign = _cast_boxes(
-        ox,
-        oy,
-        oz,
-        dx,
-        dy,
-        dz,
-        t_ground,
-        boxes,
-        box_top,
-        cell_start,
-        cell_boxes,
-        g_x0,
-        g_y0,
-        g_inv,
-        g_nx,
-        g_ny,
-    )
+    """First hit of a unit ray on the ground or a building, from the packed geometry
+    ``geo = (ground, box_geo)`` (World.kernel_geometry): (t, t of the ground alone, dh/dx,
+    dh/dy, box, face axis, sign)."""
+    ground, box_geo = geo
+    t_ground, hx, hy = _cast_ground(ox, oy, oz, dx, dy, dz, ground, t_guess)
+    t, k, axis, sign = _cast_boxes(ox, oy, oz, dx, dy, dz, t_ground, box_geo)
     return t, t_ground, hx, hy, k, axis, sign
 
 

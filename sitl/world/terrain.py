@@ -316,9 +316,10 @@ class World:
         pts = o + t[:, None] * d
         return RayHits(t, pts, normals, kind, box)
 
-    def kernel_geometry(self) -> tuple[object, ...]:
-        """The packed geometry every ray-casting kernel takes (unpacked by _kernels._cast)."""
-        return (
+    def kernel_geometry(self) -> tuple[tuple[object, ...], tuple[object, ...]]:
+        """The packed geometry every ray-casting kernel takes, (ground, boxes) (unpacked by
+        _kernels._cast_ground and _kernels._cast_boxes)."""
+        ground = (
             self.heights,
             1.0 / self.res_m,
             self.x0,
@@ -332,6 +333,8 @@ class World:
             self.b_inv,
             self.b_reach,
             self.tmax_m,
+        )
+        box_geo = (
             self.boxes,
             self.box_top,
             self.cell_start,
@@ -342,6 +345,7 @@ class World:
             self.g_nx,
             self.g_ny,
         )
+        return ground, box_geo
 
 
 # ---------------------------------------------------------------------------- terrains
