@@ -269,13 +269,7 @@ def add_sitl(sub: Any) -> None:
     p_srun.set_defaults(func=cmd_sitl_run)
     p_px4 = sitl_sub.add_parser("px4", help="fly the real PX4 SITL (SIH) on our estimate")
     p_px4.add_argument("--px4", help="PX4 SITL launcher (else $PX4_SITL, ../shared/px4-sitl)")
-    p_px4.add_argument(
-        "--mission",
-        choices=["square", "lawnmower", "hover"],
-        default="square",
-        help="what PX4 flies (default square)",
-    )
-    p_px4.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
+    add_mission_and_seed(p_px4, "what PX4 flies (default square)")
     p_px4.add_argument("--instance", type=int, default=0, help="PX4 instance (ports shift by it)")
     p_px4.add_argument("--config", type=Path, help="default: config/px4_sitl.toml")
     p_px4.add_argument("--no-configure", action="store_true", help="skip `companion px4 configure`")
@@ -293,13 +287,7 @@ def add_sitl(sub: Any) -> None:
         "--ardupilot",
         help="ArduPilot SITL launcher (else $ARDUPILOT_SITL, ../shared/ardupilot-sitl)",
     )
-    p_ap.add_argument(
-        "--mission",
-        choices=["square", "lawnmower", "hover"],
-        default="square",
-        help="what ArduCopter flies in GUIDED (default square)",
-    )
-    p_ap.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
+    add_mission_and_seed(p_ap, "what ArduCopter flies in GUIDED (default square)")
     p_ap.add_argument(
         "--heading",
         choices=["compass", "extnav"],
@@ -320,6 +308,18 @@ def add_sitl(sub: Any) -> None:
     p_sheet.add_argument("dataset", type=Path, help="dataset folder")
     p_sheet.add_argument("--out", type=Path, help="PNG file (default: in the dataset folder)")
     p_sheet.set_defaults(func=cmd_sitl_sheet)
+
+
+def add_mission_and_seed(p: Any, mission_help: str) -> None:
+    """``--mission`` (square | lawnmower | hover) and ``--seed``, as both closed loops take them
+    (sitl/loops/loop_flight.py, options_from_args)."""
+    p.add_argument(
+        "--mission",
+        choices=["square", "lawnmower", "hover"],
+        default="square",
+        help=mission_help,
+    )
+    p.add_argument("--seed", type=int, default=1, help="world and sensor noise seed")
 
 
 def time_scale(text: str) -> float:

@@ -37,8 +37,9 @@ from companion.sitl.loops import ground_station, loop_flight, processes
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
-BOOT_PARAMS: dict[str, float] = {
-    # the odom profile's external navigation, spelled out (the check reads them back)
+# the odom profile's external navigation, spelled out (the check reads them back;
+# tests/companion/autopilot/test_ardupilot_check.py sets them as the right configuration)
+EXTNAV_BOOT_PARAMS: dict[str, float] = {
     "VISO_TYPE": 1,
     "GPS1_TYPE": 0,
     "SIM_GPS1_ENABLE": 0,
@@ -47,6 +48,9 @@ BOOT_PARAMS: dict[str, float] = {
     "EK3_SRC1_POSZ": 6,
     "EK3_SRC1_VELZ": 6,
     "EK3_SRC1_YAW": 6,  # --heading extnav; --heading compass: HEADING_COMPASS_PARAMS
+}
+BOOT_PARAMS: dict[str, float] = {
+    **EXTNAV_BOOT_PARAMS,
     # our exposure-to-send latency: the service's p50 was 36-46 ms in these runs (2 cores
     # shared with the renderer); EKF3 moves our samples back by it after its jitter correction
     # (docs/decisions.md, "ArduPilot's dialect")

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 MAV_PARAM_TYPE_INT32 = 6
@@ -285,19 +285,17 @@ def _param_id(raw: Any) -> str:
     return str(raw).split("\x00", 1)[0]
 
 
+@dataclass(eq=False)
 class ParamServer:
     """The parameter protocol on one or more links: ``handle(msg, reply)`` consumes PARAM_*
     messages addressed to this autopilot (system ``system_id``, component ``component_id`` or
     0) and answers through ``reply(message)``."""
 
-    def __init__(
-        self, store: ParamStore, mav: Any, system_id: int = 1, component_id: int = 1
-    ) -> None:
-        self.store = store
-        self.mav = mav
-        self.system_id = system_id
-        self.component_id = component_id
-        self.requests = 0
+    store: ParamStore
+    mav: Any  # the link's pymavlink encoder
+    system_id: int = 1
+    component_id: int = 1
+    requests: int = field(default=0, init=False)  # PARAM_* requests served
 
     def _for_us(self, msg: Any) -> bool:
         return int(msg.target_system) == self.system_id and int(msg.target_component) in (

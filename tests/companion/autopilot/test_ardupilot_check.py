@@ -35,6 +35,7 @@ from companion.config import Config, load_config
 from companion.px4.options import Px4Options
 from companion.px4.rules import Param, Status
 from companion.sitl.loops import ardupilot_sitl
+from companion.sitl.loops.ardupilot_flight import EXTNAV_BOOT_PARAMS
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, port
 
 INSTANCES = {  # one ArduCopter per test, all running at once
@@ -46,18 +47,7 @@ INSTANCES = {  # one ArduCopter per test, all running at once
     "configure": 14,
 }
 real = pytest.mark.skipif(not ardupilot_sitl.available(), reason=SKIP_REASON)
-RIGHT = {
-    "VISO_TYPE": 1,
-    "GPS1_TYPE": 0,
-    "SIM_GPS1_ENABLE": 0,
-    "EK3_SRC1_POSXY": 6,
-    "EK3_SRC1_VELXY": 6,
-    "EK3_SRC1_POSZ": 6,
-    "EK3_SRC1_VELZ": 6,
-    "EK3_SRC1_YAW": 6,
-    "VISO_POS_M_NSE": 0.1,
-    "VISO_YAW_M_NSE": 0.1,
-}
+RIGHT = {**EXTNAV_BOOT_PARAMS, "VISO_POS_M_NSE": 0.1, "VISO_YAW_M_NSE": 0.1}
 
 
 def _config(tmp: Path, instance: int, set_origin: bool = True) -> Config:
