@@ -410,7 +410,7 @@ def render(
 
     rays_cam: (H*W, 3) unit rays in the camera frame. layers: (4, 11) texture layers (ground A,
     ground B, roof, wall): tex, tile_m, cos, sin, off_u, off_v, tint b g r, texels per metre,
-    log2(texels per metre) -- see world.py.
+    log2(texels per metre) -- see terrain.py.
     """
     n = rays_cam.shape[0]
     ox, oy, oz = p_world_cam[0], p_world_cam[1], p_world_cam[2]

@@ -180,7 +180,7 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "companion/drivers/camera.py",
         "companion/drivers/mavlink.py",
         "companion/drivers/rangefinder.py",
-        "companion/sitl/world.py",  # for the sim extra
+        "companion/sitl/world/terrain.py",  # for the sim extra
     ):
         assert path in names, path
     # one import package: drivers/ and sitl/ install as companion.drivers and companion.sitl
