@@ -46,7 +46,7 @@ def gst_available() -> str | None:
     collection time the check would otherwise initialise GStreamer (its threads, its plugin
     scanner) inside the pytest process that every later test shares."""
     probe = subprocess.run(
-        [sys.executable, "-c", "from drivers.camera_gst import load_gst; load_gst()"],
+        [sys.executable, "-c", "from companion.drivers.camera.gst import load_gst; load_gst()"],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -145,7 +145,7 @@ def test_gst_each_raw_format_gives_the_same_bgr_image(fmt: str) -> None:
 def test_frame_to_bgr_undoes_every_layout_and_row_padding() -> None:
     """The pure conversion: a random BGR image packed into each layout, rows padded to a
     larger stride, comes back exactly; a short buffer or an unknown format is a CameraError."""
-    from companion.drivers.camera_gst import FORMAT_LAYOUT, frame_to_bgr
+    from companion.drivers.camera.gst import FORMAT_LAYOUT, frame_to_bgr
 
     rng = np.random.default_rng(1)
     h, w = 7, 5
@@ -593,13 +593,13 @@ class FakePicamera2:
 
 
 def picamera2_source(cam: FakePicamera2, request: CaptureRequest | None):
-    from companion.drivers.camera_picamera2 import Picamera2Source
+    from companion.drivers.camera.picamera2 import Picamera2Source
 
     return Picamera2Source(cam.num, request=request, factory=lambda num: cam)
 
 
 def test_picamera2_configuration_pixels_and_time(monkeypatch) -> None:
-    from companion.drivers.camera_picamera2 import sensor_stamp_us, video_configuration_args
+    from companion.drivers.camera.picamera2 import sensor_stamp_us, video_configuration_args
 
     args = video_configuration_args(CaptureRequest(640, 480, 25.0, "", 3000.0))
     assert args == {
