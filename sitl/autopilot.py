@@ -54,7 +54,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, from_dict, to_dict
 from companion.drivers.camera import encode_frame
-from companion.drivers.mavlink import LinkStats, Parser
+from companion.drivers.mavlink_parser import LinkStats, Parser
 from companion.drivers.signing import Signing
 from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.drivers.mavlink import LinkStats, Parser
+from companion.drivers.mavlink_parser import LinkStats, Parser
 from companion.sitl.ekf_fusion import EvFusion
 from companion.sitl.faults import active
 from companion.sitl.px4_params import ParamServer, ParamStore, px4_parameters

@@ -15,7 +15,8 @@ from peers import free_port, service_config
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.drivers import messages
-from companion.drivers.mavlink import PEER_SILENCE_S, LinkStats, Parser, frame_spans
+from companion.drivers.mavlink import PEER_SILENCE_S
+from companion.drivers.mavlink_parser import LinkStats, Parser, frame_spans
 from companion.service.app import Service
 
 

@@ -15,7 +15,8 @@ from peers import free_port
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
-from companion.drivers.mavlink import LinkStats, MavlinkLink, Parser
+from companion.drivers.mavlink import MavlinkLink
+from companion.drivers.mavlink_parser import LinkStats, Parser
 from companion.drivers.signing import (
     RESERVE_UNITS,
     UNITS_PER_S,
