@@ -60,15 +60,21 @@ class Origin:
     lon_deg: float
     alt_m: float
 
+    def wire_units(self) -> tuple[int, int, int]:
+        """(latitude, longitude) [degE7] and altitude [mm], as MAVLink carries them."""
+        return (
+            int(round(self.lat_deg * 1e7)),
+            int(round(self.lon_deg * 1e7)),
+            int(round(self.alt_m * 1000.0)),
+        )
+
 
 def set_gps_global_origin(mav: Any, target_system: int, origin: Origin, time_us: int) -> Any:
     """SET_GPS_GLOBAL_ORIGIN (lat/lon degE7, alt mm, time_usec ours)."""
+    lat_e7, lon_e7, alt_mm = origin.wire_units()
+    # time_usec is an extension field: keyword only in pymavlink
     return mav.set_gps_global_origin_encode(
-        target_system,
-        int(round(origin.lat_deg * 1e7)),
-        int(round(origin.lon_deg * 1e7)),
-        int(round(origin.alt_m * 1000.0)),
-        time_usec=int(time_us),  # an extension field: keyword only in pymavlink
+        target_system, lat_e7, lon_e7, alt_mm, time_usec=int(time_us)
     )
 
 

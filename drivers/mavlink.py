@@ -24,45 +24,35 @@ import logging
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.drivers.backoff import Backoff
-from companion.drivers.signing import RESERVE_UNITS, Signing, VerifyingMAVLink
+from companion.drivers.mavlink_claims import (
+    CLAIM_WINDOW_S,
+    HEARTBEAT_CHECK_S,
+    MSG_ID_HEARTBEAT,
+    RIVAL_CHECKS_INTERVAL_S,
+    RIVAL_LOG_INTERVAL_S,
+    Claimants,
+    address_text,
+)
+from companion.drivers.mavlink_parser import LinkStats, Parser, frame_spans
+from companion.drivers.serial_backlog import SERIAL_TURN_BYTES, SerialBacklog
+from companion.drivers.signing import RESERVE_UNITS, Signing
 from companion.errors import ConfigError
 
 log = logging.getLogger("companion.mavlink")
 
 OnMessage = Callable[[Any, int], None]
 UDP_RCVBUF_BYTES = 1 << 20  # asked of the kernel for a UDP link (it caps it at net.core.rmem_max)
-MAX_RESYNCS = 16  # per received chunk: byte-stream resynchronisations inside failed frames
 PEER_SILENCE_S = 1.0  # udpin: the autopilot may move to a new address after this much silence
-# udpin: sources claiming the autopilot's system id (its component 1) are tracked by address
-# (at most CLAIMANTS_MAX, the longest silent forgotten first) with the message kinds each sent
-# over the last CLAIM_WINDOW_S; see MavlinkLink.claimants for the rule that picks the autopilot
-CLAIM_WINDOW_S = 2.0
-CLAIMANTS_MAX = 8
-CLAIM_KINDS_MAX = 64  # message ids remembered per source (a flood of made-up ids is capped)
-HEARTBEAT_CHECK_S = 0.5  # a rival's HEARTBEAT is parsed at most this often
-RIVAL_CHECKS_INTERVAL_S = 0.02  # and rivals' HEARTBEATs altogether (a flood from many ports)
-RIVAL_LOG_INTERVAL_S = 10.0  # new rivals are logged at most this often (the rest counted)
-# an autopilot's stream over CLAIM_WINDOW_S: this many kinds of message or more, and its
-# HEARTBEAT at an autopilot's cadence (1 Hz: 1 to HEARTBEATS_IN_WINDOW_MAX of them)
-STREAM_KINDS_MIN = 5
-HEARTBEATS_IN_WINDOW_MAX = 4
-MSG_ID_HEARTBEAT = 0
-# serial: the reader thread hands each chunk over as it arrives, stamped then; the event loop
-# parses at most SERIAL_TURN_BYTES per turn (bounded work per wake-up: a byte flood faster
-# than the parser cannot starve the loop, its signal handlers or its timers), and at most
-# SERIAL_BACKLOG_BYTES wait (1.4 s at 921600 baud): beyond it the oldest are dropped, counted
+# serial: see drivers/serial_backlog.py for how the reader thread's chunks reach the loop
 SERIAL_WAIT_S = 0.1  # the reader's longest wait for a byte (then it looks for closing)
 SERIAL_READ_MAX_BYTES = 16384
-SERIAL_TURN_BYTES = 4096
-SERIAL_BACKLOG_BYTES = 131072
 MAV_AUTOPILOT_INVALID = mavlink.MAV_AUTOPILOT_INVALID  # 8: a ground station, a companion
 
 
@@ -87,184 +77,6 @@ class LinkUrl:
                 f"serial:DEVICE:BAUD, got {url!r}"
             )
         return LinkUrl(kind, host, int(port))
-
-
-@dataclass
-class LinkStats:
-    """Counters of one link (read by the status)."""
-
-    rx_messages: int = 0
-    rx_bad: int = 0  # BAD_DATA frames and parser exceptions
-    rx_bytes: int = 0
-    tx_messages: int = 0
-    tx_dropped: int = 0  # nothing to send to yet, or the transport failed
-    reconnects: int = 0
-    handler_errors: int = 0  # exceptions raised by on_message (a bug, but the link lives)
-    rx_skipped: int = 0  # whole frames of message ids nobody here reads: never parsed
-    rx_foreign: int = 0  # whole frames of another system id: never parsed
-    rx_other_address: int = 0  # datagrams from an address that is not the autopilot's: dropped
-    peer_changes: int = 0  # udpin: the autopilot's address changed (after its silence)
-    last_error: str = ""  # why the transport is down (serial: cannot open; tcp: refused)
-    rx_overflow_bytes: int = 0  # serial: received faster than parsed, the oldest dropped
-    rival_datagrams: int = 0  # udpin: from another address, claiming the autopilot's id
-    rivals_seen: int = 0  # udpin: addresses other than the autopilot's that claimed its id
-
-
-@dataclass
-class Claimant:
-    """A UDP source sending frames as the autopilot (its system id, component 1)."""
-
-    first_ns: int  # first heard [ns, our monotonic clock]
-    last_ns: int = 0  # last heard
-    checked_ns: int = 0  # its last HEARTBEAT parsed and checked (a rival's, rate-limited)
-    kinds: dict[int, int] = field(default_factory=dict)  # message id -> last heard [ns]
-    # its last HEARTBEAT frames (by header) [ns]
-    heartbeats_ns: deque[int] = field(default_factory=lambda: deque(maxlen=8))
-
-    def kinds_since(self, since_ns: int) -> int:
-        """How many message kinds it sent since ``since_ns``."""
-        return sum(1 for t in self.kinds.values() if t >= since_ns)
-
-    def is_stream(self, now_ns: int) -> bool:
-        """Whether it sent an autopilot's stream over the last CLAIM_WINDOW_S: at least
-        STREAM_KINDS_MIN kinds of message, and HEARTBEATs at an autopilot's 1 Hz (a flood,
-        or a spoofer in a hurry, sends them by the tens or hundreds)."""
-        since_ns = now_ns - int(CLAIM_WINDOW_S * 1e9)
-        heartbeats = sum(1 for t in self.heartbeats_ns if t >= since_ns)
-        return (
-            1 <= heartbeats <= HEARTBEATS_IN_WINDOW_MAX
-            and self.kinds_since(since_ns) >= STREAM_KINDS_MIN
-        )
-
-
-def address_text(addr: tuple[str, int] | None) -> str:
-    """``host:port`` of a UDP address ("" for None)."""
-    return "" if addr is None else f"{addr[0]}:{addr[1]}"
-
-
-def frame_spans(data: bytes) -> list[tuple[int, int, int, int]] | None:
-    """``(start, end, system_id, message_id)`` of each frame when ``data`` is exactly a run of
-    whole MAVLink 1/2 frames (by their headers; nothing is checked), else None. A few
-    microseconds per datagram: the cheap first look before pymavlink's parser."""
-    out = []
-    i, n = 0, len(data)
-    while i < n:
-        magic = data[i]
-        if magic == 0xFD:  # v2: magic len incompat compat seq sys comp id(3) payload crc(2) [sig]
-            if n - i < 12:
-                return None
-            end = i + 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
-            sysid, msgid = data[i + 5], data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16
-        elif magic == 0xFE:  # v1: magic len seq sys comp id payload crc(2)
-            if n - i < 8:
-                return None
-            end = i + 8 + data[i + 1]
-            sysid, msgid = data[i + 3], data[i + 5]
-        else:
-            return None
-        if end > n:
-            return None
-        out.append((i, end, sysid, msgid))
-        i = end
-    return out
-
-
-class Parser:
-    """Bytes -> MAVLink messages (robust: bad frames are counted and skipped). With a signing
-    state (``drivers.signing``), frames are checked against it; refused ones are bad data.
-
-    ``wanted`` (message ids) and ``system_id``: on datagrams made of whole frames, the frames
-    of other message ids or other systems are skipped by their header alone (counted, never
-    CRC-checked or unpacked): a link that reads five message types does not pay for the
-    autopilot's other streams, nor for a flood of frames it would throw away."""
-
-    def __init__(
-        self,
-        signing_state: Any = None,
-        wanted: frozenset[int] | None = None,
-        system_id: int | None = None,
-    ) -> None:
-        self.signing_state = signing_state
-        self.wanted = wanted
-        self.system_id = system_id
-        self.mav = self._new()
-
-    def _prefilter(self, data: bytes, stats: LinkStats) -> bytes:
-        """The frames of ``data`` worth parsing (all of it unless it is whole frames)."""
-        spans = frame_spans(data)
-        if spans is None:
-            return data  # garbage or a partial frame: pymavlink's robust parser decides
-        keep = []
-        for start, end, sysid, msgid in spans:
-            if self.system_id is not None and sysid != self.system_id:
-                stats.rx_foreign += 1
-            elif self.wanted is not None and msgid not in self.wanted:
-                stats.rx_skipped += 1
-            else:
-                keep.append(data[start:end])
-        return data if len(keep) == len(spans) else b"".join(keep)
-
-    def _new(self) -> Any:
-        mav = VerifyingMAVLink(None)
-        mav.robust_parsing = True
-        if self.signing_state is not None:
-            mav.signing = self.signing_state
-        return mav
-
-    def _restart_at(self, data: bytes) -> None:
-        """Parse from the next start-of-frame marker in ``data`` (the state reset in place)."""
-        starts = [i for i in (data.find(b"\xfd"), data.find(b"\xfe")) if i >= 0]
-        mav = self.mav
-        mav.buf = bytearray(data[min(starts) :]) if starts else bytearray()
-        mav.buf_index = 0
-        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
-
-    def feed(self, data: bytes, stats: LinkStats, datagram: bool = False) -> list[Any]:
-        """The messages in ``data`` (bad frames counted in ``stats.rx_bad``; frames of a
-        message id we do not know are bad too: pymavlink returns them before checking their
-        CRC or signature).
-
-        ``datagram``: ``data`` is one UDP datagram, a unit of its own: bytes left over at its
-        end (a truncated frame, a length byte that promised more) are dropped instead of
-        swallowing the start of the next datagram. On a byte stream (serial, TCP), a frame
-        that fails its CRC is searched again from its next start marker: its length byte may
-        be the corrupted one, and then good frames start inside what pymavlink took for it
-        (at most ``MAX_RESYNCS`` times per call, so that a flood of markers costs no more
-        than pymavlink's own parsing)."""
-        out: list[Any] = []
-        resyncs = 0
-        if datagram and (self.wanted is not None or self.system_id is not None):
-            data = self._prefilter(data, stats)
-            if not data:
-                return out
-        try:
-            msg = self.mav.parse_char(data)
-            while msg is not None:
-                kind = msg.get_type()
-                if kind != "BAD_DATA" and not kind.startswith("UNKNOWN_"):
-                    out.append(msg)
-                else:
-                    stats.rx_bad += 1
-                    raw = bytes(getattr(msg, "data", b"") or b"")
-                    if (
-                        not datagram
-                        and kind == "BAD_DATA"
-                        and resyncs < MAX_RESYNCS
-                        and len(raw) > 1
-                        and raw[0] in (0xFD, 0xFE)
-                        and "signature" not in str(getattr(msg, "reason", ""))
-                    ):
-                        resyncs += 1
-                        self._restart_at(raw[1:] + bytes(self.mav.buf[self.mav.buf_index :]))
-                msg = self.mav.parse_char(b"")
-        except Exception:  # pymavlink raises on some malformed payloads: count, go on
-            stats.rx_bad += 1
-            self.mav = self._new()
-        if datagram and self.mav.buf_len() > 0:
-            stats.rx_bad += 1
-            self._restart_at(b"")
-        stats.rx_messages += len(out)
-        return out
 
 
 class MavlinkLink:
@@ -298,7 +110,7 @@ class MavlinkLink:
         self._transport: asyncio.DatagramTransport | None = None
         self._peer: tuple[str, int] | None = None
         self._peer_heard_ns = 0  # udpin: when the autopilot's address last sent us anything
-        self.claimants: dict[tuple[str, int], Claimant] = {}  # udpin: who claims the autopilot
+        self.claims = Claimants(system_id)  # udpin: who claims to be the autopilot
         self._rival_checked_ns = 0  # the last rival HEARTBEAT parsed
         self._rival_logged_ns = 0  # the last new rival logged
         self._rivals_logged = 0  # stats.rivals_seen when it was logged
@@ -309,10 +121,7 @@ class MavlinkLink:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._errors_logged: dict[tuple[str, str], float] = {}
         # serial: chunks (arrival time [ns], bytes) the reader thread handed over, not parsed
-        self._rx_chunks: deque[tuple[int, bytes]] = deque()
-        self._rx_backlog_bytes = 0
-        self._rx_lock = threading.Lock()
-        self._rx_wake_pending = False  # a _drain_serial is scheduled on the loop
+        self._rx_backlog = SerialBacklog()
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> MavlinkLink:
@@ -399,7 +208,11 @@ class MavlinkLink:
         now = time.monotonic_ns() if rx_ns is None else rx_ns
         moving = False  # udpin: a datagram from a new address while the autopilot is silent
         spans = frame_spans(data) if addr is not None and self.url.kind == "udpin" else None
-        heartbeat = spans is not None and self._note_claims(addr, spans, data, now)
+        heartbeat = (
+            spans is not None
+            and addr is not None
+            and self.claims.note(addr, spans, data, now, self._peer)
+        )
         if addr is not None and self._peer is not None and addr != self._peer:
             silent_s = (now - self._peer_heard_ns) * 1e-9
             if self.url.kind == "udpout" or silent_s < PEER_SILENCE_S:
@@ -430,41 +243,6 @@ class MavlinkLink:
                 self.stats.handler_errors += 1
                 self._log_limited("handler failed on", msg.get_type(), e, self.stats.handler_errors)
 
-    def _note_claims(
-        self,
-        addr: tuple[str, int] | None,
-        spans: list[tuple[int, int, int, int]] | None,
-        data: bytes,
-        now_ns: int,
-    ) -> bool:
-        """Record the frames of a datagram that claim to be the autopilot's (its system id,
-        component 1, by header) under their source address; True when one is a HEARTBEAT."""
-        assert addr is not None and spans is not None
-        heartbeat = False
-        claimant = None
-        for start, _, sysid, msgid in spans:
-            component = data[start + 6] if data[start] == 0xFD else data[start + 4]
-            if sysid != self.peer_system_id or component != 1:
-                continue
-            if claimant is None:
-                claimant = self.claimants.get(addr) or self._new_claimant(addr, now_ns)
-                claimant.last_ns = now_ns
-            if msgid in claimant.kinds or len(claimant.kinds) < CLAIM_KINDS_MAX:
-                claimant.kinds[msgid] = now_ns
-            if msgid == MSG_ID_HEARTBEAT:
-                claimant.heartbeats_ns.append(now_ns)
-                heartbeat = True
-        return heartbeat
-
-    def _new_claimant(self, addr: tuple[str, int], now_ns: int) -> Claimant:
-        """A new source claiming the autopilot (the longest silent other one forgotten when
-        CLAIMANTS_MAX are known)."""
-        if len(self.claimants) >= CLAIMANTS_MAX:
-            others = [a for a in self.claimants if a != self._peer]
-            del self.claimants[min(others, key=lambda a: self.claimants[a].last_ns)]
-        claimant = self.claimants[addr] = Claimant(first_ns=now_ns)
-        return claimant
-
     def _rival_heartbeat(
         self,
         addr: tuple[str, int],
@@ -477,7 +255,7 @@ class MavlinkLink:
         others counted), and the link moves to it when it is the better candidate
         (:meth:`better_than_peer`). On a signed link an unsigned one is said, never followed.
         Parsed at most every HEARTBEAT_CHECK_S per address, RIVAL_CHECKS_INTERVAL_S in all."""
-        claimant = self.claimants[addr]
+        claimant = self.claims.by_address[addr]
         self.stats.rival_datagrams += 1
         if (claimant.checked_ns and now_ns - claimant.checked_ns < HEARTBEAT_CHECK_S * 1e9) or (
             now_ns - self._rival_checked_ns < RIVAL_CHECKS_INTERVAL_S * 1e9
@@ -505,7 +283,7 @@ class MavlinkLink:
                 address_text(addr),
                 claimant.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9)),
                 CLAIM_WINDOW_S,
-                self._peer_kinds(now_ns),
+                self.claims.kinds_of(self._peer, now_ns),
                 address_text(old),
             )
             self._peer, self._peer_heard_ns = addr, now_ns
@@ -520,62 +298,28 @@ class MavlinkLink:
                 claimant.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9)),
                 CLAIM_WINDOW_S,
                 address_text(self._peer),
-                self._peer_kinds(now_ns),
+                self.claims.kinds_of(self._peer, now_ns),
                 f" ({self.stats.rivals_seen - self._rivals_logged - 1} more since the last said)"
                 if self.stats.rivals_seen - self._rivals_logged > 1
                 else "",
             )
             self._rival_logged_ns, self._rivals_logged = now_ns, self.stats.rivals_seen
 
-    def _peer_kinds(self, now_ns: int) -> int:
-        """Message kinds the autopilot's address sent as the autopilot over CLAIM_WINDOW_S."""
-        peer = self.claimants.get(self._peer) if self._peer is not None else None
-        return 0 if peer is None else peer.kinds_since(now_ns - int(CLAIM_WINDOW_S * 1e9))
-
     def better_than_peer(self, addr: tuple[str, int], now_ns: int) -> bool:
-        """Whether the source at ``addr`` (whose authentic autopilot HEARTBEAT was just
-        checked) should be the autopilot's address instead of the current one.
-
-        Who spoke first proves nothing (a spoofer that did kept the link for a whole flight).
-        On a signed link only signed frames can move it (checked before): the signed source
-        wins. Unsigned, the autopilot is the source that sends an autopilot's stream
-        (:meth:`Claimant.is_stream`: PX4's onboard mode streams ~25 kinds of message to its
-        companion link, ArduPilot's SRn streams ~20, each with one HEARTBEAT a second),
-        where a spoofer that only wants the link sends a HEARTBEAT and what it means to
-        forge. A source that is not a stream holds the link only until a stream claims it; a
-        stream holds it while it talks (a later claimant, however rich, is named and never
-        followed: nobody takes the link from the autopilot by imitating it). A spoofer that
-        speaks first and imitates a whole stream cannot be told from the autopilot without
-        signing; it keeps the link, but is named in the status and the log."""
-        peer = self.claimants.get(self._peer) if self._peer is not None else None
-        peer_is_stream = peer is not None and peer.is_stream(now_ns)
-        return self.claimants[addr].is_stream(now_ns) and not peer_is_stream
+        """Whether the source at ``addr`` should be the autopilot's address instead of the
+        current one (the rule: :meth:`Claimants.better_than`)."""
+        return self.claims.better_than(addr, self._peer, now_ns)
 
     def rival_address(self, now_ns: int) -> str | None:
         """``host:port`` of the source other than the autopilot's that claimed its system id
         most recently within the last 10 s (None: nobody else), for the operator."""
-        rivals = [
-            (c.last_ns, addr)
-            for addr, c in self.claimants.items()
-            if addr != self._peer and c.checked_ns and now_ns - c.last_ns < 10_000_000_000
-        ]
-        return address_text(max(rivals)[1]) if rivals else None
+        return self.claims.rival_address(self._peer, now_ns)
 
     def claimants_status(self, now_ns: int) -> list[dict[str, Any]]:
         """The sources that claimed the autopilot's system id within the last 10 s (for the
         status): address, whether the link sends to it, message kinds over CLAIM_WINDOW_S,
         seconds since heard. More than one: somebody else speaks as the autopilot."""
-        since_ns = now_ns - int(CLAIM_WINDOW_S * 1e9)
-        return [
-            {
-                "address": address_text(addr),
-                "autopilot": addr == self._peer,
-                "kinds": c.kinds_since(since_ns),
-                "heard_s_ago": round((now_ns - c.last_ns) * 1e-9, 2),
-            }
-            for addr, c in self.claimants.items()
-            if now_ns - c.last_ns < 10_000_000_000
-        ]
+        return self.claims.status(self._peer, now_ns)
 
     def _is_autopilot_heartbeat(self, msg: Any) -> bool:
         """The autopilot's own HEARTBEAT (its system id, component 1, a real autopilot type),
@@ -669,8 +413,8 @@ class MavlinkLink:
 
     def _serial_reader(self) -> None:
         """Read the port (a thread): each chunk as soon as its first byte is there, stamped
-        then, queued for the event loop (:meth:`_hand_over`). When the port fails (a USB
-        adapter unplugged), close it and reopen it with capped, jittered backoff.
+        then, queued for the event loop (:meth:`SerialBacklog.hand_over`). When the port fails
+        (a USB adapter unplugged), close it and reopen it with capped, jittered backoff.
 
         ``read(4096)`` with a 0.1 s timeout (before) returned only at the time-out unless 4096
         bytes came: every message reached the loop 0-100 ms late and PX4's TIMESYNC round
@@ -704,24 +448,13 @@ class MavlinkLink:
                 with contextlib.suppress(Exception):
                     self._serial.close()
                 continue
-            if data and not self._closing and self._hand_over(bytes(data), time.monotonic_ns()):
+            if (
+                data
+                and not self._closing
+                and self._rx_backlog.hand_over(bytes(data), time.monotonic_ns(), self.stats)
+            ):
                 with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
                     loop.call_soon_threadsafe(self._drain_serial)
-
-    def _hand_over(self, data: bytes, rx_ns: int) -> bool:
-        """Queue a chunk the reader thread read at ``rx_ns``; the oldest queued bytes go
-        (counted) beyond SERIAL_BACKLOG_BYTES. True when the loop must be woken for it (no
-        wake-up pending: one at a time, so a flood cannot fill the loop's queue)."""
-        with self._rx_lock:
-            self._rx_chunks.append((rx_ns, data))
-            self._rx_backlog_bytes += len(data)
-            while self._rx_backlog_bytes > SERIAL_BACKLOG_BYTES and len(self._rx_chunks) > 1:
-                _, old = self._rx_chunks.popleft()
-                self._rx_backlog_bytes -= len(old)
-                self.stats.rx_overflow_bytes += len(old)
-            wake = not self._rx_wake_pending
-            self._rx_wake_pending = True
-        return wake
 
     def _drain_serial(self) -> None:
         """On the event loop: parse at most SERIAL_TURN_BYTES of the queued chunks, each with
@@ -729,15 +462,10 @@ class MavlinkLink:
         signals and timers)."""
         budget = SERIAL_TURN_BYTES
         while budget > 0:
-            with self._rx_lock:
-                if not self._rx_chunks or self._closing:
-                    self._rx_wake_pending = False
-                    return
-                rx_ns, data = self._rx_chunks.popleft()
-                if len(data) > budget:  # the rest next turn, with the same stamp
-                    self._rx_chunks.appendleft((rx_ns, data[budget:]))
-                    data = data[:budget]
-                self._rx_backlog_bytes -= len(data)
+            chunk = self._rx_backlog.take(budget, self._closing)
+            if chunk is None:
+                return
+            rx_ns, data = chunk
             budget -= len(data)
             try:
                 self._received(data, rx_ns=rx_ns)

@@ -31,8 +31,8 @@ class StatusError(CompanionError):
 
 
 # Where the service listens under systemd/companion.service (RuntimeDirectory=companion, so
-# $RUNTIME_DIRECTORY/status.sock): a client looks here first (tests/companion/cli/test_cli.py checks that the
-# unit and config/default.toml agree with it).
+# $RUNTIME_DIRECTORY/status.sock): a client looks here first (tests/companion/cli/test_cli.py
+# checks that the unit and config/default.toml agree with it).
 SYSTEM_STATUS_SOCKET = Path("/run/companion/status.sock")
 
 

@@ -8,9 +8,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.calibration.board import BoardSpec
-from companion.calibration.intrinsics import COVERAGE_GRID, IntrinsicsResult
-from companion.calibration.lasers import LaserCheckReport, LaserFrame, Verdict
+from companion.calibration_maths.board import BoardSpec
+from companion.calibration_maths.intrinsics import COVERAGE_GRID, IntrinsicsResult
+from companion.calibration_maths.lasers import LaserCheckReport, LaserFrame, Verdict
 
 
 def coverage_image(result: IntrinsicsResult, views: list[Any]) -> Any:

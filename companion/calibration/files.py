@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.calibration.lasers import LaserFrame
+from companion.calibration_maths.lasers import LaserFrame
 from companion.errors import CalibrationError
 
 U8 = NDArray[np.uint8]

@@ -25,7 +25,6 @@ from typing import Any
 
 import cv2
 
-from companion.calibration.board import _SPEC_HELP, BoardDetector, BoardSpec, board_image
 from companion.calibration.figures import coverage_image, intrinsics_summary, laser_overlay
 from companion.calibration.files import (
     list_images,
@@ -33,8 +32,9 @@ from companion.calibration.files import (
     read_laser_frames,
     write_laser_frames,
 )
-from companion.calibration.intrinsics import IntrinsicsOptions, calibrate_intrinsics
-from companion.calibration.lasers import LaserCheckOptions, Verdict, check_lasers
+from companion.calibration_maths.board import _SPEC_HELP, BoardDetector, BoardSpec, board_image
+from companion.calibration_maths.intrinsics import IntrinsicsOptions, calibrate_intrinsics
+from companion.calibration_maths.lasers import LaserCheckOptions, Verdict, check_lasers
 from companion.cli import sim
 from companion.cli.common import add_option_flags, options
 from companion.config import load_config

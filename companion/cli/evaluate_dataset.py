@@ -2,8 +2,8 @@
 with (its own calibration and declared sensors, nothing invented), the replay check of a
 flight recording (``companion run --record``), and the scale methods side by side on a dataset
 without a simulated world (``--methods all``). Nothing here reaches the simulator: a dataset
-that declares no world is evaluated without one (tests/companion/evaluation/test_evaluation.py checks that ``sitl``
-is never imported).
+that declares no world is evaluated without one (tests/companion/evaluation/test_evaluation.py
+checks that ``sitl`` is never imported).
 """
 
 from __future__ import annotations

@@ -31,8 +31,8 @@ from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, CameraFrame, RangeSample
 
 if TYPE_CHECKING:
-    from companion.calibration.board import BoardSpec
-    from companion.calibration.lasers import LaserFrame
+    from companion.calibration_maths.board import BoardSpec
+    from companion.calibration_maths.lasers import LaserFrame
     from companion.sitl.world.scenario import Scenario
     from companion.sitl.world.sensors import RangeSimulator
     from companion.sitl.world.terrain import World

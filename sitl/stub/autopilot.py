@@ -51,7 +51,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, to_dict
-from companion.drivers.mavlink import Parser
+from companion.drivers.mavlink_parser import Parser
 from companion.drivers.signing import Signing
 from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError

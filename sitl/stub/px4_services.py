@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.drivers.mavlink import LinkStats, Parser
+from companion.drivers.mavlink_parser import LinkStats, Parser
 from companion.drivers.timesync import ClockSync
 from companion.sitl.stub.ekf_fusion import EvFusion
 from companion.sitl.stub.faults import active

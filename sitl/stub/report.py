@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.drivers.mavlink import LinkStats
+from companion.drivers.mavlink_parser import LinkStats
 from companion.evaluation.trajectory import path_length, umeyama
 from companion.sitl.stub.faults import fault_metrics
 from companion.sitl.stub.options import AutopilotOptions

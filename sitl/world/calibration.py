@@ -3,7 +3,7 @@
 Board views are rendered exactly through a :class:`CameraModel` (distortion included): every
 pixel is split into ``supersample`` x ``supersample`` sub-pixels whose rays (the model's
 ``pixels_to_rays``) are intersected with the board plane; each hit samples the printable board
-image (:func:`companion.calibration.board.board_image`, bilinear, texel centres at integers,
+image (:func:`companion.calibration_maths.board.board_image`, bilinear, texel centres at integers,
 so a black/white edge sits exactly on the square boundary) and the sub-pixels are averaged
 (box filter = the pixel's area). Then a Gaussian optical blur and pixel noise are added and
 the result is quantised to 8 bits. Rays that miss the board see a mid-grey floor.
@@ -28,8 +28,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.calibration.board import BoardSpec, board_image
-from companion.calibration.lasers import LaserFrame
+from companion.calibration_maths.board import BoardSpec, board_image
+from companion.calibration_maths.lasers import LaserFrame
 from companion.config import Config, RangefinderConfig
 from companion.errors import SitlError
 from companion.geometry import se3, so3

@@ -177,7 +177,7 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "companion/cli/__init__.py",
         "companion/service/app.py",
         "companion/py.typed",
-        "companion/drivers/camera.py",
+        "companion/drivers/camera/__init__.py",
         "companion/drivers/mavlink.py",
         "companion/drivers/rangefinder.py",
         "companion/sitl/world/terrain.py",  # for the sim extra
@@ -209,7 +209,7 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "systemd/board-install.sh",
         "docs/install.md",
         "companion/service/app.py",
-        "companion/drivers/camera.py",
+        "companion/drivers/camera/__init__.py",
     ):
         assert path in members, path
 

@@ -248,10 +248,13 @@ def slow_motion_overrides(config: str, time_scale: float) -> dict:
     }
 
 
-def service_config(tmp_path: Path, **service: object) -> object:
+def service_config(
+    tmp_path: Path, tables: dict[str, object] | None = None, **service: object
+) -> object:
     """The built-in config with a service that has no peers unless told: the autopilot link on
     a free loopback UDP port, a camera URL where nothing listens (the camera loop keeps
-    retrying), the status socket in ``tmp_path``; ``service``: [service] keys to override."""
+    retrying), the status socket in ``tmp_path``; ``service``: [service] keys to override;
+    ``tables``: other tables of the config (``{"rangefinders": [...]}``)."""
     from companion.config import load_config
 
     svc = {
@@ -261,7 +264,7 @@ def service_config(tmp_path: Path, **service: object) -> object:
         "state_dir": str(tmp_path / "state"),
         **service,
     }
-    return load_config(None, {"service": svc})
+    return load_config(None, {**(tables or {}), "service": svc})
 
 
 def feed_biased_step(pipeline: Any, step: Any, imus: list, k_imu: int, R_err: Any) -> int:

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import tomli_w
 
-from companion.calibration.board import BoardDetector, BoardSpec, BoardView, board_image
 from companion.calibration.files import read_laser_frames, write_laser_frames
-from companion.calibration.intrinsics import IntrinsicsOptions, calibrate_intrinsics
-from companion.calibration.lasers import (
+from companion.calibration_maths.board import BoardDetector, BoardSpec, BoardView, board_image
+from companion.calibration_maths.intrinsics import IntrinsicsOptions, calibrate_intrinsics
+from companion.calibration_maths.lasers import (
     LaserCheckReport,
     LaserFrame,
     Verdict,

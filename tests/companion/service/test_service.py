@@ -11,7 +11,8 @@ import pytest
 from companion.config import DEFAULT_RANGEFINDERS
 from companion.drivers import messages
 from companion.drivers.camera import SitlStream, VideoCaptureSource, encode_frame, open_camera
-from companion.drivers.mavlink import LinkStats, LinkUrl, Parser
+from companion.drivers.mavlink import LinkUrl
+from companion.drivers.mavlink_parser import LinkStats, Parser
 from companion.drivers.timesync import (
     PX4_CONVERGENCE_WINDOW,
     PX4_MAX_CONSECUTIVE_DEVIATIONS,

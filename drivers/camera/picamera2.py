@@ -21,7 +21,7 @@ is used through its documented API only: ``Picamera2(N)``, ``create_video_config
   ``wait_for_timestamp_``) takes ``SensorTimestamp - ExposureTime`` as the start of exposure
   and compares it with ``time.monotonic_ns()``. We follow the implementation Picamera2 relies
   on: mid-exposure = SensorTimestamp - ExposureTime / 2, on CLOCK_MONOTONIC (our clock), kept
-  if plausible (drivers.camera.plausible_stamp_us), else the arrival time. (Read as the
+  if plausible (drivers.camera.source.plausible_stamp_us), else the arrival time. (Read as the
   documentation says, the stamp would be one exposure time later: 1-10 ms.) The
   rolling-shutter readout (the last row is read a frame-readout time after the first) is not
   modelled.
@@ -37,7 +37,12 @@ from typing import Any
 
 import numpy as np
 
-from companion.drivers.camera import CameraError, CameraSource, CaptureRequest, plausible_stamp_us
+from companion.drivers.camera.source import (
+    CameraError,
+    CameraSource,
+    CaptureRequest,
+    plausible_stamp_us,
+)
 from companion.errors import ConfigError
 from companion.types import U8, CameraFrame
 

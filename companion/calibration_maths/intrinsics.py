@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.calibration.board import BoardView
+from companion.calibration_maths.board import BoardView
 from companion.errors import CalibrationError, NotEnoughViewsError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel

@@ -42,7 +42,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.drivers.camera import CameraError, CameraSource, CaptureRequest, plausible_stamp_us
+from companion.drivers.camera.source import (
+    CameraError,
+    CameraSource,
+    CaptureRequest,
+    plausible_stamp_us,
+)
 from companion.errors import ConfigError
 from companion.redact import redact_text, url_secrets
 from companion.types import U8, CameraFrame

@@ -1,7 +1,7 @@
 """Check the distance sensors' extrinsics against images with the laser dots visible (pure).
 
 For each image and each sensor with a reading ``range_m`` at that time, the model puts the
-laser's hit point at (DESIGN.md section 4, MSC)
+laser's hit point at (the range model of the scale estimators, companion/scale)
 
     p_body = T_body_rf @ (0, 0, range_m)          (the beam is +z of the sensor frame)
     uv_pred = project(T_cam_body @ p_body)          (full camera model, distortion included)
