@@ -16,7 +16,7 @@ import contextlib
 import logging
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -31,6 +31,7 @@ log = logging.getLogger("companion.service")
 TIMESYNC_UNSETTLED_HZ = 10.0  # our TIMESYNC requests while the estimate is not settled
 SAMPLE_QUEUE_MAX = 4096  # samples waiting for the next frame (if the pipeline stalls)
 
+SampleT = TypeVar("SampleT", AttitudeSample, ImuSample)
 Samples = tuple[list[RangeSample], list[AttitudeSample], list[ImuSample]]
 
 
@@ -144,25 +145,31 @@ class AutopilotSession:
             self.origin.keeper.position(int(msg.lat), int(msg.lon), rx_ns)
 
     def _on_attitude(self, msg: Any, rx_ns: int) -> None:
-        if not self._from_autopilot(msg):
-            return
-        att = messages.attitude_from_message(msg, self.fc_to_us(msg))
-        if att is None:
-            self.rt.stats.attitudes_rejected += 1
-        else:
+        att = self._sample(msg, messages.attitude_from_message, self.attitudes, "attitudes")
+        if att is not None:
             self.attitude_rates = att.rates_rad_s
-            self.rt.stats.attitudes_in += 1
-            self.attitudes.append(att)
 
     def _on_scaled_imu(self, msg: Any, rx_ns: int) -> None:
+        self._sample(msg, messages.imu_from_scaled, self.imus, "imus")
+
+    def _sample(
+        self,
+        msg: Any,
+        convert: Callable[[Any, int], SampleT | None],
+        queue: deque[SampleT],
+        counter: str,
+    ) -> SampleT | None:
+        """The autopilot's timed sample (ATTITUDE, SCALED_IMU) in our clock: queued and
+        counted in ``ServiceStats.<counter>_in``, or refused (None) and counted in
+        ``<counter>_rejected``; another component's is ignored."""
         if not self._from_autopilot(msg):
-            return
-        imu = messages.imu_from_scaled(msg, self.fc_to_us(msg))
-        if imu is None:
-            self.rt.stats.imus_rejected += 1
-        else:
-            self.rt.stats.imus_in += 1
-            self.imus.append(imu)
+            return None
+        sample = convert(msg, self.fc_to_us(msg))
+        name = f"{counter}_in" if sample is not None else f"{counter}_rejected"
+        setattr(self.rt.stats, name, getattr(self.rt.stats, name) + 1)
+        if sample is not None:
+            queue.append(sample)
+        return sample
 
     def fc_to_us(self, msg: Any) -> int:
         """A message's time_boot_ms in our clock [us] (its reception time until synced)."""

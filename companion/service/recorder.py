@@ -51,6 +51,7 @@ CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 SIBLING_ATTEMPTS = 1000  # record.dir taken: record into record.dir-2 .. record.dir-1000
 
+
 @dataclass(frozen=True, slots=True)
 class FrameRecord:
     """One frame as the pipeline took it, with the samples it was fed first (in that order);
