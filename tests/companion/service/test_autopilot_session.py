@@ -77,3 +77,34 @@ def test_a_stall_of_the_service_raises_no_false_clock_jump_and_a_real_jump_is_se
     assert sum("clock jumped" in w for w in service.stats.warnings) == 1
     report = service.summary()
     assert report["px4_timesync_resets"] == 1
+
+
+def test_the_heartbeat_says_who_flies_and_other_systems_are_dropped(tmp_path) -> None:
+    """HEARTBEAT.autopilot sets the kind the service branches on (PX4, ArduPilot, other) and
+    the name it shows; a message of another system id is counted and changes nothing."""
+    from peers import service_config
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.service.app import Service
+
+    service = Service(service_config(tmp_path))
+    session, stats = service.session, service.stats
+    assert stats.autopilot_kind is AutopilotKind.NONE
+
+    def heartbeat(system_id: int, autopilot: int) -> None:
+        peer = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=1)
+        msg = peer.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, autopilot, 0, 0, 0)
+        session.on_message(decode(msg.pack(peer)), 5_000)
+
+    for autopilot, kind, name in (
+        (mavlink.MAV_AUTOPILOT_PX4, AutopilotKind.PX4, "PX4"),
+        (mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, AutopilotKind.ARDUPILOT, "ArduPilot"),
+        (mavlink.MAV_AUTOPILOT_GENERIC, AutopilotKind.OTHER, "generic"),
+    ):
+        heartbeat(1, autopilot)
+        assert (stats.autopilot_kind, stats.autopilot) == (kind, name)
+    assert stats.autopilot_heartbeat_ns == 5_000 and stats.foreign_messages == 0
+    heartbeat(2, mavlink.MAV_AUTOPILOT_PX4)  # another vehicle's
+    assert stats.autopilot_kind is AutopilotKind.OTHER and stats.foreign_messages == 1
+    heartbeat(1, mavlink.MAV_AUTOPILOT_INVALID)  # a ground station's or a companion's
+    assert stats.autopilot_kind is AutopilotKind.OTHER
