@@ -34,6 +34,7 @@ import stat
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,16 +51,20 @@ CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 SIBLING_ATTEMPTS = 1000  # record.dir taken: record into record.dir-2 .. record.dir-1000
 
-Item = (
-    tuple[
-        CameraFrame,
-        Sequence[RangeSample],
-        Sequence[AttitudeSample],
-        Sequence[ImuSample],
-        bool,
-    ]
-    | PoseEstimate
-)
+
+@dataclass(frozen=True, slots=True)
+class FrameRecord:
+    """One frame as the pipeline took it, with the samples it was fed first (in that order);
+    ``held``: the frame was held from the VO (a replay feeds its samples only)."""
+
+    frame: CameraFrame
+    ranges: Sequence[RangeSample]
+    attitudes: Sequence[AttitudeSample]
+    imus: Sequence[ImuSample] = ()
+    held: bool = False
+
+
+Item = FrameRecord | PoseEstimate
 
 
 def _empty_folder_of_ours(path: Path) -> bool:
@@ -222,7 +227,7 @@ class Recorder:
                 "waiting); the flight output is not affected"
             )
             return
-        self._queue.put((frame, list(ranges), list(attitudes), list(imus), held))
+        self._queue.put(FrameRecord(frame, list(ranges), list(attitudes), list(imus), held))
 
     def pose(self, pose: PoseEstimate) -> None:
         """A pose the service sent to the autopilot (the wire's reset_counter)."""
@@ -248,13 +253,13 @@ class Recorder:
                     continue
                 if item is None:
                     break
-                if isinstance(item, tuple):
+                if isinstance(item, FrameRecord):
                     with self._lock:
                         self._queued_frames -= 1
                 if isinstance(item, PoseEstimate):
                     writer.write_pose(item)
                     self._poses += 1
-                elif not self._write_frame(writer, *item):
+                elif not self._write_frame(writer, item):
                     break  # over budget: stopped
                 self._bytes = writer.bytes_written
                 self._cpu_s = time.thread_time()  # the writer's own CPU time so far
@@ -276,25 +281,17 @@ class Recorder:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(item, tuple):
+            if isinstance(item, FrameRecord):
                 self._not_recorded(1)
 
     def _not_recorded(self, frames: int) -> None:
         with self._lock:
             self.frames_not_recorded += frames
 
-    def _write_frame(
-        self,
-        writer: DatasetWriter,
-        frame: CameraFrame,
-        ranges: Sequence[RangeSample],
-        attitudes: Sequence[AttitudeSample],
-        imus: Sequence[ImuSample] = (),
-        held: bool = False,
-    ) -> bool:
+    def _write_frame(self, writer: DatasetWriter, rec: FrameRecord) -> bool:
         """Encode and append one frame; False (and stopped) when it would break the budget."""
-        encoded = writer.encode(frame.image_bgr)
-        need = writer.frame_bytes(encoded, len(ranges), len(attitudes), len(imus))
+        encoded = writer.encode(rec.frame.image_bgr)
+        need = writer.frame_bytes(encoded, len(rec.ranges), len(rec.attitudes), len(rec.imus))
         o = self.options
         if writer.bytes_written + need > o.max_mb * 1e6:
             self._stop(f"disk budget of {o.max_mb:g} MB reached (record.max_mb)")
@@ -305,7 +302,7 @@ class Recorder:
             self._stop(f"less than {o.min_free_mb:g} MB free on the disk (record.min_free_mb)")
             self._not_recorded(1)
             return False
-        writer.write_frame(frame, encoded, ranges, attitudes, imus, held)
+        writer.write_frame(rec.frame, encoded, rec.ranges, rec.attitudes, rec.imus, rec.held)
         self._frames += 1
         return True
 

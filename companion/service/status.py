@@ -7,9 +7,8 @@ The socket file is created with mode 0660 (owner and group: the `companion` user
 its operators) and removed on exit.
 
 Where: ``drivers.status.status_path`` (service.status_socket, else $RUNTIME_DIRECTORY/status.sock
-under systemd: ``/run/companion/status.sock`` for systemd/companion.service, else per user);
-clients find it with ``drivers.status.find_status_socket`` (that fixed path first, then the
-per-user one), so the two agree without flags (tests/companion/cli/test_cli.py).
+under systemd: ``/run/companion/status.sock``, else per user); clients find it with
+``drivers.status.find_status_socket`` (that path first, then the per-user one): no flags.
 
 Both ends distrust the path (docs/security.md; the client side is ``drivers.status``):
 - the service only ever removes a file that is a socket owned by its own user (a stale one

@@ -311,10 +311,10 @@ def test_the_service_survives_a_camera_of_the_wrong_size_and_says_why(tmp_path) 
     async def run() -> tuple[dict, list[str], int, object]:
         async with Service(cfg) as service:
             deadline = time.monotonic() + 20
-            while time.monotonic() < deadline and not service._camera_silent:
+            while time.monotonic() < deadline and not service.intake.silent:
                 await asyncio.sleep(0.1)
             await asyncio.sleep(0.5)
-            operator = service._operator_state(time.monotonic_ns())
+            operator = service.operator.state(time.monotonic_ns())
             return service.status(), list(service.stats.warnings), service.stats.frames_in, operator
 
     status, warnings, frames_in, operator = asyncio.run(run())

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from peers.hostile_mqtt import HostileBroker
-from test_status import SAMPLE
+from peers.status import SAMPLE
 
 ROOT = Path(__file__).resolve().parents[2]
 FLOOD_BYTES = 50 * 1024 * 1024

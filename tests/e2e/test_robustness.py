@@ -138,10 +138,10 @@ def test_100k_random_and_mutated_packets_on_its_port(tmp_path) -> None:
                         m.get_type() == "TIMESYNC" and m.ts1 == 424242
                         for m in mav.parse_buffer(data) or []
                     )
-            tasks_alive = [t.get_name() for t in service._tasks if not t.done()]
-            tasks_dead = [t.get_name() for t in service._tasks if t.done()]
-            queued_attitudes = list(service._attitudes)
-            queued_ranges = list(service._ranges)
+            tasks_alive = [t.get_name() for t in service.tasks if not t.done()]
+            tasks_dead = [t.get_name() for t in service.tasks if t.done()]
+            queued_attitudes = list(service.session.attitudes)
+            queued_ranges = list(service.session.ranges)
             summary = service.summary()
             sock.close()
         # whatever got through is plausible (the pipeline has no camera, so the queues hold
@@ -336,7 +336,7 @@ def test_a_network_camera_disappears_and_returns(tmp_path) -> None:
     async def main() -> dict[str, Any]:
         async with Service(cfg) as service:
             assert await wait_frames(service, 30, 10.0)
-            t_first = service._frame_times_ns[-1] // 1000
+            t_first = service.intake.frame_times_ns[-1] // 1000
             cam.stop()  # unplugged
             await asyncio.sleep(0.5)
             frames_gone = service.stats.frames_in
@@ -384,7 +384,7 @@ def test_a_gst_network_camera_that_closes_its_stream_is_reopened(tmp_path) -> No
             first = await wait_frames(service, 20, 20.0)
             cam.stop()  # the camera closes the stream (a reboot, a network drop)
             await asyncio.sleep(2.0)
-            stopped = service._stop.is_set()
+            stopped = service.stopped
             cam.start()
             back = await wait_frames(service, 20, 20.0)
             return {
@@ -560,7 +560,7 @@ def test_gst_credentials_are_never_shown(tmp_path, caplog) -> None:
                 "reopening until" in w for w in service.stats.warnings
             ):
                 await asyncio.sleep(0.1)
-            service._warn(plain)
+            service.runtime.warn(plain)
             status = await asyncio.to_thread(read_status, tmp_path / "status.sock")
             return status or {}, service.summary(), list(service.stats.warnings)
 
@@ -621,7 +621,7 @@ def test_a_camera_that_dies_is_said_and_shown(tmp_path) -> None:
             alive = await asyncio.to_thread(read_status, tmp_path / "status.sock")
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and not (
-                service._camera_silent
+                service.intake.silent
                 and service.stats.warnings
                 and any("autopilot: no heartbeat" in w for w in service.stats.warnings)
             ):

@@ -495,7 +495,7 @@ def test_a_service_that_fails_says_why_it_stopped(tmp_path, monkeypatch) -> None
         autopilot.heartbeat()
         with pytest.raises(ExceptionGroup) as failed:
             async with Service(cfg) as service:
-                while not service._stop.is_set():
+                while not service.stopped:
                     autopilot.heartbeat()
                     await asyncio.sleep(0.3)
         assert failed.group_contains(RuntimeError, match="a bug")

@@ -1,0 +1,192 @@
+"""The pipeline worker: each frame the intake picks, with the samples queued since the last,
+through the ``Pipeline`` on a worker thread, then to the publisher.
+
+Inputs: frames (``FrameIntake.next_frame``), ranges, attitudes and IMU samples
+(``AutopilotSession.take_samples``). Outputs: poses to the ``Publisher``, the frames and
+samples to the recorder, ``status`` (the pipeline's frozen ``PipelineStatus`` snapshot, the
+only thing the event loop reads of the pipeline), ``dpose_status``, ``vo_state``, the
+processing counters and timings in ``ServiceStats``.
+
+Threads: the worker thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) owns the
+Pipeline and replaces ``status`` (a reference swap, atomic in CPython) after each frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+from companion.pipeline import Pipeline, PipelineStatus
+from companion.service.autopilot_session import AutopilotSession
+from companion.service.frame_intake import FrameIntake
+from companion.service.publisher import Publisher
+from companion.service.recorder import Recorder
+from companion.service.runtime import Runtime
+from companion.types import (
+    AttitudeSample,
+    CameraFrame,
+    ImuSample,
+    PoseEstimate,
+    RangeSample,
+    VoState,
+)
+
+log = logging.getLogger("companion.service")
+
+MAX_CONSECUTIVE_PIPELINE_ERRORS = 30  # about a second of frames: then the service ends
+
+
+class PipelineWorker:
+    """Frames and samples through the pipeline, poses to the publisher."""
+
+    def __init__(
+        self,
+        rt: Runtime,
+        pipeline: Pipeline,
+        intake: FrameIntake,
+        session: AutopilotSession,
+        publisher: Publisher,
+        recorder: Recorder,
+    ) -> None:
+        self.rt = rt
+        self.pipeline = pipeline  # touched by the worker thread only
+        self.intake = intake
+        self.session = session
+        self.publisher = publisher
+        self.recorder = recorder
+        self.status: PipelineStatus = pipeline.status()  # the worker replaces it
+        self.dpose_status = (False, 0)  # (armed, poses used): the worker replaces it
+        self.vo_state = VoState.INITIALIZING  # of the last frame processed
+        self._first_frame_us: int | None = None  # for service.attitude_wait_s
+        self._vo_start_logged = -1  # vo_resets of the last initialisation logged
+        self._compass_logged = (False, False)  # (first fix logged, final one logged)
+
+    async def loop(self) -> None:
+        """Each frame, as the intake picks it, through the pipeline; a failure on one frame
+        is logged, counted and skipped, MAX_CONSECUTIVE_PIPELINE_ERRORS in a row end the
+        service (systemd restarts it)."""
+        s = self.rt.stats
+        failures = 0
+        while not self.rt.stopping:
+            frame = self.intake.next_frame()
+            if frame is None:
+                await self.intake.ready.wait()
+                self.intake.ready.clear()
+                continue
+            ranges, atts, imus = self.session.take_samples()
+            t0 = time.perf_counter()
+            try:
+                pose = await asyncio.to_thread(self.process, frame, ranges, atts, imus)
+            except Exception:
+                # a bug on one frame must not take the autopilot's estimate down for good
+                log.exception("pipeline failed on frame %d", frame.seq)
+                s.pipeline_errors += 1
+                failures += 1
+                if failures >= MAX_CONSECUTIVE_PIPELINE_ERRORS:
+                    raise
+                continue
+            failures = 0
+            s.process_ms.append((time.perf_counter() - t0) * 1e3)
+            s.frames_processed += 1
+            self._after_frame()
+            self.publisher.publish(frame, pose)
+            await asyncio.to_thread(self._background)  # after the send
+            s.cycle_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def process(
+        self,
+        frame: CameraFrame,
+        ranges: list[RangeSample],
+        atts: list[AttitudeSample],
+        imus: list[ImuSample] | None = None,
+    ) -> PoseEstimate | None:
+        """Worker thread: feed the queued samples, then the frame."""
+        p = self.pipeline
+        imus = imus or []
+        for a in atts:
+            p.feed_attitude(a)
+        for m in imus:
+            p.feed_imu(m)
+        for r in ranges:
+            p.feed_range(r)
+        held = self.wait_for_attitude(frame)
+        # recorded with whether it reached the VO: a replay then holds the same frames (the
+        # wait depends on when the autopilot's HEARTBEAT came, which a replay does not have)
+        self.recorder.frame(frame, ranges, atts, imus, held)  # a reference into its queue
+        if held:
+            return None
+        pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
+        self.status = p.status()  # a new frozen snapshot: the loop reads only this
+        self.dpose_status = (p.dpose is not None and p.dpose.armed, p.dpose_used)
+        return pose
+
+    def wait_for_attitude(self, frame: CameraFrame) -> bool:
+        """Whether to hold this frame from a VO that has not started: the heading of the VO's
+        frame is the autopilot's attitude at its start (else 0, the camera's first heading,
+        and the autopilot's frame and ours are turned by its heading for the whole flight).
+        ArduPilot streams ATTITUDE only once asked, some time after its first HEARTBEAT; after
+        service.attitude_wait_s from the first frame held the VO starts without one (logged).
+        Without an autopilot's HEARTBEAT (a replay, a bench test) nothing is held."""
+        p = self.pipeline
+        if (
+            not self.rt.stats.autopilot_heartbeat_ns  # no autopilot (yet): nothing to wait for
+            or p.vo.state == VoState.TRACKING
+            or p.attitude_at(frame.time_us) is not None
+        ):
+            return False
+        if self._first_frame_us is None:
+            self._first_frame_us = frame.time_us
+        wait_us = self.rt.config.service.attitude_wait_s * 1e6
+        if wait_us <= 0 or frame.time_us - self._first_frame_us > wait_us:
+            return False
+        self.rt.stats.waited_for_attitude += 1
+        return True
+
+    def _background(self) -> None:
+        """Worker thread: the keyframe work the pose did not need, then a new snapshot."""
+        if self.pipeline.background_work():
+            self.status = self.pipeline.status()
+
+    def _after_frame(self) -> None:
+        """On the loop, after a frame: the VO's state kept; its start and heading logged."""
+        self.vo_state = VoState[self.status.vo_state]
+        if self.vo_state == VoState.TRACKING:
+            self._log_vo_start(self.status)
+            self._log_compass_heading(self.status)
+
+    def _log_vo_start(self, p: PipelineStatus) -> None:
+        """Once per VO initialisation: which heading its frame has (the autopilot's, or none:
+        then our north is the camera's first heading and the autopilot's frame is turned)."""
+        if p.vo_resets == self._vo_start_logged:
+            return
+        self._vo_start_logged = p.vo_resets
+        if p.vo_heading_deg is None:
+            log.warning(
+                "VO tracking (initialisation %d) without an autopilot attitude at hand: its "
+                "heading 0 is the camera's first, not the autopilot's",
+                p.vo_resets + 1,
+            )
+        else:
+            log.info(
+                "VO tracking (initialisation %d): its frame's heading %.2f deg (the autopilot's)",
+                p.vo_resets + 1,
+                p.vo_heading_deg,
+            )
+
+    def _log_compass_heading(self, p: PipelineStatus) -> None:
+        """vo.heading_source = magnetometer: once when our compass first sets the frame's
+        heading, and once when it stops refining it (the vehicle moved)."""
+        if p.mag_heading_samples == 0 or p.vo_heading_deg is None:
+            return
+        ended = p.mag_heading_final
+        if self._compass_logged == (True, ended):
+            return
+        self._compass_logged = (True, ended)
+        log.info(
+            "VO frame's heading %.2f deg from our compass (%d samples at rest, sigma %.2f deg)%s",
+            p.vo_heading_deg,
+            p.mag_heading_samples,
+            p.mag_heading_sigma_deg or 0.0,
+            ": final, the vehicle moved" if ended else "; refined until the vehicle moves",
+        )
