@@ -1,6 +1,6 @@
 """The ArduPilot parameters that decide whether EKF3 fuses our estimate: what we need and why.
 
-The same table as PX4's (:mod:`companion.px4.rules`: one :class:`Row` per parameter, FAIL /
+The same table as PX4's (:mod:`companion.autopilot.params`: one :class:`Row` per parameter, FAIL /
 WARN / OK / INFO, the values ``configure`` would write), in ArduPilot's terms (ArduCopter 4.x,
 AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them (docs/decisions.md,
 "ArduPilot's dialect"):
@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 
-from companion.px4.rules import Judgement, Param, Row, Status, Target
+from companion.autopilot.params import Judgement, Param, Row, Status, Target, labelled
 
 EXTNAV, GPS, BARO, RANGE, COMPASS, NONE = 6, 3, 1, 2, 1, 0
 SOURCES = {
@@ -86,10 +86,6 @@ def needs_reboot(name: str) -> bool:
     return name in REBOOT_PARAMS or name.startswith(REBOOT_PREFIXES)
 
 
-def _labelled(value: int, labels: Mapping[int, str]) -> str:
-    return f"{value} ({labels[value]})" if value in labels else str(value)
-
-
 def value_of(params: Mapping[str, Param], name: str) -> float | None:
     p = params.get(name)
     return float(p.value) if p is not None else None
@@ -116,7 +112,7 @@ def _row(
         )
     v = float(p.value)
     j = judge(v)
-    shown = _labelled(int(v), labels) if p.is_int and labels else (f"{v:g} {unit}".strip())
+    shown = labelled(int(v), labels) if p.is_int and labels else (f"{v:g} {unit}".strip())
     targets: tuple[Target, ...] = ()
     if j.status in (Status.FAIL, Status.WARN) and j.target is not None and j.target != v:
         value: int | float = int(j.target) if p.is_int else float(j.target)
