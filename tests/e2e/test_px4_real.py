@@ -26,12 +26,12 @@ from peers.px4 import GPS_OFF, Pose, Px4Sitl, VisionSender
 from pymavlink.dialects.v20 import common as mavlink
 from test_px4 import Sender, companion, set_params, sitl, until
 
+from companion.autopilot.options import CheckOptions
+from companion.autopilot.params import Row, Status
+from companion.autopilot.px4.check import CheckReport, format_check, run_check
+from companion.autopilot.px4.configure import run_configure
 from companion.config import Config, load_config
 from companion.drivers import messages
-from companion.px4.check import CheckReport, format_check, run_check
-from companion.px4.configure import run_configure
-from companion.px4.options import Px4Options
-from companion.px4.rules import Row, Status
 
 VPE, ODOMETRY = "vision_position_estimate", "odometry"
 VISION_ONLY = {**GPS_OFF, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 11}  # the README's VPE set-up
@@ -147,7 +147,7 @@ def test_a_shell_command_is_complete_at_px4s_prompt_on_nuttx_and_on_sitl() -> No
     """The MAVLink shell's output ends with ``nsh>`` on a flight controller and ``pxh>`` on PX4
     SITL (as PX4 SITL printed it, a log line may follow the prompt); anything short of the
     prompt after the echoed command is not complete (check would read a cut table)."""
-    from companion.px4.link import _complete
+    from companion.autopilot.px4.link import _complete
 
     cmd = "listener vehicle_mocap_odometry"
     for prompt in ("nsh> ", "pxh> "):
@@ -175,10 +175,10 @@ def px4_config(px4: Px4Sitl, output: str, tmp: Path) -> Config:
     )
 
 
-def px4_options(px4: Px4Sitl, **kw: Any) -> Px4Options:
+def px4_options(px4: Px4Sitl, **kw: Any) -> CheckOptions:
     # PX4 streams to the ground station that spoke first (announced at start) and keeps it
     base: dict[str, Any] = {"url": f"udpin://127.0.0.1:{px4.gcs_client_port}", "timeout_s": 30.0}
-    return Px4Options(**{"watch_s": 3.0, **base, **kw})
+    return CheckOptions(**{"watch_s": 3.0, **base, **kw})
 
 
 def wait_for(
