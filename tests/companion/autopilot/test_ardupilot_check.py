@@ -24,12 +24,8 @@ import pytest
 from peers.ardupilot import MAV_FRAME_LOCAL_NED, SKIP_REASON, TruthSender
 
 from companion.autopilot.ardupilot import rules
-from companion.autopilot.ardupilot.check import (
-    ArduPilotReport,
-    format_check,
-    run_check,
-    run_configure,
-)
+from companion.autopilot.ardupilot.check import ArduPilotReport, format_check, run_check
+from companion.autopilot.ardupilot.configure import run_configure
 from companion.autopilot.ardupilot.rules import ArduPilotContext, evaluate
 from companion.autopilot.options import CheckOptions
 from companion.autopilot.params import Param, Status
