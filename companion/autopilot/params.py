@@ -101,3 +101,18 @@ def finite_params(params: dict[str, Param]) -> tuple[dict[str, Param], tuple[Row
         if name not in finite
     )
     return finite, bad
+
+
+def judge_either(
+    ok: bool,
+    need: str,
+    why_ok: str,
+    why_not: str,
+    status_not: Status,
+    target: int | float | None = None,
+) -> Judgement:
+    """The verdict of a rule with one right answer: OK (``why_ok``) when ``ok``, else
+    ``status_not`` (``why_not``) with the ``target`` configure writes."""
+    if ok:
+        return Judgement(Status.OK, need, why_ok)
+    return Judgement(status_not, need, why_not, target)
