@@ -8,7 +8,7 @@ from dataclasses import dataclass
 @dataclass(frozen=True, slots=True)
 class Verdict:
     """fused: True / False / None (cannot tell); reasons: most likely first (for None: why
-    it cannot tell; for True: why PX4 will not fly on it all the same, e.g. no heading
+    it cannot tell; for True: why the autopilot will not fly on it all the same, e.g. no heading
     alignment, GNSS fighting us); warnings: what is wrong but does not stop fusion;
     timesync_converged: PX4's time sync on our stamps (None: not seen)."""
 
@@ -21,5 +21,5 @@ class Verdict:
 
     @property
     def ok(self) -> bool:
-        """Fused, with nothing that keeps PX4 from flying on it."""
+        """Fused, with nothing that keeps the autopilot from flying on it."""
         return self.fused is True and not self.reasons

@@ -1,9 +1,9 @@
 """The ArduPilot parameters that decide whether EKF3 fuses our estimate: what we need and why.
 
-The same table as PX4's (:mod:`companion.autopilot.params`: one :class:`Row` per parameter, FAIL /
-WARN / OK / INFO, the values ``configure`` would write), in ArduPilot's terms (ArduCopter 4.x,
-AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them (docs/decisions.md,
-"ArduPilot's dialect"):
+The same table as PX4's (:mod:`companion.autopilot.params`: one row per parameter, FAIL / WARN
+/ OK / INFO, the values ``configure`` would write), in ArduPilot's terms (ArduCopter 4.x,
+AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them
+(docs/decisions.md, "ArduPilot's dialect"):
 
 - VISO_TYPE = 1 (MAVLink): else ArduPilot drops VISION_POSITION_ESTIMATE and ODOMETRY;
   a reboot applies it;

@@ -13,29 +13,13 @@ from companion.autopilot.params import Param
 from companion.drivers.px4_shell_text import Fields, number
 
 MIN_RATE_HZ = 5.0  # EKF2's EV_MAX_INTERVAL = 200 ms
-
-
 GOOD_RATE_HZ = 20.0  # PX4's docs ask for 30-50 Hz
-
-
 FRESH_S = 1.0  # a topic older than this is not being published any more
-
-
 FUTURE_TOLERANCE_MS = 20.0  # stamps this far ahead of PX4's clock are jitter, not an error
-
-
 LPOS_EDGE_S = 2.0  # LOCAL_POSITION_NED comes at >= 1 Hz (PX4's Normal mode): gaps above this
-
-
 POS_HORIZ_REL = 8  # ESTIMATOR_STATUS_FLAGS
-
-
 POSE_FRAMES = {0: "UNKNOWN", 1: "NED", 2: "FRD"}
-
-
 GNSS_DISAGREE_M = 2.0  # GNSS position innovation beyond this, with vision fused: they disagree
-
-
 EKF2_BUFFER_MATCH_MS = 100.0  # RingBuffer::pop_first_older_than: time <= horizon < time + 100
 
 
@@ -69,6 +53,7 @@ class Observations:
 
 
 def dig(d: Mapping[str, Any] | None, *keys: str) -> Any:
+    """``d[k1][k2]...`` of the service's status, or None where a level is missing."""
     for k in keys:
         if not isinstance(d, Mapping) or k not in d:
             return None
@@ -77,26 +62,31 @@ def dig(d: Mapping[str, Any] | None, *keys: str) -> Any:
 
 
 def raw_int(params: Mapping[str, Param], name: str) -> int | None:
+    """An INT32 parameter as EKF2 reads it (a float-encoded one not decoded), or None."""
     p = params.get(name)
     return int(p.value) if p is not None and p.is_int else None
 
 
 def raw_float(params: Mapping[str, Param], name: str, default: float) -> float:
+    """A parameter as a float, or ``default`` when the autopilot has none."""
     p = params.get(name)
     return float(p.value) if p is not None else default
 
 
 def frame_name(frame: Any) -> str:
+    """vehicle_visual_odometry's pose_frame in words (``?`` when not a number)."""
     if isinstance(frame, int) and not isinstance(frame, bool):
         return POSE_FRAMES.get(frame, str(frame))
     return "?"
 
 
 def fmt(v: float | None, spec: str, unknown: str = "?") -> str:
+    """``v`` formatted by ``spec``, or ``unknown`` when missing or not finite."""
     return format(v, spec) if v is not None and math.isfinite(v) else unknown
 
 
 def fresh(fields: Fields | None) -> bool:
+    """The topic was published within FRESH_S."""
     age = number(fields, "timestamp_age_s")
     return age is not None and age < FRESH_S
 

@@ -16,23 +16,11 @@ from companion.autopilot.px4.port_rules import TIMESYNC_MODES, companion_instanc
 from companion.autopilot.px4.typed_rows import float_row, int_row, int_value
 
 EV_HPOS, EV_VPOS, EV_VEL, EV_YAW = 1, 2, 4, 8
-
-
 MAG_TYPE_NONE = 5
-
-
 HGT_REF = {0: "baro", 1: "GNSS", 2: "range", 3: "vision"}
-
-
 RNG_CTRL = {0: "off", 1: "conditional", 2: "enabled"}
-
-
 NOISE_MD = {0: "from the message", 1: "from the parameters"}
-
-
 MAG_TYPE = {0: "automatic", 1: "magnetic heading", 5: "none", 6: "init only"}
-
-
 # EKF2 fuses a vision sample when its delayed horizon passes the sample's stamp; the horizon
 # trails PX4's clock by EKF2_DELAY_MAX less this much (PX4 SITL, main 2026-03: fused minus
 # sample time 156 ms with EKF2_DELAY_MAX 200, 236 ms with 300; docs/decisions.md, "A longer

@@ -12,21 +12,11 @@ from companion.autopilot.px4.link_context import LinkContext
 from companion.autopilot.px4.typed_rows import int_row, int_value, needs_reboot
 
 PORT_CODES = {"TELEM1": 101, "TELEM2": 102, "TELEM3": 103, "TELEM4": 104, "ETHERNET": 1000}
-
-
 MIN_SERIAL_BAUD = 460800  # ODOMETRY at 30 Hz (~8 kB/s) + TIMESYNC + PX4's onboard streams
-
-
 TIMESYNC_MODES = frozenset({2, 5, 8, 9, 11})  # MAV_n_MODEs whose streams include TIMESYNC
-
-
 LOOPBACK_HOSTS = ("127.", "localhost", "::1")
-
-
 # SER_<tag>_PROT ports in PX4's port order (firmware after 1.16 numbers MAVLink instances so)
 PORT_TAGS = ("TEL1", "TEL2", "TEL3", "TEL4", "GPS1", "GPS2", "GPS3", "RC", "WIFI", "EXT2")
-
-
 MAV_MODE = {
     0: "Normal",
     1: "Custom",
@@ -41,8 +31,6 @@ MAV_MODE = {
     12: "uAvionix",
     13: "Low Bandwidth",
 }
-
-
 SERIAL_PORT = {
     0: "disabled",
     101: "TELEM 1",
@@ -55,8 +43,6 @@ SERIAL_PORT = {
     301: "Wifi",
     1000: "Ethernet",
 }
-
-
 BROADCAST = {0: "never", 1: "always", 2: "multicast only"}
 
 

@@ -10,8 +10,6 @@ from companion.autopilot.params import Judgement, Param, Row, Status, Target, la
 from companion.autopilot.px4.encoding import float_encoded_int, int_encoded_float
 
 REBOOT_PARAMS = frozenset({"EKF2_HGT_REF", "EKF2_EV_DELAY", "EKF2_DELAY_MAX"})
-
-
 REBOOT_PREFIXES = ("MAV_", "SER_", "SYS_HAS_")
 
 
