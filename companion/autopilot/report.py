@@ -4,12 +4,15 @@ result line; and the running service's status it weighs."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Generic, TypeVar
 
 from companion.autopilot.params import Row, Status
 from companion.autopilot.verdict import Verdict
 from companion.drivers.status import StatusError, read_status
+
+ContextT = TypeVar("ContextT")
 
 
 def service_status(path: Path) -> dict[str, Any] | None:
@@ -51,23 +54,32 @@ def autopilot_line(url: str, system_id: int, autopilot: str, armed: bool, n: int
     )
 
 
-class CheckedReport(Protocol):
-    """What :func:`format_report` prints of a check's report (PX4's or ArduPilot's)."""
+@dataclass(frozen=True, slots=True)
+class CheckReport(Generic[ContextT]):
+    """What check found, on PX4 (``ctx``: its LinkContext) or ArduPilot (its
+    ArduPilotContext)."""
+
+    url: str
+    system_id: int
+    autopilot: str
+    armed: bool
+    n_params: int
+    ctx: ContextT  # our side, as the autopilot's rules saw it
+    rows: tuple[Row, ...]
+    verdict: Verdict | None  # None: not watched
+    watch_s: float  # how long the autopilot was watched [s]
 
     @property
-    def rows(self) -> tuple[Row, ...]: ...
-
-    @property
-    def verdict(self) -> Verdict | None: ...
-
-    @property
-    def watch_s(self) -> float: ...
-
-    @property
-    def problems(self) -> int: ...
+    def problems(self) -> int:
+        """FAIL rows, plus one when the estimate is not (known to be) fused, or is fused but
+        the autopilot will not fly on it."""
+        fails = sum(r.status is Status.FAIL for r in self.rows)
+        return fails + (1 if self.verdict is not None and not self.verdict.ok else 0)
 
 
-def format_report(head: str, r: CheckedReport, configure_command: str, undecided_label: str) -> str:
+def format_report(
+    head: str, r: CheckReport[Any], configure_command: str, undecided_label: str
+) -> str:
     """Everything a check prints: ``head``, the parameter table, the fusion verdict and the
     result line, which points to ``configure_command`` when it would write something. The
     first reason is "most likely:" when not fused, "but:" when fused, ``undecided_label``

@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,32 +14,15 @@ from companion.autopilot.ardupilot.ekf3_diagnosis import ArduPilotObservations, 
 from companion.autopilot.ardupilot.link import ArduPilotLink, Watched
 from companion.autopilot.ardupilot.rules import ArduPilotContext, evaluate
 from companion.autopilot.options import CheckOptions
-from companion.autopilot.params import Param, Row, Status, finite_params
+from companion.autopilot.params import Param, finite_params
 from companion.autopilot.reach import resolve_link
-from companion.autopilot.report import autopilot_line, format_report, service_status
-from companion.autopilot.verdict import Verdict
+from companion.autopilot.report import (
+    CheckReport,
+    autopilot_line,
+    format_report,
+    service_status,
+)
 from companion.config import Config
-
-
-@dataclass(frozen=True, slots=True)
-class ArduPilotReport:
-    """What check found."""
-
-    url: str
-    system_id: int
-    autopilot: str
-    armed: bool
-    n_params: int
-    ctx: ArduPilotContext
-    rows: tuple[Row, ...]
-    verdict: Verdict | None
-    watch_s: float
-
-    @property
-    def problems(self) -> int:
-        """FAIL rows, plus one when the estimate is not fused (or fused with a problem)."""
-        fails = sum(r.status is Status.FAIL for r in self.rows)
-        return fails + (1 if self.verdict is not None and not self.verdict.ok else 0)
 
 
 def context(
@@ -83,7 +65,7 @@ def _session(
     return link, params, armed, seen, service_status(socket)
 
 
-async def run_check(cfg: Config, opts: CheckOptions) -> ArduPilotReport:
+async def run_check(cfg: Config, opts: CheckOptions) -> CheckReport[ArduPilotContext]:
     """Connect, read every parameter, watch for ``opts.watch_s`` seconds, diagnose."""
     target = await asyncio.to_thread(resolve_link, cfg, opts)
     link, params, armed, seen, status = await asyncio.to_thread(
@@ -95,7 +77,7 @@ async def run_check(cfg: Config, opts: CheckOptions) -> ArduPilotReport:
     verdict = None
     if seen is not None:
         verdict = diagnose(ArduPilotObservations(opts.watch_s, seen, status), finite, ctx)
-    return ArduPilotReport(
+    return CheckReport(
         link.url,
         link.system_id,
         link.autopilot,
@@ -119,7 +101,7 @@ def header(
     )
 
 
-def format_check(r: ArduPilotReport) -> str:
+def format_check(r: CheckReport[ArduPilotContext]) -> str:
     """Everything check prints (the layout of PX4's)."""
     head = header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx)
     return format_report(head, r, "companion autopilot configure", "but:        ")

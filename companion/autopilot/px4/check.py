@@ -15,15 +15,19 @@ from pathlib import Path
 from typing import Any
 
 from companion.autopilot.options import CheckOptions
-from companion.autopilot.params import Row, Status, finite_params
+from companion.autopilot.params import finite_params
 from companion.autopilot.px4.ekf2_diagnosis import diagnose
 from companion.autopilot.px4.ekf2_observations import Observations, ShellView
 from companion.autopilot.px4.link import Px4Link
 from companion.autopilot.px4.link_context import LinkContext
 from companion.autopilot.px4.rules import evaluate
 from companion.autopilot.reach import resolve_link
-from companion.autopilot.report import autopilot_line, format_report, service_status
-from companion.autopilot.verdict import Verdict
+from companion.autopilot.report import (
+    CheckReport,
+    autopilot_line,
+    format_report,
+    service_status,
+)
 from companion.config import Config
 from companion.drivers.px4_shell_text import parse_listener, parse_uorb_top
 
@@ -44,28 +48,6 @@ class Px4Target:
     url: str  # MAVSDK URL of the autopilot
     ctx: LinkContext  # our output and link, for the rules
     socket: Path  # the service's status socket
-
-
-@dataclass(frozen=True, slots=True)
-class CheckReport:
-    """What check found."""
-
-    url: str
-    system_id: int
-    autopilot: str
-    armed: bool
-    n_params: int
-    ctx: LinkContext
-    rows: tuple[Row, ...]
-    verdict: Verdict | None  # None: not watched
-    watch_s: float  # how long the autopilot was watched [s]
-
-    @property
-    def problems(self) -> int:
-        """FAIL rows, plus one when the estimate is not (known to be) fused, or is fused but
-        PX4 will not fly on it."""
-        fails = sum(r.status is Status.FAIL for r in self.rows)
-        return fails + (1 if self.verdict is not None and not self.verdict.ok else 0)
 
 
 def resolve(cfg: Config, opts: CheckOptions) -> Px4Target:
@@ -111,7 +93,7 @@ def shell_commands() -> list[str]:
     return [f"listener {t}" for t in SHELL_TOPICS] + ["uorb top -1 " + " ".join(SHELL_TOPICS[:2])]
 
 
-async def run_check(cfg: Config, opts: CheckOptions) -> CheckReport:
+async def run_check(cfg: Config, opts: CheckOptions) -> CheckReport[LinkContext]:
     """Connect, read every parameter, watch for ``opts.watch_s`` seconds, diagnose."""
     target = await asyncio.to_thread(resolve, cfg, opts)  # a blocking socket read
     async with Px4Link(target.url, opts.timeout_s) as px4:
@@ -161,7 +143,7 @@ def header(url: str, system_id: int, autopilot: str, armed: bool, n: int, ctx: L
     )
 
 
-def format_check(report: CheckReport) -> str:
+def format_check(report: CheckReport[LinkContext]) -> str:
     """Everything check prints."""
     r = report
     head = header(r.url, r.system_id, r.autopilot, r.armed, r.n_params, r.ctx)

@@ -24,11 +24,12 @@ import pytest
 from peers.ardupilot import MAV_FRAME_LOCAL_NED, SKIP_REASON, TruthSender
 
 from companion.autopilot.ardupilot import rules
-from companion.autopilot.ardupilot.check import ArduPilotReport, format_check, run_check
+from companion.autopilot.ardupilot.check import format_check, run_check
 from companion.autopilot.ardupilot.configure import run_configure
 from companion.autopilot.ardupilot.rules import ArduPilotContext, evaluate
 from companion.autopilot.options import CheckOptions
 from companion.autopilot.params import Param, Status
+from companion.autopilot.report import CheckReport
 from companion.config import Config, load_config
 from companion.sitl import ardupilot_sitl
 from companion.sitl.ardupilot_sitl import ArduPilotSitl, port
@@ -199,7 +200,7 @@ def fleet(
         f.close()
 
 
-def _run(fleet: Fleet, case: str) -> ArduPilotReport:
+def _run(fleet: Fleet, case: str) -> CheckReport[ArduPilotContext]:
     sc, b = SCENARIOS[case], fleet.get(case)
     try:
         _wait_ekf(b.sender, b.booted_s, 25.0)

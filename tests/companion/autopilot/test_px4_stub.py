@@ -27,10 +27,12 @@ from pymavlink.dialects.v20 import common as mavlink
 from companion import cli
 from companion.autopilot.options import CheckOptions
 from companion.autopilot.params import Row, Status
-from companion.autopilot.px4.check import CheckReport, run_check
+from companion.autopilot.px4.check import run_check
 from companion.autopilot.px4.configure import run_configure
 from companion.autopilot.px4.encoding import float32_bits_as_int32, int32_bits_as_float32
 from companion.autopilot.px4.link import Px4Link
+from companion.autopilot.px4.link_context import LinkContext
+from companion.autopilot.report import CheckReport
 from companion.config import Config, load_config
 from companion.drivers import messages
 from companion.drivers.mavlink import MavlinkLink
@@ -159,7 +161,7 @@ async def companion(port: int, s: Sender) -> AsyncIterator[MavlinkLink]:
                 await task
 
 
-def row(report: CheckReport, name: str) -> Row:
+def row(report: CheckReport[LinkContext], name: str) -> Row:
     return next(r for r in report.rows if r.name == name)
 
 
@@ -385,7 +387,7 @@ FUSION_CASES = {
 def test_fusion_reported_only_when_our_output_meets_the_rules(tmp_path: Path, case: str) -> None:
     output, sender, extra, fused, reason = FUSION_CASES[case]
 
-    async def scenario() -> tuple[CheckReport, SimAutopilot]:
+    async def scenario() -> tuple[CheckReport[LinkContext], SimAutopilot]:
         async with sitl(tmp_path, output=output) as s:
             set_params(s.stub, {**CONFIGURED, **extra})
             async with companion(s.stub.opts.companion_port, sender):
