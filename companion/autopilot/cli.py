@@ -109,6 +109,7 @@ def detect(url: str, timeout_s: float) -> str:
 
 
 def _which(args: argparse.Namespace) -> str:
+    """``PX4`` or ``ArduPilot`` as ``--autopilot`` says, else as its HEARTBEAT says."""
     if args.autopilot != "auto":
         return {"px4": "PX4", "ardupilot": "ArduPilot"}[args.autopilot]
     from companion.autopilot.reach import resolve_link
