@@ -73,7 +73,8 @@ __all__ = [
 class Command:
     """A subcommand of ``companion``: ``register(sub)`` in ``module`` adds its parser (flags
     and handler) when the command is used; ``help`` is what ``companion --help`` shows without
-    importing ``module`` (tests/companion/cli/test_cli.py checks that it is the module's own help)."""
+    importing ``module`` (tests/companion/cli/test_cli.py checks that it is the module's own
+    help)."""
 
     name: str
     help: str
