@@ -23,8 +23,8 @@ from typing import Any
 import pytest
 from peers import px4 as px4_peer
 from peers.px4 import GPS_OFF, Pose, Px4Sitl, VisionSender
+from peers.px4_stub import Sender, companion, set_params, sitl, until
 from pymavlink.dialects.v20 import common as mavlink
-from test_px4_stub import Sender, companion, set_params, sitl, until
 
 from companion.autopilot.options import CheckOptions
 from companion.autopilot.params import Row, Status
