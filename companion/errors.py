@@ -21,9 +21,10 @@ class SitlError(CompanionError):
     """The simulator was asked for something it cannot produce."""
 
 
-class Px4Error(CompanionError):
-    """``companion px4 check | configure`` cannot do its job with the autopilot: no link or no
-    heartbeat, a parameter that cannot be read or written, a vehicle that is armed."""
+class AutopilotError(CompanionError):
+    """``companion autopilot check | configure`` (or its PX4 alias ``companion px4``) cannot do
+    its job with the autopilot, PX4 or ArduPilot: no link or no heartbeat, a parameter that
+    cannot be read or written, a vehicle that is armed."""
 
 
 class UnreachableError(CompanionError):
@@ -31,7 +32,7 @@ class UnreachableError(CompanionError):
     status socket. ``companion`` exits 3 for it (1 is for problems found)."""
 
 
-class AutopilotUnreachableError(Px4Error, UnreachableError):
+class AutopilotUnreachableError(AutopilotError, UnreachableError):
     """No autopilot heartbeat on the link (or the link cannot be opened)."""
 
 

@@ -1,23 +1,86 @@
-"""``companion autopilot check | configure``: the autopilot on the link says who it is
-(HEARTBEAT.autopilot) and the matching checker runs: PX4 (``companion px4 ...``, through MAVSDK)
-or ArduPilot (:mod:`companion.autopilot.ardupilot_check`, through pymavlink). The flags are
-``companion px4``'s, plus ``--autopilot`` to skip the detection. Exit codes as ``px4``'s: 0 as
-needed (and fused), 1 problems found, 2 bad arguments or configuration, 3 no autopilot.
+"""``companion autopilot check | configure``, and ``companion px4 check | configure``, its
+alias for PX4: argparse wiring (flags built from :class:`CheckOptions`' fields).
+
+The autopilot on the link says who it is (HEARTBEAT.autopilot) and the matching checker runs:
+PX4 (:mod:`companion.autopilot.px4`, through MAVSDK) or ArduPilot
+(:mod:`companion.autopilot.ardupilot`, through pymavlink); ``--autopilot`` skips the detection,
+and ``companion px4`` is ``companion autopilot --autopilot px4``.
+
+Exit codes (docs/service.md, "Exit codes"), as a checker's: 0 everything as needed (check: and
+our estimate is fused), 1 problems found (or a write that did not read back, or the vehicle
+armed), 2 bad arguments or configuration (``companion.cli`` maps ConfigError to 2), 3 no
+autopilot answers on the link (AutopilotUnreachableError: no heartbeat, the link cannot be
+opened), so that a script can tell "PX4 would not fuse us" from "nothing is there".
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import time
+import typing
 from pathlib import Path
 from typing import Any
 
-from companion.errors import AutopilotUnreachableError
-from companion.px4 import cli as px4_cli
+from companion.autopilot.options import CheckOptions
+from companion.errors import AutopilotUnreachableError, ConfigError
 
-EXIT_OK, EXIT_PROBLEMS = px4_cli.EXIT_OK, px4_cli.EXIT_PROBLEMS
+EXIT_OK, EXIT_PROBLEMS = 0, 1  # and 3 through companion.cli: AutopilotUnreachableError
+CHECK_ONLY = {"watch_s", "shell"}
+CONFIGURE_ONLY = {"yes", "no_gnss"}
 HELP = "check / configure PX4 or ArduPilot (by its HEARTBEAT)"
+PX4_HELP = "check / configure PX4 so that EKF2 fuses our estimate"
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _add_option_flags(p: argparse.ArgumentParser, skip: set[str]) -> None:
+    """One flag per CheckOptions field (help, default and choices from the field)."""
+    hints = typing.get_type_hints(CheckOptions)
+    for f in dataclasses.fields(CheckOptions):
+        if f.name in skip:
+            continue
+        help_text = f.metadata.get("help", "")
+        if isinstance(f.default, bool):
+            if f.default:
+                p.add_argument(
+                    _flag("no_" + f.name),
+                    dest=f.name,
+                    action="store_false",
+                    help="do not: " + help_text,
+                )
+            else:
+                p.add_argument(_flag(f.name), dest=f.name, action="store_true", help=help_text)
+            continue
+        choices = (
+            typing.get_args(hints[f.name])
+            if typing.get_origin(hints[f.name]) is typing.Literal
+            else None
+        )
+        p.add_argument(
+            _flag(f.name),
+            dest=f.name,
+            type=type(f.default),
+            default=f.default,
+            choices=choices,
+            help=f"{help_text} (default: {f.default!r})",
+        )
+
+
+def _options(args: argparse.Namespace) -> CheckOptions:
+    values: dict[str, Any] = {
+        f.name: getattr(args, f.name)
+        for f in dataclasses.fields(CheckOptions)
+        if hasattr(args, f.name)
+    }
+    if getattr(args, "watch_s", 0) < 0:
+        raise ConfigError(f"--watch-s: must be >= 0, got {args.watch_s}")
+    if getattr(args, "timeout_s", 1) <= 0:
+        raise ConfigError(f"--timeout-s: must be > 0, got {args.timeout_s}")
+    return CheckOptions(**values)
 
 
 def detect(url: str, timeout_s: float) -> str:
@@ -25,7 +88,7 @@ def detect(url: str, timeout_s: float) -> str:
     ``url``; AutopilotUnreachableError when none comes within ``timeout_s``."""
     from pymavlink import mavutil
 
-    from companion.autopilot.ardupilot_link import pymavlink_url
+    from companion.autopilot.reach import pymavlink_url
     from companion.drivers.ardupilot import autopilot_name
 
     u = pymavlink_url(url)
@@ -46,73 +109,100 @@ def detect(url: str, timeout_s: float) -> str:
 
 
 def _which(args: argparse.Namespace) -> str:
+    """``PX4`` or ``ArduPilot`` as ``--autopilot`` says, else as its HEARTBEAT says."""
     if args.autopilot != "auto":
         return {"px4": "PX4", "ardupilot": "ArduPilot"}[args.autopilot]
+    from companion.autopilot.reach import resolve_link
     from companion.config import load_config
-    from companion.px4.check import resolve
 
-    target = resolve(load_config(args.config), px4_cli._options(args))
+    target = resolve_link(load_config(args.config), _options(args))
     return detect(target.url, args.timeout_s)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    """PX4's check, or ArduPilot's."""
-    if _which(args) != "ArduPilot":
-        return px4_cli.cmd_check(args)
-    from companion.autopilot.ardupilot_check import format_check, run_check
+    """Check the parameters and watch whether the EKF fuses our estimate (PX4's check, or
+    ArduPilot's)."""
     from companion.config import load_config
 
-    report = asyncio.run(run_check(load_config(args.config), px4_cli._options(args)))
-    print(format_check(report))
-    return EXIT_OK if report.problems == 0 else EXIT_PROBLEMS
+    if _which(args) == "ArduPilot":
+        from companion.autopilot.ardupilot import check as ardupilot
+
+        ap = asyncio.run(ardupilot.run_check(load_config(args.config), _options(args)))
+        text, problems = ardupilot.format_check(ap), ap.problems
+    else:
+        from companion.autopilot.px4 import check as px4
+
+        report = asyncio.run(px4.run_check(load_config(args.config), _options(args)))
+        text, problems = px4.format_check(report), report.problems
+    print(text)
+    return EXIT_OK if problems == 0 else EXIT_PROBLEMS
 
 
 def cmd_configure(args: argparse.Namespace) -> int:
-    """PX4's configure, or ArduPilot's."""
-    if _which(args) != "ArduPilot":
-        return px4_cli.cmd_configure(args)
-    from companion.autopilot.ardupilot_check import run_configure
+    """Write the needed values (typed), read them back, say which need a reboot (PX4's
+    configure, or ArduPilot's)."""
+    from companion.autopilot.configure import format_result
     from companion.config import load_config
-    from companion.px4.configure import format_result
 
-    report = asyncio.run(run_configure(load_config(args.config), px4_cli._options(args)))
+    ardupilot = _which(args) == "ArduPilot"
+    if ardupilot:
+        from companion.autopilot.ardupilot.configure import run_configure as run_ardupilot
+
+        report = asyncio.run(run_ardupilot(load_config(args.config), _options(args)))
+    else:
+        from companion.autopilot.px4.configure import run_configure as run_px4
+
+        report = asyncio.run(run_px4(load_config(args.config), _options(args)))
     text = format_result(report)
     if text:
         print(text)
-    elif report.problems:  # nothing configure can write, and yet problems: show them
-        from companion.px4.check import format_rows
+    elif ardupilot and report.problems:  # nothing it can write, and yet problems: show them
+        from companion.autopilot.report import format_rows
 
-        print("\n" + format_rows(report.rows_after) + f"\n\nresult: {report.problems} problem(s)")
+        rows = format_rows(report.rows_after)
+        print("\n" + rows + f"\n\nresult: {report.problems} problem(s)")
     if report.planned and not report.written:
         return EXIT_PROBLEMS
     return EXIT_OK if report.problems == 0 else EXIT_PROBLEMS
 
 
-def add_parser(sub: Any) -> None:
-    """Add ``autopilot check`` and ``autopilot configure`` to the ``companion`` subcommands."""
-    p = sub.add_parser("autopilot", help=HELP)
-    a_sub = p.add_subparsers(dest="autopilot_command", required=True)
+def _add_commands(sub: Any, dest: str, texts: tuple[str, str], autopilot_flag: bool) -> None:
+    """``check`` and ``configure`` under ``sub`` (``--autopilot`` only where asked)."""
+    a_sub = sub.add_subparsers(dest=dest, required=True)
     for name, func, skip, text in (
-        (
-            "check",
-            cmd_check,
-            px4_cli.CONFIGURE_ONLY,
-            "the parameters for external navigation, and whether the EKF fuses us",
-        ),
-        (
-            "configure",
-            cmd_configure,
-            px4_cli.CHECK_ONLY,
-            "write the values check asks for (typed, read back; not while armed)",
-        ),
+        ("check", cmd_check, CONFIGURE_ONLY, texts[0]),
+        ("configure", cmd_configure, CHECK_ONLY, texts[1]),
     ):
         q = a_sub.add_parser(name, help=text)
         q.add_argument("--config", type=Path, help="TOML config (the service's)")
-        q.add_argument(
-            "--autopilot",
-            choices=["auto", "px4", "ardupilot"],
-            default="auto",
-            help="which autopilot (default: auto, from its HEARTBEAT)",
-        )
-        px4_cli._add_option_flags(q, skip)
+        if autopilot_flag:
+            q.add_argument(
+                "--autopilot",
+                choices=["auto", "px4", "ardupilot"],
+                default="auto",
+                help="which autopilot (default: auto, from its HEARTBEAT)",
+            )
+        else:
+            q.set_defaults(autopilot="px4")
+        _add_option_flags(q, skip)
         q.set_defaults(func=func)
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``autopilot check`` and ``autopilot configure`` to the ``companion`` subcommands."""
+    p = sub.add_parser("autopilot", help=HELP)
+    texts = (
+        "the parameters for external navigation, and whether the EKF fuses us",
+        "write the values check asks for (typed, read back; not while armed)",
+    )
+    _add_commands(p, "autopilot_command", texts, autopilot_flag=True)
+
+
+def add_px4_parser(sub: Any) -> None:
+    """Add ``px4 check`` and ``px4 configure`` (``autopilot ... --autopilot px4``)."""
+    p = sub.add_parser("px4", help=PX4_HELP)
+    texts = (
+        "the EKF2 / MAVLink parameters for external vision, and whether EKF2 fuses us",
+        "write the values check asks for (typed, read back; not while armed)",
+    )
+    _add_commands(p, "px4_command", texts, autopilot_flag=False)

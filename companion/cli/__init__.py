@@ -9,8 +9,8 @@ One module per group of commands; each parses its arguments and calls functions 
 - :mod:`.sim`: ``sitl record | sheet | run | px4``, ``demo``; and the one place where the
   product reaches the simulator (``sitl``): the other modules get simulated flights from it
 - :mod:`.calibrate`: ``calibrate board | intrinsics | lasers | sim-board | sim-lasers``
-- :mod:`companion.px4.cli`: ``px4 check | configure``; :mod:`companion.autopilot.cli`:
-  ``autopilot check | configure`` (PX4 or ArduPilot, from its HEARTBEAT)
+- :mod:`companion.autopilot.cli`: ``autopilot check | configure`` (PX4 or ArduPilot, from its
+  HEARTBEAT) and its PX4 alias ``px4 check | configure``
 - :mod:`.common`: exit codes, the config with the SITL flags, run names, progress bars
 
 Start-up is lazy (docs/BENCHMARKS.md, "CLI start-up"): :data:`COMMANDS` names each command,
@@ -100,8 +100,8 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "px4",
         "check / configure PX4 so that EKF2 fuses our estimate",
-        "companion.px4.cli",
-        "add_parser",
+        "companion.autopilot.cli",
+        "add_px4_parser",
     ),
     Command(
         "autopilot",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.autopilot.ardupilot_link import pymavlink_url
+from companion.autopilot.reach import pymavlink_url
 from companion.drivers.ardupilot import (
     ORIGIN_HOLD_S,
     ORIGIN_RESEND_S,

@@ -23,15 +23,17 @@ from typing import Any
 import pytest
 from peers import px4 as px4_peer
 from peers.px4 import GPS_OFF, Pose, Px4Sitl, VisionSender
+from peers.px4_stub import Sender, companion, set_params, sitl, until
 from pymavlink.dialects.v20 import common as mavlink
-from test_px4 import Sender, companion, set_params, sitl, until
 
+from companion.autopilot.options import CheckOptions
+from companion.autopilot.params import Row, Status
+from companion.autopilot.px4.check import format_check, run_check
+from companion.autopilot.px4.configure import run_configure
+from companion.autopilot.px4.link_context import LinkContext
+from companion.autopilot.report import CheckReport
 from companion.config import Config, load_config
 from companion.drivers import messages
-from companion.px4.check import CheckReport, format_check, run_check
-from companion.px4.configure import run_configure
-from companion.px4.options import Px4Options
-from companion.px4.rules import Row, Status
 
 VPE, ODOMETRY = "vision_position_estimate", "odometry"
 VISION_ONLY = {**GPS_OFF, "EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 11}  # the README's VPE set-up
@@ -76,15 +78,15 @@ SCENARIOS = {
 LAST = list(SCENARIOS)[-1]  # wrong_frame: PX4 does not come back to VPE fusion after it
 
 
-def explain(report: CheckReport) -> str:
+def explain(report: CheckReport[LinkContext]) -> str:
     return format_check(report)
 
 
-def row(report: CheckReport, name: str) -> Row:
+def row(report: CheckReport[LinkContext], name: str) -> Row:
     return next(r for r in report.rows if r.name == name)
 
 
-def assert_scenario(report: CheckReport, s: Scenario) -> None:
+def assert_scenario(report: CheckReport[LinkContext], s: Scenario) -> None:
     v = report.verdict
     assert v is not None
     text = explain(report)
@@ -110,7 +112,7 @@ def assert_scenario(report: CheckReport, s: Scenario) -> None:
 def test_stub_gives_the_reason_px4_gives(tmp_path: Path, case: str) -> None:
     s = SCENARIOS[case]
 
-    async def scenario() -> CheckReport:
+    async def scenario() -> CheckReport[LinkContext]:
         async with sitl(tmp_path, output=s.output) as st:
             set_params(st.stub, {"EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 11, **s.params})
             async with companion(st.stub.opts.companion_port, s.stub_sender):
@@ -128,7 +130,7 @@ def test_stub_time_sync_window_reports_not_converged(tmp_path: Path) -> None:
     """PX4 converts our stamps only after ~500 TIMESYNC answers: the stub's window does the
     same, and check says so instead of taking a 0 ms round trip as fine."""
 
-    async def scenario() -> CheckReport:
+    async def scenario() -> CheckReport[LinkContext]:
         async with sitl(tmp_path, output=VPE) as st:
             set_params(st.stub, {"EKF2_HGT_REF": 3, "EKF2_EV_CTRL": 11})
             st.stub.px4.ekf.timesync_window = 100_000
@@ -147,7 +149,7 @@ def test_a_shell_command_is_complete_at_px4s_prompt_on_nuttx_and_on_sitl() -> No
     """The MAVLink shell's output ends with ``nsh>`` on a flight controller and ``pxh>`` on PX4
     SITL (as PX4 SITL printed it, a log line may follow the prompt); anything short of the
     prompt after the echoed command is not complete (check would read a cut table)."""
-    from companion.px4.link import _complete
+    from companion.autopilot.px4.link import _complete
 
     cmd = "listener vehicle_mocap_odometry"
     for prompt in ("nsh> ", "pxh> "):
@@ -175,10 +177,10 @@ def px4_config(px4: Px4Sitl, output: str, tmp: Path) -> Config:
     )
 
 
-def px4_options(px4: Px4Sitl, **kw: Any) -> Px4Options:
+def px4_options(px4: Px4Sitl, **kw: Any) -> CheckOptions:
     # PX4 streams to the ground station that spoke first (announced at start) and keeps it
     base: dict[str, Any] = {"url": f"udpin://127.0.0.1:{px4.gcs_client_port}", "timeout_s": 30.0}
-    return Px4Options(**{"watch_s": 3.0, **base, **kw})
+    return CheckOptions(**{"watch_s": 3.0, **base, **kw})
 
 
 def wait_for(
@@ -208,7 +210,7 @@ class RealPx4:
     sender: VisionSender
     tmp: Path
 
-    def check(self, output: str, **kw: Any) -> CheckReport:
+    def check(self, output: str, **kw: Any) -> CheckReport[LinkContext]:
         cfg = px4_config(self.px4, output, self.tmp)
         return asyncio.run(run_check(cfg, px4_options(self.px4, **kw)))
 

@@ -23,17 +23,14 @@ from typing import Any
 import pytest
 from peers.ardupilot import MAV_FRAME_LOCAL_NED, SKIP_REASON, TruthSender
 
-from companion.autopilot import ardupilot_rules as rules
-from companion.autopilot.ardupilot_check import (
-    ArduPilotReport,
-    format_check,
-    run_check,
-    run_configure,
-)
-from companion.autopilot.ardupilot_rules import ArduPilotContext, evaluate
+from companion.autopilot.ardupilot import rules
+from companion.autopilot.ardupilot.check import format_check, run_check
+from companion.autopilot.ardupilot.configure import run_configure
+from companion.autopilot.ardupilot.rules import ArduPilotContext, evaluate
+from companion.autopilot.options import CheckOptions
+from companion.autopilot.params import Param, Status
+from companion.autopilot.report import CheckReport
 from companion.config import Config, load_config
-from companion.px4.options import Px4Options
-from companion.px4.rules import Param, Status
 from companion.sitl.loops import ardupilot_sitl
 from companion.sitl.loops.ardupilot_flight import EXTNAV_BOOT_PARAMS
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, port
@@ -81,9 +78,9 @@ def _rf_dict(rf: Any) -> dict[str, Any]:
     return d
 
 
-def _opts(instance: int, **kw: Any) -> Px4Options:
+def _opts(instance: int, **kw: Any) -> CheckOptions:
     values: dict[str, Any] = {"watch_s": 6.0, "timeout_s": 20.0, **kw}
-    return Px4Options(url=f"tcp:127.0.0.1:{port(1, instance)}", **values)
+    return CheckOptions(url=f"tcp:127.0.0.1:{port(1, instance)}", **values)
 
 
 @dataclass(frozen=True)
@@ -193,7 +190,7 @@ def fleet(
         f.close()
 
 
-def _run(fleet: Fleet, case: str) -> ArduPilotReport:
+def _run(fleet: Fleet, case: str) -> CheckReport[ArduPilotContext]:
     sc, b = SCENARIOS[case], fleet.get(case)
     try:
         _wait_ekf(b.sender, b.booted_s, 25.0)

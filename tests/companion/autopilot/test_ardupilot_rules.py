@@ -11,12 +11,12 @@ import math
 
 import pytest
 
-from companion.autopilot.ardupilot_rules import (
+from companion.autopilot.ardupilot.rules import (
     DECLINATION_TOL_RAD,
     ArduPilotContext,
     evaluate,
 )
-from companion.px4.rules import Param, Row, Status
+from companion.autopilot.params import Param, Row, Status
 
 SITE_DEG = 12.87
 

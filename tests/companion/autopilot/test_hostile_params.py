@@ -11,9 +11,10 @@ from typing import Any
 
 import pytest
 
+from companion.autopilot.options import CheckOptions
+from companion.autopilot.params import Param, Status
+from companion.autopilot.px4.link_context import LinkContext
 from companion.config import load_config
-from companion.px4.options import Px4Options
-from companion.px4.rules import LinkContext, Param, Status
 
 BAD = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 
@@ -22,8 +23,9 @@ BAD = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 def test_ardupilot_check_fails_a_non_finite_parameter_by_name(
     value: float, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    from companion.autopilot import ardupilot_check
-    from companion.px4.check import Target
+    from companion.autopilot.ardupilot import check as ardupilot_check
+    from companion.autopilot.reach import LinkTarget
+    from companion.drivers.mavlink import LinkUrl
 
     params = {
         "VISO_TYPE": Param("VISO_TYPE", value, True),  # an integer parameter sent as NaN
@@ -36,11 +38,13 @@ def test_ardupilot_check_fails_a_non_finite_parameter_by_name(
 
     monkeypatch.setattr(
         ardupilot_check,
-        "resolve",
-        lambda cfg, opts: Target("udpin:127.0.0.1:14550", LinkContext(), tmp_path / "none"),
+        "resolve_link",
+        lambda cfg, opts: LinkTarget(
+            "udpin:127.0.0.1:14550", LinkUrl.parse("udpin:127.0.0.1:14550"), tmp_path / "none"
+        ),
     )
     monkeypatch.setattr(ardupilot_check, "_session", lambda *a: (Link(), params, False, None, None))
-    report = asyncio.run(ardupilot_check.run_check(load_config(), Px4Options(watch_s=0)))
+    report = asyncio.run(ardupilot_check.run_check(load_config(), CheckOptions(watch_s=0)))
     row = next(r for r in report.rows if r.name == "VISO_TYPE" and r.need == "a finite number")
     assert row.status is Status.FAIL and row.value == str(value)
     assert report.n_params == 3 and "VISO_TYPE" in ardupilot_check.format_check(report)
@@ -50,8 +54,8 @@ def test_ardupilot_check_fails_a_non_finite_parameter_by_name(
 def test_px4_check_fails_a_non_finite_parameter_by_name(
     value: float, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    from companion.px4 import check
-    from companion.px4.check import Target
+    from companion.autopilot.px4 import check
+    from companion.autopilot.px4.check import Px4Target
 
     params = {
         "EKF2_EV_DELAY": Param("EKF2_EV_DELAY", value, False),
@@ -78,10 +82,10 @@ def test_px4_check_fails_a_non_finite_parameter_by_name(
             return False
 
     monkeypatch.setattr(
-        check, "resolve", lambda cfg, opts: Target("udp://:14550", LinkContext(), tmp_path / "x")
+        check, "resolve", lambda cfg, opts: Px4Target("udp://:14550", LinkContext(), tmp_path / "x")
     )
     monkeypatch.setattr(check, "Px4Link", Link)
-    report = asyncio.run(check.run_check(load_config(), Px4Options(watch_s=0)))
+    report = asyncio.run(check.run_check(load_config(), CheckOptions(watch_s=0)))
     row = next(r for r in report.rows if r.need == "a finite number")
     assert row.name == "EKF2_EV_DELAY" and row.status is Status.FAIL
     assert "EKF2_EV_DELAY" in check.format_check(report)

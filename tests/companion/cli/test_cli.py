@@ -18,13 +18,13 @@ from peers import free_port
 from peers.status import SAMPLE, halt, serve_in_thread
 
 import companion.drivers.status as status_mod
+from companion.autopilot.options import CheckOptions
+from companion.autopilot.px4.check import resolve
 from companion.cli import COMMANDS, build_parser, main
 from companion.cli.common import EXIT_CODES, EXIT_PROBLEMS, EXIT_UNREACHABLE, EXIT_USAGE
 from companion.config import load_config
 from companion.drivers.status import find_status_socket, status_path, user_status_path
 from companion.errors import ConfigError
-from companion.px4.check import resolve
-from companion.px4.options import Px4Options
 
 ROOT = Path(__file__).resolve().parents[3]
 HEAVY = ("numpy", "scipy", "cv2", "sitl", "pymavlink", "mavsdk", "companion.pipeline")
@@ -216,7 +216,7 @@ def test_usage_error_without_json_is_argparse_text(capsys: pytest.CaptureFixture
 
 @pytest.mark.timeout(120)
 def test_px4_check_without_an_autopilot_exits_3_not_1(tmp_path: Path) -> None:
-    """Nothing on the link: 3 (unreachable), not 1 (problems found: test_px4.py)."""
+    """Nothing on the link: 3 (unreachable), not 1 (problems found: test_px4_stub.py)."""
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'[service]\nstatus_socket = "{tmp_path / "none.sock"}"\n')
     url = f"udpin://127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
@@ -420,10 +420,10 @@ def test_px4_check_sees_the_service_at_the_fixed_path(fixed: Path) -> None:
     stop, t = serve_in_thread(fixed, lambda: SAMPLE)
     try:
         with pytest.raises(ConfigError, match=rf"running service holds .*{re.escape(str(fixed))}"):
-            resolve(cfg, Px4Options())
+            resolve(cfg, CheckOptions())
     finally:
         halt(stop, t)
-    target = resolve(cfg, Px4Options())
+    target = resolve(cfg, CheckOptions())
     assert target.socket == find_status_socket("") != fixed
 
 

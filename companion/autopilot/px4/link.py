@@ -19,26 +19,14 @@ import time
 from collections.abc import AsyncGenerator
 from typing import Any, TypeVar
 
-from companion.drivers.mavlink import LinkUrl
+from companion.autopilot.params import Param, Target
+from companion.autopilot.reach import mavsdk_url
 from companion.drivers.px4_shell_text import clean
-from companion.errors import AutopilotUnreachableError, Px4Error
-from companion.px4.rules import Param, Target
+from companion.errors import AutopilotError, AutopilotUnreachableError
 
 log = logging.getLogger("companion.px4")
 T = TypeVar("T")
 SHELL_PROMPTS = ("nsh> ", "pxh> ")  # NuttX on a flight controller; PX4 SITL (POSIX) says pxh
-
-
-def mavsdk_url(url: str, key: str = "--url") -> str:
-    """A MAVSDK connection URL from ours (pymavlink's spelling) or MAVSDK's own."""
-    if "://" in url:
-        return url
-    u = LinkUrl.parse(url, key)
-    if u.kind == "serial":
-        return f"serial://{u.host}:{u.port}"
-    if u.kind == "tcp":
-        return f"tcpout://{u.host}:{u.port}"
-    return f"{u.kind}://{u.host}:{u.port}"
 
 
 def _mavsdk_log(level: Any, message: str, file: str | None, line: int) -> bool:
@@ -92,7 +80,9 @@ class Px4Link:
         self.autopilot = str(getattr(await self.system.autopilot_type(), "name", "?"))
         if self.autopilot not in ("PX4", "UNKNOWN"):
             await self.__aexit__()
-            raise Px4Error(f"{self.url}: the autopilot is {self.autopilot}; this knows PX4 only")
+            raise AutopilotError(
+                f"{self.url}: the autopilot is {self.autopilot}; this knows PX4 only"
+            )
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -120,7 +110,7 @@ class Px4Link:
             out.update({p.name: Param(p.name, float(p.value), False) for p in allp.float_params})
             if out:
                 return out
-        raise Px4Error(f"cannot read the parameter list: {last or 'empty'}")
+        raise AutopilotError(f"cannot read the parameter list: {last or 'empty'}")
 
     async def read(self, name: str, is_int: bool) -> int | float:
         """One parameter, read again from the autopilot (PARAM_REQUEST_READ)."""
@@ -132,7 +122,7 @@ class Px4Link:
                 return int(await plugin.get_param_int(name))
             return float(await plugin.get_param_float(name))
         except Exception as e:
-            raise Px4Error(f"cannot read {name}: {e}") from None
+            raise AutopilotError(f"cannot read {name}: {e}") from None
 
     async def write(self, target: Target) -> None:
         """PARAM_SET with the parameter's own type (INT32 as INT32, byte-wise)."""
@@ -145,7 +135,7 @@ class Px4Link:
             else:
                 await plugin.set_param_float(target.name, float(target.value))
         except Exception as e:
-            raise Px4Error(f"cannot write {target.name} = {target.value}: {e}") from None
+            raise AutopilotError(f"cannot write {target.name} = {target.value}: {e}") from None
 
     # ---------------------------------------------------------------- telemetry
     async def armed(self) -> bool:

@@ -1,9 +1,9 @@
 """The ArduPilot parameters that decide whether EKF3 fuses our estimate: what we need and why.
 
-The same table as PX4's (:mod:`companion.px4.rules`: one :class:`Row` per parameter, FAIL /
-WARN / OK / INFO, the values ``configure`` would write), in ArduPilot's terms (ArduCopter 4.x,
-AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them (docs/decisions.md,
-"ArduPilot's dialect"):
+The same table as PX4's (:mod:`companion.autopilot.params`: one row per parameter, FAIL / WARN
+/ OK / INFO, the values ``configure`` would write), in ArduPilot's terms (ArduCopter 4.x,
+AP_VisualOdom and EKF3's source sets), as the real ArduCopter SITL showed them
+(docs/decisions.md, "ArduPilot's dialect"):
 
 - VISO_TYPE = 1 (MAVLink): else ArduPilot drops VISION_POSITION_ESTIMATE and ODOMETRY;
   a reboot applies it;
@@ -32,7 +32,15 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 
-from companion.px4.rules import Judgement, Param, Row, Status, Target
+from companion.autopilot.params import (
+    Judgement,
+    Param,
+    Row,
+    Status,
+    Target,
+    judge_either,
+    labelled,
+)
 
 EXTNAV, GPS, BARO, RANGE, COMPASS, NONE = 6, 3, 1, 2, 1, 0
 SOURCES = {
@@ -86,10 +94,6 @@ def needs_reboot(name: str) -> bool:
     return name in REBOOT_PARAMS or name.startswith(REBOOT_PREFIXES)
 
 
-def _labelled(value: int, labels: Mapping[int, str]) -> str:
-    return f"{value} ({labels[value]})" if value in labels else str(value)
-
-
 def value_of(params: Mapping[str, Param], name: str) -> float | None:
     p = params.get(name)
     return float(p.value) if p is not None else None
@@ -116,7 +120,7 @@ def _row(
         )
     v = float(p.value)
     j = judge(v)
-    shown = _labelled(int(v), labels) if p.is_int and labels else (f"{v:g} {unit}".strip())
+    shown = labelled(int(v), labels) if p.is_int and labels else (f"{v:g} {unit}".strip())
     targets: tuple[Target, ...] = ()
     if j.status in (Status.FAIL, Status.WARN) and j.target is not None and j.target != v:
         value: int | float = int(j.target) if p.is_int else float(j.target)
@@ -160,55 +164,45 @@ def _viso_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
 
 
 def _judge_viso_type(v: float) -> Judgement:
-    need = "1 (MAVLink)"
-    if v == 1:
-        return Judgement(
-            Status.OK, need, "AP_VisualOdom takes our VISION_POSITION_ESTIMATE / ODOMETRY"
-        )
     if v == 0:
-        return Judgement(
+        status, why = (
             Status.FAIL,
-            need,
             "visual odometry is off: ArduPilot drops VISION_POSITION_ESTIMATE and ODOMETRY "
             "(and the VISO_* parameters appear only after a reboot)",
-            1,
         )
-    return Judgement(
-        Status.WARN,
-        need,
-        f"{VISO_TYPES.get(int(v), int(v))}: a camera backend that re-aligns our yaw and "
-        "position to its own conventions; the companion is a plain MAVLink source",
-        1,
-    )
+    else:
+        status, why = (
+            Status.WARN,
+            f"{VISO_TYPES.get(int(v), int(v))}: a camera backend that re-aligns our yaw and "
+            "position to its own conventions; the companion is a plain MAVLink source",
+        )
+    ok = "AP_VisualOdom takes our VISION_POSITION_ESTIMATE / ODOMETRY"
+    return judge_either(v == 1, "1 (MAVLink)", ok, why, status, 1)
 
 
 def _judge_offset(v: float) -> Judgement:
     why = "our estimate is the body origin's (the camera's mount is removed on our side): "
-    if abs(v) <= 0.01:
-        return Judgement(Status.OK, "0", why + "no offset to correct")
-    return Judgement(
-        Status.WARN,
-        "0",
-        why + f"ArduPilot would move it by another {v:g} m, an error that turns with the attitude",
-        0.0,
+    moved = f"ArduPilot would move it by another {v:g} m, an error that turns with the attitude"
+    return judge_either(
+        abs(v) <= 0.01, "0", why + "no offset to correct", why + moved, Status.WARN, 0.0
     )
 
 
 def _judge_orient(v: float) -> Judgement:
-    if v == 0:
-        return Judgement(Status.OK, "0 (forward)", "our pose is in the body frame (FRD) already")
-    return Judgement(
-        Status.FAIL,
+    return judge_either(
+        v == 0,
         "0 (forward)",
+        "our pose is in the body frame (FRD) already",
         f"ArduPilot rotates our pose by orientation {int(v)}: it is the body's (FRD) already",
+        Status.FAIL,
         0,
     )
 
 
 def _judge_scale(v: float) -> Judgement:
-    if abs(v - 1.0) < 1e-6:
-        return Judgement(Status.OK, "1", "our position is metric (the scale is ours)")
-    return Judgement(Status.FAIL, "1", f"ArduPilot multiplies our metric position by {v:g}", 1.0)
+    why_not = f"ArduPilot multiplies our metric position by {v:g}"
+    ok = "our position is metric (the scale is ours)"
+    return judge_either(abs(v - 1.0) < 1e-6, "1", ok, why_not, Status.FAIL, 1.0)
 
 
 def _judge_delay(ctx: ArduPilotContext, v: float) -> Judgement:
@@ -342,12 +336,12 @@ def _judge_declination(ctx: ArduPilotContext, v: float) -> Judgement:
 
 
 def _judge_autodec(v: float) -> Judgement:
-    if v == 0.0:
-        return Judgement(Status.OK, "0", "the declination is ours (COMPASS_DEC)")
-    return Judgement(
-        Status.WARN,
+    return judge_either(
+        v == 0.0,
         "0",
+        "the declination is ours (COMPASS_DEC)",
         "automatic declination: a GPS fix would overwrite the site's COMPASS_DEC",
+        Status.WARN,
         0.0,
     )
 

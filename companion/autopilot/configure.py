@@ -1,28 +1,36 @@
-"""``companion px4 configure``: write the values check asks for, with the right types.
+"""``configure`` on either autopilot: plan -> confirm -> write -> read back.
 
 Refuses while the vehicle is armed (asked again just before writing). Shows the changes as a
 diff (parameter, type, old -> new, reboot) and asks before writing unless ``--yes``. Writes
-each with its own type through MAVSDK (``set_param_int`` for an INT32: its bits, never a
-float), reads each back from the autopilot and compares, and says which ones PX4 applies only
-after a reboot.
+each with its own type, reads each back from the autopilot and compares, and says which ones
+the autopilot applies only after a reboot. Each autopilot brings its session as a
+:class:`ParamLink` and its rules as a function of the parameters.
 """
 
 from __future__ import annotations
 
-import asyncio
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
-from companion.config import Config
-from companion.errors import Px4Error
-from companion.px4.check import format_rows, header, resolve
-from companion.px4.link import Px4Link
-from companion.px4.options import Px4Options
-from companion.px4.rules import Row, Status, Target, evaluate, targets_of
+from companion.autopilot.params import Param, Row, Status, Target, targets_of
+from companion.autopilot.report import format_rows
+from companion.errors import AutopilotError
 
-GPS_WATCH_S = 2.5  # listen this long for a GNSS receiver (GPS_RAW_INT) before deciding
+GPS_WATCH_S = 2.5  # listen this long for a GNSS receiver (and ArduPilot's origin) before deciding
+
+
+class ParamLink(Protocol):
+    """What the flow needs of an autopilot session (PX4's MAVSDK, ArduPilot's pymavlink)."""
+
+    async def armed(self) -> bool: ...
+
+    async def params(self) -> dict[str, Param]: ...
+
+    async def write(self, target: Target) -> None: ...
+
+    async def read(self, name: str, is_int: bool) -> int | float: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,55 +104,63 @@ def ask(question: str) -> bool:
         return False
 
 
-async def run_configure(
-    cfg: Config,
-    opts: Px4Options,
-    confirm: Callable[[str], bool] = ask,
-    show: Callable[[str], None] = print,
-) -> ConfigureReport:
-    """Plan, confirm, write, read back."""
-    target = await asyncio.to_thread(resolve, cfg, opts)  # a blocking socket read
-    async with Px4Link(target.url, opts.timeout_s) as px4:
-        armed = await px4.armed()
-        params = await px4.params()
-        head = header(px4.url, px4.system_id, px4.autopilot, armed, len(params), target.ctx)
-        if armed:
-            raise Px4Error(
-                "refusing to change parameters while the vehicle is armed: land and disarm first"
-            )
-        seen = await px4.watch(GPS_WATCH_S)
-        ctx = dataclasses.replace(target.ctx, gps_seen=bool(seen["gps_seen"]))
-        planned = tuple(
-            Change(t, params[t.name].value if t.name in params else None, None)
-            for t in targets_of(evaluate(params, ctx))
+def refuse_if_armed(armed: bool) -> None:
+    """AutopilotError while the vehicle is armed: nothing is planned or written."""
+    if armed:
+        raise AutopilotError(
+            "refusing to change parameters while the vehicle is armed: land and disarm first"
         )
-        show(head)
-        show(format_plan(planned))
-        if not planned:
-            return ConfigureReport(head, planned, False, (), tuple(evaluate(params, ctx)))
-        if not (opts.yes or confirm(f"write these {len(planned)} parameter(s)?")):
-            show("nothing written")
-            return ConfigureReport(head, planned, False, (), tuple(evaluate(params, ctx)))
-        if await px4.armed():
-            raise Px4Error("the vehicle was armed meanwhile: nothing written")
-        changes = []
-        for c in planned:  # every write is tried and read back, whatever the others did
-            error = ""
-            try:
-                await px4.write(c.target)
-            except Px4Error as e:
-                error = str(e)
-            after: int | float | None = None
-            try:
-                after = await px4.read(c.target.name, c.target.is_int)
-            except Px4Error as e:
-                error = error or str(e)
-            if after is not None and error and _same(after, c.target):
-                error = ""  # the acknowledgement got lost, the value is in
-            changes.append(Change(c.target, c.before, after, error))
-        fresh = await px4.params()
-    rows_after = tuple(evaluate(fresh, ctx))
-    return ConfigureReport(head, planned, True, tuple(changes), rows_after)
+
+
+async def write_and_read_back(link: ParamLink, planned: tuple[Change, ...]) -> list[Change]:
+    """Write each, read each back (every write is tried whatever the others did)."""
+    changes = []
+    for c in planned:
+        error = ""
+        try:
+            await link.write(c.target)
+        except AutopilotError as e:
+            error = str(e)
+        after: int | float | None = None
+        try:
+            after = await link.read(c.target.name, c.target.is_int)
+        except AutopilotError as e:
+            error = error or str(e)
+        if after is not None and error and _same(after, c.target):
+            error = ""  # the acknowledgement got lost, the value is in
+        changes.append(Change(c.target, c.before, after, error))
+    return changes
+
+
+async def plan_and_write(
+    link: ParamLink,
+    head: str,
+    params: dict[str, Param],
+    rows_of: Callable[[dict[str, Param]], list[Row]],
+    yes: bool,
+    confirm: Callable[[str], bool],
+    show: Callable[[str], None],
+) -> ConfigureReport:
+    """The plan from ``rows_of(params)`` (the autopilot's rules), shown after ``head``; then
+    confirmed (or ``yes``), written, read back, and the rules again on what the autopilot
+    holds afterwards."""
+    rows = rows_of(params)
+    planned = tuple(
+        Change(t, params[t.name].value if t.name in params else None, None)
+        for t in targets_of(rows)
+    )
+    show(head)
+    show(format_plan(planned))
+    if not planned:
+        return ConfigureReport(head, planned, False, (), tuple(rows))
+    if not (yes or confirm(f"write these {len(planned)} parameter(s)?")):
+        show("nothing written")
+        return ConfigureReport(head, planned, False, (), tuple(rows))
+    if await link.armed():
+        raise AutopilotError("the vehicle was armed meanwhile: nothing written")
+    changes = await write_and_read_back(link, planned)
+    fresh = await link.params()
+    return ConfigureReport(head, planned, True, tuple(changes), tuple(rows_of(fresh)))
 
 
 def format_result(report: ConfigureReport) -> str:

@@ -1,4 +1,5 @@
-"""Options of ``companion px4 check | configure`` (command-line flags, built from the fields)."""
+"""Options of ``companion autopilot check | configure`` and of its PX4 alias ``companion px4``
+(the command-line flags are built from the fields)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ FcPort = Literal["auto", "TELEM1", "TELEM2", "TELEM3", "TELEM4", "ETHERNET"]
 
 
 @dataclass(frozen=True, slots=True)
-class Px4Options:
+class CheckOptions:
     """How to reach the autopilot and how long to watch it."""
 
     url: str = opt(

@@ -18,8 +18,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from companion.errors import AutopilotUnreachableError, Px4Error
-from companion.px4.rules import Param, Target
+from companion.autopilot.params import Param, Target
+from companion.autopilot.reach import pymavlink_url
+from companion.errors import AutopilotError, AutopilotUnreachableError
 
 log = logging.getLogger("companion.autopilot")
 
@@ -29,23 +30,6 @@ MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MSG_EKF_STATUS_REPORT, MSG_GLOBAL_POSITION_INT, MSG_GPS_RAW_INT = 193, 33, 24
 MSG_GPS_GLOBAL_ORIGIN = 49
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE, MAV_CMD_RUN_PREARM_CHECKS = 511, 512, 401
-
-
-def pymavlink_url(url: str) -> str:
-    """pymavlink's spelling of a link URL (ours, or MAVSDK's udpin:// tcpout:// serial://)."""
-    if "://" not in url:
-        return url
-    scheme, _, rest = url.partition("://")
-    if scheme == "serial":
-        dev, _, baud = rest.rpartition(":")
-        return f"{dev},{baud}" if baud.isdigit() else rest
-    return {
-        "udpin": "udpin",
-        "udpout": "udpout",
-        "udp": "udpin",
-        "tcpout": "tcp",
-        "tcp": "tcp",
-    }.get(scheme, scheme) + f":{rest}"
 
 
 @dataclass
@@ -195,7 +179,7 @@ class ArduPilotLink:
                     self.conn.mav.param_request_read_send(self.system_id, 1, b"", i)
                 quiet_since = time.monotonic()
         if not self.param_values:
-            raise Px4Error(f"cannot read the parameter list from {self.url}")
+            raise AutopilotError(f"cannot read the parameter list from {self.url}")
         return {
             name: Param(
                 name, int(round(v)) if t in INT_TYPES and math.isfinite(v) else v, t in INT_TYPES
@@ -213,7 +197,7 @@ class ArduPilotLink:
                 self._pump(0.05)
             if name in self.param_values:
                 return self.param_values[name][0]
-        raise Px4Error(f"cannot read {name}")
+        raise AutopilotError(f"cannot read {name}")
 
     def write(self, target: Target) -> None:
         """PARAM_SET (the value as a float, the parameter's type)."""

@@ -18,10 +18,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from companion.autopilot.ardupilot_link import CompanionSeen, Watched
-from companion.autopilot.ardupilot_rules import EXTNAV, GPS, SOURCES, ArduPilotContext, value_of
-from companion.px4.fusion import Verdict
-from companion.px4.rules import Param
+from companion.autopilot.ardupilot.link import CompanionSeen, Watched
+from companion.autopilot.ardupilot.rules import EXTNAV, GPS, SOURCES, ArduPilotContext, value_of
+from companion.autopilot.params import Param
+from companion.autopilot.verdict import Verdict
 
 EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
 MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
