@@ -227,8 +227,8 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
         if R_vo_body is not None and p.vo.state.value == "tracking":
             down_in_vo = R_vo_body @ st.T_world_body[:3, :3].T @ np.array([0.0, 0.0, 1.0])
             tilts.append(np.degrees(np.arccos(np.clip(down_in_vo[2], -1.0, 1.0))))
-            if p.gravity_correction is not None:
-                corrections.append(np.degrees(p.gravity_correction.angle_rad))
+            if p.imu_gravity.correction is not None:
+                corrections.append(np.degrees(p.imu_gravity.correction.angle_rad))
     assert p.vo.resets == 0
     assert len(corrections) > 100, len(corrections)
     # the frame started on the biased attitude: ~2 deg off level

@@ -110,7 +110,7 @@ def test_sensors_below_their_minimum_start_on_the_landing_gear_height() -> None:
             break
     assert tracking_at is not None and tracking_at <= 10
     R = p2.attitude_at(sc2.frame_time_us(20))
-    plane = p2.ground_plane(sc2.frame_time_us(20), R)
+    plane = p2.ground.ground_plane(sc2.frame_time_us(20), R)
     assert plane is not None and plane.source == "landed"
     assert plane.distance_m == pytest.approx(0.17)
 
@@ -201,7 +201,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
         pose = feed_step(p, st)
         p.background_work()
         if pose is not None:
-            vo_own = pose.position_ned_m - p.dpose_offset_m
+            vo_own = pose.position_ned_m - p.dpose_stage.offset.offset_m
             rows.append((st.frame.time_us * 1e-6, pose, vo_own, st.T_world_body[:3, 3].copy()))
             rows[-1] += (p.dpose_used > used,)
     t = np.array([r[0] for r in rows])
@@ -225,7 +225,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     # the VO comes back ~10 cm off: beyond dpose.reset_m, so with a new reset_counter (with
     # vo.axial_gravity_sigma_deg 0.5, not the default, it came back within 2.1-2.7 cm and
     # needed none)
-    assert 1 <= p.dpose_resets <= 5 and len(resets) == p.dpose_resets + 1
+    assert 1 <= p.dpose_stage.offset.resets <= 5 and len(resets) == p.dpose_stage.offset.resets + 1
 
 
 def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
