@@ -18,7 +18,7 @@ from companion.attitude.pad import PadLevel
 from companion.config import Config
 from companion.scale.laser import RangeHistory
 from companion.types import GroundPlane
-from companion.vo.odometry import Down
+from companion.vo.keyframes import Down
 
 F64 = NDArray[np.float64]
 

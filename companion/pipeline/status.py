@@ -64,7 +64,7 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
     return PipelineStatus(
         vo_state=out.state.name if out is not None else "INITIALIZING",
         features=int(len(out.features.pixels)) if out is not None else 0,
-        keyframes=len(vo.keyframes),
+        keyframes=len(vo.map.keyframes),
         vo_resets=vo.resets,
         vo_heading_deg=float(np.degrees(vo.yaw_vo_rad)) if vo.yaw_vo_known else None,
         mag_heading_sigma_deg=float(np.degrees(fix.sigma_rad)) if fix is not None else None,
