@@ -334,3 +334,34 @@ def _small_camera() -> dict:
     from peers import small_camera
 
     return small_camera()
+
+
+def test_the_pipeline_holds_frames_for_the_autopilots_attitude_then_goes_without() -> None:
+    """Pipeline.hold_for_attitude (the service's wait rule, 2026-11-28 in the pipeline): with
+    an autopilot but no attitude yet, frames are held from a VO that has not started, up to
+    service.attitude_wait_s after the first one held; an attitude at hand ends the wait;
+    without an autopilot (a replay) nothing is held. Samples of every kind go in by feed."""
+    from companion.types import CameraFrame, RangeSample
+
+    cfg = load_config(None, {"service": {"attitude_wait_s": 2.0}})
+    image = np.zeros((4, 4, 3), np.uint8)
+    t0 = 5_000_000_000
+    frames = [CameraFrame(t0 + k * 100_000, k, image) for k in range(40)]  # 10 Hz, 4 s
+    p = Pipeline(cfg)
+    assert p.hold_for_attitude(frames[0], autopilot_seen=False) is False
+    held = [p.hold_for_attitude(f, autopilot_seen=True) for f in frames]
+    assert held == [True] * 21 + [False] * 19  # frame 20 exactly at the limit
+    assert p.waited_for_attitude == 21 and p.status().waited_for_attitude == 21
+
+    late = Pipeline(cfg)
+    assert late.hold_for_attitude(frames[0], autopilot_seen=True) is True
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    late.feed(AttitudeSample(frames[1].time_us - 5_000, q, np.zeros(3)))
+    assert late.vo.heading_required
+    assert late.hold_for_attitude(frames[1], autopilot_seen=True) is False  # at hand
+    assert late.hold_for_attitude(frames[15], autopilot_seen=True) is True  # too far
+    late.feed(RangeSample(frames[1].time_us, 99, 1.0, 0.1, 12.0, 0))  # no such sensor: dropped
+    assert late.ranges.rejected == 1
+
+    off = Pipeline(load_config(None, {"service": {"attitude_wait_s": 0.0}}))
+    assert off.hold_for_attitude(frames[0], autopilot_seen=True) is False
