@@ -21,18 +21,10 @@ from companion.config import Config
 from companion.evaluation.scale import ScaleMetrics, methods_metrics
 from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
-from companion.pipeline import Pipeline
-from companion.types import (
-    AttitudeSample,
-    CameraFrame,
-    ImuSample,
-    PoseEstimate,
-    RangeSample,
-    VoState,
-)
+from companion.pipeline import Event, Pipeline
+from companion.types import CameraFrame, PoseEstimate, VoState
 
 F64 = NDArray[np.float64]
-Event = CameraFrame | RangeSample | AttitudeSample | ImuSample
 log = logging.getLogger("companion.offline")
 
 
@@ -76,13 +68,11 @@ def feed_step(pipe: Pipeline, step: Any) -> PoseEstimate | None:
     """One SITL step (``Scenario.steps()``) into the pipeline: its attitudes, accelerometer
     samples (a recording's) and ranges (in time order, dropouts left out), then its frame;
     returns the frame's pose."""
-    for a in step.attitudes:
-        pipe.feed_attitude(a)
-    for m in getattr(step, "imus", ()):
-        pipe.feed_imu(m)
+    for sample in (*step.attitudes, *getattr(step, "imus", ())):
+        pipe.feed(sample)
     for r in step.ranges:
         if r.sample is not None:
-            pipe.feed_range(r.sample)
+            pipe.feed(r.sample)
     return pipe.feed_frame(step.frame)
 
 
@@ -116,12 +106,8 @@ def run_vo(
     pipe = Pipeline(config, camera, T_body_cam)
     run = VoRun()
     for ev in events:
-        if isinstance(ev, AttitudeSample):
-            pipe.feed_attitude(ev)
-        elif isinstance(ev, RangeSample):
-            pipe.feed_range(ev)
-        elif isinstance(ev, ImuSample):
-            pipe.feed_imu(ev)
+        if not isinstance(ev, CameraFrame):
+            pipe.feed(ev)
         else:
             t0 = time.perf_counter()
             try:
@@ -319,25 +305,26 @@ def run_attitude(
         row["truth"] = _tilt_of(step.T_world_body[:3, :3])
         tilt, inp = pipe.tilt, pipe.tilt_input
         if tilt is not None and inp is not None:
-            row["vo"] = _tilt_of(inp[1].R_vo_body)
+            row["vo"] = _tilt_of(inp.cloud.R_vo_body)
             for name, est in (("ground", tilt.ground), ("gravity", tilt.gravity)):
                 if est is not None:
                     row[name] = (est.roll_rad, est.pitch_rad)
             if tilt.fused is not None:
                 row["fused"] = (tilt.fused.roll_rad, tilt.fused.pitch_rad)
-            ap_now = pipe.attitude_at(step.frame.time_us)
-            other = ablation.step(step.frame.time_us, inp[0], inp[1], pipe.vo.resets, ap_now)
+            ap_now = pipe.attitude_at(step.frame.time_us)  # the frame's, resolved once
+            other = ablation.step(
+                step.frame.time_us, inp.range_m, inp.cloud, pipe.vo.resets, ap_now
+            )
             if other.fused is not None:
                 row["fused_ranges"] = (other.fused.roll_rad, other.fused.pitch_rad)
             for reason in tilt.reasons:
                 key = re.sub(r"[0-9.]+ m", "x m", reason)
                 run.reasons[key] = run.reasons.get(key, 0) + 1
             if keep_frames:
-                ap = pipe.attitude_at(step.frame.time_us)
                 run.frames.append(
-                    (step.frame.time_us, inp[1], pipe.vo.resets, step.T_world_body, ap)
+                    (step.frame.time_us, inp.cloud, pipe.vo.resets, step.T_world_body, ap_now)
                 )
-                run.ranges_used.append(dict(inp[0]))
+                run.ranges_used.append(dict(inp.range_m))
         for name in SERIES:
             run.series[name].append(row[name])
         run.attitude_ms.append(pipe.last_attitude_ms)
@@ -399,8 +386,7 @@ def run_dpose(config: Config, scenario: Any, arm_time_s: float) -> DposeRun:
     from companion.geometry import se3
 
     pipe = Pipeline(config)
-    specs = {r.sensor_id: r.spec() for r in config.rangefinders}
-    dpose = Dpose(pipe.camera, pipe.T_body_cam, specs)
+    dpose = Dpose(pipe.camera, pipe.T_body_cam, pipe.specs)
     run = DposeRun()
     nan44 = np.full((4, 4), np.nan)
     T_arm: F64 | None = None
@@ -486,7 +472,7 @@ def run_published(
             run.reset_counter.append(pose.reset_counter)
             run.truth.append(step.T_world_body[:3, 3].copy())
             run.height_m.append(-float(step.T_world_body[2, 3]) - ground)
-            run.vo_own.append(pose.position_ned_m - pipe.dpose_offset_m)
+            run.vo_own.append(pose.position_ned_m - pipe.dpose_stage.offset.offset_m)
             run.dpose_used.append(pipe.dpose_used > used)
         if progress is not None:
             next(progress)

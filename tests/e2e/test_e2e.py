@@ -144,9 +144,8 @@ def test_dpose_corrects_what_the_autopilot_receives_over_the_pad(tmp_path) -> No
         async with Service(cfg) as service:
             stub_task.add_done_callback(lambda _: service.stop())
             await service.run()
-            p = service.pipeline
-            dpose = {"armed": p.dpose is not None and p.dpose.armed, "used": p.dpose_used}
-            dpose["resets"] = p.dpose_resets
+            s = service.pipeline.status()
+            dpose = {"armed": s.dpose_armed, "used": s.dpose_used, "resets": s.dpose_resets}
         return await stub_task, stub, dpose
 
     report, stub, dpose = asyncio.run(both())

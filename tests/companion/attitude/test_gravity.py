@@ -3,6 +3,8 @@ and its use as the VO's keyframe gravity prior (seeded synthetic flights)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,7 @@ from companion.attitude.gravity import (
 )
 from companion.geometry import so3
 from companion.geometry.camera import CameraModel
+from companion.vo.keyframes import gravity_cam
 from companion.vo.odometry import VisualOdometry
 from companion.vo.options import VoOptions
 
@@ -163,6 +166,13 @@ def test_attitude_correction_removes_the_autopilots_slow_tilt_error() -> None:
     assert attitude_correction(down_true, 0.01, R_vo_body[:0], R_ap[:0]) is None
 
 
+def gravity_of(
+    vo: VisualOdometry, R_ap: np.ndarray | None, gravity: Any = None, axial: bool = False
+) -> tuple[np.ndarray | None, float]:
+    """The gravity prior (companion/vo/keyframes.py) a keyframe of ``vo`` would take now."""
+    return gravity_cam(R_ap, vo.T_body_cam, vo.T_cam_vo, vo.opts, gravity, axial)
+
+
 def test_vo_turns_the_attitudes_gravity_by_the_measured_correction() -> None:
     cam = CameraModel(320, 240, 230.0, 230.0, 159.5, 119.5)
     vo = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=1.0))
@@ -171,20 +181,20 @@ def test_vo_turns_the_attitudes_gravity_by_the_measured_correction() -> None:
     vo.T_cam_vo[:3, :3] = R_cam_vo
     R_ap = so3.rpy_to_matrix(0.02, 0.01, 0.3)
     ez = np.array([0.0, 0.0, 1.0])
-    g_ap, s_ap = vo._gravity_cam(R_ap)
+    g_ap, s_ap = gravity_of(vo, R_ap)
     assert g_ap is not None and np.allclose(g_ap, R_ap.T @ ez)
     assert s_ap == pytest.approx(np.radians(1.0))
     R_corr = so3.exp(np.radians([0.0, 1.5, 0.0]))
-    g, sigma = vo._gravity_cam(R_ap, (R_corr, np.radians(0.6)))
+    g, sigma = gravity_of(vo, R_ap, (R_corr, np.radians(0.6)))
     # the correction's own sigma and the attitude's (its fast error stays in the prior)
     assert g is not None and sigma == pytest.approx(np.radians(np.hypot(1.0, 0.6)))
     # the correction acts in the VO frame: seen from the VO frame the gravity turned by it
     assert np.allclose(R_cam_vo.T @ g, R_corr @ (R_cam_vo.T @ g_ap))
     assert 1.0 < np.degrees(np.arccos(np.clip(g @ g_ap, -1, 1))) <= 1.5 + 1e-9
     # no attitude: no prior (the correction corrects an attitude); images only: none
-    assert vo._gravity_cam(None, (R_corr, 0.01)) == (None, 0.0)
+    assert gravity_of(vo, None, (R_corr, 0.01)) == (None, 0.0)
     images_only = VisualOdometry(cam, np.eye(4), VoOptions(gravity_sigma_deg=0.0))
-    assert images_only._gravity_cam(R_ap, (R_corr, 0.01)) == (None, 0.0)
+    assert gravity_of(images_only, R_ap, (R_corr, 0.01)) == (None, 0.0)
 
 
 def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_accelerometer() -> None:
@@ -227,8 +237,8 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
         if R_vo_body is not None and p.vo.state.value == "tracking":
             down_in_vo = R_vo_body @ st.T_world_body[:3, :3].T @ np.array([0.0, 0.0, 1.0])
             tilts.append(np.degrees(np.arccos(np.clip(down_in_vo[2], -1.0, 1.0))))
-            if p.gravity_correction is not None:
-                corrections.append(np.degrees(p.gravity_correction.angle_rad))
+            if p.imu_gravity.correction is not None:
+                corrections.append(np.degrees(p.imu_gravity.correction.angle_rad))
     assert p.vo.resets == 0
     assert len(corrections) > 100, len(corrections)
     # the frame started on the biased attitude: ~2 deg off level
@@ -239,10 +249,11 @@ def test_the_pipeline_removes_an_autopilots_constant_tilt_error_with_its_acceler
 
 
 def test_vo_calls_a_keyframe_axial_when_the_camera_moved_along_its_optical_axis() -> None:
-    """VisualOdometry._axial: the camera centre's move since the last keyframe, seen from the
+    """keyframes.is_axial: the camera centre's move since the last keyframe, seen from the
     camera, within axial_max_angle_deg of the optical axis (a climb or a descent under a
     downward camera), and not a sideways move or no move at all."""
-    from companion.vo.odometry import Keyframe
+    from companion.vo.keyframes import is_axial
+    from companion.vo.map import Keyframe
 
     cam = CameraModel(320, 240, 230.0, 230.0, 159.5, 119.5)
     vo = VisualOdometry(
@@ -258,9 +269,14 @@ def test_vo_calls_a_keyframe_axial_when_the_camera_moved_along_its_optical_axis(
 
     axis_vo = R_cam_vo.T @ np.array([0.0, 0.0, 1.0])  # the optical axis in the VO frame
     side_vo = R_cam_vo.T @ np.array([1.0, 0.0, 0.0])
+
+    def axial_now() -> bool:  # no tracks: the median depth is 1
+        last = vo.map.keyframes[-1] if vo.map.keyframes else None
+        return is_axial(last, vo.T_cam_vo, 1.0, vo.opts)
+
     vo.T_cam_vo = at(np.zeros(3))
-    assert not vo._axial()  # no keyframe yet
-    vo.keyframes = [Keyframe(0, 0, at(np.array([0.3, -0.2, 1.0])))]
+    assert not axial_now()  # no keyframe yet
+    vo.map.keyframes = [Keyframe(0, 0, at(np.array([0.3, -0.2, 1.0])))]
     c0 = np.array([0.3, -0.2, 1.0])
     for move, axial in [
         (-0.1 * axis_vo, True),  # climbing (backwards along the axis)
@@ -271,17 +287,17 @@ def test_vo_calls_a_keyframe_axial_when_the_camera_moved_along_its_optical_axis(
         (np.zeros(3), False),  # hovering
     ]:
         vo.T_cam_vo = at(c0 + move)
-        assert vo._axial() is axial, move
+        assert axial_now() is axial, move
     # an axial keyframe takes the axial sigma on the attitude's gravity, with or without
     # the accelerometer's correction; off (0) it keeps gravity_sigma_deg
     R_ap = so3.rpy_to_matrix(0.02, 0.01, 0.3)
     tight = VisualOdometry(
         cam, np.eye(4), VoOptions(gravity_sigma_deg=2.0, axial_gravity_sigma_deg=0.5)
     )
-    g, sigma = tight._gravity_cam(R_ap, None, axial=True)
+    g, sigma = gravity_of(tight, R_ap, None, axial=True)
     assert g is not None and sigma == pytest.approx(np.radians(0.5))
-    assert tight._gravity_cam(R_ap, None, axial=False)[1] == pytest.approx(np.radians(2.0))
-    assert vo._gravity_cam(R_ap, None, axial=True)[1] == pytest.approx(np.radians(1.0))
+    assert gravity_of(tight, R_ap, None, axial=False)[1] == pytest.approx(np.radians(2.0))
+    assert gravity_of(vo, R_ap, None, axial=True)[1] == pytest.approx(np.radians(1.0))
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -181,21 +181,21 @@ def test_the_pipeline_takes_its_frames_heading_from_the_compass_before_the_take_
                 so3.matrix_to_rpy(st.T_world_body[:3, :3])[2] - so3.matrix_to_rpy(R_vo_body)[2]
             )
             errors_deg.append(math.degrees(math.remainder(p.vo.yaw_vo_rad - true_rad, 2 * math.pi)))
-            final.append(p.vo.yaw_vo_rad if p.mag_heading_ended else None)
+            final.append(p.vo.yaw_vo_rad if p.compass.ended else None)
         return p, errors_deg, final
 
     p, errors_deg, final = fly("magnetometer")
     assert p.vo.resets == 0
     assert 2.5 < errors_deg[0] < 3.5, errors_deg[:3]  # the autopilot's heading first
-    assert p.heading_fix is not None and p.mag_heading_ended
-    assert p.heading_fix.samples >= 75  # >= 1.5 s at 50 Hz
+    assert p.compass.fix is not None and p.compass.ended
+    assert p.compass.fix.samples >= 75  # >= 1.5 s at 50 Hz
     assert abs(errors_deg[-1]) < 0.3, errors_deg[-1]
     k_final = next(k for k, yaw in enumerate(final) if yaw is not None)
     assert 40 < k_final < 100  # the take-off (3.5 s on the ground at 20-30 Hz)
     assert len(set(final[k_final:])) == 1  # the frame's heading kept through the climb
     assert max(abs(e) for e in errors_deg[k_final:]) < 0.3  # (the VO's own yaw drift on it)
     status = p.status()
-    assert status.mag_heading_final and status.mag_heading_samples == p.heading_fix.samples
+    assert status.mag_heading_final and status.mag_heading_samples == p.compass.fix.samples
 
     p, errors_deg, _ = fly("autopilot")
-    assert p.heading_fix is None and all(2.5 < e < 3.5 for e in errors_deg), errors_deg[-3:]
+    assert p.compass.fix is None and all(2.5 < e < 3.5 for e in errors_deg), errors_deg[-3:]

@@ -113,7 +113,7 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
     }
     cfg = load_config(None, overrides)
     p = Pipeline(cfg)
-    assert p.pad is not None
+    assert p.pad.level is not None
     R_err, R_of = so3.rot_x(np.radians(1.5)), so3.quat_to_matrix
     tilt_deg, height_m = [], []
     for st in Scenario(cfg).steps(stop=210, workers=2):  # the ground and the climb
@@ -132,7 +132,7 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
         height_m.append(-st.T_world_body[2, 3])
     assert p.vo.resets == 0 and max(height_m) > 3.5
     assert p.vo.pad_keyframes >= 15
-    assert p.pad.refused <= 5
+    assert p.pad.level.refused <= 5
     assert max(tilt_deg) <= 3.0, (max(tilt_deg), seed)
     assert np.mean(tilt_deg[-15:]) <= 0.7, (tilt_deg[-15:], seed)
 

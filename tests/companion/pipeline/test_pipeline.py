@@ -110,7 +110,7 @@ def test_sensors_below_their_minimum_start_on_the_landing_gear_height() -> None:
             break
     assert tracking_at is not None and tracking_at <= 10
     R = p2.attitude_at(sc2.frame_time_us(20))
-    plane = p2.ground_plane(sc2.frame_time_us(20), R)
+    plane = p2.ground.ground_plane(sc2.frame_time_us(20), R)
     assert plane is not None and plane.source == "landed"
     assert plane.distance_m == pytest.approx(0.17)
 
@@ -201,7 +201,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
         pose = feed_step(p, st)
         p.background_work()
         if pose is not None:
-            vo_own = pose.position_ned_m - p.dpose_offset_m
+            vo_own = pose.position_ned_m - p.dpose_stage.offset.offset_m
             rows.append((st.frame.time_us * 1e-6, pose, vo_own, st.T_world_body[:3, 3].copy()))
             rows[-1] += (p.dpose_used > used,)
     t = np.array([r[0] for r in rows])
@@ -225,7 +225,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     # the VO comes back ~10 cm off: beyond dpose.reset_m, so with a new reset_counter (with
     # vo.axial_gravity_sigma_deg 0.5, not the default, it came back within 2.1-2.7 cm and
     # needed none)
-    assert 1 <= p.dpose_resets <= 5 and len(resets) == p.dpose_resets + 1
+    assert 1 <= p.dpose_stage.offset.resets <= 5 and len(resets) == p.dpose_stage.offset.resets + 1
 
 
 def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
@@ -334,3 +334,34 @@ def _small_camera() -> dict:
     from peers import small_camera
 
     return small_camera()
+
+
+def test_the_pipeline_holds_frames_for_the_autopilots_attitude_then_goes_without() -> None:
+    """Pipeline.hold_for_attitude (the service's wait rule, 2026-11-28 in the pipeline): with
+    an autopilot but no attitude yet, frames are held from a VO that has not started, up to
+    service.attitude_wait_s after the first one held; an attitude at hand ends the wait;
+    without an autopilot (a replay) nothing is held. Samples of every kind go in by feed."""
+    from companion.types import CameraFrame, RangeSample
+
+    cfg = load_config(None, {"service": {"attitude_wait_s": 2.0}})
+    image = np.zeros((4, 4, 3), np.uint8)
+    t0 = 5_000_000_000
+    frames = [CameraFrame(t0 + k * 100_000, k, image) for k in range(40)]  # 10 Hz, 4 s
+    p = Pipeline(cfg)
+    assert p.hold_for_attitude(frames[0], autopilot_seen=False) is False
+    held = [p.hold_for_attitude(f, autopilot_seen=True) for f in frames]
+    assert held == [True] * 21 + [False] * 19  # frame 20 exactly at the limit
+    assert p.waited_for_attitude == 21 and p.status().waited_for_attitude == 21
+
+    late = Pipeline(cfg)
+    assert late.hold_for_attitude(frames[0], autopilot_seen=True) is True
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    late.feed(AttitudeSample(frames[1].time_us - 5_000, q, np.zeros(3)))
+    assert late.vo.heading_required
+    assert late.hold_for_attitude(frames[1], autopilot_seen=True) is False  # at hand
+    assert late.hold_for_attitude(frames[15], autopilot_seen=True) is True  # too far
+    late.feed(RangeSample(frames[1].time_us, 99, 1.0, 0.1, 12.0, 0))  # no such sensor: dropped
+    assert late.ranges.rejected == 1
+
+    off = Pipeline(load_config(None, {"service": {"attitude_wait_s": 0.0}}))
+    assert off.hold_for_attitude(frames[0], autopilot_seen=True) is False

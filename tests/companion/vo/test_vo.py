@@ -180,8 +180,8 @@ def test_vo_tracks_a_hills_flight_accurately(default_config: Config) -> None:
     has = f.point_ids >= 0
     assert has.sum() > 60 and np.isfinite(f.points_vo[has]).all()
     assert (f.depth_sigma[has] > 0).all() and np.isnan(f.points_vo[~has]).all()
-    assert len(vo.keyframes) <= cfg.vo.max_keyframes
-    assert len(vo.points) <= cfg.vo.max_keyframes * cfg.vo.max_features  # bounded map
+    assert len(vo.map.keyframes) <= cfg.vo.max_keyframes
+    assert len(vo.map.points) <= cfg.vo.max_keyframes * cfg.vo.max_features  # bounded map
 
 
 def test_black_frames_make_it_lost_at_once_and_it_recovers(default_config: Config) -> None:
@@ -229,7 +229,8 @@ def test_hovering_does_not_create_motion(
     vo, outs = run_vo(cfg, frames, atts)
     assert outs[60].state == VoState.TRACKING and vo.resets == 0
     baseline = np.linalg.norm(
-        se3.inverse(vo.keyframes[0].T_cam_vo)[:3, 3] - se3.inverse(vo.keyframes[1].T_cam_vo)[:3, 3]
+        se3.inverse(vo.map.keyframes[0].T_cam_vo)[:3, 3]
+        - se3.inverse(vo.map.keyframes[1].T_cam_vo)[:3, 3]
     )
     pos = np.array([o.T_vo_cam[:3, 3] for o in outs[60:]])
     seconds = (len(pos) - 1) / 30.0

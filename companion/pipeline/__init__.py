@@ -1,0 +1,31 @@
+"""The pipeline: every per-frame decision from a camera frame to the pose to publish.
+
+``core`` holds :class:`Pipeline` (the order of the stages); ``inputs`` the buffered attitude
+and accelerometer samples; ``ground`` the ranges' ground plane and the pad's gravity;
+``gravity`` the accelerometer's tilt correction; ``heading`` the compass heading;
+``scale_stage`` what the scale and roll/pitch take; ``output`` the published pose;
+``dpose_stage`` d-Pose's correction of it; ``status`` the frozen snapshot for displays.
+"""
+
+from companion.pipeline.core import Pipeline
+from companion.pipeline.inputs import (
+    ATTITUDE_MAX_GAP_US,
+    ATTITUDE_MAX_SPAN_US,
+    AttitudeHistory,
+    Event,
+    Sample,
+)
+from companion.pipeline.scale_stage import LaserReading, TiltInput
+from companion.pipeline.status import PipelineStatus
+
+__all__ = [
+    "ATTITUDE_MAX_GAP_US",
+    "ATTITUDE_MAX_SPAN_US",
+    "AttitudeHistory",
+    "Event",
+    "LaserReading",
+    "Pipeline",
+    "PipelineStatus",
+    "Sample",
+    "TiltInput",
+]

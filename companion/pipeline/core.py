@@ -1,0 +1,341 @@
+"""The one synchronous entry into the algorithms: feed the samples, then each frame.
+
+The same Pipeline runs offline (``companion eval``), in the service, and in benchmarks; it is
+deterministic (same inputs, same outputs) and does no I/O. Inputs must arrive in time order
+per stream; attitude and ranges are buffered and looked up at each frame's capture time.
+Every per-frame decision is the Pipeline's: the frame check (:meth:`Pipeline.check_frame`),
+whether a frame waits for the autopilot's attitude (:meth:`Pipeline.hold_for_attitude`), the
+VO, the metric scale, roll/pitch, the compass heading, the published pose and d-Pose.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.attitude.estimator import RollPitch, TiltStep
+from companion.config import Config
+from companion.dpose.estimator import Dpose
+from companion.geometry import se3
+from companion.geometry.camera import CameraModel
+from companion.pipeline.dpose_stage import DposeStage
+from companion.pipeline.gravity import MotionGravity, MotionSample, Segment
+from companion.pipeline.ground import PadGravity, RangeGround
+from companion.pipeline.heading import CompassHeading
+from companion.pipeline.inputs import AttitudeHistory, Sample
+from companion.pipeline.output import PoseOutput
+from companion.pipeline.scale_stage import TiltInput, ground_prior, laser_readings, scaled_cloud
+from companion.pipeline.status import PipelineStatus, status_of
+from companion.scale.laser import RangeHistory
+from companion.scale.methods import MetricTrajectory, ScaleInput, make_methods
+from companion.types import (
+    AttitudeSample,
+    CameraFrame,
+    ImuSample,
+    PoseEstimate,
+    RangeSample,
+    ScaleEstimate,
+    VoOutput,
+    VoState,
+)
+from companion.vo.frame_check import FrameCheck, FrameProblem
+from companion.vo.odometry import VisualOdometry
+
+F64 = NDArray[np.float64]
+
+
+class Pipeline:
+    """VO, metric scale, roll/pitch, heading and d-Pose over time-ordered inputs."""
+
+    def __init__(
+        self,
+        config: Config,
+        camera: CameraModel | None = None,
+        T_body_cam: F64 | None = None,
+        all_methods: bool = False,
+        sensor_study: int = 0,
+    ) -> None:
+        """``camera`` and ``T_body_cam`` override the config's (a dataset's own calibration);
+        ``all_methods`` runs every scale method side by side (evaluation), not only the
+        configured one."""
+        self.config = config
+        self.camera = camera or config.camera.model()
+        self.T_body_cam = config.camera.T_body_cam() if T_body_cam is None else T_body_cam
+        self.T_cam_body = se3.inverse(self.T_body_cam)
+        self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
+        self.frame_check = FrameCheck(config.vo)  # the one check of every delivered frame
+        self.frame_problem: FrameProblem | None = None  # of the last frame fed
+        self.gaps = 0  # times tracking was dropped after a gap between usable frames
+        self._last_good_us: int | None = None
+        self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
+        self.attitudes = AttitudeHistory()
+        # frames kept from a VO that is not tracking because no attitude was at hand for them
+        # once an attitude stream exists (a map's north is the autopilot's, never the camera's)
+        self.held_for_attitude = 0
+        # frames held by hold_for_attitude (an autopilot but no attitude stream yet)
+        self.waited_for_attitude = 0
+        self._first_held_us: int | None = None
+        # maps dropped because they had started without the autopilot's heading and its
+        # attitude stream began later (ArduPilot's, asked for after its first HEARTBEAT)
+        self.heading_restarts = 0
+        self.imu_gravity = MotionGravity(config.vo.imu_gravity_window_s)
+        self.ranges = RangeHistory()
+        self.ground = RangeGround(config, self.T_body_cam, self.ranges)
+        self.specs = self.ground.specs
+        self.pad = PadGravity(config, self.ground)
+        self.compass = CompassHeading(config.vo)
+        methods = make_methods(self.camera, config.scale, sensor_study)
+        self.method_name = config.scale.method
+        self.methods = methods if all_methods else {self.method_name: methods[self.method_name]}
+        self.trajectories = {name: MetricTrajectory() for name in self.methods}
+        self.estimates: dict[str, ScaleEstimate | None] = dict.fromkeys(self.methods)
+        self.metric_positions: dict[str, F64 | None] = dict.fromkeys(self.methods)
+        self.scale_input: ScaleInput | None = None
+        self.vo_output: VoOutput | None = None
+        self.output = PoseOutput()
+        self.last_scale_ms = 0.0  # time spent on the scale in the last frame [ms]
+        self.attitude: RollPitch | None = None
+        n_sensors = len(config.attitude.sensor_ids or self.specs)
+        if config.attitude.enabled and n_sensors >= 3:
+            self.attitude = RollPitch(self.specs, config.attitude)
+        self.tilt: TiltStep | None = None  # the roll/pitch result of the last frame
+        self.tilt_input: TiltInput | None = None  # its input
+        self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
+        self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
+        self.dpose: Dpose | None = self.dpose_stage.dpose
+
+    def feed_attitude(self, sample: AttitudeSample) -> None:
+        """Buffer an attitude sample (ignored unless finite and newer than the last)."""
+        if self.attitudes.add(sample):
+            self.vo.heading_required = True
+
+    def feed_imu(self, sample: ImuSample) -> None:
+        """Buffer an accelerometer sample (ignored unless finite and newer than the last)."""
+        self.imu_gravity.imu.add(sample)
+
+    def feed_range(self, sample: RangeSample) -> None:
+        """Buffer a distance-sensor sample (invalid, unknown or out-of-order ones are counted
+        and dropped)."""
+        if sample.sensor_id not in self.specs:
+            self.ranges.rejected += 1
+            return
+        self.ranges.add(sample)
+
+    def feed(self, sample: Sample) -> None:
+        """Buffer a sample of any stream (each stream in time order): the one way in for
+        everything but frames, for the service and the offline runs alike."""
+        if isinstance(sample, AttitudeSample):
+            self.feed_attitude(sample)
+        elif isinstance(sample, ImuSample):
+            self.feed_imu(sample)
+        else:
+            self.feed_range(sample)
+
+    def attitude_at(self, time_us: int) -> F64 | None:
+        """(3, 3) R_world_body at ``time_us`` (AttitudeHistory.at), or None."""
+        return self.attitudes.at(time_us)
+
+    def check_frame(self, frame: CameraFrame) -> FrameProblem | None:
+        """The camera check (frozen, dark, saturated, blank, out of order; counted in
+        ``frame_check.counts``) of every delivered frame, also those never fed (a frozen frame
+        is compared with the frame before it); :meth:`feed_frame` runs it unless ``checked``."""
+        return self.frame_check.check(frame)
+
+    def hold_for_attitude(self, frame: CameraFrame, autopilot_seen: bool) -> bool:
+        """Whether to hold this frame from a VO that has not started: the heading of the VO's
+        frame is the autopilot's attitude at its start (else 0, the camera's first heading,
+        and the autopilot's frame and ours are turned by its heading for the whole flight).
+        ArduPilot streams ATTITUDE only once asked, some time after its first HEARTBEAT;
+        after ``service.attitude_wait_s`` from the first frame held the VO starts without
+        one. Without an autopilot (``autopilot_seen`` False: a replay, a bench test) nothing
+        is held. Held frames are counted in ``waited_for_attitude``."""
+        if (
+            not autopilot_seen
+            or self.vo.state == VoState.TRACKING
+            or self.attitude_at(frame.time_us) is not None
+        ):
+            return False
+        if self._first_held_us is None:
+            self._first_held_us = frame.time_us
+        wait_us = self.config.service.attitude_wait_s * 1e6
+        if wait_us <= 0 or frame.time_us - self._first_held_us > wait_us:
+            return False
+        self.waited_for_attitude += 1
+        return True
+
+    def feed_frame(self, frame: CameraFrame, checked: bool = False) -> PoseEstimate | None:
+        """Run the VO and the scale on a frame; the metric pose once tracking with a scale.
+
+        The VO result stays in ``vo_output``, every method's scale in ``estimates`` and the
+        metric body positions (VO orientation) in ``metric_positions``.
+
+        A frame that the camera check rejects (``frame_problem``) gives no pose and is not
+        seen by the VO; when usable frames resume more than ``vo.max_gap_ms`` after the last
+        one, the VO drops its map and initialises anew, so the poses after a camera fault
+        carry a new reset_counter. ``checked``: :meth:`check_frame` already ran on this frame
+        (the service's camera reader runs it on every delivered frame)."""
+        if self._first_frame_us is None:
+            self._first_frame_us = frame.time_us
+        self.scale_input = None
+        self.tilt = None
+        self.tilt_input = None
+        self.last_scale_ms = 0.0
+        self.last_attitude_ms = 0.0
+        self.frame_problem = None if checked else self.check_frame(frame)
+        if self.frame_problem is not None:
+            self.vo_output = None
+            return None
+        last = self._last_good_us
+        if last is not None and frame.time_us - last > self.config.vo.max_gap_ms * 1e3:
+            self.vo.lose()
+            self.gaps += 1
+        self._last_good_us = frame.time_us
+        R_world_body = self.attitude_at(frame.time_us)  # the frame's attitude, for every stage
+        out = self._vo_step(frame, R_world_body)
+        self.vo_output = out
+        if out is None or out.state != VoState.TRACKING:
+            return None
+        range_m = self._scale_step(frame.time_us, out)
+        t0 = time.perf_counter()
+        self.tilt = self._tilt(frame.time_us, range_m, R_world_body)
+        self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
+        position_vo_m = self.metric_positions.get(self.method_name)
+        R_vo_body = self.R_vo_body()
+        self.compass.step(frame.time_us, position_vo_m, R_vo_body, self.vo, self.imu_gravity.imu)
+        pose = self._pose(frame.time_us)
+        if position_vo_m is not None and R_vo_body is not None:
+            p = np.array(position_vo_m, dtype=np.float64)
+            motion = MotionSample(frame.time_us, self._segment(), R_vo_body, p, R_world_body)
+            self.imu_gravity.remember(motion)
+        if pose is not None and self.dpose is not None:
+            assert self._first_frame_us is not None
+            pose = self.dpose_stage.corrected(
+                frame, self._first_frame_us, pose, R_world_body, dict(range_m)
+            )
+        return pose
+
+    def _segment(self) -> Segment:
+        """The current (VO map, published reset counter)."""
+        return Segment(self.vo.resets, self.trajectories[self.method_name].reset_counter)
+
+    def _vo_step(self, frame: CameraFrame, R_world_body: F64 | None) -> VoOutput | None:
+        """The VO on a usable frame, with the priors it takes at a start (the reference
+        attitude, the ground plane) and at keyframes (the IMU's and the pad's gravity); None
+        when the frame is held for want of an attitude (``held_for_attitude``)."""
+        vo = self.vo
+        if vo.state == VoState.TRACKING and vo.heading_required and not vo.yaw_vo_known:
+            # a map that started before the attitude stream did: its north is the camera's
+            # first heading; it is dropped and the next one takes the autopilot's
+            vo.lose()
+            self.heading_restarts += 1
+        if vo.state != VoState.TRACKING:
+            if vo.heading_required and R_world_body is None:
+                self.held_for_attitude += 1
+                return None
+            ref_us = vo.reference_time_us
+            R_ref = None if ref_us is None else self.attitude_at(ref_us)
+            if R_ref is not None:
+                vo.set_reference_attitude(R_ref)
+        plane = None
+        if vo.state != VoState.TRACKING and self.config.vo.ground_init:
+            plane = self.ground.ground_plane(frame.time_us, R_world_body)
+        tracking = vo.state == VoState.TRACKING
+        c = self.imu_gravity.at_frame(frame.time_us, tracking, vo.resets)
+        g = None if c is None else (c.R_vo, c.sigma_rad)
+        position_vo_m = self.metric_positions.get(self.method_name)
+        down = self.pad.down(
+            frame.time_us, R_world_body, position_vo_m, self._segment(), self.attitude_at
+        )
+        return vo.process(frame, R_world_body, plane, g, down)
+
+    def _scale_step(self, time_us: int, out: VoOutput) -> dict[int, float]:
+        """Every scale method on a tracked frame: ``estimates`` and ``metric_positions``;
+        returns the ranges [m] at the frame by sensor id."""
+        t0 = time.perf_counter()
+        T_cam_vo = se3.inverse(out.T_vo_cam)
+        readings = laser_readings(
+            self.specs, self.ranges, self.T_cam_body, time_us, self.config.scale
+        )
+        lasers: dict[int, tuple[float, F64, float]] = dict(readings)
+        prior = ground_prior(self.vo.metric_sigma_rel)
+        inp = ScaleInput(time_us, out, T_cam_vo, lasers, self.vo.resets, prior)
+        self.scale_input = inp
+        # The camera's VO position is what the scale multiplies; the body sits a metric lever
+        # arm away from it (see lever_m)
+        c_vo = out.T_vo_cam[:3, 3]
+        lever_m = self.lever_m(out)
+        for name, method in self.methods.items():
+            est = method.step(inp)
+            self.estimates[name] = est
+            if est is not None:
+                cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
+                self.metric_positions[name] = cam_m + lever_m
+        self.last_scale_ms = (time.perf_counter() - t0) * 1e3
+        return {sid: r.range_m for sid, r in readings.items()}
+
+    def _tilt(
+        self, time_us: int, range_m: dict[int, float], R_world_body: F64 | None
+    ) -> TiltStep | None:
+        """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
+        out = self.vo_output
+        R_vo_body = self.R_vo_body()
+        if self.attitude is None or out is None or R_vo_body is None:
+            return None
+        est = self.estimates.get(self.method_name)
+        cloud = scaled_cloud(out, R_vo_body, est, self.lever_m(out))
+        self.tilt_input = TiltInput(range_m, cloud)
+        return self.attitude.step(time_us, range_m, cloud, self.vo.resets, R_world_body)
+
+    def _pose(self, time_us: int) -> PoseEstimate | None:
+        """The published pose of the frame (companion/pipeline/output.py), before d-Pose."""
+        est = self.estimates.get(self.method_name)
+        p = self.metric_positions.get(self.method_name)
+        R_vo_body = self.R_vo_body()
+        if est is None or p is None or R_vo_body is None:
+            return None
+        reset_counter = self.trajectories[self.method_name].reset_counter
+        tilt_error = self.attitude.filter.tilt_error if self.attitude is not None else None
+        return self.output.pose(
+            time_us, est, p, R_vo_body, self.vo.yaw_vo_rad, reset_counter, self.tilt, tilt_error
+        )
+
+    def R_vo_body(self) -> F64 | None:
+        """(3, 3) the body's orientation in the VO frame at the last frame, or None. (No
+        T_vo_body: the body sits a metric lever arm from the camera, which has no place in
+        unscaled VO units; the metric body position is the scaled camera position plus
+        :meth:`lever_m`.)"""
+        out = self.vo_output
+        if out is None or not np.all(np.isfinite(out.T_vo_cam)):
+            return None
+        R: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, :3]
+        return R
+
+    def lever_m(self, out: VoOutput) -> F64:
+        """(3,) camera -> body lever arm [m] in the VO frame's axes: R_vo_cam @ t_cam_body
+        (T_cam_body's translation is metric). The metric body position in the VO frame is
+        ``scale * t_vo_cam + lever_m``."""
+        lever: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
+        return lever
+
+    def background_work(self) -> bool:
+        """Work that the last frame's pose did not need (building a keyframe: triangulation
+        and local bundle adjustment). The service runs it after publishing; if nobody calls
+        it, the next feed_frame does it first. Returns whether there was any."""
+        return self.vo.finish_pending()
+
+    def status(self) -> PipelineStatus:
+        """An immutable snapshot of what the last frame left (for a status display on another
+        thread: it never reads the pipeline's own, mutating state)."""
+        return status_of(self)
+
+    @property
+    def gravity_used(self) -> int:
+        """Frames whose VO took the accelerometer's tilt correction."""
+        return self.imu_gravity.frames
+
+    @property
+    def dpose_used(self) -> int:
+        """d-Pose poses that corrected the published position."""
+        return self.dpose_stage.offset.updates

@@ -1,0 +1,165 @@
+"""The VO's frontend: corners detected on a grid-spread mask and followed by pyramidal KLT.
+
+Pixels are (x, y) in the full-resolution image; normalised coordinates are (x, y) on the
+plane z = 1 of the camera frame (OpenCV: x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.geometry.camera import CameraModel
+from companion.vo.options import VoOptions
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+U8 = NDArray[np.uint8]
+
+
+@dataclass
+class Tracks:
+    """Features followed from frame to frame.
+
+    px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
+    anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
+    anchor_xy: (N, 2) its normalised coordinates there.
+    """
+
+    px: F32
+    pid: I64
+    anchor: I64
+    anchor_xy: F64
+
+    @staticmethod
+    def empty() -> Tracks:
+        return Tracks(
+            np.zeros((0, 2), np.float32),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, 2)),
+        )
+
+    def __len__(self) -> int:
+        return len(self.pid)
+
+    def select(self, keep: NDArray[np.bool_]) -> Tracks:
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep])
+
+    def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
+        n = len(px)
+        return Tracks(
+            np.concatenate([self.px, px.astype(np.float32)]),
+            np.concatenate([self.pid, -np.ones(n, np.int64)]),
+            np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
+            np.concatenate([self.anchor_xy, anchor_xy]),
+        )
+
+
+def detect(gray: U8, avoid_px: F32, n_max: int, min_distance_px: float) -> F32:
+    """Up to n_max corners (K, 2) [px] at least ``min_distance_px`` from each other and from
+    ``avoid_px`` (N, 2), the current tracks (half-resolution detection, sub-pixel refinement
+    at full resolution)."""
+    if n_max <= 0:
+        return np.zeros((0, 2), np.float32)
+    small = cv2.pyrDown(gray)
+    mask = np.full(small.shape, 255, np.uint8)
+    r = max(1, int(round(min_distance_px / 2)))
+    for x, y in (avoid_px * 0.5).astype(int):
+        cv2.circle(mask, (int(x), int(y)), r, 0, -1)
+    border = 4
+    mask[:border] = 0
+    mask[-border:] = 0
+    mask[:, :border] = 0
+    mask[:, -border:] = 0
+    corners = cv2.goodFeaturesToTrack(
+        small, n_max, 0.01, min_distance_px / 2, mask=mask, blockSize=3
+    )
+    if corners is None:
+        return np.zeros((0, 2), np.float32)
+    pts = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
+    cv2.cornerSubPix(
+        gray,
+        pts.reshape(-1, 1, 2),
+        (3, 3),
+        (-1, -1),
+        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
+    )
+    out: F32 = pts.reshape(-1, 2)
+    return out
+
+
+def track(
+    prev_gray: U8 | None,
+    gray: U8,
+    tracks: Tracks,
+    camera: CameraModel,
+    opts: VoOptions,
+    guess_px: F32 | None = None,
+) -> Tracks:
+    """The tracks followed by KLT from ``prev_gray`` into ``gray``, the lost and out-of-image
+    ones dropped, then :func:`thin`. ``guess_px`` (N, 2): where the features are expected
+    (after skipped frames), else no motion."""
+    if prev_gray is None or len(tracks) == 0:
+        return Tracks.empty()
+    w = opts.klt_window_px
+    flags = 0
+    nxt_in = None
+    if guess_px is not None:
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        nxt_in = np.ascontiguousarray(guess_px, dtype=np.float32).reshape(-1, 1, 2)
+    nxt, status, _ = cv2.calcOpticalFlowPyrLK(
+        prev_gray,
+        gray,
+        tracks.px.reshape(-1, 1, 2),
+        nxt_in,
+        winSize=(w, w),
+        maxLevel=opts.klt_levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+        flags=flags,
+    )
+    nxt = nxt.reshape(-1, 2)
+    ok = (status.ravel() == 1) & camera.in_image(nxt, margin_px=2.0)
+    kept = tracks.select(ok)
+    kept.px = nxt[ok].astype(np.float32)
+    return thin(kept, opts.min_distance_px)
+
+
+def thin(tracks: Tracks, min_distance_px: float) -> Tracks:
+    """The tracks without those that crowd another one (closer than half
+    ``min_distance_px``): when the scene recedes (a climb: the image contracts thirty-fold
+    from the ground to 6 m) the features converge on one small patch; the freed slots are
+    filled with new, spread-out features at the next keyframe. Tracks with a map point are
+    kept first, then older."""
+    tr = tracks
+    n = len(tr)
+    if n < 2:
+        return tr
+    r2 = (0.5 * min_distance_px) ** 2
+    d2 = np.sum((tr.px[:, None, :] - tr.px[None, :, :]) ** 2, axis=2)
+    close = d2 < r2
+    np.fill_diagonal(close, False)
+    if not close.any():
+        return tr
+    order = np.lexsort((np.arange(n), tr.pid < 0))  # with a point first, then older
+    keep = np.zeros(n, dtype=bool)
+    blocked = np.zeros(n, dtype=bool)
+    for i in order:
+        if not blocked[i]:
+            keep[i] = True
+            blocked |= close[i]
+    return tr.select(keep)
+
+
+def coverage(tracks: Tracks, camera: CameraModel) -> float:
+    """Share of the cells of a 4 x 4 grid over the image that hold a tracked map point."""
+    px = tracks.px[tracks.pid >= 0]
+    if len(px) == 0:
+        return 0.0
+    gx = np.clip((px[:, 0] / camera.width * 4).astype(int), 0, 3)
+    gy = np.clip((px[:, 1] / camera.height * 4).astype(int), 0, 3)
+    return len(set(zip(gx.tolist(), gy.tolist(), strict=True))) / 16.0

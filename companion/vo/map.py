@@ -1,0 +1,204 @@
+"""The VO's map: keyframes, the points they see, their local bundle adjustment and bound.
+
+Frames: the VO frame ``vo`` (gravity-aligned at the map's start, unscaled); keyframe poses are
+T_cam_vo (4, 4, VO -> camera); points (3,) in the VO frame; observations are normalised
+camera coordinates (2,).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.geometry import se3
+from companion.vo.ba import bundle_adjust
+from companion.vo.frontend import Tracks
+from companion.vo.options import VoOptions
+from companion.vo.triangulation import triangulate
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class Keyframe:
+    """A keyframe: its pose T_cam_vo (4, 4), observations {point id: normalised xy (2,)} and
+    the gravity direction the autopilot's attitude gave at its time (for the BA's prior)."""
+
+    kf_id: int
+    time_us: int
+    T_cam_vo: F64
+    obs: dict[int, F64] = field(default_factory=dict)
+    gravity_cam: F64 | None = None  # (3,) gravity in the camera frame (attitude and/or IMU)
+    gravity_sigma_rad: float = 0.0  # its direction's sigma [rad] (0: gravity_cam is None)
+
+
+class VoMap:
+    """Keyframes (oldest first) and points by id, with each point's depth sigma."""
+
+    def __init__(self) -> None:
+        self.keyframes: list[Keyframe] = []
+        self.points: dict[int, F64] = {}
+        self.point_sigma: dict[int, float] = {}
+        self._next_pid = 0  # ids are never reused, across maps
+        self._next_kf = 0
+
+    def clear(self) -> None:
+        """Drop every keyframe and point (a new map; ids go on counting)."""
+        self.points.clear()
+        self.point_sigma.clear()
+        self.keyframes = []
+
+    def add_point(self, point_vo: F64, sigma: float) -> int:
+        """A new point (3,) with its depth sigma; returns its id."""
+        p = self._next_pid
+        self._next_pid += 1
+        self.points[p] = point_vo
+        self.point_sigma[p] = sigma
+        return p
+
+    def new_keyframe(
+        self,
+        time_us: int,
+        T_cam_vo: F64,
+        gravity_cam: F64 | None = None,
+        gravity_sigma_rad: float = 0.0,
+    ) -> Keyframe:
+        """A keyframe with the next id (not yet in ``keyframes``)."""
+        kf = Keyframe(self._next_kf, time_us, T_cam_vo, {}, gravity_cam, gravity_sigma_rad)
+        self._next_kf += 1
+        return kf
+
+    def keyframe(self, kf_id: int) -> Keyframe | None:
+        """The keyframe with this id, if still in the map."""
+        for kf in self.keyframes:
+            if kf.kf_id == kf_id:
+                return kf
+        return None
+
+    def median_depth(self, tracks: Tracks, T_cam_vo: F64) -> float:
+        """The median depth of the tracked points seen from T_cam_vo (1 without any)."""
+        has = tracks.pid >= 0
+        if not has.any():
+            return 1.0
+        X = np.array([self.points[int(p)] for p in tracks.pid[has]])
+        z = se3.transform(T_cam_vo, X)[:, 2]
+        return float(np.median(z))
+
+    def triangulate_candidates(
+        self, tracks: Tracks, kf: Keyframe, xy: F64, focal_px: float, opts: VoOptions
+    ) -> Tracks:
+        """The tracks with their candidates triangulated between their anchor keyframe and
+        the new keyframe ``kf`` (``xy`` (N, 2) the tracks' normalised coordinates there):
+        new points, observed by both; candidates whose anchor is gone start over at ``kf``."""
+        pid = tracks.pid.copy()
+        anchor = tracks.anchor.copy()
+        anchor_xy = tracks.anchor_xy.copy()
+        cand = np.flatnonzero(pid < 0)
+        for a in np.unique(anchor[cand]):
+            sel = cand[anchor[cand] == a]
+            kf_a = self.keyframe(int(a))
+            if kf_a is None:  # anchor gone: start over from this keyframe
+                anchor[sel] = kf.kf_id
+                anchor_xy[sel] = xy[sel]
+                continue
+            tri = triangulate(
+                kf_a.T_cam_vo,
+                kf.T_cam_vo,
+                anchor_xy[sel],
+                xy[sel],
+                focal_px,
+                opts.pixel_sigma_px,
+                opts.min_parallax_deg,
+                2.0 * opts.inlier_px,
+            )
+            for j, i in enumerate(sel):
+                if not tri.ok[j]:
+                    continue
+                p = self.add_point(tri.points_vo[j], float(tri.depth_sigma[j]))
+                kf_a.obs[p] = anchor_xy[i].copy()
+                kf.obs[p] = xy[i].copy()
+                pid[i] = p
+        return Tracks(tracks.px, pid, anchor, anchor_xy)
+
+    def local_ba(self, opts: VoOptions, focal_px: float) -> F64 | None:
+        """Bundle adjustment of the last ``window_keyframes`` keyframes (the first two fixed)
+        and the points two of them see, with the keyframes' gravity priors; observations
+        left over 3 ``inlier_px`` off are removed. Returns the newest keyframe's refined
+        T_cam_vo (4, 4), or None when there was too little to adjust."""
+        window = self.keyframes[-opts.window_keyframes :]
+        if len(window) < 3 or opts.ba_iterations == 0:
+            return None
+        count: dict[int, int] = {}
+        for kf in window:
+            for p in kf.obs:
+                count[p] = count.get(p, 0) + 1
+        pids = [p for p, c in count.items() if c >= 2]
+        if len(pids) < 10:
+            return None
+        index = {p: i for i, p in enumerate(pids)}
+        obs_cam, obs_pt, obs_xy = [], [], []
+        for k, kf in enumerate(window):
+            for p, xy in kf.obs.items():
+                if p in index:
+                    obs_cam.append(k)
+                    obs_pt.append(index[p])
+                    obs_xy.append(xy)
+        T = np.stack([kf.T_cam_vo for kf in window])
+        X = np.stack([self.points[p] for p in pids])
+        fixed = np.zeros(len(window), dtype=bool)
+        fixed[:2] = True
+        gravity = np.array(
+            [kf.gravity_cam if kf.gravity_cam is not None else np.full(3, np.nan) for kf in window]
+        )
+        sigma_rad = np.array([kf.gravity_sigma_rad for kf in window])
+        weight = np.zeros(len(window))
+        weight[sigma_rad > 0] = opts.pixel_sigma_px / sigma_rad[sigma_rad > 0]
+        res = bundle_adjust(
+            T,
+            X,
+            np.asarray(obs_cam),
+            np.asarray(obs_pt),
+            np.asarray(obs_xy),
+            fixed,
+            focal_px,
+            huber_px=opts.inlier_px,
+            iterations=opts.ba_iterations,
+            gravity_cam=gravity,
+            gravity_weight=weight,
+        )
+        for k, kf in enumerate(window):
+            kf.T_cam_vo = res.T_cam_vo[k]
+        for i, p in enumerate(pids):
+            self.points[p] = res.points_vo[i]
+        # observations that stay far off after BA are removed
+        bad = res.residual_px > 3.0 * opts.inlier_px
+        for o in np.flatnonzero(bad):
+            window[obs_cam[o]].obs.pop(pids[obs_pt[o]], None)
+        refined: F64 = window[-1].T_cam_vo.copy()
+        return refined
+
+    def bound(
+        self, tracks: Tracks, max_keyframes: int, normalized: Callable[[NDArray[np.floating]], F64]
+    ) -> None:
+        """Keep at most ``max_keyframes`` keyframes and the points they or the tracks see;
+        tracked points no keyframe sees any more become candidates again (anchored at the
+        newest keyframe, ``normalized`` giving their coordinates; ``tracks`` changed)."""
+        while len(self.keyframes) > max_keyframes:
+            self.keyframes.pop(0)
+        seen: set[int] = set()
+        for kf in self.keyframes:
+            seen.update(kf.obs)
+        tracked = set(int(p) for p in tracks.pid if p >= 0)
+        for p in list(self.points):
+            if p not in seen and p not in tracked:
+                del self.points[p]
+                del self.point_sigma[p]
+        lost = np.array([p >= 0 and int(p) not in seen for p in tracks.pid], dtype=bool)
+        if lost.any():
+            xy = normalized(tracks.px[lost])
+            tracks.pid[lost] = -1
+            tracks.anchor[lost] = self.keyframes[-1].kf_id
+            tracks.anchor_xy[lost] = xy
