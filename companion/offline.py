@@ -457,12 +457,12 @@ def run_published(
     run = PublishedRun()
     t0_us: int | None = None
     for step in steps:
-        used = pipe.dpose_used
+        used = pipe.dpose_stage.offset.updates
         pose = feed_step(pipe, step)
         pipe.background_work()
         t0_us = step.frame.time_us if t0_us is None else t0_us
         run.frames += 1
-        if pipe.dpose is not None and pipe.dpose.armed and run.dpose_armed_s is None:
+        if pipe.dpose_stage.armed and run.dpose_armed_s is None:
             run.dpose_armed_s = (step.frame.time_us - t0_us) * 1e-6
         if pose is not None:
             x, y = step.T_world_body[0, 3], step.T_world_body[1, 3]
@@ -473,7 +473,7 @@ def run_published(
             run.truth.append(step.T_world_body[:3, 3].copy())
             run.height_m.append(-float(step.T_world_body[2, 3]) - ground)
             run.vo_own.append(pose.position_ned_m - pipe.dpose_stage.offset.offset_m)
-            run.dpose_used.append(pipe.dpose_used > used)
+            run.dpose_used.append(pipe.dpose_stage.offset.updates > used)
         if progress is not None:
             next(progress)
     run.vo_resets = pipe.vo.resets

@@ -17,7 +17,6 @@ from numpy.typing import NDArray
 
 from companion.attitude.estimator import RollPitch, TiltStep
 from companion.config import Config
-from companion.dpose.estimator import Dpose
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.pipeline.dpose_stage import DposeStage
@@ -104,7 +103,6 @@ class Pipeline:
         self.tilt_input: TiltInput | None = None  # its input
         self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
         self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
-        self.dpose: Dpose | None = self.dpose_stage.dpose
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -209,7 +207,7 @@ class Pipeline:
             p = np.array(position_vo_m, dtype=np.float64)
             motion = MotionSample(frame.time_us, self._segment(), R_vo_body, p, R_world_body)
             self.imu_gravity.remember(motion)
-        if pose is not None and self.dpose is not None:
+        if pose is not None and self.dpose_stage.dpose is not None:
             assert self._first_frame_us is not None
             pose = self.dpose_stage.corrected(
                 frame, self._first_frame_us, pose, R_world_body, dict(range_m)
@@ -329,13 +327,3 @@ class Pipeline:
         """An immutable snapshot of what the last frame left (for a status display on another
         thread: it never reads the pipeline's own, mutating state)."""
         return status_of(self)
-
-    @property
-    def gravity_used(self) -> int:
-        """Frames whose VO took the accelerometer's tilt correction."""
-        return self.imu_gravity.frames
-
-    @property
-    def dpose_used(self) -> int:
-        """d-Pose poses that corrected the published position."""
-        return self.dpose_stage.offset.updates

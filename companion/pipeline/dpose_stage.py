@@ -51,6 +51,7 @@ class DposeStage:
 
     @property
     def armed(self) -> bool:
+        """d-Pose has its pattern (armed on the published pose)."""
         return self.dpose is not None and self.dpose.armed
 
     def corrected(

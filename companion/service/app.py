@@ -109,7 +109,7 @@ class Service:
             self.origin,
         )
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
-        self.intake = FrameIntake(rt, self.camera)
+        self.intake = FrameIntake(rt, self.camera, pipeline.check_frame)
         self.publisher = Publisher(rt, self.link, self.session, self.resets, self.recorder)
         self.worker = PipelineWorker(
             rt, pipeline, self.intake, self.session, self.publisher, self.recorder

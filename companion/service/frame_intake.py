@@ -19,6 +19,7 @@ import contextlib
 import itertools
 import threading
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,7 @@ import numpy as np
 from companion.drivers.backoff import Backoff
 from companion.service.runtime import Runtime
 from companion.types import CameraFrame
-from companion.vo.frame_check import FrameCheck, FrameProblem
+from companion.vo.frame_check import FrameProblem
 
 RECENT_PROCESS = 20  # frames whose median processing time rules which queued one can be sent
 FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; frame_wait_ms rules)
@@ -35,10 +36,14 @@ FRAME_QUEUE_MAX = 8  # frames waiting for the pipeline at most (memory bound; fr
 class FrameIntake:
     """The camera's frames from its reader thread to the pipeline's loop."""
 
-    def __init__(self, rt: Runtime, camera: Any) -> None:
+    def __init__(
+        self, rt: Runtime, camera: Any, check: Callable[[CameraFrame], FrameProblem | None]
+    ) -> None:
         self.rt = rt
         self.camera = camera
-        self.frame_check = FrameCheck(rt.config.vo)  # on every delivered frame (reader thread)
+        # the pipeline's one frame check (Pipeline.check_frame), run on every delivered frame
+        # here on the reader thread: the worker feeds the frames it passes as checked
+        self.check = check
         # frames waiting for the pipeline (bounded: the wait rule keeps it at a few)
         self.frames: deque[CameraFrame] = deque(maxlen=FRAME_QUEUE_MAX)
         self.lock = threading.Lock()
@@ -95,7 +100,7 @@ class FrameIntake:
                 # pipeline gets to: a frozen frame must be compared with the frame
                 # before it, not with the last one processed
                 with self.lock:
-                    problem = self.frame_check.check(frame)
+                    problem = self.check(frame)
                     if problem != seen_problem:  # the loop owns self.problem
                         loop.call_soon_threadsafe(self._camera_problem, problem)
                         seen_problem = problem

@@ -109,7 +109,7 @@ class OperatorMessages:
             camera = self.intake.problem.value
         tracking = p.vo_state == VoState.TRACKING.name
         t_s = now * 1e-9
-        dpose_armed, dpose_used = self.worker.dpose_status
+        dpose_armed, dpose_used = self.worker.status.dpose_armed, self.worker.status.dpose_used
         hb = s.autopilot_heartbeat_ns
         return statustext.OperatorState(
             camera=camera,

@@ -73,7 +73,7 @@ class Report:
             "frames_processed": s.frames_processed,
             "published": s.published,
             "not_published": s.not_published,
-            "waited_for_attitude": s.waited_for_attitude,
+            "waited_for_attitude": ps.waited_for_attitude,
             "publish_rate_hz": rate,
             "latency_ms_p50": _percentile(lat, 50),
             "latency_ms_p99": _percentile(lat, 99),
@@ -86,7 +86,7 @@ class Report:
             "ranges_rejected": s.ranges_rejected,
             "attitudes_in": s.attitudes_in,
             "imus_in": s.imus_in,
-            "imu_gravity_frames": src.worker.pipeline.gravity_used,
+            "imu_gravity_frames": src.worker.status.gravity_frames,
             "timesync_replies": s.timesync_replies,
             "timesync_converged": sync.converged,
             # PX4's side, modelled: whether it converts our stamps; poses sent as of sending
@@ -230,7 +230,7 @@ class Report:
         with intake.lock:
             frames = list(intake.frame_times_ns)
             frames_in, dropped = self.rt.stats.frames_in, self.rt.stats.frames_dropped
-            rejected = {k: v for k, v in intake.frame_check.counts.items() if v}
+            rejected = {k: v for k, v in self.src.worker.pipeline.frame_check.counts.items() if v}
         recent = [t for t in frames if now - t < 2_000_000_000]  # a dead camera shows 0 fps
         fps = (len(recent) - 1) / ((recent[-1] - recent[0]) * 1e-9) if len(recent) > 1 else 0.0
         problem = intake.problem.value if intake.problem else None

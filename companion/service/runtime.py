@@ -64,7 +64,6 @@ class ServiceStats:
     frames_processed: int = 0
     published: int = 0
     not_published: int = 0  # processed frames without a pose (not tracking / no scale)
-    waited_for_attitude: int = 0  # frames held from the VO's start: no autopilot attitude yet
     stale: int = 0  # poses not sent because their frame was older than stale_frame_ms
     pipeline_errors: int = 0  # frames on which the pipeline raised (a bug: logged)
     ranges_in: int = 0

@@ -4,7 +4,7 @@ through the ``Pipeline`` on a worker thread, then to the publisher.
 Inputs: frames (``FrameIntake.next_frame``), ranges, attitudes and IMU samples
 (``AutopilotSession.take_samples``). Outputs: poses to the ``Publisher``, the frames and
 samples to the recorder, ``status`` (the pipeline's frozen ``PipelineStatus`` snapshot, the
-only thing the event loop reads of the pipeline), ``dpose_status``, ``vo_state``, the
+only thing the event loop reads of the pipeline), ``vo_state``, the
 processing counters and timings in ``ServiceStats``.
 
 Threads: the worker thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) owns the
@@ -17,7 +17,7 @@ import asyncio
 import logging
 import time
 
-from companion.pipeline import Pipeline, PipelineStatus
+from companion.pipeline import Pipeline, PipelineStatus, Sample
 from companion.service.autopilot_session import AutopilotSession
 from companion.service.frame_intake import FrameIntake
 from companion.service.publisher import Publisher
@@ -56,9 +56,7 @@ class PipelineWorker:
         self.publisher = publisher
         self.recorder = recorder
         self.status: PipelineStatus = pipeline.status()  # the worker replaces it
-        self.dpose_status = (False, 0)  # (armed, poses used): the worker replaces it
         self.vo_state = VoState.INITIALIZING  # of the last frame processed
-        self._first_frame_us: int | None = None  # for service.attitude_wait_s
         self._vo_start_logged = -1  # vo_resets of the last initialisation logged
         self._compass_logged = (False, False)  # (first fix logged, final one logged)
 
@@ -104,44 +102,16 @@ class PipelineWorker:
         """Worker thread: feed the queued samples, then the frame."""
         p = self.pipeline
         imus = imus or []
-        for a in atts:
-            p.feed_attitude(a)
-        for m in imus:
-            p.feed_imu(m)
-        for r in ranges:
-            p.feed_range(r)
-        held = self.wait_for_attitude(frame)
+        samples: list[Sample] = [*atts, *imus, *ranges]  # each stream in its time order
+        for sample in samples:
+            p.feed(sample)
+        held = p.hold_for_attitude(frame, autopilot_seen=self.rt.stats.autopilot_heartbeat_ns > 0)
         # recorded with whether it reached the VO: a replay then holds the same frames (the
         # wait depends on when the autopilot's HEARTBEAT came, which a replay does not have)
         self.recorder.frame(frame, ranges, atts, imus, held)  # a reference into its queue
-        if held:
-            return None
-        pose = p.feed_frame(frame, checked=True)  # checked in the camera reader
+        pose = None if held else p.feed_frame(frame, checked=True)  # checked by the intake
         self.status = p.status()  # a new frozen snapshot: the loop reads only this
-        self.dpose_status = (p.dpose is not None and p.dpose.armed, p.dpose_used)
         return pose
-
-    def wait_for_attitude(self, frame: CameraFrame) -> bool:
-        """Whether to hold this frame from a VO that has not started: the heading of the VO's
-        frame is the autopilot's attitude at its start (else 0, the camera's first heading,
-        and the autopilot's frame and ours are turned by its heading for the whole flight).
-        ArduPilot streams ATTITUDE only once asked, some time after its first HEARTBEAT; after
-        service.attitude_wait_s from the first frame held the VO starts without one (logged).
-        Without an autopilot's HEARTBEAT (a replay, a bench test) nothing is held."""
-        p = self.pipeline
-        if (
-            not self.rt.stats.autopilot_heartbeat_ns  # no autopilot (yet): nothing to wait for
-            or p.vo.state == VoState.TRACKING
-            or p.attitude_at(frame.time_us) is not None
-        ):
-            return False
-        if self._first_frame_us is None:
-            self._first_frame_us = frame.time_us
-        wait_us = self.rt.config.service.attitude_wait_s * 1e6
-        if wait_us <= 0 or frame.time_us - self._first_frame_us > wait_us:
-            return False
-        self.rt.stats.waited_for_attitude += 1
-        return True
 
     def _background(self) -> None:
         """Worker thread: the keyframe work the pose did not need, then a new snapshot."""

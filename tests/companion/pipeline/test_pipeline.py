@@ -197,13 +197,13 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     p = Pipeline(cfg)
     rows = []
     for st in sc.steps(workers=2):  # rendered ahead on 2 threads (identical steps)
-        used = p.dpose_used
+        used = p.dpose_stage.offset.updates
         pose = feed_step(p, st)
         p.background_work()
         if pose is not None:
             vo_own = pose.position_ned_m - p.dpose_stage.offset.offset_m
             rows.append((st.frame.time_us * 1e-6, pose, vo_own, st.T_world_body[:3, 3].copy()))
-            rows[-1] += (p.dpose_used > used,)
+            rows[-1] += (p.dpose_stage.offset.updates > used,)
     t = np.array([r[0] for r in rows])
     pub = np.array([r[1].position_ned_m for r in rows])
     own = np.array([r[2] for r in rows])
@@ -214,7 +214,7 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     def err(x: np.ndarray) -> np.ndarray:
         return np.linalg.norm((x - x[i]) - (gt - gt[i]), axis=1)
 
-    assert p.dpose is not None and p.dpose.armed and in_view.sum() >= 60
+    assert p.dpose_stage.armed and in_view.sum() >= 60
     e_pub, e_own = err(pub)[in_view], err(own)[in_view]
     assert float(np.sqrt(np.mean(e_pub**2))) <= 0.02, e_pub
     # issue 18: every pose while the marks are in view, the first frames back included (the

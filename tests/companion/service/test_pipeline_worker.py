@@ -1,41 +1,34 @@
-"""The pipeline worker (companion.service.worker): frames held for the autopilot's attitude."""
+"""The pipeline worker (companion.service.worker): the pipeline's wait rule on the service's
+frames, and what the service reports of it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from companion.types import CameraFrame
+from companion.types import CameraFrame, VoState
 
 
-def test_the_vo_waits_for_the_autopilots_attitude_then_goes_without(tmp_path) -> None:
-    """ArduPilot streams ATTITUDE on a companion port only once asked: the frames before it
-    are held from the VO (whose frame takes the autopilot's heading at its start), up to
-    service.attitude_wait_s after the first one; then the VO starts without (logged)."""
+def test_the_worker_holds_frames_by_the_pipelines_rule_and_reports_them(tmp_path) -> None:
+    """Once an autopilot's HEARTBEAT came but no ATTITUDE, the worker holds each frame from
+    the VO (Pipeline.hold_for_attitude, tested itself in test_pipeline.py) and publishes
+    nothing; the exit report and the status count the held frames from the pipeline's own
+    snapshot. Without a HEARTBEAT (a replay, a bench test) the first frame goes on."""
     from peers import service_config
 
     from companion.service.app import Service
-    from companion.types import AttitudeSample
 
     service = Service(service_config(tmp_path, attitude_wait_s=2.0))
     image = np.zeros((4, 4, 3), np.uint8)
     t0 = 5_000_000_000
-    frames = [CameraFrame(t0 + k * 100_000, k, image) for k in range(40)]  # 10 Hz, 4 s
-    assert service.worker.wait_for_attitude(frames[0]) is False  # no autopilot heard: nothing held
+    frames = [CameraFrame(t0 + k * 100_000, k, image) for k in range(21)]  # 10 Hz, 2 s
     service.stats.autopilot_heartbeat_ns = 1  # an autopilot's HEARTBEAT came, no ATTITUDE yet
-    held = [service.worker.wait_for_attitude(f) for f in frames]
-    # no attitude: 2 s held (frames 0-20, the 20th exactly at the limit), then none
-    assert held == [True] * 21 + [False] * 19
-    assert service.stats.waited_for_attitude == 21
+    poses = [service.worker.process(f, [], [], []) for f in frames]
+    assert poses == [None] * 21
+    assert service.worker.status.waited_for_attitude == 21
+    assert service.summary()["waited_for_attitude"] == 21
+    assert service.pipeline.vo.state == VoState.INITIALIZING
+    assert service.pipeline.vo_output is None  # no held frame reached the VO
 
-    late = Service(service_config(tmp_path, attitude_wait_s=2.0))
-    late.stats.autopilot_heartbeat_ns = 1
-    assert late.worker.wait_for_attitude(frames[0]) is True
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    late.pipeline.feed_attitude(AttitudeSample(frames[1].time_us - 5_000, q, np.zeros(3)))
-    assert late.worker.wait_for_attitude(frames[1]) is False  # at hand: the VO may start
-    # an attitude far from the frame's time is not at hand (the VO would take no heading)
-    assert late.worker.wait_for_attitude(frames[15]) is True
-
-    off = Service(service_config(tmp_path, attitude_wait_s=0.0))
-    off.stats.autopilot_heartbeat_ns = 1
-    assert off.worker.wait_for_attitude(frames[0]) is False
+    replay = Service(service_config(tmp_path, attitude_wait_s=2.0))
+    replay.worker.process(frames[0], [], [], [])  # no HEARTBEAT: not held, fed to the VO
+    assert replay.worker.status.waited_for_attitude == 0
