@@ -22,7 +22,7 @@ from peers import (
 # matplotlib's FreeType module is loaded before anything in this process can load GStreamer:
 # once GStreamer was initialised (its plugins bring the system's libfreetype), the first
 # `import matplotlib.ft2font` (any plot) aborted the whole pytest process (SIGABRT, reproduced:
-# tests/drivers/test_camera.py's GStreamer tests, then the ArduPilot loop's plot). Loading it first
+# tests/drivers/camera/test_camera_gst.py, then the ArduPilot loop's plot). Loading it first
 # avoids that, whatever order the tests run in.
 with contextlib.suppress(ImportError):  # no eval extra: nothing plots, nothing to protect
     import matplotlib.ft2font  # noqa: F401
@@ -75,9 +75,8 @@ _GROUP_OF_MODULE = {
 }
 _MACHINE_EXCLUSIVE = {"test_px4_loop.py", "test_ardupilot_loop.py"}
 _GROUP_OF_TEST = {
-    "test_statustext.py::test_real_px4_forwards_our_statustext_to_its_ground_station_port": (
-        _AUTOPILOTS
-    ),
+    "test_statustext_delivery.py::"
+    "test_real_px4_forwards_our_statustext_to_its_ground_station_port": _AUTOPILOTS,
 }
 
 

@@ -38,7 +38,7 @@ from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, p
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
 # the odom profile's external navigation, spelled out (the check reads them back;
-# tests/companion/autopilot/test_ardupilot_check.py sets them as the right configuration)
+# tests/companion/autopilot/ardupilot/test_ardupilot_check.py sets them as the right configuration)
 EXTNAV_BOOT_PARAMS: dict[str, float] = {
     "VISO_TYPE": 1,
     "GPS1_TYPE": 0,

@@ -1,6 +1,6 @@
 """Small valid datasets (a recording of ours, a EuRoC folder) held as bytes, and the hostile or
 damaged variants of them that tests/e2e/test_hostile_inputs.py and
-tests/drivers/test_fuzz_dataset.py feed to the reader and to `companion eval`: files outside
+tests/drivers/dataset/test_fuzz_dataset.py feed to the reader and to `companion eval`: files outside
 the folder, FIFOs, decompression bombs, deep TOML, bad numbers, zero quaternions, torn and
 reordered rows, random byte flips."""
 

@@ -1,9 +1,11 @@
-"""A peer's clock and one MAVLink message decoded: helpers of the time sync, wire and service
-tests."""
+"""A peer's clock, one MAVLink message decoded and STATUSTEXT chunks joined: helpers of the
+time sync, wire, STATUSTEXT and service tests."""
 
 from __future__ import annotations
 
 from typing import Any
+
+from companion.drivers.messages import STATUSTEXT_CHARS
 
 
 class PeerClock:
@@ -25,3 +27,17 @@ def decode(buf: bytes) -> Any:
     msgs = parser.feed(buf, stats)
     assert stats.rx_bad == 0 and len(msgs) == 1
     return msgs[0]
+
+
+def join_chunks(msgs: list[Any]) -> list[tuple[int, str]]:
+    """(severity, text) of received STATUSTEXTs, chunks of one id joined (as QGC does)."""
+    out: list[tuple[int, str]] = []
+    parts: dict[int, list[str]] = {}
+    for m in msgs:
+        if int(m.id) == 0:
+            out.append((int(m.severity), str(m.text)))
+            continue
+        parts.setdefault(int(m.id), []).append(str(m.text))
+        if len(m.text) < STATUSTEXT_CHARS:  # the NUL: the last chunk
+            out.append((int(m.severity), "".join(parts.pop(int(m.id)))))
+    return out

@@ -6,7 +6,7 @@ companion on its link.
 wired to it; ``companion(port, Sender(...))`` is our MAVLink link on its companion port,
 answering TIMESYNC at once (as the service does) and streaming ODOMETRY /
 VISION_POSITION_ESTIMATE with one thing right or wrong at a time. Shared by
-tests/companion/autopilot/test_px4_stub.py and tests/e2e/test_px4_real.py.
+tests/companion/autopilot/px4/test_px4_stub.py and tests/e2e/test_px4_real.py.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from companion.drivers.camera import (
 from companion.errors import ConfigError
 from companion.types import CameraFrame
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def gst_available() -> str | None:

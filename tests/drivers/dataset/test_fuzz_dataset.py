@@ -13,7 +13,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 CASES = 2000
 SEED = 45
 EVAL_EVERY = 20  # 100 of the 2,000 through `companion eval`, the rest through the reader

@@ -33,7 +33,7 @@ from companion.drivers.camera import (
 )
 from companion.types import CameraFrame
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_only_a_video_file_is_a_finite_video_capture(tmp_path) -> None:
