@@ -22,9 +22,8 @@ from companion.evaluation.scale import ScaleMetrics, methods_metrics
 from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Event, Pipeline
-from companion.types import CameraFrame, PoseEstimate, VoState
+from companion.types import F64, CameraFrame, PoseEstimate, VoState
 
-F64 = NDArray[np.float64]
 log = logging.getLogger("companion.offline")
 
 

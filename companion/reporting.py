@@ -20,8 +20,6 @@ from companion.evaluation.vo import VoMetrics
 from companion.geometry import so3
 from companion.offline import AttitudeRun, DposeRun, ScaleRun
 
-F64 = NDArray[np.float64]
-
 COLOURS = {
     "MSC": "tab:blue",
     "MSCwK": "tab:green",

@@ -13,16 +13,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.fusion import TiltFilter, vo_tilt_cov_in_body
 from companion.attitude.ground import RangeTilt, beams_body, tilt_from_normal, tilt_from_ranges
 from companion.attitude.options import AttitudeOptions
 from companion.attitude.terrain import compensate, surfaces_under, terrain_tilt_cov
 from companion.errors import ConfigError, GeometryError
-from companion.types import RangeSensorSpec, TiltEstimate
-
-F64 = NDArray[np.float64]
+from companion.types import F64, RangeSensorSpec, TiltEstimate
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from numpy.typing import NDArray
 
 from companion.attitude.ground import normal_from_tilt, tilt_from_normal
 from companion.geometry import so3
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 def tilt_error_of(roll_rad: float, pitch_rad: float, R_vo_body: F64) -> F64:

@@ -43,8 +43,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import so3
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 STANDARD_GRAVITY_M_S2 = 9.80665

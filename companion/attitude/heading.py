@@ -41,11 +41,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-from companion.types import ImuSample
+from companion.types import F64, ImuSample
 
-F64 = NDArray[np.float64]
 STANDARD_GRAVITY_M_S2 = 9.80665
 
 

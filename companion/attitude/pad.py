@@ -41,11 +41,10 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.geometry import so3
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 E_Z = np.array([0.0, 0.0, 1.0])
 
 

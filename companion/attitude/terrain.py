@@ -24,12 +24,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.ground import normal_of, plane_fit, tilt_jacobian
 from companion.geometry import so3
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 E_Z = np.array([0.0, 0.0, 1.0])
 

@@ -35,8 +35,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import CalibrationError
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 

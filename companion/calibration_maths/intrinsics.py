@@ -28,15 +28,13 @@ from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.calibration_maths.board import BoardView
 from companion.errors import CalibrationError, NotEnoughViewsError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 COVERAGE_GRID = (8, 6)  # image cells across and down for the coverage figure

@@ -47,9 +47,8 @@ from companion.errors import CalibrationError, GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.options import opt
-from companion.types import RangeSensorSpec
+from companion.types import F64, RangeSensorSpec
 
-F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 

@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from companion.types import F64
+
 U8 = NDArray[np.uint8]
 
 

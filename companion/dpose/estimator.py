@@ -21,9 +21,8 @@ from companion.dpose.solve import DposeSolution, Priors, SolveOptions, reference
 from companion.errors import GeometryError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
-from companion.types import RangeSensorSpec
+from companion.types import F64, RangeSensorSpec
 
-F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 

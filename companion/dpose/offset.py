@@ -20,9 +20,8 @@ reset_counter, so that EKF2 re-anchors its vision frame instead of fusing a jump
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 class DposeOffset:

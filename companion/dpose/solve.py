@@ -31,13 +31,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.dpose.pattern import PERMUTATIONS
 from companion.geometry import so3
 from companion.geometry.camera import CameraModel
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 def wrap_rad(angle: F64) -> F64:

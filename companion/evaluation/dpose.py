@@ -15,8 +15,7 @@ from numpy.typing import NDArray
 from companion.dpose.solve import Priors, reference_points, solve
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 @dataclass

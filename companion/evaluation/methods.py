@@ -21,11 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.evaluation.trajectory import ate_rmse, path_length
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 NO_WORLD = "no simulated world in the dataset: the true scale is ray cast in one"
 WORLD_FIGURES = ("scale_mse", "scale_mean_abs_rel_pct")

@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.evaluation.trajectory import ate_rmse, path_length
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 PHASES = ("ground", "climb", "cruise", "descent", "landed")
 
 

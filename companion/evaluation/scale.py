@@ -16,8 +16,7 @@ from numpy.typing import NDArray
 
 from companion.evaluation.trajectory import ate_rmse, path_length
 from companion.geometry import so3
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 @dataclass(frozen=True, slots=True)

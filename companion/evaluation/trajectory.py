@@ -11,11 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.errors import GeometryError
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 @dataclass(frozen=True, slots=True)

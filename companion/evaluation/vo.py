@@ -9,8 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.evaluation.trajectory import ate_rmse, path_length
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 @dataclass(frozen=True, slots=True)

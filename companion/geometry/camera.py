@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.errors import GeometryError
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
 

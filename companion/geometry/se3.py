@@ -7,12 +7,11 @@ exp/log follow the usual SE(3) parameterisation xi = (rho, omega) (6,), translat
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from companion.errors import GeometryError
 from companion.geometry import so3
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 def make(R: ArrayLike, t: ArrayLike) -> F64:

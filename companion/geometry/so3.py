@@ -8,11 +8,10 @@ Roll-pitch-yaw are aerospace ZYX angles: R = Rz(yaw) @ Ry(pitch) @ Rx(roll) [rad
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from companion.errors import GeometryError
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 _SMALL = 1e-10
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.estimator import RollPitch, TiltStep
 from companion.config import Config
@@ -30,6 +29,7 @@ from companion.pipeline.status import PipelineStatus, status_of
 from companion.scale.laser import RangeHistory
 from companion.scale.methods import MetricTrajectory, ScaleInput, make_methods
 from companion.types import (
+    F64,
     AttitudeSample,
     CameraFrame,
     ImuSample,
@@ -41,8 +41,6 @@ from companion.types import (
 )
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from companion.vo.odometry import VisualOdometry
-
-F64 = NDArray[np.float64]
 
 
 class Pipeline:

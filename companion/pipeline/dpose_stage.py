@@ -10,16 +10,13 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.config import Config
 from companion.dpose.estimator import Dpose
 from companion.dpose.offset import DposeOffset
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from companion.types import CameraFrame, PoseEstimate, RangeSensorSpec
-
-F64 = NDArray[np.float64]
+from companion.types import F64, CameraFrame, PoseEstimate, RangeSensorSpec
 
 
 @dataclass

@@ -12,7 +12,6 @@ from collections import deque
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.gravity import (
     AttitudeCorrection,
@@ -21,8 +20,7 @@ from companion.attitude.gravity import (
     gravity_from_motion,
 )
 from companion.pipeline.inputs import ImuHistory
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 MOTION_BUFFER = 1024  # motion samples of the last frames kept
 # the tilt correction of a 4 s window changes slowly: recomputed at most this often (~1 ms

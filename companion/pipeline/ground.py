@@ -11,16 +11,13 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude import ground as ground_fit
 from companion.attitude.pad import PadLevel
 from companion.config import Config
 from companion.scale.laser import RangeHistory
-from companion.types import GroundPlane
+from companion.types import F64, GroundPlane
 from companion.vo.keyframes import Down
-
-F64 = NDArray[np.float64]
 
 LANDED_HEIGHT_SIGMA_M = 0.02  # a configured landing-gear height: its uncertainty [m]
 GROUND_REST_SPREAD_M = 0.02  # readings spreading more than this (or 3 sigma) are not at rest

@@ -19,15 +19,13 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.heading import HeadingFix, MagHeading
 from companion.geometry import so3
 from companion.pipeline.inputs import ImuHistory
+from companion.types import F64
 from companion.vo.odometry import VisualOdometry
 from companion.vo.options import VoOptions
-
-F64 = NDArray[np.float64]
 
 # the compass window ends when the VO sees the body move this far or turn this much from
 # where the window started

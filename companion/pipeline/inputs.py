@@ -9,12 +9,9 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.geometry import so3
-from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
-
-F64 = NDArray[np.float64]
+from companion.types import F64, AttitudeSample, CameraFrame, ImuSample, RangeSample
 
 # what a pipeline takes between frames, and everything it takes
 Sample = AttitudeSample | RangeSample | ImuSample

@@ -10,14 +10,11 @@ from collections import deque
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.estimator import TiltStep
 from companion.attitude.fusion import corrected_rotation
 from companion.geometry import so3
-from companion.types import PoseEstimate, ScaleEstimate
-
-F64 = NDArray[np.float64]
+from companion.types import F64, PoseEstimate, ScaleEstimate
 
 VELOCITY_WINDOW_US = 150_000  # velocity = position difference over this long [us]
 POSITION_SIGMA_FLOOR_M = 0.02  # added to the scale-derived position sigma [m]

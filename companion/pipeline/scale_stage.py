@@ -10,14 +10,11 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.attitude.estimator import CloudView
 from companion.scale.laser import RangeHistory, laser_point_cam
 from companion.scale.options import ScaleOptions
-from companion.types import RangeSensorSpec, ScaleEstimate, VoOutput
-
-F64 = NDArray[np.float64]
+from companion.types import F64, RangeSensorSpec, ScaleEstimate, VoOutput
 
 MIN_GROUND_SIGMA_REL = 0.01  # a ground start's scale is trusted to 1 % at best (the plane fit)
 

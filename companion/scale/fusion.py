@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 
 def weighted_median(values: F64, weights: F64) -> float:

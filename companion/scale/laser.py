@@ -12,12 +12,9 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.geometry import se3
-from companion.types import RangeSample, RangeSensorSpec
-
-F64 = NDArray[np.float64]
+from companion.types import F64, RangeSample, RangeSensorSpec
 
 
 def laser_point_cam(spec: RangeSensorSpec, T_cam_body: F64, range_m: float) -> F64:

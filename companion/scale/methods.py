@@ -23,7 +23,6 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
@@ -31,9 +30,7 @@ from companion.scale import msc
 from companion.scale.fusion import fuse
 from companion.scale.kalman import ScaleKalman
 from companion.scale.options import ScaleOptions
-from companion.types import ScaleEstimate, VoOutput
-
-F64 = NDArray[np.float64]
+from companion.types import F64, ScaleEstimate, VoOutput
 
 MATCH_WINDOW = 300  # attempts kept per sensor for the match rate (10 s at 30 Hz)
 SWEEP_US = 1_000_000  # ReuseCounter forgets stale pairs this often

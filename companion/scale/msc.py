@@ -26,13 +26,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
-from companion.types import VoFeatures
-
-F64 = NDArray[np.float64]
+from companion.types import F64, VoFeatures
 
 
 @dataclass(frozen=True, slots=True)

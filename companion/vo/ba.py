@@ -26,8 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
 

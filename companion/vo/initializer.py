@@ -18,10 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3
+from companion.types import F64
 from companion.vo.ba import bundle_adjust
 from companion.vo.triangulation import triangulate
 
-F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
 _T_H = 5.99

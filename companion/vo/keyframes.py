@@ -12,11 +12,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry.camera import CameraModel
+from companion.types import F64
 from companion.vo.frontend import Tracks, coverage
 from companion.vo.map import Keyframe
 from companion.vo.options import VoOptions
 
-F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 Gravity = tuple[F64, float]  # (R_vo correction (3, 3), sigma_rad)
 Down = tuple[F64, float]  # (gravity (down, unit) in the body frame (3,), sigma_rad)

@@ -14,12 +14,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3
+from companion.types import F64
 from companion.vo.ba import bundle_adjust
 from companion.vo.frontend import Tracks
 from companion.vo.options import VoOptions
 from companion.vo.triangulation import triangulate
-
-F64 = NDArray[np.float64]
 
 
 @dataclass

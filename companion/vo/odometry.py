@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from companion.errors import GeometryError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
-from companion.types import CameraFrame, GroundPlane, VoFeatures, VoOutput, VoState
+from companion.types import F64, CameraFrame, GroundPlane, VoFeatures, VoOutput, VoState
 from companion.vo import keyframes as policy
 from companion.vo.frontend import Tracks, track
 from companion.vo.keyframes import Down, Gravity, PendingKeyframe
@@ -50,7 +50,6 @@ from companion.vo.states import (
     step_not_tracking,
 )
 
-F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 U8 = NDArray[np.uint8]
 

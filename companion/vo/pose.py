@@ -15,8 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
 

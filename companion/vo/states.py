@@ -24,7 +24,8 @@ from companion.vo.initializer import initialize
 if TYPE_CHECKING:
     from companion.vo.odometry import VisualOdometry
 
-F64 = NDArray[np.float64]
+from companion.types import F64
+
 U8 = NDArray[np.uint8]
 
 

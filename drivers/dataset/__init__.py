@@ -22,14 +22,13 @@ The modules:
 """
 
 from companion.drivers.dataset.detect import open_dataset
-from companion.drivers.dataset.format import F64, FORMAT_NAME, FORMAT_VERSION, PublishedPose
+from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, PublishedPose
 from companion.drivers.dataset.model import Dataset, DatasetStep, check_lens, dataset_steps
 from companion.drivers.dataset.rows import read_poses_csv
 from companion.drivers.dataset.tum import read_tum, write_tum
 from companion.drivers.dataset.writer import DatasetWriter, calibration_tables, write_poses_csv
 
 __all__ = [
-    "F64",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "Dataset",

@@ -7,7 +7,7 @@ import re
 
 import numpy as np
 
-from companion.drivers.dataset.format import F64, I64, MAX_TIME_US, QUAT_NORM_TOLERANCE, RowCount
+from companion.drivers.dataset.format import I64, MAX_TIME_US, QUAT_NORM_TOLERANCE, RowCount
 from companion.drivers.dataset.model import Dataset, check_lens
 from companion.drivers.safe_files import (
     SafeFolder,
@@ -18,6 +18,7 @@ from companion.errors import DatasetError
 from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.types import (
+    F64,
     AttitudeSample,
 )
 

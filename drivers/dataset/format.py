@@ -10,13 +10,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.types import (
+    F64,
     AttitudeSample,
     CameraFrame,
     ImuSample,
     RangeSample,
 )
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 FORMAT_NAME = "companion-dataset"

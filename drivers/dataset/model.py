@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import Config, SitlConfig
-from companion.drivers.dataset.format import F64, I64, Event, PublishedPose, RowCount
+from companion.drivers.dataset.format import I64, Event, PublishedPose, RowCount
 from companion.drivers.safe_files import (
     MAX_IMAGE_BYTES,
     SafeFolder,
@@ -25,6 +25,7 @@ from companion.errors import DatasetError, GeometryError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
 from companion.types import (
+    F64,
     AttitudeSample,
     CameraFrame,
     ImuSample,

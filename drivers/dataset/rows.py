@@ -14,7 +14,6 @@ import numpy as np
 
 from companion.drivers.dataset.format import (
     ATTITUDE_COLUMNS,
-    F64,
     FED,
     I64,
     IMU_COLUMNS,
@@ -41,6 +40,7 @@ from companion.drivers.safe_files import (
 )
 from companion.errors import DatasetError
 from companion.types import (
+    F64,
     AttitudeSample,
     ImuSample,
     RangeSample,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.drivers.dataset.format import F64, QUAT_NORM_TOLERANCE
+from companion.drivers.dataset.format import QUAT_NORM_TOLERANCE
 from companion.drivers.safe_files import (
     MAX_CSV_BYTES,
     SafeFolder,
@@ -15,6 +15,7 @@ from companion.drivers.safe_files import (
 )
 from companion.errors import DatasetError
 from companion.geometry import se3, so3
+from companion.types import F64
 
 
 def read_tum(path: Path) -> tuple[F64, F64]:

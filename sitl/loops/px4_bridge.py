@@ -48,7 +48,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import Config, RangefinderConfig, load_config
@@ -58,9 +57,7 @@ from companion.geometry import so3
 from companion.sitl.world.render import Renderer
 from companion.sitl.world.sensors import laser_hits
 from companion.sitl.world.terrain import World, make_world
-from companion.types import CameraFrame
-
-F64 = NDArray[np.float64]
+from companion.types import F64, CameraFrame
 
 EARTH_RADIUS_M = 6371000.0  # PX4's CONSTANTS_RADIUS_OF_EARTH (map projection)
 # our ground is flat (the home level, as SIH's) within PAD_FLAT_M of home, then eased into

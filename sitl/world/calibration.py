@@ -37,8 +37,8 @@ from companion.geometry.camera import CameraModel
 from companion.sitl.world.render import Renderer
 from companion.sitl.world.sensors import laser_hits
 from companion.sitl.world.terrain import World, make_world
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 _FLOOR_DN = 110.0  # grey level where the rays miss the board

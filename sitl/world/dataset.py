@@ -18,8 +18,9 @@ import tomli_w
 
 from companion import __version__
 from companion.config import Config, to_dict
-from companion.drivers.dataset import F64, FORMAT_NAME, FORMAT_VERSION, Dataset, write_tum
+from companion.drivers.dataset import FORMAT_NAME, FORMAT_VERSION, Dataset, write_tum
 from companion.errors import DatasetError
+from companion.types import F64
 
 if TYPE_CHECKING:
     from companion.sitl.world.scenario import Scenario, Step

@@ -22,8 +22,8 @@ from companion.sitl.world import _kernels
 from companion.sitl.world.sensors import laser_hits
 from companion.sitl.world.terrain import World
 from companion.sitl.world.trajectory import Trajectory
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 U8 = NDArray[np.uint8]
 

@@ -15,16 +15,13 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.config import Config
 from companion.sitl.world.render import RenderedFrame, Renderer
 from companion.sitl.world.sensors import AttitudeSimulator, RangeSimulator, TrueRange
 from companion.sitl.world.terrain import World, make_world
 from companion.sitl.world.trajectory import Trajectory
-from companion.types import AttitudeSample, CameraFrame
-
-F64 = NDArray[np.float64]
+from companion.types import F64, AttitudeSample, CameraFrame
 
 
 def render_threads() -> int:

@@ -22,9 +22,7 @@ from companion.config import RangefinderConfig
 from companion.geometry import so3
 from companion.sitl.world.terrain import World
 from companion.sitl.world.trajectory import Trajectory
-from companion.types import AttitudeSample, RangeSample
-
-F64 = NDArray[np.float64]
+from companion.types import F64, AttitudeSample, RangeSample
 
 
 @dataclass(frozen=True, slots=True)

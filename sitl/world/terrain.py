@@ -26,8 +26,8 @@ from scipy import ndimage
 
 from companion.errors import SitlError
 from companion.sitl.world import _kernels
+from companion.types import F64
 
-F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
 

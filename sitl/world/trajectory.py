@@ -16,15 +16,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import ndimage
 from scipy.interpolate import make_interp_spline
 
 from companion.errors import SitlError
 from companion.geometry import se3
 from companion.sitl.world.terrain import World
-
-F64 = NDArray[np.float64]
+from companion.types import F64
 
 TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad")
 GRAVITY_M_S2 = 9.80665
