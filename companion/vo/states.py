@@ -17,14 +17,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.geometry import se3, so3
-from companion.types import GroundPlane, VoState
+from companion.types import F64, GroundPlane, VoState
 from companion.vo.frontend import Tracks, detect
 from companion.vo.initializer import initialize
 
 if TYPE_CHECKING:
     from companion.vo.odometry import VisualOdometry
-
-from companion.types import F64
 
 U8 = NDArray[np.uint8]
 

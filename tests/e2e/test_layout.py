@@ -168,3 +168,20 @@ def test_every_product_module_has_its_test_folder_or_a_named_cover() -> None:
         if not any(folder.glob("test_*.py")):
             missing.append(f"{module}: no tests in {folder.relative_to(REPO)}/")
     assert missing == [], "\n".join(missing)
+
+
+def test_the_docs_name_files_that_exist() -> None:
+    """A path in a page a user reads (README, docs/ but the dated history in decisions.md) is a
+    file or folder of this repository: a room that moved takes its mentions with it."""
+    pattern = re.compile(
+        r"(?<![\w/.-])((?:companion|drivers|sitl|tests|config|systemd|docs)/[\w./-]*\w)"
+    )
+    missing = []
+    pages = [REPO / "README.md", REPO / "Makefile", *sorted((REPO / "docs").glob("*.md"))]
+    for page in pages:
+        if page.name == "decisions.md":
+            continue
+        for m in pattern.finditer(page.read_text()):
+            if not (REPO / m.group(1)).exists():
+                missing.append(f"{page.relative_to(REPO)}: {m.group(1)}")
+    assert missing == [], "\n".join(sorted(set(missing)))
