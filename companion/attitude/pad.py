@@ -5,7 +5,7 @@ Why: in a vertical climb over the ground the images cannot tell a tilt from a si
 autopilot without GNSS may be a degree off in the air (PX4 on SIH: 0.5-1.2 deg in the climb,
 docs/RESULTS.md) while it is good at rest (0.07 deg on the ground, same flights). The
 distance sensors see the ground's plane in the body frame with no such error; over a level
-plane that plane's normal is gravity (DESIGN.md section 4, companion/attitude/ground.py), and
+plane that plane's normal is gravity (docs/methods.md, companion/attitude/ground.py), and
 over any planar pad it is gravity once the pad's own tilt is known. So:
 
 1. At rest on the pad, the pad's normal in the world (NED, down) is measured with the

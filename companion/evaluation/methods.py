@@ -3,7 +3,7 @@
 A real recording (or any dataset that declares no simulated world) has no true scale: that
 comes from ray casting the simulator's terrain (``companion.evaluation.scale``), and a default
 world would give numbers about a place that was never flown. What a ground-truth trajectory
-does give, per method (DESIGN.md section 5):
+does give, per method (docs/methods.md):
 
 - metric ATE: RMSE of the method's metric body positions after an SE(3) alignment (no scale:
   the point is metric scale), also as % of the path, and the final-position error;

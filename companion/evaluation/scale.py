@@ -1,4 +1,4 @@
-"""Metric-scale metrics (DESIGN.md section 5).
+"""Metric-scale metrics (docs/methods.md).
 
 Ground-truth scale at a frame: the median over tracked map points of true depth / VO depth,
 the true depth by ray casting the simulator's terrain from the true camera pose. Errors are
