@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,7 @@ from companion.drivers.dataset import write_tum
 from companion.evaluation.attitude import rmse_summary, wrap_rad
 from companion.evaluation.dpose import BandErrors, RandomPoseStudy, dpose_metrics, pose_errors
 from companion.evaluation.scale import ScaleMetrics
+from companion.evaluation.tables import markdown_table
 from companion.evaluation.trajectory import poses_from_positions, umeyama
 from companion.evaluation.vo import VoMetrics
 from companion.geometry import so3
@@ -40,12 +40,6 @@ METRIC_COLUMNS = [
     "final_error_m",
     "path_m",
 ]
-
-
-def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
-    """A Markdown table: the header's cells, the ``|---|`` rule, then one line per row."""
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    return "\n".join([*lines, *("| " + " | ".join(row) + " |" for row in rows)])
 
 
 def write_tables(metrics: list[ScaleMetrics], out: Path, title: str) -> str:

@@ -22,8 +22,8 @@ from companion.cli.common import EXIT_OK, out_dir, progress
 from companion.config import Config, load_config
 from companion.drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
 from companion.errors import CompanionError
+from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
-from companion.reporting import markdown_table
 from companion.types import PoseEstimate
 
 NO_RANGES = "the dataset has no distance sensors (ranges.csv): no metric scale"
