@@ -1,13 +1,14 @@
 """Typed configuration: frozen dataclasses loaded from TOML, validated once at load.
 
 Every option lives in exactly one dataclass field with a default and a one-line ``help``
-(DESIGN.md section 7). The loader walks the fields, so adding an option is one line. A wrong
-type, a value outside its bounds or an unknown key raises :class:`ConfigError` naming the key
-(``camera.fx: must be > 0, got -5.0``); the CLI turns that into exit code 2.
+(docs/architecture.md, "Conventions"). The loader walks the fields, so adding an option is one
+line. A wrong type, a value outside its bounds or an unknown key raises :class:`ConfigError`
+naming the key (``camera.fx: must be > 0, got -5.0``); the CLI turns that into exit code 2.
 
 Frames: sensor mounts are given in the body frame (FRD) as a position ``xyz_m`` and ZYX angles
 ``rpy_deg`` of the sensor frame; a camera with ``rpy_deg = [0, 0, 90]`` looks down with the image
-top towards the nose (DESIGN.md section 2). A range sensor's beam is +z of its own frame.
+top towards the nose (docs/architecture.md, "Frames, units, names"). A range sensor's beam is +z
+of its own frame.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""One root exception, one subclass per area (DESIGN.md section 7)."""
+"""One root exception, one subclass per area (docs/architecture.md, "Conventions")."""
 
 
 class CompanionError(Exception):

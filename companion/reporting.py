@@ -15,6 +15,7 @@ from companion.drivers.dataset import write_tum
 from companion.evaluation.attitude import rmse_summary, wrap_rad
 from companion.evaluation.dpose import BandErrors, RandomPoseStudy, dpose_metrics, pose_errors
 from companion.evaluation.scale import ScaleMetrics
+from companion.evaluation.tables import markdown_table
 from companion.evaluation.trajectory import poses_from_positions, umeyama
 from companion.evaluation.vo import VoMetrics
 from companion.geometry import so3
@@ -49,17 +50,22 @@ def write_tables(metrics: list[ScaleMetrics], out: Path, title: str) -> str:
         w.writeheader()
         w.writerows(rows)
     (out / "scale_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
-    lines = [
-        "| method | scale MSE | mean abs rel. scale error | metric ATE (SE3) | ATE % path "
-        "| final error |",
-        "|---|---|---|---|---|---|",
-    ]
-    for m in metrics:
-        lines.append(
-            f"| {m.method} | {m.scale_mse:.2e} | {m.scale_mean_abs_rel_pct:.2f} % | "
-            f"{m.ate_m:.3f} m | {m.ate_pct:.2f} % | {m.final_error_m:.2f} m |"
-        )
-    table = "\n".join(lines)
+    header = ["method", "scale MSE", "mean abs rel. scale error", "metric ATE (SE3)"]
+    header += ["ATE % path", "final error"]
+    table = markdown_table(
+        header,
+        (
+            [
+                m.method,
+                f"{m.scale_mse:.2e}",
+                f"{m.scale_mean_abs_rel_pct:.2f} %",
+                f"{m.ate_m:.3f} m",
+                f"{m.ate_pct:.2f} %",
+                f"{m.final_error_m:.2f} m",
+            ]
+            for m in metrics
+        ),
+    )
     (out / "report.md").write_text(f"# {title}\n\n{table}\n")
     return table
 
@@ -446,18 +452,24 @@ def write_dpose(run: DposeRun, out: Path, title: str) -> str:
     estimates = {DPOSE_LABELS[n]: np.array(getattr(run, n)) for n in ("dpose", "vo")}
     rows = dpose_metrics(truth, np.array(run.height_m), estimates)
     (out / "dpose_metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
-    lines = [
-        "| estimate | heights | frames | available | translation MSE | translation RMSE "
-        "| orientation MSE | orientation RMSE |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['estimate']} | {r['heights']} | {r['frames']} | {100 * r['available']:.1f} % "
-            f"| {r['t_mse_m2']:.2e} m² | {r['t_rmse_m']:.3f} m | {r['r_mse_deg2']:.3f} deg² "
-            f"| {r['r_rmse_deg']:.3f} deg |"
-        )
-    table = "\n".join(lines)
+    header = ["estimate", "heights", "frames", "available", "translation MSE"]
+    header += ["translation RMSE", "orientation MSE", "orientation RMSE"]
+    table = markdown_table(
+        header,
+        (
+            [
+                str(r["estimate"]),
+                str(r["heights"]),
+                str(r["frames"]),
+                f"{100 * r['available']:.1f} %",
+                f"{r['t_mse_m2']:.2e} m²",
+                f"{r['t_rmse_m']:.3f} m",
+                f"{r['r_mse_deg2']:.3f} deg²",
+                f"{r['r_rmse_deg']:.3f} deg",
+            ]
+            for r in rows
+        ),
+    )
     why = "\n".join(
         f"- {n} frames: {k}" for k, n in sorted(run.reasons.items(), key=lambda x: -x[1])
     )

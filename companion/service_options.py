@@ -1,7 +1,7 @@
 """Options of the service, its links and its telemetry (composed into the config as [service]).
 
-They sit beside `config.py`, below the service and the drivers that read them (DESIGN.md
-section 1: the config is composed below everything that uses it)."""
+They sit beside `config.py`, below the service and the drivers that read them (docs/architecture.md:
+the config is composed below everything that uses it)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Frozen value types that cross module boundaries (DESIGN.md section 3).
+"""Frozen value types that cross module boundaries (docs/architecture.md, "Types that cross
+modules").
 
 Conventions: world frame local NED, body FRD, camera OpenCV (x right, y down, z optical axis).
 ``T_a_b`` (4, 4) maps points from frame b into frame a. Quaternions are Hamilton ``quat_wxyz``.

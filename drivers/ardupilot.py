@@ -1,5 +1,5 @@
 """The autopilot's dialect: which one speaks (HEARTBEAT.autopilot) and what ArduPilot needs on
-top of the messages PX4 and ArduPilot share (DESIGN.md section 6; docs/decisions.md,
+top of the messages PX4 and ArduPilot share (docs/service.md; docs/decisions.md,
 "ArduPilot's dialect").
 
 Both take VISION_POSITION_ESTIMATE and ODOMETRY (frame_id LOCAL_FRD, child_frame_id BODY_FRD,

@@ -1,4 +1,4 @@
-"""Capped, jittered exponential backoff for reconnecting links (DESIGN.md section 6).
+"""Capped, jittered exponential backoff for reconnecting links (docs/service.md).
 
 ``Backoff(first_s, cap_s)``: each ``next_s()`` is the current delay times a uniform factor in
 [0.5, 1.5) (so that many vehicles, or many links of one, do not retry in step), and the delay

@@ -1,4 +1,4 @@
-"""MAVLink wire data <-> the frozen types of companion.types (DESIGN.md section 6).
+"""MAVLink wire data <-> the frozen types of companion.types (docs/service.md).
 
 In: DISTANCE_SENSOR (cm, orientation 25 = downward, id = instance, signal_quality 0 unknown /
 1 invalid / 2..100) mapped to a configured sensor by its id; ATTITUDE (rad, time_boot_ms).

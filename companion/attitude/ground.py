@@ -6,7 +6,7 @@ through the points, written z = a + b x + c y in the body frame (the readings' e
 the beams, which are close to body z), has the downward unit normal
 n = (-b, -c, 1) / |(-b, -c, 1)|. Over a level plane n is gravity in the body frame,
 g_b = R_world_body^T e_z = (-sin(theta), sin(phi) cos(theta), cos(phi) cos(theta)) for ZYX
-roll phi and pitch theta (DESIGN.md section 4), hence
+roll phi and pitch theta (docs/methods.md), hence
 
     phi = atan2(n_y, n_z),    theta = atan2(-n_x, sqrt(n_y^2 + n_z^2)).
 

@@ -38,7 +38,7 @@ window is no longer one angle.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -74,28 +74,25 @@ class HeadingFix:
     span_us: int
 
 
+@dataclass(eq=False)
 class MagHeading:
     """Accumulates accelerometer and magnetometer samples (ImuSample with ``mag_frd_gauss``)
     while the body stands still; :meth:`fix` is equation (1) over them."""
 
-    def __init__(
-        self,
-        declination_rad: float,
-        max_rate_rad_s: float = 0.05,
-        max_force_error_m_s2: float = 0.5,
-    ) -> None:
-        self.declination_rad = declination_rad
-        self.max_rate_rad_s = max_rate_rad_s
-        self.max_force_error_m_s2 = max_force_error_m_s2
-        self.moved = False  # a sample that was not still ended the window
-        self.last_us: int | None = None  # the newest sample seen
-        self._first_us: int | None = None  # the first and last magnetometer samples averaged
-        self._last_field_us: int | None = None
-        self._last_field: F64 | None = None
-        self._n = 0
-        self._force_sum = np.zeros(3)
-        self._field_sum = np.zeros(3)
-        self._field_outer = np.zeros((3, 3))  # sum of m m^T, for the scatter
+    declination_rad: float
+    max_rate_rad_s: float = 0.05
+    max_force_error_m_s2: float = 0.5
+    moved: bool = field(init=False, default=False)  # a sample that was not still ended it
+    last_us: int | None = field(init=False, default=None)  # the newest sample seen
+    # the first and last magnetometer samples averaged
+    _first_us: int | None = field(init=False, default=None)
+    _last_field_us: int | None = field(init=False, default=None)
+    _last_field: F64 | None = field(init=False, default=None)
+    _n: int = field(init=False, default=0)
+    _force_sum: F64 = field(init=False, default_factory=lambda: np.zeros(3))
+    _field_sum: F64 = field(init=False, default_factory=lambda: np.zeros(3))
+    # sum of m m^T, for the scatter
+    _field_outer: F64 = field(init=False, default_factory=lambda: np.zeros((3, 3)))
 
     def add(self, sample: ImuSample) -> None:
         """Take one sample (older than the last one seen: ignored). Samples without a

@@ -5,7 +5,7 @@ Why: in a vertical climb over the ground the images cannot tell a tilt from a si
 autopilot without GNSS may be a degree off in the air (PX4 on SIH: 0.5-1.2 deg in the climb,
 docs/RESULTS.md) while it is good at rest (0.07 deg on the ground, same flights). The
 distance sensors see the ground's plane in the body frame with no such error; over a level
-plane that plane's normal is gravity (DESIGN.md section 4, companion/attitude/ground.py), and
+plane that plane's normal is gravity (docs/methods.md, companion/attitude/ground.py), and
 over any planar pad it is gravity once the pad's own tilt is known. So:
 
 1. At rest on the pad, the pad's normal in the world (NED, down) is measured with the
@@ -39,6 +39,7 @@ a radius of where the vehicle rested use it (the caller's check, :meth:`PadLevel
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -48,6 +49,7 @@ from companion.types import F64
 E_Z = np.array([0.0, 0.0, 1.0])
 
 
+@dataclass(eq=False)
 class PadLevel:
     """The pad measured at rest, then the autopilot's tilt error over it from the ranges.
 
@@ -55,31 +57,23 @@ class PadLevel:
     body's metric position (3,) in the caller's gravity-aligned frame, with ``segment`` naming
     that frame (a new VO map moves the origin: the pad's position is then unknown)."""
 
-    def __init__(
-        self,
-        window_us: int,
-        sigma_floor_rad: float,
-        max_error_rad: float,
-        min_samples: int = 10,
-        rest_window_us: int = 10_000_000,
-        rest_guard_us: int = 1_000_000,
-    ) -> None:
-        self.window_us = window_us
-        self.sigma_floor_rad = sigma_floor_rad
-        self.max_error_rad = max_error_rad
-        self.min_samples = min_samples
-        self.rest_window_us = rest_window_us
-        self.rest_guard_us = rest_guard_us
-        # (time, n_world) of the current rest: the last rest_guard_us, and the settled ones
-        # before (their sum kept as they come and go: a rest is ~30 planes a second)
-        self._rest: deque[tuple[int, F64]] = deque()
-        self._settled: deque[tuple[int, F64]] = deque()
-        self._settled_sum = np.zeros(3)
-        self._air: deque[tuple[int, F64]] = deque()  # (time, e) of the flight over the pad
-        self.n_pad: F64 | None = None  # the pad's downward normal (world)
-        self.centre_m: F64 | None = None  # where the body rested (caller's frame)
-        self.segment: object = None
-        self.refused = 0  # air samples off the autopilot by more than max_error_rad
+    window_us: int
+    sigma_floor_rad: float
+    max_error_rad: float
+    min_samples: int = 10
+    rest_window_us: int = 10_000_000
+    rest_guard_us: int = 1_000_000
+    # (time, n_world) of the current rest: the last rest_guard_us, and the settled ones
+    # before (their sum kept as they come and go: a rest is ~30 planes a second)
+    _rest: deque[tuple[int, F64]] = field(init=False, default_factory=deque)
+    _settled: deque[tuple[int, F64]] = field(init=False, default_factory=deque)
+    _settled_sum: F64 = field(init=False, default_factory=lambda: np.zeros(3))
+    # (time, e) of the flight over the pad
+    _air: deque[tuple[int, F64]] = field(init=False, default_factory=deque)
+    n_pad: F64 | None = field(init=False, default=None)  # the pad's downward normal (world)
+    centre_m: F64 | None = field(init=False, default=None)  # where the body rested
+    segment: object = field(init=False, default=None)
+    refused: int = field(init=False, default=0)  # air samples off the autopilot by > max_error
 
     def at_rest(
         self, time_us: int, n_body: F64, R_world_body: F64, position_m: F64 | None, segment: object

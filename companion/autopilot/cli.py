@@ -166,12 +166,19 @@ def cmd_configure(args: argparse.Namespace) -> int:
     return EXIT_OK if report.problems == 0 else EXIT_PROBLEMS
 
 
-def _add_commands(sub: Any, dest: str, texts: tuple[str, str], autopilot_flag: bool) -> None:
-    """``check`` and ``configure`` under ``sub`` (``--autopilot`` only where asked)."""
-    a_sub = sub.add_subparsers(dest=dest, required=True)
+CONFIGURE_TEXT = "write the values check asks for (typed, read back; not while armed)"
+
+
+def _add_commands(
+    sub: Any, command: str, help_text: str, check_text: str, autopilot_flag: bool
+) -> None:
+    """The subcommand ``command`` with ``check`` and ``configure`` under it (``--autopilot``
+    only where asked); the chosen one in ``args.<command>_command``."""
+    p = sub.add_parser(command, help=help_text)
+    a_sub = p.add_subparsers(dest=f"{command}_command", required=True)
     for name, func, skip, text in (
-        ("check", cmd_check, CONFIGURE_ONLY, texts[0]),
-        ("configure", cmd_configure, CHECK_ONLY, texts[1]),
+        ("check", cmd_check, CONFIGURE_ONLY, check_text),
+        ("configure", cmd_configure, CHECK_ONLY, CONFIGURE_TEXT),
     ):
         q = a_sub.add_parser(name, help=text)
         q.add_argument("--config", type=Path, help="TOML config (the service's)")
@@ -190,19 +197,11 @@ def _add_commands(sub: Any, dest: str, texts: tuple[str, str], autopilot_flag: b
 
 def add_parser(sub: Any) -> None:
     """Add ``autopilot check`` and ``autopilot configure`` to the ``companion`` subcommands."""
-    p = sub.add_parser("autopilot", help=HELP)
-    texts = (
-        "the parameters for external navigation, and whether the EKF fuses us",
-        "write the values check asks for (typed, read back; not while armed)",
-    )
-    _add_commands(p, "autopilot_command", texts, autopilot_flag=True)
+    check = "the parameters for external navigation, and whether the EKF fuses us"
+    _add_commands(sub, "autopilot", HELP, check, autopilot_flag=True)
 
 
 def add_px4_parser(sub: Any) -> None:
     """Add ``px4 check`` and ``px4 configure`` (``autopilot ... --autopilot px4``)."""
-    p = sub.add_parser("px4", help=PX4_HELP)
-    texts = (
-        "the EKF2 / MAVLink parameters for external vision, and whether EKF2 fuses us",
-        "write the values check asks for (typed, read back; not while armed)",
-    )
-    _add_commands(p, "px4_command", texts, autopilot_flag=False)
+    check = "the EKF2 / MAVLink parameters for external vision, and whether EKF2 fuses us"
+    _add_commands(sub, "px4", PX4_HELP, check, autopilot_flag=False)

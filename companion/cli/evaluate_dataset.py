@@ -22,6 +22,7 @@ from companion.cli.common import EXIT_OK, out_dir, progress
 from companion.config import Config, load_config
 from companion.drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
 from companion.errors import CompanionError
+from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
 from companion.types import PoseEstimate
 
@@ -185,18 +186,24 @@ def _write_no_world(rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path) 
         "vo": None if vo is None else {k: getattr(vo, k) for k in vo.__slots__},
     }
     (out / "scale_metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
-    lines = [
-        "| method | frames | metric ATE (SE3) | ATE % path | Sim(3) ATE | Sim(3) scale "
-        "| final error | scale MSE |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r.method} | {r.frames} | {_fmt(r.ate_se3_m, ' m', 3)} | "
-            f"{_fmt(r.ate_se3_pct, ' %', 2)} | {_fmt(r.ate_sim3_m, ' m', 3)} | "
-            f"{_fmt(r.sim3_scale, '', 4)} | {_fmt(r.final_error_m, ' m', 2)} | "
-            f"{_fmt(r.scale_mse, '', 2)} |"
-        )
+    header = ["method", "frames", "metric ATE (SE3)", "ATE % path", "Sim(3) ATE"]
+    header += ["Sim(3) scale", "final error", "scale MSE"]
+    metrics = markdown_table(
+        header,
+        (
+            [
+                r.method,
+                str(r.frames),
+                _fmt(r.ate_se3_m, " m", 3),
+                _fmt(r.ate_se3_pct, " %", 2),
+                _fmt(r.ate_sim3_m, " m", 3),
+                _fmt(r.sim3_scale, "", 4),
+                _fmt(r.final_error_m, " m", 2),
+                _fmt(r.scale_mse, "", 2),
+            ]
+            for r in rows
+        ),
+    )
     reasons = sorted({why for r in rows for why in r.unavailable.values()})
     notes = [f"- unavailable: {why}" for why in reasons]
     if vo is not None:
@@ -206,7 +213,7 @@ def _write_no_world(rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path) 
         )
     if not rows:
         notes.append("- the VO never tracked: no method has an estimate")
-    table = "\n".join([*lines, "", *notes])
+    table = "\n".join([metrics, "", *notes])
     (out / "report.md").write_text(f"# Metric scale on {ds.path.name} (no world)\n\n{table}\n")
     from companion.evaluation.trajectory import poses_from_positions
 

@@ -3,7 +3,7 @@
 ``companion sitl record | sheet | run | px4 | ardupilot`` and ``companion demo`` live here. The
 other command modules get simulator objects (a flight, its events, a recorded flight's world, the
 soak, synthetic calibration input) only through the functions below: no other module of
-``companion`` imports ``sitl`` (DESIGN.md section 1). ``sitl`` is imported inside them, so
+``companion`` imports ``sitl`` (docs/architecture.md). ``sitl`` is imported inside them, so
 ``companion run | status | config`` never load the simulator (numba, the renderer).
 """
 

@@ -1,4 +1,4 @@
-"""d-Pose as one object: arm it, then feed frames (pure; DESIGN.md section 4).
+"""d-Pose as one object: arm it, then feed frames (pure; docs/methods.md).
 
 Arming (``arm``): the four lasers' distances and mounts give the marks' metric 3D points in the
 pattern frame, which is the body frame at that moment; the reference pose T_world_body at that

@@ -1,5 +1,5 @@
 """Vertex map and pose: which detected mark is which laser, and the camera's 6DoF pose
-relative to the pattern (pure; thesis chapter 7, reconstructed in DESIGN.md section 4).
+relative to the pattern (pure; thesis chapter 7, reconstructed in docs/methods.md).
 
 The pattern frame is the body frame at the arming time: the marks' 3D points there are
 ``o_k + d_k u_k`` from the lasers' mounts and the four measured distances (metric).

@@ -1,4 +1,4 @@
-"""Roll/pitch accuracy: RMSE in degrees against ground truth (DESIGN.md section 5)."""
+"""Roll/pitch accuracy: RMSE in degrees against ground truth (docs/methods.md)."""
 
 from __future__ import annotations
 

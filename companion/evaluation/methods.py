@@ -3,7 +3,7 @@
 A real recording (or any dataset that declares no simulated world) has no true scale: that
 comes from ray casting the simulator's terrain (``companion.evaluation.scale``), and a default
 world would give numbers about a place that was never flown. What a ground-truth trajectory
-does give, per method (DESIGN.md section 5):
+does give, per method (docs/methods.md):
 
 - metric ATE: RMSE of the method's metric body positions after an SE(3) alignment (no scale:
   the point is metric scale), also as % of the path, and the final-position error;
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.evaluation.trajectory import ate_rmse, path_length
+from companion.evaluation.trajectory import ate_rmse, final_error_m, path_length
 from companion.types import F64
 
 NO_WORLD = "no simulated world in the dataset: the true scale is ray cast in one"
@@ -81,8 +81,7 @@ def trajectory_accuracy(
     ate_se3, _ = ate_rmse(est, gt, "se3")
     ate_sim3, sim3 = ate_rmse(est, gt, "sim3")
     length = path_length(gt)
-    world = est @ R_world_vo.T
-    final = float(np.linalg.norm((world[-1] - world[0]) - (gt[-1] - gt[0])))
+    final = final_error_m(est, gt, R_world_vo)
     return MethodAccuracy(
         method,
         n,

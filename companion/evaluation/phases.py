@@ -7,7 +7,7 @@ faster than ``rate_m_s``), ``cruise``, ``descent`` (sinking faster than ``rate_m
 local NED whose origin is the first published pose and whose yaw is the autopilot's heading
 then, so both are taken relative to the first published pose and no alignment is fitted: what
 the autopilot would see. The whole-flight metric ATE (SE(3)
-alignment, DESIGN.md section 5) is given beside it.
+alignment, docs/methods.md) is given beside it.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Metric-scale metrics (DESIGN.md section 5).
+"""Metric-scale metrics (docs/methods.md).
 
 Ground-truth scale at a frame: the median over tracked map points of true depth / VO depth,
 the true depth by ray casting the simulator's terrain from the true camera pose. Errors are
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.evaluation.trajectory import ate_rmse, path_length
+from companion.evaluation.trajectory import ate_rmse, final_error_m, path_length
 from companion.geometry import so3
 from companion.types import F64
 
@@ -67,8 +67,7 @@ def scale_metrics(
     gt = gt_position_m[sel]
     ate, _ = ate_rmse(est, gt, "se3")
     length = path_length(gt)
-    world = est @ R_world_vo.T
-    final = float(np.linalg.norm((world[-1] - world[0]) - (gt[-1] - gt[0])))
+    final = final_error_m(est, gt, R_world_vo)
     return ScaleMetrics(
         method,
         n,

@@ -67,6 +67,14 @@ def path_length(positions: F64) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
 
 
+def final_error_m(position_m: F64, gt_position_m: F64, R_world_vo: F64) -> float:
+    """Final-position error [m]: the estimate's displacement from its first position to its
+    last, turned into the world by R_world_vo (3, 3), against the truth's (positions (N, 3),
+    the estimate in the VO frame's orientation, the truth in the world)."""
+    world = position_m @ R_world_vo.T
+    return float(np.linalg.norm((world[-1] - world[0]) - (gt_position_m[-1] - gt_position_m[0])))
+
+
 def poses_from_positions(positions: F64) -> F64:
     """Poses (N, 4, 4) with the identity rotation at positions (N, 3) (for TUM files of
     trajectories that have positions only)."""

@@ -2,7 +2,7 @@
 
 A distance sensor's beam leaves its origin along +z of its frame, so the laser point of a
 reading d [m] is P_rf = (0, 0, d); in the camera frame P_cam = T_cam_body @ T_body_rf @ P_rf
-(DESIGN.md section 4, MSC). Ranges arrive at their own rates; a frame at time t uses the
+(docs/methods.md, MSC). Ranges arrive at their own rates; a frame at time t uses the
 linear interpolation of the two samples around t (refused when they are further apart than
 max_gap_us), or the nearest sample when it is at most max_age_us away (stale otherwise).
 """

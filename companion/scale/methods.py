@@ -82,6 +82,15 @@ class Method(ABC):
     # per sensor: did its MSC match succeed, over the last MATCH_WINDOW attempts (status)
     match_history: dict[int, deque[bool]] = field(default_factory=dict)
 
+    def first_laser_pixel(self, inp: ScaleInput) -> tuple[F64, F64] | None:
+        """The first sensor's laser point (3,) [m, camera frame] and its pixel (2,), or None
+        (no reading, or the point is outside the image)."""
+        if not inp.lasers:
+            return None
+        _, p_cam, _ = inp.lasers[next(iter(inp.lasers))]
+        uv = msc.laser_pixel(self.camera, p_cam)
+        return None if uv is None else (p_cam, uv)
+
     def match_rates(self) -> dict[int, float]:
         """Per sensor id: the share of recent frames with a reading whose MSC match (a
         consistent VO patch around the laser pixel) succeeded."""
@@ -349,14 +358,12 @@ class B8PerFrame(Method):
     features within the patch), first sensor, every frame."""
 
     def update(self, inp: ScaleInput) -> None:
-        if not inp.lasers:
-            return
-        _, p_cam, _ = inp.lasers[next(iter(inp.lasers))]
-        uv = msc.laser_pixel(self.camera, p_cam)
+        laser = self.first_laser_pixel(inp)
         f = inp.vo.features
         has = f.point_ids >= 0
-        if uv is None or not has.any():
+        if laser is None or not has.any():
             return
+        p_cam, uv = laser
         d = np.linalg.norm(f.pixels[has] - uv, axis=1)
         near = d <= self.opts.patch_half_px
         if not near.any():
@@ -374,14 +381,12 @@ class B9Plane(Method):
     ray through that pixel; first sensor, every frame."""
 
     def update(self, inp: ScaleInput) -> None:
-        if not inp.lasers:
-            return
-        _, p_cam, _ = inp.lasers[next(iter(inp.lasers))]
-        uv = msc.laser_pixel(self.camera, p_cam)
+        laser = self.first_laser_pixel(inp)
         f = inp.vo.features
         has = np.flatnonzero(f.point_ids >= 0)
-        if uv is None or len(has) < 3:
+        if laser is None or len(has) < 3:
             return
+        p_cam, uv = laser
         d = np.linalg.norm(f.pixels[has] - uv, axis=1)
         near = has[np.argsort(d)[:3]]
         if np.sort(d)[2] > 4 * self.opts.patch_half_px:

@@ -4,7 +4,7 @@ At a frame, the sensor's laser point P_cam (camera frame, metres) is projected w
 camera model (distortion included); among the VO features with a 3D point inside a square
 patch around that pixel, the closest one is taken (the thesis prefers the closest point to a
 plane fit on rough terrain). The scale is the ratio of the metric distance camera -> laser
-point to the VO distance camera -> matched map point (DESIGN.md section 4):
+point to the VO distance camera -> matched map point (docs/methods.md):
 
     s = |P_cam| / |T_cam_vo @ X_vo|
 

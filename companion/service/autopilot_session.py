@@ -16,6 +16,7 @@ import contextlib
 import logging
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import numpy as np
@@ -24,7 +25,7 @@ from companion.drivers import ardupilot, messages
 from companion.drivers.timesync import ClockSync, RequesterModel, reply_for
 from companion.service.autopilot_requests import EkfOrigin, MessageRates
 from companion.service.runtime import AutopilotKind, Runtime
-from companion.types import AttitudeSample, ImuSample, RangeSample
+from companion.types import F64, AttitudeSample, ImuSample, RangeSample
 
 log = logging.getLogger("companion.service")
 
@@ -35,37 +36,37 @@ SampleT = TypeVar("SampleT", AttitudeSample, ImuSample)
 Samples = tuple[list[RangeSample], list[AttitudeSample], list[ImuSample]]
 
 
+def _sample_queue() -> deque[Any]:
+    """Bounded: if the pipeline stalls, the oldest samples go first."""
+    return deque(maxlen=SAMPLE_QUEUE_MAX)
+
+
+@dataclass(eq=False, repr=False)
 class AutopilotSession:
     """The link's messages handled by kind (a dispatch table), our HEARTBEAT and TIMESYNC."""
 
-    def __init__(
-        self,
-        rt: Runtime,
-        link: Any,
-        sensors: dict[int, Any],
-        sync: ClockSync,
-        px4_stamps: RequesterModel,
-        rates: MessageRates,
-        origin: EkfOrigin,
-    ) -> None:
-        self.rt = rt
-        self.link = link
-        # the sensors the autopilot reports (DISTANCE_SENSOR) by id; one wired to the
-        # companion (a TFmini on serial) is read here only, so the autopilot's own
-        # rangefinder with the same id (PX4 SIH streams id 0) is not mixed into it
-        self.sensors = sensors
-        self.rates = rates
-        self.origin = origin
-        self.sync = sync  # our estimate of the autopilot's clock
-        self.px4_stamps = px4_stamps  # PX4's own time sync as our answers drive it
-        self.timesync_sent: deque[int] = deque(maxlen=16)  # ts1 of our recent requests
-        self.attitude_rates = np.zeros(3)  # the latest ATTITUDE's body rates [rad/s]
-        # bounded: if the pipeline stalls, the oldest samples go first
-        self.ranges: deque[RangeSample] = deque(maxlen=SAMPLE_QUEUE_MAX)
-        self.attitudes: deque[AttitudeSample] = deque(maxlen=SAMPLE_QUEUE_MAX)
-        self.imus: deque[ImuSample] = deque(maxlen=SAMPLE_QUEUE_MAX)
-        self.loop: asyncio.AbstractEventLoop | None = None  # set on entry (serial samples)
-        self._handlers: dict[str, Callable[[Any, int], None]] = {
+    rt: Runtime
+    link: Any
+    # the sensors the autopilot reports (DISTANCE_SENSOR) by id; one wired to the
+    # companion (a TFmini on serial) is read here only, so the autopilot's own
+    # rangefinder with the same id (PX4 SIH streams id 0) is not mixed into it
+    sensors: dict[int, Any]
+    sync: ClockSync  # our estimate of the autopilot's clock
+    px4_stamps: RequesterModel  # PX4's own time sync as our answers drive it
+    rates: MessageRates
+    origin: EkfOrigin
+    # ts1 of our recent requests
+    timesync_sent: deque[int] = field(init=False, default_factory=lambda: deque(maxlen=16))
+    # the latest ATTITUDE's body rates [rad/s]
+    attitude_rates: F64 = field(init=False, default_factory=lambda: np.zeros(3))
+    ranges: deque[RangeSample] = field(init=False, default_factory=_sample_queue)
+    attitudes: deque[AttitudeSample] = field(init=False, default_factory=_sample_queue)
+    imus: deque[ImuSample] = field(init=False, default_factory=_sample_queue)
+    loop: asyncio.AbstractEventLoop | None = field(init=False, default=None)  # set on entry
+    _handlers: dict[str, Callable[[Any, int], None]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._handlers = {
             "TIMESYNC": self._on_timesync,
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_ACK": self._on_command_ack,

@@ -10,6 +10,7 @@ as events.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from companion.service.mqtt import MqttPublisher
@@ -17,21 +18,17 @@ from companion.service.publisher import Publisher
 from companion.service.runtime import Runtime
 
 
+@dataclass(eq=False, repr=False)
 class MqttFeed:
     """The service's loops that feed the MQTT client."""
 
-    def __init__(
-        self,
-        rt: Runtime,
-        mqtt: MqttPublisher,
-        status: Callable[[], dict[str, Any]],
-        publisher: Publisher,
-    ) -> None:
-        self.rt = rt
-        self.mqtt = mqtt
-        self.status = status
-        self.publisher = publisher
-        rt.warning_listeners.append(mqtt.publish_event)
+    rt: Runtime
+    mqtt: MqttPublisher
+    status: Callable[[], dict[str, Any]]
+    publisher: Publisher
+
+    def __post_init__(self) -> None:
+        self.rt.warning_listeners.append(self.mqtt.publish_event)
 
     async def status_loop(self) -> None:
         """The status, at service.mqtt.status_hz."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from companion.drivers import messages
@@ -26,27 +27,20 @@ AUTOPILOT_UNHEARD_S = 5.0  # no heartbeat this long after the start: said, with 
 HEALTH_PERIOD_S = 0.5
 
 
+@dataclass(eq=False, repr=False)
 class OperatorMessages:
     """The health check's warnings and the STATUSTEXT to the ground station."""
 
-    def __init__(
-        self,
-        rt: Runtime,
-        link: Any,
-        camera: Any,
-        intake: FrameIntake,
-        worker: PipelineWorker,
-        tfminis: Sequence[Any],
-        camera_url_shown: str,
-    ) -> None:
-        self.rt = rt
-        self.link = link
-        self.camera = camera
-        self.intake = intake
-        self.worker = worker
-        self.tfminis = tfminis
-        self.camera_url_shown = camera_url_shown
-        st = rt.config.service.statustext
+    rt: Runtime
+    link: Any
+    camera: Any
+    intake: FrameIntake
+    worker: PipelineWorker
+    tfminis: Sequence[Any]
+    camera_url_shown: str
+
+    def __post_init__(self) -> None:
+        st = self.rt.config.service.statustext
         self.limiter = statustext.Limiter(st.key_interval_s, st.burst, st.rate_hz, st.prefix)
         self._operator = statustext.INITIAL
         self._attitude_held = statustext.Held(statustext.ATTITUDE_HOLD_S)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -25,28 +26,24 @@ from companion.service.state import ResetCounter
 from companion.types import CameraFrame, PoseEstimate
 
 
+@dataclass(eq=False, repr=False)
 class Publisher:
     """Poses out, as the autopilot wants them."""
 
-    def __init__(
-        self,
-        rt: Runtime,
-        link: Any,
-        session: AutopilotSession,
-        resets: ResetCounter,
-        recorder: Recorder,
-    ) -> None:
-        self.rt = rt
-        self.link = link
-        self.session = session
-        self.resets = resets
-        self.recorder = recorder
-        self.last_pose: PoseEstimate | None = None  # the last one sent
-        self._recent_poses: deque[PoseEstimate] = deque(maxlen=15)  # for centred ODOMETRY
+    rt: Runtime
+    link: Any
+    session: AutopilotSession
+    resets: ResetCounter
+    recorder: Recorder
+    last_pose: PoseEstimate | None = field(init=False, default=None)  # the last one sent
+    # for centred ODOMETRY
+    _recent_poses: deque[PoseEstimate] = field(init=False, default_factory=lambda: deque(maxlen=15))
+
+    def __post_init__(self) -> None:
         # centred ODOMETRY: no window over a gap longer than the age limit, and no stamp older
         # than the budget `px4 check` holds EKF2's horizon to (the config is frozen)
-        self._centre_max_gap_us = 1e3 * rt.config.service.stale_frame_ms
-        self._oldest_stamp_us = 1e3 * rt.config.oldest_stamp_ms()
+        self._centre_max_gap_us = 1e3 * self.rt.config.service.stale_frame_ms
+        self._oldest_stamp_us = 1e3 * self.rt.config.oldest_stamp_ms()
 
     def publish(self, frame: CameraFrame, pose: PoseEstimate | None) -> None:
         """Send the pose made of ``frame`` (None or not finite: counted as not published)."""

@@ -1,6 +1,6 @@
 """An emulation of how PX4 takes in external vision and when EKF2 fuses it (SITL autopilot).
 
-Two stages, as in PX4 (DESIGN.md section 6; PX4's ``mavlink_receiver.cpp`` and EKF2's
+Two stages, as in PX4 (docs/service.md; PX4's ``mavlink_receiver.cpp`` and EKF2's
 ``ev_control.cpp`` / ``ev_pos_control.cpp`` / ``RingBuffer``):
 
 1. Reception (``mavlink_receiver``). VISION_POSITION_ESTIMATE becomes a vehicle_odometry with

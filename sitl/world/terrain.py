@@ -1,6 +1,6 @@
 """Seeded terrains for the simulator, with exact ray casting and photo textures.
 
-Terrains (DESIGN.md layout, issue 2):
+Terrains (issue 2):
 - ``flat``: level ground at h = 0.
 - ``hills``: smooth irregular ground with a few metres of relief on a 5 cm height grid.
 - ``urban``: level ground with axis-aligned box buildings 1-8 m tall (sharp 3D structure,

@@ -9,6 +9,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +106,21 @@ async def figures_until(proc: asyncio.subprocess.Process, done, timeout_s: float
                 return figures
 
 
+@contextlib.asynccontextmanager
+async def connected_publisher(
+    port: int,
+) -> AsyncIterator[tuple[asyncio.subprocess.Process, dict]]:
+    """The publisher's process and its first figures once connected to the broker on
+    ``port``; on exit it is told to stop and awaited."""
+    proc = await start_publisher(port)
+    try:
+        yield proc, await figures_until(proc, lambda f: f["stats"]["connected"], 30)
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.write(b"stop\n")
+        await proc.wait()
+
+
 @pytest.mark.parametrize("qos_levels", [(0, 1), (2,)], ids=["qos0+1", "qos2"])
 def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory(qos_levels) -> None:
     """A broker pushing 50 MB of PUBLISH on topics never subscribed to (QoS 0 and 1, or QoS 2
@@ -116,22 +132,18 @@ def test_a_hostile_broker_flood_is_dropped_counted_and_costs_no_memory(qos_level
     took all the CPU it could."""
 
     async def run() -> tuple[dict, dict, HostileBroker, tuple[float, float]]:
-        async with HostileBroker(FLOOD_BYTES, FLOOD_PAYLOAD_BYTES, None, qos_levels) as broker:
-            proc = await start_publisher(broker.port)
-            try:
-                start = await figures_until(proc, lambda f: f["stats"]["connected"], 30)
-                loop = asyncio.get_running_loop()
-                t0 = loop.time()
-                while not broker.report.flood_done:
-                    await asyncio.sleep(0.1)
-                n = broker.report.flood_messages
-                end = await figures_until(proc, lambda f: f["stats"].get("unasked", 0) >= n, 60)
-                window = (t0, loop.time())
-                after = await latest_figures(proc)
-            finally:
-                assert proc.stdin is not None
-                proc.stdin.write(b"stop\n")
-                await proc.wait()
+        async with (
+            HostileBroker(FLOOD_BYTES, FLOOD_PAYLOAD_BYTES, None, qos_levels) as broker,
+            connected_publisher(broker.port) as (proc, start),
+        ):
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            while not broker.report.flood_done:
+                await asyncio.sleep(0.1)
+            n = broker.report.flood_messages
+            end = await figures_until(proc, lambda f: f["stats"].get("unasked", 0) >= n, 60)
+            window = (t0, loop.time())
+            after = await latest_figures(proc)
             busy = (end["cpu_s"] - start["cpu_s"]) / (end["wall_s"] - start["wall_s"])
             return end, after, broker, window, busy
 
@@ -167,15 +179,11 @@ def test_an_oversized_packet_from_the_broker_is_never_read() -> None:
     big = 100 * 1024 * 1024
 
     async def run() -> tuple[dict, HostileBroker]:
-        async with HostileBroker(FLOOD_BYTES, oversized_bytes=big) as broker:
-            proc = await start_publisher(broker.port)
-            try:
-                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
-                end = await figures_until(proc, lambda f: f["stats"]["connects"] >= 3, 60)
-            finally:
-                assert proc.stdin is not None
-                proc.stdin.write(b"stop\n")
-                await proc.wait()
+        async with (
+            HostileBroker(FLOOD_BYTES, oversized_bytes=big) as broker,
+            connected_publisher(broker.port) as (proc, _),
+        ):
+            end = await figures_until(proc, lambda f: f["stats"]["connects"] >= 3, 60)
             return end, broker
 
     end, broker = asyncio.run(run())
@@ -192,18 +200,14 @@ def test_topics_that_are_not_utf8_are_counted_and_the_connection_kept() -> None:
     on_message; the first UnicodeDecodeError dropped the connection, and so at each one."""
 
     async def run() -> tuple[dict, HostileBroker]:
-        async with HostileBroker(1024 * 1024, topic=b"hostile/\xff\xfe/") as broker:
-            proc = await start_publisher(broker.port)
-            try:
-                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
-                while not broker.report.flood_done:
-                    await asyncio.sleep(0.1)
-                n = broker.report.flood_messages
-                end = await figures_until(proc, lambda f: f["stats"]["unasked"] >= n, 30)
-            finally:
-                assert proc.stdin is not None
-                proc.stdin.write(b"stop\n")
-                await proc.wait()
+        async with (
+            HostileBroker(1024 * 1024, topic=b"hostile/\xff\xfe/") as broker,
+            connected_publisher(broker.port) as (proc, _),
+        ):
+            while not broker.report.flood_done:
+                await asyncio.sleep(0.1)
+            n = broker.report.flood_messages
+            end = await figures_until(proc, lambda f: f["stats"]["unasked"] >= n, 30)
             return end, broker
 
     end, broker = asyncio.run(run())
@@ -219,16 +223,12 @@ def test_a_late_puback_for_online_does_not_drop_the_connection() -> None:
     (the flapping every 5 s)."""
 
     async def run() -> tuple[dict, HostileBroker]:
-        async with HostileBroker(0, puback_delay_s=7.0) as broker:
-            proc = await start_publisher(broker.port)
-            try:
-                await figures_until(proc, lambda f: f["stats"]["connected"], 30)
-                await asyncio.sleep(8.0)
-                end = await latest_figures(proc)
-            finally:
-                assert proc.stdin is not None
-                proc.stdin.write(b"stop\n")
-                await proc.wait()
+        async with (
+            HostileBroker(0, puback_delay_s=7.0) as broker,
+            connected_publisher(broker.port) as (proc, _),
+        ):
+            await asyncio.sleep(8.0)
+            end = await latest_figures(proc)
             return end, broker
 
     end, broker = asyncio.run(run())

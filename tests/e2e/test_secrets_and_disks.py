@@ -160,35 +160,34 @@ def full_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)])
 
 
-def test_an_exit_report_on_a_full_disk_is_a_warning_and_leaves_no_torn_file(
-    tmp_path, full_disk
-) -> None:
+def run_service_alone(
+    tmp_path: Path, duration_s: str, *args: str, tables: str = ""
+) -> subprocess.CompletedProcess[str]:
+    """`companion run --duration duration_s *args` with no peers: the autopilot link on a free
+    loopback UDP port, a camera URL where nothing listens, its status socket and state in
+    ``tmp_path``; ``tables``: more of the config (TOML)."""
     conf = tmp_path / "c.toml"
     conf.write_text(
         "[service]\n"
         f'mavlink_url = "udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"\n'
         f'camera_url = "sitl://127.0.0.1:{free_port()}"\n'
         f'status_socket = "{tmp_path / "s.sock"}"\n'
-        f'state_dir = "{tmp_path / "state"}"\n'
+        f'state_dir = "{tmp_path / "state"}"\n' + tables
     )
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "companion.cli",
-            "run",
-            "--config",
-            str(conf),
-            "--duration",
-            "1",
-            "--report",
-            str(full_disk / "report.json"),
-        ],
+    run = ["run", "--config", str(conf), "--duration", duration_s, *args]
+    return subprocess.run(
+        [sys.executable, "-m", "companion.cli", *run],
         capture_output=True,
         text=True,
         timeout=120,
         cwd=Path(__file__).resolve().parents[2],
     )
+
+
+def test_an_exit_report_on_a_full_disk_is_a_warning_and_leaves_no_torn_file(
+    tmp_path, full_disk
+) -> None:
+    r = run_service_alone(tmp_path, "1", "--report", str(full_disk / "report.json"))
     assert r.returncode == 0, r.stderr
     assert "exit report not written" in r.stderr and "Traceback" not in r.stderr
     assert (full_disk / "report.json").read_text() == '{"old": true}\n'  # untouched
@@ -203,22 +202,7 @@ def test_a_used_record_dir_on_a_full_disk_is_a_warning_never_an_exit(tmp_path, f
     rec = full_disk / "rec"
     rec.mkdir()
     (rec / "meta.toml").touch()  # an earlier run's (an inode: no byte of data needed)
-    conf = tmp_path / "c.toml"
-    conf.write_text(
-        "[service]\n"
-        f'mavlink_url = "udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"\n'
-        f'camera_url = "sitl://127.0.0.1:{free_port()}"\n'
-        f'status_socket = "{tmp_path / "s.sock"}"\n'
-        f'state_dir = "{tmp_path / "state"}"\n'
-        f'[record]\ndir = "{rec}"\n'
-    )
-    r = subprocess.run(
-        [sys.executable, "-m", "companion.cli", "run", "--config", str(conf), "--duration", "2"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=Path(__file__).resolve().parents[2],
-    )
+    r = run_service_alone(tmp_path, "2", tables=f'[record]\ndir = "{rec}"\n')
     assert r.returncode == 0, r.stderr
     said = [line for line in r.stderr.splitlines() if "recorder:" in line]
     assert said and "Traceback" not in r.stderr

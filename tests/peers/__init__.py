@@ -189,6 +189,24 @@ def small_camera() -> dict:
     return out
 
 
+def small_camera_takeoff(seed: int, **vo: object) -> object:
+    """The config of a vertical take-off from flat ground to ~4.3 m and back (SITL, 14 s: 3.5 s
+    on the ground, the climb by 7 s, then down) with :func:`small_camera`'s image and a 2 deg
+    gravity prior; ``vo``: more [vo] keys."""
+    from companion.config import load_config
+
+    overrides = small_camera()
+    overrides["vo"].update(gravity_sigma_deg=2.0, **vo)
+    overrides["sitl"] = {
+        "terrain": "flat",
+        "trajectory": "hover",
+        "takeoff_landing": True,
+        "seconds": 14.0,
+        "seed": seed,
+    }
+    return load_config(None, overrides)
+
+
 def sitl_flight(
     tmp_path: Path,
     seconds: float,

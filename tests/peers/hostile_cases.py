@@ -52,6 +52,11 @@ def _text(name: str, edit: Callable[[str], str]) -> Callable[[Files], None]:
     return lambda f: edit_text(f, name, edit)
 
 
+def _replace(name: str, old: str, new: str, count: int = -1) -> Callable[[Files], None]:
+    """The text file ``name`` with ``old`` replaced by ``new`` (the first ``count`` times)."""
+    return _text(name, lambda t: t.replace(old, new, count))
+
+
 def _set(name: str, data: bytes) -> Callable[[Files], None]:
     return lambda f: f.__setitem__(name, data)
 
@@ -149,17 +154,17 @@ CASES = [
     Case(
         "calibration-huge-int",
         "camera.width: integer out of range",
-        _text("calibration.toml", lambda t: t.replace(f"width = {WIDTH}", "width = " + "9" * 30)),
+        _replace("calibration.toml", f"width = {WIDTH}", "width = " + "9" * 30),
     ),
     Case(
         "calibration-nan",
         "camera.fx: must be finite",
-        _text("calibration.toml", lambda t: t.replace("fx = ", "fx = nan #")),
+        _replace("calibration.toml", "fx = ", "fx = nan #"),
     ),
     Case(
         "calibration-lens-not-invertible",
         "calibration.toml [camera]: the camera model cannot be used: undistortion did not",
-        _text("calibration.toml", lambda t: t.replace("dist = [-0.12,", "dist = [-40.0,")),
+        _replace("calibration.toml", "dist = [-0.12,", "dist = [-40.0,"),
     ),
     Case(
         "config-unknown-table",
@@ -181,7 +186,7 @@ CASES = [
     Case(
         "frames-missing-column",
         "missing column 'seq'",
-        _text("frames.csv", lambda t: t.replace("time_us,seq,", "time_us,sequence,", 1)),
+        _replace("frames.csv", "time_us,seq,", "time_us,sequence,", 1),
     ),
     Case("frames-text-time", "frames.csv row 4, time_us: not an integer", _frames("soon")),
     Case("frames-nan-time", "frames.csv row 4, time_us: not an integer", _frames("nan")),
@@ -190,9 +195,7 @@ CASES = [
     Case("frames-200kB-field", "frames.csv row 4", _frames("x" * 200_000, "filename")),
     Case("frames-duplicated-time", "frames.csv row 4, time_us", _dup_row("frames.csv", 2)),
     Case("frames-decreasing-time", "frames.csv row", _swap_rows("frames.csv", 2, 3)),
-    Case(
-        "frames-extra-column", "", _text("frames.csv", lambda t: t.replace("\n", ",x\n")), ok=True
-    ),
+    Case("frames-extra-column", "", _replace("frames.csv", "\n", ",x\n"), ok=True),
     # samples: bad rows left out and counted, the eval completes
     Case("ranges-text", "ranges.csv", _field("ranges.csv", "distance_m", "far"), ok=True),
     Case("ranges-nan", "ranges.csv", _field("ranges.csv", "distance_m", "nan"), ok=True),
@@ -207,7 +210,7 @@ CASES = [
     Case(
         "ranges-missing-column",
         "ranges.csv row 1 (header): missing column 'distance_m'",
-        _text("ranges.csv", lambda t: t.replace("distance_m", "dist", 1)),
+        _replace("ranges.csv", "distance_m", "dist", 1),
     ),
     Case("ranges-duplicated", "", _dup_row("ranges.csv", 2), ok=True),
     Case("attitude-zero-quaternion", "attitude.csv", _field("attitude.csv", "qw", "0.0"), ok=True),
@@ -235,34 +238,33 @@ CASES = [
         "euroc-no-intrinsics",
         "sensor.yaml: no 'intrinsics'",
         euroc=True,
-        edit=_text(f"{EUROC_CAM}/sensor.yaml", lambda t: t.replace("intrinsics", "intr")),
+        edit=_replace(f"{EUROC_CAM}/sensor.yaml", "intrinsics", "intr"),
     ),
     Case(
         "euroc-nan-intrinsics",
         "sensor.yaml, intrinsics[0]: not a finite number",
         euroc=True,
-        edit=_text(f"{EUROC_CAM}/sensor.yaml", lambda t: t.replace("[80.0,", "[nan,")),
+        edit=_replace(f"{EUROC_CAM}/sensor.yaml", "[80.0,", "[nan,"),
     ),
     Case(
         "euroc-text-time",
         f"{EUROC_CAM}/data.csv row 3, timestamp",
         euroc=True,
-        edit=_text(f"{EUROC_CAM}/data.csv", lambda t: t.replace("1033333000,", "soon,", 1)),
+        edit=_replace(f"{EUROC_CAM}/data.csv", "1033333000,", "soon,", 1),
     ),
     Case(
         "euroc-dotdot",
         "'..' in file name",
         euroc=True,
-        edit=_text(f"{EUROC_CAM}/data.csv", lambda t: t.replace(",1033333000.png", ",../x.png")),
+        edit=_replace(f"{EUROC_CAM}/data.csv", ",1033333000.png", ",../x.png"),
     ),
     Case(
         "euroc-truth-junk",
         "state_groundtruth_estimate0/data.csv",
         euroc=True,
         ok=True,
-        edit=_text(
-            "mav0/state_groundtruth_estimate0/data.csv",
-            lambda t: t.replace(",1.0,0.0,0.0,0.0\n", ",0,0,0,0\n", 1),
+        edit=_replace(
+            "mav0/state_groundtruth_estimate0/data.csv", ",1.0,0.0,0.0,0.0\n", ",0,0,0,0\n", 1
         ),
     ),
     Case(

@@ -18,7 +18,7 @@ without the shell the verdict is "fused" only when none of those can be it: no G
 flow off, the service publishing, and a valid position all through a watch at least
 EKF2_NOAID_TOUT long; otherwise "cannot tell".
 
-The reasons follow DESIGN.md section 6 and EKF2: >= 5 Hz to start (samples < 200 ms apart),
+The reasons follow docs/service.md and EKF2: >= 5 Hz to start (samples < 200 ms apart),
 NED only with a north-aligned heading, estimator_type VISION (MOCAP goes to a topic EKF2 does
 not read), a frame PX4 knows, quality >= EKF2_EV_QMIN, time stamps that, once converted, are
 younger than EKF2's buffer horizon (EKF2_DELAY_MAX + 100 ms), and samples that pass the

@@ -2,11 +2,11 @@
 
 One row per parameter: its value, what we need, why (in PX4's terms), a status, and the
 value(s) ``configure`` would write. FAIL: EKF2 will not fuse our estimate (or the link will not
-work) as it is. WARN: it works, but not as well as it should, or not as DESIGN.md section 6
+work) as it is. WARN: it works, but not as well as it should, or not as docs/service.md
 recommends. OK: as needed. INFO: context only.
 
 The rules follow PX4 1.14+ (EKF2_EV_CTRL / EKF2_HGT_REF, which replaced EKF2_AID_MASK /
-EKF2_HGT_MODE) and DESIGN.md section 6: VISION_POSITION_ESTIMATE is NED and needs a
+EKF2_HGT_MODE) and docs/service.md: VISION_POSITION_ESTIMATE is NED and needs a
 north-aligned heading; ODOMETRY (LOCAL_FRD / BODY_FRD, VISION) works at any heading; we stamp at
 exposure and PX4 converts through TIMESYNC, so EKF2_EV_DELAY stays 0 where the link time-syncs;
 our covariance is real, so EKF2 should use it (EKF2_EV_NOISE_MD 0) with the noise parameters as

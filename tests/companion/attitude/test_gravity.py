@@ -308,23 +308,13 @@ def test_the_axial_prior_holds_the_vo_frame_level_through_a_take_off(seed: int) 
     prior at all). With the axial prior (0.5 deg on keyframes reached moving along the optical
     axis) on the stub's attitude (0.1 deg of noise) it stays within 1.5 deg of level and ends
     the climb within 0.5 deg."""
-    from peers import small_camera
+    from peers import small_camera_takeoff
 
-    from companion.config import load_config
     from companion.offline import feed_step
     from companion.pipeline import Pipeline
     from companion.sitl.world.scenario import Scenario
 
-    overrides = small_camera()
-    overrides["vo"].update(gravity_sigma_deg=2.0, axial_gravity_sigma_deg=0.5)
-    overrides["sitl"] = {
-        "terrain": "flat",
-        "trajectory": "hover",
-        "takeoff_landing": True,
-        "seconds": 14.0,  # 3.5 s on the ground, the climb to ~4.3 m by 7 s, then down
-        "seed": seed,
-    }
-    cfg = load_config(None, overrides)
+    cfg = small_camera_takeoff(seed, axial_gravity_sigma_deg=0.5)
     p = Pipeline(cfg)
     tilt_deg, height_m = [], []
     for st in Scenario(cfg).steps(stop=210, workers=2):  # the ground and the climb

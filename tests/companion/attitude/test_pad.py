@@ -94,24 +94,14 @@ def test_the_pad_holds_the_vo_frame_through_a_climb_on_a_wrong_attitude(seed: in
     climbs). Without the pad's gravity the VO frame tilted 8.3 / 6.1 deg (seeds 1 / 2) in the
     climb and ended it 0.6 / 1.2 deg off; with it (vo.pad_gravity_sigma_deg 0.3) 1.9 / 2.2 deg
     at worst, in the lift-off's first half second, and 0.3 / 0.5 deg at the top."""
-    from peers import small_camera
+    from peers import small_camera_takeoff
 
-    from companion.config import load_config
     from companion.offline import feed_step
     from companion.pipeline import Pipeline
     from companion.sitl.world.scenario import Scenario
     from companion.types import AttitudeSample
 
-    overrides = small_camera()
-    overrides["vo"].update(gravity_sigma_deg=2.0, pad_gravity_sigma_deg=0.3)
-    overrides["sitl"] = {
-        "terrain": "flat",
-        "trajectory": "hover",
-        "takeoff_landing": True,
-        "seconds": 14.0,  # 3.5 s on the ground, the climb to ~4.3 m by 7 s, then down
-        "seed": seed,
-    }
-    cfg = load_config(None, overrides)
+    cfg = small_camera_takeoff(seed, pad_gravity_sigma_deg=0.3)
     p = Pipeline(cfg)
     assert p.pad.level is not None
     R_err, R_of = so3.rot_x(np.radians(1.5)), so3.quat_to_matrix

@@ -22,7 +22,7 @@ def test_defaults_are_valid_and_follow_design() -> None:
     cfg = load_config()
     assert isinstance(cfg, Config)
     T = cfg.camera.T_body_cam()
-    # downward camera, image top towards the nose (DESIGN.md section 2)
+    # downward camera, image top towards the nose (docs/architecture.md, "Frames, units, names")
     assert np.allclose(T[:3, :3] @ [0, 0, 1], [0, 0, 1])
     assert np.allclose(T[:3, :3] @ [0, -1, 0], [1, 0, 0], atol=1e-12)
     rf = cfg.rangefinders

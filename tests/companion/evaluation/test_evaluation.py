@@ -274,3 +274,15 @@ def test_eval_without_ranges_invents_no_sensors(evaluated: Path) -> None:
     assert result["code"] == 0 and result["sitl"] == []
     assert json.loads((vo_out / "metrics.json").read_text())["ate_sim3_pct"] < 1.0
     assert not (vo_out / "poses.csv").exists()  # no scale, no metric pose
+
+
+def test_markdown_table_is_the_header_the_rule_and_a_line_per_row() -> None:
+    from companion.evaluation.tables import markdown_table
+
+    table = markdown_table(["method", "ATE"], [["MSC", "0.120 m"], ["B8", "unavailable"]])
+    assert table.splitlines() == [
+        "| method | ATE |",
+        "|---|---|",
+        "| MSC | 0.120 m |",
+        "| B8 | unavailable |",
+    ]

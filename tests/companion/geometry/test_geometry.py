@@ -63,7 +63,7 @@ def test_rpy_round_trip_and_convention() -> None:
         assert np.allclose(so3.matrix_to_rpy(R), (r, p, y), atol=1e-9)
     # a positive pitch lifts the nose: body x (forward) gets a negative z (up in NED)
     assert so3.rpy_to_matrix(0, 0.3, 0)[2, 0] < 0
-    # DESIGN.md: downward camera, image top to the nose: cam x = body +y, cam y = body -x
+    # docs/architecture.md: downward camera, image top to the nose: cam x = body +y, cam y = body -x
     R_body_cam = so3.rpy_to_matrix(0, 0, np.pi / 2)
     assert np.allclose(R_body_cam @ [1, 0, 0], [0, 1, 0], atol=1e-12)
     assert np.allclose(R_body_cam @ [0, 1, 0], [-1, 0, 0], atol=1e-12)
