@@ -10,6 +10,7 @@ VO, the metric scale, roll/pitch, the compass heading, the published pose and d-
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -40,6 +41,7 @@ from companion.types import (
     VoState,
 )
 from companion.vo.frame_check import FrameCheck, FrameProblem
+from companion.vo.frame_clock import FrameClock
 from companion.vo.odometry import VisualOdometry
 
 
@@ -64,6 +66,8 @@ class Pipeline:
         self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
         self.frame_check = FrameCheck(config.vo)  # the one check of every delivered frame
         self.frame_problem: FrameProblem | None = None  # of the last frame fed
+        # re-times the usable frames when their stamps jitter (None: vo.steady_clock off)
+        self.clock = FrameClock() if config.vo.steady_clock else None
         self.gaps = 0  # times tracking was dropped after a gap between usable frames
         self._last_good_us: int | None = None
         self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
@@ -183,6 +187,10 @@ class Pipeline:
         if self.frame_problem is not None:
             self.vo_output = None
             return None
+        if self.clock is not None:
+            steady_us = self.clock.time_us(frame.seq, frame.time_us)
+            if steady_us != frame.time_us:
+                frame = dataclasses.replace(frame, time_us=steady_us)
         last = self._last_good_us
         if last is not None and frame.time_us - last > self.config.vo.max_gap_ms * 1e3:
             self.vo.lose()

@@ -7,6 +7,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.vo.frame_clock import ClockReport
+
 if TYPE_CHECKING:
     from companion.pipeline.core import Pipeline
 
@@ -48,6 +50,8 @@ class PipelineStatus:
     dpose_armed: bool = False  # d-Pose has its pattern
     dpose_used: int = 0  # d-Pose poses that corrected the published position
     dpose_resets: int = 0  # of them, corrections applied at once (each a new reset_counter)
+    # the camera's clock over the last frames (vo.steady_clock; None before enough frames)
+    clock: ClockReport | None = None
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -88,4 +92,5 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         dpose_armed=pipe.dpose_stage.armed,
         dpose_used=offset.updates,
         dpose_resets=offset.resets,
+        clock=pipe.clock.report() if pipe.clock is not None else None,
     )

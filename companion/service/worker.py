@@ -31,6 +31,7 @@ from companion.types import (
     RangeSample,
     VoState,
 )
+from companion.vo.frame_clock import jitter_warning
 
 log = logging.getLogger("companion.service")
 
@@ -59,6 +60,7 @@ class PipelineWorker:
         self.vo_state = VoState.INITIALIZING  # of the last frame processed
         self._vo_start_logged = -1  # vo_resets of the last initialisation logged
         self._compass_logged = (False, False)  # (first fix logged, final one logged)
+        self._jitter_logged = False  # the camera clock's jitter was logged
 
     async def loop(self) -> None:
         """Each frame, as the intake picks it, through the pipeline; a failure on one frame
@@ -119,8 +121,13 @@ class PipelineWorker:
             self.status = self.pipeline.status()
 
     def _after_frame(self) -> None:
-        """On the loop, after a frame: the VO's state kept; its start and heading logged."""
+        """On the loop, after a frame: the VO's state kept; its start and heading logged;
+        once, a camera clock that jitters (its frames are then re-timed)."""
         self.vo_state = VoState[self.status.vo_state]
+        clock = self.status.clock
+        if clock is not None and clock.retimed and not self._jitter_logged:
+            self._jitter_logged = True
+            log.warning(jitter_warning(clock))
         if self.vo_state == VoState.TRACKING:
             self._log_vo_start(self.status)
             self._log_compass_heading(self.status)

@@ -109,6 +109,11 @@ class VoOptions:
         "is tracked across with the motion predicted over it",
         gt=0,
     )
+    steady_clock: bool = opt(
+        True,
+        "re-time frames whose stamps jitter by more than 10 % of a frame (2 ms at least) to "
+        "the steady line of their stamps over the frame count (companion/vo/frame_clock.py)",
+    )
     ground_init: bool = opt(
         True, "initialise metrically on the ground plane the distance sensors see (no parallax)"
     )
