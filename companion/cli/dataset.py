@@ -3,6 +3,7 @@
 
     companion dataset import FORMAT SRC --out DIR [--config FILE] [--frames A:B] [--seed N]
                              [--camera fr1|fr2|fr3] [--sequence NN] [--image-format keep|png|jpg]
+                             [--jpg-quality Q]
     companion dataset rebuild NAME... | --all --snapshots DIR --out DIR [--manifest FILE]
 
 FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti. The distance sensors are
@@ -66,6 +67,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         rangefinders_of(args.config),
         seed=args.seed,
         image_format=args.image_format,
+        jpg_quality=args.jpg_quality,
         source_meta={"source_path": str(args.src)},
     )
     print(_summary_line(args.out, summary))
@@ -112,6 +114,9 @@ def add_parser(sub: Any) -> None:
         choices=IMAGE_FORMATS,
         default="keep",
         help="keep: copy the source's PNG/JPEG bytes; png or jpg: re-encode",
+    )
+    pi.add_argument(
+        "--jpg-quality", type=int, default=95, help="--image-format jpg: quality 1..100"
     )
     pi.set_defaults(func=cmd_import)
     pr = dsub.add_parser("rebuild", help="manifest sequences from their git snapshots")

@@ -5,7 +5,7 @@ An entry (``[[sequence]]``) names where the raw files are (``repository`` owner/
 ``revision`` the git commit, ``path`` in it, ``include`` the files and folders under ``path``
 the importer reads), the ``licence``, whether the sequence may be committed (``commit``), the
 ``importer`` (a format of ``import_sources.FORMATS``) with its ``args`` (``camera``,
-``sequence``, ``frames``, ``seed``, ``image_format``) and the checksums: ``sha256``, the
+``sequence``, ``frames``, ``seed``, ``image_format``, ``jpg_quality``) and the checksums: ``sha256``, the
 SHA-256 of every file keyed by its path under ``path``, or (for thousands of files)
 ``tree_sha256``, the SHA-256 of the sorted lines "path sha256\n" of them all. A rebuild
 extracts those files from the snapshot (``git --git-dir SNAPSHOT archive REVISION``), checks
@@ -35,7 +35,7 @@ from companion.drivers.dataset.import_write import (
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import ConfigError, DatasetError
 
-ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format")
+ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format", "jpg_quality")
 _STR_KEYS = ("name", "repository", "revision", "path", "licence", "importer")
 
 
@@ -211,6 +211,7 @@ def run_importer(
         rangefinders,
         seed=int(a.get("seed", 1)),
         image_format=str(a.get("image_format", "keep")),
+        jpg_quality=int(a.get("jpg_quality", 95)),
         source_meta={
             "source_repository": entry.repository,
             "source_revision": entry.revision,

@@ -86,7 +86,9 @@ def _depth_image(folder: SafeFolder, name: str, per_m: float, size: tuple[int, i
     return depth
 
 
-def _image_bytes(folder: SafeFolder, name: str, image_format: str) -> tuple[bytes, str]:
+def _image_bytes(
+    folder: SafeFolder, name: str, image_format: str, jpg_quality: int = 95
+) -> tuple[bytes, str]:
     """The image file's bytes and extension: the source's (keep) or re-encoded."""
     data = folder.read_bytes(name, MAX_IMAGE_BYTES)
     ext = Path(name).suffix.lower().lstrip(".").replace("jpeg", "jpg")
@@ -97,7 +99,7 @@ def _image_bytes(folder: SafeFolder, name: str, image_format: str) -> tuple[byte
     img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(f"{folder.shown}/{name}: the image does not decode")
-    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if image_format == "jpg" else []
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpg_quality] if image_format == "jpg" else []
     ok, buf = cv2.imencode(f".{image_format}", img, params)
     if not ok:
         raise DatasetError(f"{folder.shown}/{name}: cannot encode as {image_format}")
@@ -132,13 +134,17 @@ def import_sequence(
     *,
     seed: int = 1,
     image_format: str = "keep",
+    jpg_quality: int = 95,
     source_meta: dict[str, Any] | None = None,
 ) -> ImportSummary:
     """Write ``seq`` (its files in ``src``) into the new folder ``out`` in our format; the
     readings of ``rangefinders`` from the depth images (none without depth), noise seeded by
-    ``seed``. ``source_meta``: more keys for meta.toml (where the sequence came from)."""
+    ``seed``; images kept or re-encoded (``image_format``, ``jpg_quality`` 1..100).
+    ``source_meta``: more keys for meta.toml (where the sequence came from)."""
     if image_format not in IMAGE_FORMATS:
         raise DatasetError(f"--image-format: one of {', '.join(IMAGE_FORMATS)}")
+    if not 1 <= jpg_quality <= 100:
+        raise DatasetError(f"--jpg-quality: 1..100, got {jpg_quality}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise DatasetError(f"{out} exists and is not an empty folder")
     sensors = list(rangefinders) if seq.depth_per_m > 0 else []
@@ -154,7 +160,7 @@ def import_sequence(
     rng = np.random.default_rng(seed)
     frame_rows, range_rows = ["time_us,seq,filename"], []
     for k, f in enumerate(seq.frames):
-        data, ext = _image_bytes(src, f.image, image_format)
+        data, ext = _image_bytes(src, f.image, image_format, jpg_quality)
         name = f"images/{k:06d}.{ext}"
         (out / name).write_bytes(data)
         frame_rows.append(f"{round((f.time_s - t0) * 1e6)},{k},{name}")
@@ -182,7 +188,8 @@ def import_sequence(
     summary.frames = len(seq.frames)
     summary.readings = len(range_rows)
     summary.path_length_m = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
-    _write_tomls(out, seq, sensors, summary, t0, seed, image_format, source_meta or {})
+    shown = f"jpg (quality {jpg_quality})" if image_format == "jpg" else image_format
+    _write_tomls(out, seq, sensors, summary, t0, seed, shown, source_meta or {})
     return summary
 
 
