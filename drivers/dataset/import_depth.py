@@ -12,11 +12,11 @@ first r where the ray passes behind the surface. We march along the ray in steps
 ``step_m`` (the first sample behind the surface, the one before it in front with depth; the
 samples near the lens that project outside the image are passed over), then
 bisect the bracket with the depth interpolated bilinearly (nearest at an edge or beside a
-missing pixel). A reading is **dropped** (None) when the beam never meets the surface inside the
-image, crosses it beside a pixel without depth, or when |f| at the solution is above ``tolerance_m`` (the
-ray passed behind a depth edge: no surface there). The noise model and the limits then follow
-docs/dataset.md (``RangefinderConfig``: sigma = a + b r, seeded; outside [min_m, max_m] the
-nearest limit with signal_quality 1).
+missing pixel). A reading is **dropped** (None) when the beam never meets the surface inside
+the image, crosses it beside a pixel without depth, or when |f| at the solution is above
+``tolerance_m`` (the ray passed behind a depth edge: no surface there). The noise model and
+the limits then follow docs/dataset.md (``RangefinderConfig``: sigma = a + b r, seeded; outside
+[min_m, max_m] the nearest limit with signal_quality 1).
 """
 
 from __future__ import annotations
@@ -62,9 +62,7 @@ def depth_at(depth_m: F64, uv_px: F64) -> F64:
     q = np.stack(
         [depth_m[v0, u0], depth_m[v0, u0 + 1], depth_m[v0 + 1, u0], depth_m[v0 + 1, u0 + 1]]
     )
-    bilinear = (
-        q[0] * (1 - a) * (1 - b) + q[1] * a * (1 - b) + q[2] * (1 - a) * b + q[3] * a * b
-    )
+    bilinear = q[0] * (1 - a) * (1 - b) + q[1] * a * (1 - b) + q[2] * (1 - a) * b + q[3] * a * b
     smooth = np.all(q > 0, axis=0) & (np.ptp(q, axis=0) <= EDGE_RATIO * q.mean(axis=0))
     nearest = depth_m[np.rint(v).astype(int), np.rint(u).astype(int)]
     out[ok] = np.where(smooth, bilinear, nearest)

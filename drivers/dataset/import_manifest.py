@@ -5,8 +5,8 @@ An entry (``[[sequence]]``) names where the raw files are (``repository`` owner/
 ``revision`` the git commit, ``path`` in it, ``include`` the files and folders under ``path``
 the importer reads), the ``licence``, whether the sequence may be committed (``commit``), the
 ``importer`` (a format of ``import_sources.FORMATS``) with its ``args`` (``camera``,
-``sequence``, ``frames``, ``seed``, ``image_format``, ``jpg_quality``) and the checksums: ``sha256``, the
-SHA-256 of every file keyed by its path under ``path``, or (for thousands of files)
+``sequence``, ``frames``, ``seed``, ``image_format``, ``jpg_quality``) and the checksums:
+``sha256``, the SHA-256 of every file keyed by its path under ``path``, or (for thousands of files)
 ``tree_sha256``, the SHA-256 of the sorted lines "path sha256\n" of them all. A rebuild
 extracts those files from the snapshot (``git --git-dir SNAPSHOT archive REVISION``), checks
 the checksums (a missing, changed or unlisted file is an error naming it; a ``tree_sha256``
@@ -65,9 +65,7 @@ def _entry(raw: Any, index: int) -> RealSequence:
     where = f"sequence[{index}]"
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: a table expected")
-    unknown = sorted(
-        set(raw) - {*_STR_KEYS, "commit", "include", "args", "sha256", "tree_sha256"}
-    )
+    unknown = sorted(set(raw) - {*_STR_KEYS, "commit", "include", "args", "sha256", "tree_sha256"})
     if unknown:
         raise ConfigError(f"{where}.{unknown[0]}: unknown key")
     for key in _STR_KEYS:
@@ -124,7 +122,9 @@ def file_checksums(root: Path, include: tuple[str, ...] = ()) -> dict[str, str]:
     files = sorted(
         f for top in tops for f in ([top] if top.is_file() else top.rglob("*")) if f.is_file()
     )
-    return {f.relative_to(root).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+    return {
+        f.relative_to(root).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest() for f in files
+    }
 
 
 def snapshot_dir(snapshots: Path, repository: str) -> Path:
@@ -144,7 +144,16 @@ def extract(entry: RealSequence, snapshots: Path, dest: Path) -> Path:
     if not git_dir.exists():
         raise DatasetError(f"{entry.name}: no snapshot of {entry.repository} at {git_dir}")
     paths = [entry.under(p) for p in entry.include] or [entry.under()]
-    cmd = ["git", "--git-dir", str(git_dir), "archive", "--format=tar", entry.revision, "--", *paths]
+    cmd = [
+        "git",
+        "--git-dir",
+        str(git_dir),
+        "archive",
+        "--format=tar",
+        entry.revision,
+        "--",
+        *paths,
+    ]
     done = subprocess.run(cmd, capture_output=True, check=False)
     if done.returncode != 0:
         err = done.stderr.decode(errors="replace").strip().splitlines()[-1:]

@@ -264,9 +264,7 @@ def read_7scenes(folder: SafeFolder) -> SourceSequence:
     """A 7-Scenes sequence folder (``frame-NNNNNN.color.png`` / ``.depth.png`` / ``.pose.txt``),
     stamped at 30 Hz from frame 0."""
     pattern = re.compile(r"^frame-(\d{6})\.color\.png$")
-    indexes = sorted(
-        int(m.group(1)) for p in folder.root.iterdir() if (m := pattern.match(p.name))
-    )
+    indexes = sorted(int(m.group(1)) for p in folder.root.iterdir() if (m := pattern.match(p.name)))
     if not indexes:
         raise DatasetError(f"{folder.shown}: no frame-NNNNNN.color.png files")
     frames = []

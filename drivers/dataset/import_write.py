@@ -79,8 +79,9 @@ def _depth_image(folder: SafeFolder, name: str, per_m: float, size: tuple[int, i
     raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.dtype != np.uint16 or raw.shape != (size[1], size[0]):
         shape = None if raw is None else (raw.shape, str(raw.dtype))
-        raise DatasetError(f"{folder.shown}/{name}: not a {size[0]}x{size[1]} 16-bit depth PNG "
-                           f"(got {shape})")
+        raise DatasetError(
+            f"{folder.shown}/{name}: not a {size[0]}x{size[1]} 16-bit depth PNG (got {shape})"
+        )
     depth = raw.astype(np.float64) / per_m
     depth[raw == 65535] = 0.0  # 7-Scenes' "no depth"
     return depth
@@ -175,8 +176,12 @@ def import_sequence(
                 continue
             r = noisy_reading(rf, hit.range_m, rng)
             range_rows.append(
-                (t_us, rf.sensor_id, f"{t_us},{rf.sensor_id},{r.distance_m!r},{rf.min_m!r},"
-                 f"{rf.max_m!r},{r.signal_quality},{r.true_distance_m!r}")
+                (
+                    t_us,
+                    rf.sensor_id,
+                    f"{t_us},{rf.sensor_id},{r.distance_m!r},{rf.min_m!r},"
+                    f"{rf.max_m!r},{r.signal_quality},{r.true_distance_m!r}",
+                )
             )
     range_rows.sort(key=lambda row: (row[0], row[1]))
     (out / "frames.csv").write_text("\n".join(frame_rows) + "\n")

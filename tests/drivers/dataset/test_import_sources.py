@@ -31,7 +31,8 @@ PLANE_M = 1.5  # the synthetic scene: a wall facing the camera at z = 1.5 m
 EXACT = (  # noise-free sensors: the reading is the geometry
     RangefinderConfig(sensor_id=0, mount=MountConfig(), sigma_a_m=0.0),
     RangefinderConfig(
-        sensor_id=5, mount=MountConfig(xyz_m=(0.03, 0.0, 0.0), rpy_deg=(0.0, 8.0, 0.0)),
+        sensor_id=5,
+        mount=MountConfig(xyz_m=(0.03, 0.0, 0.0), rpy_deg=(0.0, 8.0, 0.0)),
         sigma_a_m=0.0,
     ),
 )
@@ -134,7 +135,9 @@ def test_tum_rgbd_import_round_trip(tmp_path: Path) -> None:
     assert np.allclose(stamps, want, atol=1.5)  # the lists' stamps have 6 decimals
     meta = (out / "meta.toml").read_text()
     assert 'rangefinders_source = "synthesised from depth images"' in meta
-    assert (out / "images/000000.png").read_bytes() == (src / f"rgb/{rgb_s[1]:.6f}.png").read_bytes()
+    assert (out / "images/000000.png").read_bytes() == (
+        src / f"rgb/{rgb_s[1]:.6f}.png"
+    ).read_bytes()
     assert select_frames(seq, "1:3").frames == seq.frames[1:3]
     with pytest.raises(DatasetError, match="--frames"):
         select_frames(seq, "3")
