@@ -12,7 +12,7 @@ first r where the ray passes behind the surface. We march along the ray in steps
 ``step_m`` (the first sample behind the surface, the one before it in front with depth; the
 samples near the lens that project outside the image are passed over), then
 bisect the bracket with the depth interpolated bilinearly (nearest at an edge or beside a
-missing pixel). A reading is **dropped** (None) when the beam never meets the surface inside
+missing pixel). A reading is **dropped** (``BeamMiss``, its reason) when the beam never meets the surface inside
 the image, crosses it beside a pixel without depth, or when |f| at the solution is above
 ``tolerance_m`` (the ray passed behind a depth edge: no surface there). The noise model and
 the limits then follow docs/dataset.md (``RangefinderConfig``: sigma = a + b r, seeded; outside
@@ -33,6 +33,15 @@ STEP_M = 0.005  # march step along the beam [m]
 MAX_RANGE_M = 12.0  # march no farther [m]
 TOLERANCE_M = 0.02  # |f| at the solution above this: the ray is behind a depth edge [m]
 EDGE_RATIO = 0.05  # 4 neighbours further apart than 5 % of their depth: an edge (nearest)
+
+
+@dataclass(frozen=True, slots=True)
+class BeamMiss:
+    """Why a beam gives no reading: ``no_surface`` (it never passes behind the depth surface
+    inside the image), ``missing_depth`` (it crosses the surface beside a pixel without depth)
+    or ``depth_edge`` (it passes behind a depth edge: no surface of the image there)."""
+
+    reason: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,8 +87,9 @@ def march_beam(
     step_m: float = STEP_M,
     max_range_m: float = MAX_RANGE_M,
     tolerance_m: float = TOLERANCE_M,
-) -> BeamHit | None:
-    """The beam's distance to the depth surface (the module's equation), or None (dropped)."""
+) -> BeamHit | BeamMiss:
+    """The beam's distance to the depth surface (the module's equation), or why there is none
+    (a dropped reading)."""
     o = np.asarray(origin_cam, dtype=np.float64)
     d = np.asarray(dir_cam, dtype=np.float64)
     d = d / np.linalg.norm(d)
@@ -91,10 +101,12 @@ def march_beam(
     f = z_surface - pts[:, 2]
     behind = inside & (z_surface > 0) & (f <= 0)
     if not behind.any():
-        return None
+        return BeamMiss("no_surface")
     k = int(np.argmax(behind))
-    if k == 0 or not (inside[k - 1] and z_surface[k - 1] > 0):
-        return None  # starts behind the surface, or crosses it at a hole in the depth
+    if k == 0:
+        return BeamMiss("no_surface")  # starts behind the surface
+    if not (inside[k - 1] and z_surface[k - 1] > 0):
+        return BeamMiss("missing_depth")  # crosses the surface at a hole in the depth
     lo, hi = float(r[k - 1]), float(r[k])
     for _ in range(30):  # bisection: f(lo) > 0 >= f(hi)
         mid = 0.5 * (lo + hi)
@@ -102,7 +114,7 @@ def march_beam(
         uv_mid, _ = camera.project(p[None, :], min_z=1e-3)
         z = float(depth_at(depth_m, uv_mid)[0])
         if z <= 0:
-            return None
+            return BeamMiss("missing_depth")
         if z - p[2] > 0:
             lo = mid
         else:
@@ -111,7 +123,7 @@ def march_beam(
     p = o + r_hit * d
     uv_hit, _ = camera.project(p[None, :], min_z=1e-3)
     if abs(float(depth_at(depth_m, uv_hit)[0]) - p[2]) > tolerance_m:
-        return None
+        return BeamMiss("depth_edge")
     return BeamHit(r_hit, uv_hit[0])
 
 

@@ -24,7 +24,12 @@ import numpy as np
 from companion import __version__
 from companion.config import Config, MountConfig, RangefinderConfig, to_dict
 from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, RANGE_COLUMNS
-from companion.drivers.dataset.import_depth import beam_in_camera, march_beam, noisy_reading
+from companion.drivers.dataset.import_depth import (
+    BeamMiss,
+    beam_in_camera,
+    march_beam,
+    noisy_reading,
+)
 from companion.drivers.dataset.import_sources import SourceSequence
 from companion.drivers.dataset.toml_text import toml_dumps
 from companion.drivers.dataset.tum import write_tum
@@ -157,7 +162,8 @@ def import_sequence(
     model, size = cam.model(), (cam.width, cam.height)
     t0 = min(min(f.time_s, f.depth_time_s) for f in seq.frames)
     summary = ImportSummary(dropped=dict(seq.dropped))
-    summary.dropped.update(beam_no_surface=0)
+    for reason in ("no_surface", "missing_depth", "depth_edge"):
+        summary.dropped[f"beam_{reason}"] = 0
     rng = np.random.default_rng(seed)
     frame_rows, range_rows = ["time_us,seq,filename"], []
     for k, f in enumerate(seq.frames):
@@ -171,8 +177,8 @@ def import_sequence(
         t_us = round((f.depth_time_s - t0) * 1e6)
         for rf in sensors:
             hit = march_beam(depth, model, *beam_in_camera(rf))
-            if hit is None:
-                summary.dropped["beam_no_surface"] += 1
+            if isinstance(hit, BeamMiss):
+                summary.dropped[f"beam_{hit.reason}"] += 1
                 continue
             r = noisy_reading(rf, hit.range_m, rng)
             range_rows.append(

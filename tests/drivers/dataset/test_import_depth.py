@@ -9,6 +9,8 @@ import pytest
 
 from companion.config import MountConfig, RangefinderConfig
 from companion.drivers.dataset.import_depth import (
+    BeamHit,
+    BeamMiss,
     beam_in_camera,
     depth_at,
     march_beam,
@@ -41,7 +43,7 @@ def test_the_marched_range_is_the_analytic_distance_to_a_tilted_plane() -> None:
     for rf in DEFAULT_BEAMS:
         o, d = beam_in_camera(rf)
         hit = march_beam(depth, camera, o, d)
-        assert hit is not None
+        assert isinstance(hit, BeamHit)
         analytic_m = (offset_m - normal @ o) / (normal @ d)
         assert abs(hit.range_m - analytic_m) < 1e-3, (rf.sensor_id, hit.range_m, analytic_m)
         # the pixel it reports is where the hit point projects
@@ -59,7 +61,7 @@ def test_the_default_beams_leave_the_lens_tilted_outward_and_land_apart() -> Non
         assert 5.0 <= tilt_deg <= 12.5 and 0.0 < np.linalg.norm(o) < 0.06
         assert float(o[:2] @ d[:2]) > 0  # outward: the beam leans towards its own side
         hit = march_beam(depth, camera, o, d)
-        assert hit is not None
+        assert isinstance(hit, BeamHit)
         pixels.append(hit.uv_px)
     gaps = [np.linalg.norm(a - b) for i, a in enumerate(pixels) for b in pixels[i + 1 :]]
     assert min(gaps) > 60.0  # well-separated pixels at 1 m
@@ -70,12 +72,13 @@ def test_missing_depth_where_the_beam_lands_drops_the_reading() -> None:
     depth = np.full((480, 640), 1.2)
     o, d = beam_in_camera(DEFAULT_BEAMS[2])
     hit = march_beam(depth, camera, o, d)
-    assert hit is not None
+    assert isinstance(hit, BeamHit)
     u, v = np.rint(hit.uv_px).astype(int)
     holed = depth.copy()
     holed[v - 6 : v + 7, u - 6 : u + 7] = 0.0  # a Kinect hole around the spot
-    assert march_beam(holed, camera, o, d) is None
-    assert march_beam(np.zeros_like(depth), camera, o, d) is None
+    assert march_beam(holed, camera, o, d) == BeamMiss("missing_depth")
+    assert march_beam(np.zeros_like(depth), camera, o, d) == BeamMiss("no_surface")
+    assert march_beam(np.full_like(depth, 20.0), camera, o, d) == BeamMiss("no_surface")
 
 
 def test_a_beam_that_passes_behind_a_depth_edge_is_dropped() -> None:
@@ -86,10 +89,10 @@ def test_a_beam_that_passes_behind_a_depth_edge_is_dropped() -> None:
     o, d = np.array([0.05, 0.0, 0.0]), np.array([-np.sin(tilt), 0.0, np.cos(tilt)])
     # the beam starts over the far side and crosses u = 270 at z = 0.63 m, behind the near
     # surface (0.5 m): no surface of the image is hit there (the near object's side is)
-    assert march_beam(depth, camera, o, d) is None
+    assert march_beam(depth, camera, o, d) == BeamMiss("depth_edge")
     depth[:, :270] = 3.0
     hit = march_beam(depth, camera, o, d)
-    assert hit is not None and abs(hit.range_m - 3.0 / np.cos(tilt)) < 1e-3
+    assert isinstance(hit, BeamHit) and abs(hit.range_m - 3.0 / np.cos(tilt)) < 1e-3
 
 
 def test_depth_lookup_is_bilinear_on_a_smooth_surface_and_nearest_at_an_edge() -> None:

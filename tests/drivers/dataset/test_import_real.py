@@ -4,6 +4,7 @@ manifest (config/real_sequences.toml) and its rebuild from the git snapshots in 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import tomllib
@@ -16,7 +17,7 @@ import pytest
 from companion.cli import main
 from companion.drivers.dataset import open_dataset
 from companion.drivers.dataset.import_depth import beam_in_camera
-from companion.drivers.dataset.import_manifest import extract, read_manifest
+from companion.drivers.dataset.import_manifest import extract, read_manifest, rebuild
 from companion.drivers.dataset.import_write import DEFAULT_BEAMS
 
 REPO = Path(__file__).resolve().parents[3]
@@ -123,3 +124,21 @@ def test_rebuild_refuses_a_changed_file_and_an_importer_not_built_here(
     assert main([*argv, "rislab_downward", "--out", str(tmp_path / "b")]) == 2
     assert "importer 'rislab' is not built here" in capsys.readouterr().err
     assert main([*argv, "no_such", "--out", str(tmp_path / "c")]) == 2
+
+
+@needs_snapshots
+def test_the_committed_clip_is_its_manifest_entrys_rebuild(tmp_path: Path) -> None:
+    """The first 30 frames rebuilt from the snapshot: the same JPEG bytes, frame rows, ranges
+    (the noise drawn in frame order from the same seed) and ground truth as the committed
+    clip."""
+    entry = {e.name: e for e in read_manifest(MANIFEST)}["tum_fr1_rpy_clip"]
+    short = dataclasses.replace(entry, args={**entry.args, "frames": "0:30"})
+    rebuild(short, SNAPSHOTS, tmp_path / "clip")
+    got, ours = open_dataset(tmp_path / "clip"), open_dataset(CLIP)
+    assert len(got) == 30
+    for k in (0, 17, 29):
+        assert got.frame_paths[k].read_bytes() == ours.frame_paths[k].read_bytes()
+    assert np.array_equal(got.frame_times_us, ours.frame_times_us[:30])
+    n = len(got.ranges)
+    assert n >= 100 and got.ranges == ours.ranges[:n]
+    assert np.allclose(got.gt_T_world_body, ours.gt_T_world_body[:30], atol=1e-9)
