@@ -10,13 +10,13 @@ surface point seen through it (0 = no depth). The true distance r solves
 pi the camera's projection (its distortion included), D the depth looked up at that pixel: the
 first r where the ray passes behind the surface. We march along the ray in steps of
 ``step_m`` (the first sample behind the surface, the one before it in front with depth; the
-samples near the lens that project outside the image are passed over), then
-bisect the bracket with the depth interpolated bilinearly (nearest at an edge or beside a
-missing pixel). A reading is **dropped** (``BeamMiss``, its reason) when the beam never meets the surface inside
-the image, crosses it beside a pixel without depth, or when |f| at the solution is above
-``tolerance_m`` (the ray passed behind a depth edge: no surface there). The noise model and
-the limits then follow docs/dataset.md (``RangefinderConfig``: sigma = a + b r, seeded; outside
-[min_m, max_m] the nearest limit with signal_quality 1).
+samples near the lens that project outside the image are passed over), then bisect the
+bracket with the depth interpolated bilinearly (nearest at an edge or beside a missing pixel).
+A reading is **dropped** (``BeamMiss``, with its reason) when the beam never meets the surface
+inside the image, crosses it beside a pixel without depth, or when |f| at the solution is
+above ``tolerance_m`` (the ray passed behind a depth edge: no surface there). The noise model
+and the limits then follow docs/dataset.md (``RangefinderConfig``: sigma = a + b r, seeded;
+outside [min_m, max_m] the nearest limit with signal_quality 1).
 """
 
 from __future__ import annotations
