@@ -5,6 +5,7 @@ One module per group of commands; each parses its arguments and calls functions 
 - :mod:`.service`: ``run``, ``status``, ``config``
 - :mod:`.evaluate`: ``eval``, ``report``; :mod:`.evaluate_dpose` (``eval --dpose``) and
   :mod:`.flight` (``eval --phases``: the published poses by flight phase) beside it
+- :mod:`.dataset`: ``dataset import | rebuild`` (real sequences into our format)
 - :mod:`.bench`: ``bench render | vo | attitude | dpose | soak``
 - :mod:`.sim`: ``sitl record | sheet | run | px4``, ``demo``; and the one place where the
   product reaches the simulator (``sitl``): the other modules get simulated flights from it
@@ -126,6 +127,12 @@ COMMANDS: tuple[Command, ...] = (
         "summarise scale evaluations over seeds",
         "companion.cli.evaluate",
         "add_report",
+    ),
+    Command(
+        "dataset",
+        "import real sequences into our dataset format",
+        "companion.cli.dataset",
+        "add_parser",
     ),
     Command("bench", "benchmarks", "companion.cli.bench", "add_bench"),
     Command("sitl", "the simulator", "companion.cli.sim", "add_sitl"),

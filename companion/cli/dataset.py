@@ -1,0 +1,133 @@
+"""``companion dataset ...``: real sequences into our dataset format (docs/dataset.md,
+"Importing real sequences").
+
+    companion dataset import FORMAT SRC --out DIR [--config FILE] [--frames A:B] [--seed N]
+                             [--camera fr1|fr2|fr3] [--sequence NN] [--image-format keep|png|jpg]
+                             [--jpg-quality Q]
+    companion dataset rebuild NAME... | --all --snapshots DIR --out DIR [--manifest FILE]
+
+FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti. The distance sensors are
+synthesised from the depth images: the ``[[rangefinders]]`` of ``--config`` (mounts in the
+camera frame: the body is the camera), else four beams near the optical axis. ``rebuild``
+reads config/real_sequences.toml, extracts each sequence from its git snapshot, checks its
+checksums and imports it into DIR/NAME. Exit codes: 0 done, 2 bad input (a malformed list line,
+a checksum that differs, a bad config: the message names the file, line or key).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from companion.config import Config, RangefinderConfig, from_dict, read_toml
+from companion.drivers.dataset.import_manifest import read_manifest, rebuild
+from companion.drivers.dataset.import_sources import FORMATS, TUM_CAMERAS, read_source
+from companion.drivers.dataset.import_write import (
+    DEFAULT_BEAMS,
+    IMAGE_FORMATS,
+    ImportSummary,
+    import_sequence,
+    select_frames,
+)
+from companion.drivers.safe_files import SafeFolder
+from companion.errors import DatasetError
+
+DEFAULT_MANIFEST = Path("config/real_sequences.toml")
+
+
+def rangefinders_of(config_path: Path | None) -> tuple[RangefinderConfig, ...]:
+    """The ``[[rangefinders]]`` of a config file (mounts in the camera frame), or the four
+    default beams when there is no file or it declares none."""
+    if config_path is None:
+        return DEFAULT_BEAMS
+    data = read_toml(config_path)
+    if "rangefinders" not in data:
+        return DEFAULT_BEAMS
+    return from_dict(Config, data).rangefinders
+
+
+def _summary_line(out: Path, s: ImportSummary) -> str:
+    dropped = ", ".join(f"{k} {v}" for k, v in s.dropped.items() if v) or "nothing"
+    return (
+        f"{out}: {s.frames} frames, {s.readings} synthesised readings, path "
+        f"{s.path_length_m:.2f} m; left out: {dropped}"
+    )
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Import one folder."""
+    folder = SafeFolder(args.src)
+    seq = read_source(args.format, folder, args.camera, args.sequence)
+    seq = select_frames(seq, args.frames)
+    summary = import_sequence(
+        seq,
+        folder,
+        args.out,
+        rangefinders_of(args.config),
+        seed=args.seed,
+        image_format=args.image_format,
+        jpg_quality=args.jpg_quality,
+        source_meta={"source_path": str(args.src)},
+    )
+    print(_summary_line(args.out, summary))
+    return 0
+
+
+def cmd_rebuild(args: argparse.Namespace) -> int:
+    """Rebuild manifest entries from their snapshots."""
+    entries = read_manifest(args.manifest)
+    by_name = {e.name: e for e in entries}
+    if args.all == bool(args.names):
+        raise DatasetError(f"rebuild: NAME... or --all (the manifest has {sorted(by_name)})")
+    names = [e.name for e in entries if e.importer in FORMATS] if args.all else args.names
+    for name in names:
+        if name not in by_name:
+            raise DatasetError(f"rebuild: {name!r} is not in {args.manifest} ({sorted(by_name)})")
+        out = args.out / name
+        print(_summary_line(out, rebuild(by_name[name], args.snapshots, out)))
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    """``companion dataset``."""
+    p = sub.add_parser("dataset", help="import real sequences into our dataset format")
+    dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="{import,rebuild}")
+    pi = dsub.add_parser("import", help="a real-sequence folder into our format")
+    pi.add_argument("format", choices=FORMATS, help="the source's format")
+    pi.add_argument("src", type=Path, help="the source folder")
+    pi.add_argument("--out", type=Path, required=True, help="a new (or empty) folder")
+    pi.add_argument(
+        "--config", type=Path, help="[[rangefinders]] to synthesise (mounts in the camera frame)"
+    )
+    pi.add_argument("--frames", default="", help="A:B: only these kept frames (a slice)")
+    pi.add_argument("--seed", type=int, default=1, help="seed of the range noise")
+    pi.add_argument(
+        "--camera",
+        choices=sorted(TUM_CAMERAS),
+        default="fr1",
+        help="tum-rgbd: which published TUM calibration (fr1, fr2, fr3)",
+    )
+    pi.add_argument("--sequence", default="", help="kitti: the sequence NN")
+    pi.add_argument(
+        "--image-format",
+        choices=IMAGE_FORMATS,
+        default="keep",
+        help="keep: copy the source's PNG/JPEG bytes; png or jpg: re-encode",
+    )
+    pi.add_argument(
+        "--jpg-quality", type=int, default=95, help="--image-format jpg: quality 1..100"
+    )
+    pi.set_defaults(func=cmd_import)
+    pr = dsub.add_parser("rebuild", help="manifest sequences from their git snapshots")
+    pr.add_argument("names", nargs="*", metavar="NAME", help="manifest entries to rebuild")
+    pr.add_argument("--all", action="store_true", help="every entry whose importer is built")
+    pr.add_argument("--snapshots", type=Path, required=True, help="folder of owner+name/ snapshots")
+    pr.add_argument("--out", type=Path, required=True, help="write DIR/NAME per sequence")
+    pr.add_argument(
+        "--manifest",
+        type=Path,
+        default=DEFAULT_MANIFEST,
+        help=f"the manifest (default {DEFAULT_MANIFEST})",
+    )
+    pr.set_defaults(func=cmd_rebuild)
