@@ -6,8 +6,9 @@
                              [--jpg-quality Q]
     companion dataset rebuild NAME... | --all --snapshots DIR --out DIR [--manifest FILE]
 
-FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti. The distance sensors are
-synthesised from the depth images: the ``[[rangefinders]]`` of ``--config`` (mounts in the
+FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti; rislab (the RIS lab's
+downward flight: images60fps/ and mocap_data.mat; ``--focal-px``, ``--k1``: its lens). The
+distance sensors are synthesised from the depth images: the ``[[rangefinders]]`` of ``--config`` (mounts in the
 camera frame: the body is the camera), else four beams near the optical axis. ``rebuild``
 reads config/real_sequences.toml, extracts each sequence from its git snapshot, checks its
 checksums and imports it into DIR/NAME. Exit codes: 0 done, 2 bad input (a malformed list line,
@@ -57,6 +58,8 @@ def _summary_line(out: Path, s: ImportSummary) -> str:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Import one folder."""
+    if args.format == "rislab":
+        return _import_rislab(args)
     folder = SafeFolder(args.src)
     seq = read_source(args.format, folder, args.camera, args.sequence)
     seq = select_frames(seq, args.frames)
@@ -69,6 +72,28 @@ def cmd_import(args: argparse.Namespace) -> int:
         image_format=args.image_format,
         jpg_quality=args.jpg_quality,
         source_meta={"source_path": str(args.src)},
+    )
+    print(_summary_line(args.out, summary))
+    return 0
+
+
+def _import_rislab(args: argparse.Namespace) -> int:
+    """The RIS lab downward flight (drivers/dataset/rislab.py): sensors synthesised over its
+    floor (``--config``'s [[rangefinders]] as mounted on the body, else four on the arms)."""
+    from companion.config import load_config
+    from companion.drivers.dataset.rislab import RISLAB_BEAMS, import_rislab
+
+    first, _, last = args.frames.partition(":")
+    beams = rangefinders_of(args.config) if args.config is not None else RISLAB_BEAMS
+    summary = import_rislab(
+        args.src,
+        args.out,
+        load_config(),
+        beams,
+        focal_px=args.focal_px,
+        dist=(args.k1, 0.0, 0.0, 0.0, 0.0),
+        frames=(int(first), int(last)) if last else None,
+        seed=args.seed,
     )
     print(_summary_line(args.out, summary))
     return 0
@@ -94,7 +119,7 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("dataset", help="import real sequences into our dataset format")
     dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="{import,rebuild}")
     pi = dsub.add_parser("import", help="a real-sequence folder into our format")
-    pi.add_argument("format", choices=FORMATS, help="the source's format")
+    pi.add_argument("format", choices=(*FORMATS, "rislab"), help="the source's format")
     pi.add_argument("src", type=Path, help="the source folder")
     pi.add_argument("--out", type=Path, required=True, help="a new (or empty) folder")
     pi.add_argument(
@@ -118,6 +143,8 @@ def add_parser(sub: Any) -> None:
     pi.add_argument(
         "--jpg-quality", type=int, default=95, help="--image-format jpg: quality 1..100"
     )
+    pi.add_argument("--focal-px", type=float, default=235.5, help="rislab: focal length [px]")
+    pi.add_argument("--k1", type=float, default=0.0, help="rislab: radial distortion k1")
     pi.set_defaults(func=cmd_import)
     pr = dsub.add_parser("rebuild", help="manifest sequences from their git snapshots")
     pr.add_argument("names", nargs="*", metavar="NAME", help="manifest entries to rebuild")

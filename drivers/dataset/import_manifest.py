@@ -35,7 +35,7 @@ from companion.drivers.dataset.import_write import (
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import ConfigError, DatasetError
 
-ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format", "jpg_quality")
+ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format", "jpg_quality", "focal_px", "k1")
 _STR_KEYS = ("name", "repository", "revision", "path", "licence", "importer")
 
 
@@ -202,12 +202,27 @@ def run_importer(
     rangefinders: tuple[RangefinderConfig, ...] = DEFAULT_BEAMS,
 ) -> ImportSummary:
     """The entry's importer on the folder ``src`` into ``out``."""
+    a = entry.args
+    if entry.importer == "rislab":
+        from companion.config import load_config
+        from companion.drivers.dataset.rislab import import_rislab
+
+        k1 = float(a.get("k1", 0.0))
+        first, _, last = str(a.get("frames", "")).partition(":")
+        return import_rislab(
+            src,
+            out,
+            load_config(),
+            focal_px=float(a.get("focal_px", 235.5)),
+            dist=(k1, 0.0, 0.0, 0.0, 0.0),
+            frames=(int(first), int(last)) if last else None,
+            seed=int(a.get("seed", 1)),
+        )
     if entry.importer not in FORMATS:
         raise DatasetError(
             f"{entry.name}: importer {entry.importer!r} is not built here (this importer knows "
-            f"{', '.join(FORMATS)})"
+            f"{', '.join((*FORMATS, 'rislab'))})"
         )
-    a = entry.args
     folder = SafeFolder(src)
     seq = read_source(
         entry.importer, folder, str(a.get("camera", "fr1")), str(a.get("sequence", ""))
@@ -233,7 +248,7 @@ def run_importer(
 
 def rebuild(entry: RealSequence, snapshots: Path, out: Path) -> ImportSummary:
     """Extract the entry from its snapshot, check its checksums, import it into ``out``."""
-    if entry.importer not in FORMATS:
+    if entry.importer not in (*FORMATS, "rislab"):
         run_importer(entry, Path("."), out)  # raises: not built here
     with tempfile.TemporaryDirectory(prefix=f"rebuild-{entry.name}-") as tmp:
         root = extract(entry, snapshots, Path(tmp))

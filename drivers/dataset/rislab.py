@@ -40,11 +40,13 @@ import csv
 import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from companion.config import Config, RangefinderConfig
+from companion.config import Config, MountConfig, RangefinderConfig
 from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, RANGE_COLUMNS
+from companion.drivers.dataset.import_write import ImportSummary
 from companion.drivers.dataset.toml_text import toml_dumps
 from companion.drivers.dataset.tum import write_tum
 from companion.drivers.dataset.writer import calibration_tables
@@ -61,6 +63,25 @@ R_CAPTUREBODY_CAM = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.
 R_WORLD_CAPTUREWORLD = np.diag([1.0, -1.0, -1.0])  # z up -> z down
 
 
+def _beam(sensor_id: int, x_m: float, y_m: float, roll_deg: float, pitch_deg: float) -> Any:
+    return RangefinderConfig(
+        sensor_id=sensor_id,
+        mount=MountConfig(xyz_m=(x_m, y_m, 0.0), rpy_deg=(roll_deg, pitch_deg, 0.0)),
+        min_m=0.05,
+        max_m=12.0,
+        sigma_a_m=0.01,
+    )
+
+
+# four sensors on a small quadrotor's arms, 5 cm from the camera, a few degrees off vertical
+RISLAB_BEAMS: tuple[RangefinderConfig, ...] = (
+    _beam(0, 0.05, 0.02, -1.5, 3.7),
+    _beam(1, -0.016, 0.054, -3.8, -1.1),
+    _beam(2, -0.048, -0.024, 1.8, -3.6),
+    _beam(3, 0.024, -0.04, 3.0, 1.8),
+)
+
+
 @dataclass(frozen=True, slots=True)
 class Capture:
     """The motion-capture record: time (S,) [s], frame (S,) image index, position (S, 3) [m]
@@ -70,16 +91,6 @@ class Capture:
     frame: np.ndarray
     position_m: F64
     R: F64
-
-
-@dataclass(frozen=True, slots=True)
-class ImportSummary:
-    """What an import wrote and left out."""
-
-    frames: int
-    frames_without_stamp: int
-    ranges: int
-    path_length_m: float
 
 
 def read_capture(path: Path) -> Capture:
@@ -159,6 +170,7 @@ def import_rislab(
     src: Path,
     out: Path,
     config: Config,
+    rangefinders: tuple[RangefinderConfig, ...] = RISLAB_BEAMS,
     *,
     focal_px: float,
     dist: tuple[float, float, float, float, float],
@@ -166,7 +178,9 @@ def import_rislab(
     seed: int = 0,
 ) -> ImportSummary:
     """Write the sequence in ``src`` (images60fps/, mocap_data.mat) to the empty folder
-    ``out`` in our format, with ``config``'s distance sensors synthesised over the floor."""
+    ``out`` in our format: ``config``'s camera section with this lens (``focal_px``, ``dist``),
+    and ``rangefinders`` synthesised over the floor; ``frames`` (A, B): only image indexes
+    A <= i < B."""
     capture = read_capture(src / "mocap_data.mat")
     ids, first = np.unique(capture.frame, return_index=True)
     stamps = capture.time_s[first] - LATENCY_S
@@ -193,7 +207,7 @@ def import_rislab(
         rate_hz=60.0,
         mount=replace(config.camera.mount, xyz_m=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 90.0)),
     )
-    cfg = replace(config, camera=camera)
+    cfg = replace(config, camera=camera, rangefinders=rangefinders)
     if out.exists() and any(out.iterdir()):
         raise DatasetError(f"{out} exists and is not empty")
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -237,7 +251,9 @@ def import_rislab(
         "frames_without_stamp": span - len(ids),
     }
     (out / "meta.toml").write_text(toml_dumps(meta))
-    return ImportSummary(len(ids), span - len(ids), n_ranges, path_m)
+    return ImportSummary(
+        len(ids), n_ranges, path_m, {"frames without a stamp or truth": span - len(ids)}
+    )
 
 
 def _write_ranges(
