@@ -8,8 +8,9 @@
 
 FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti; rislab (the RIS lab's
 downward flight: images60fps/ and mocap_data.mat; ``--focal-px``, ``--k1``: its lens). The
-distance sensors are synthesised from the depth images: the ``[[rangefinders]]`` of ``--config`` (mounts in the
-camera frame: the body is the camera), else four beams near the optical axis. ``rebuild``
+distance sensors are synthesised from the depth images: the ``[[rangefinders]]`` of
+``--config`` (mounts in the camera frame: the body is the camera), else four beams near the
+optical axis. ``rebuild``
 reads config/real_sequences.toml, extracts each sequence from its git snapshot, checks its
 checksums and imports it into DIR/NAME. Exit codes: 0 done, 2 bad input (a malformed list line,
 a checksum that differs, a bad config: the message names the file, line or key).
