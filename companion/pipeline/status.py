@@ -48,6 +48,9 @@ class PipelineStatus:
     dpose_armed: bool = False  # d-Pose has its pattern
     dpose_used: int = 0  # d-Pose poses that corrected the published position
     dpose_resets: int = 0  # of them, corrections applied at once (each a new reset_counter)
+    # frames the frame check kept from the VO, by verdict (FrameProblem value, count), the
+    # verdicts seen only: ("frozen", 35) = 35 repeated (duplicated) images
+    frames_refused: tuple[tuple[str, int], ...] = ()
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -88,4 +91,5 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         dpose_armed=pipe.dpose_stage.armed,
         dpose_used=offset.updates,
         dpose_resets=offset.resets,
+        frames_refused=tuple((k, n) for k, n in pipe.frame_check.counts.items() if n),
     )
