@@ -177,7 +177,8 @@ def tracks_markdown(tracks: dict[str, Any], detail: str | None) -> list[str]:
         "",
         "ATE after an SE(3) alignment against two constants: the start held (no alignment) "
         "and the best constant (the mean true position: what any constant scores aligned). "
-        "A ratio of 1 is no better than standing still.",
+        "A ratio of 1 is no better than standing still. The published poses: every one; a "
+        "scale method: from 5 s after the VO's first pose, as the metric ATE above.",
         "",
     ]
     rows = [
@@ -214,6 +215,7 @@ def tracks_markdown(tracks: dict[str, Any], detail: str | None) -> list[str]:
                 ["segment", "frames", "duration", "ATE (SE3)", "best constant"], seg_rows
             )
         )
+        lines += [""] if chosen.reset_steps else []
         for r in chosen.reset_steps:
             lines.append(
                 f"- reset at {r.time_s:.2f} s: the track steps {r.step_m:.3f} m, "
