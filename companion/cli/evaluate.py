@@ -185,10 +185,12 @@ def eval_vo(args: argparse.Namespace) -> int:
     write_honest(out, inp.config_source, frames, tracks, "published")
     if "published" in tracks:
         t = tracks["published"]
+        ate = "unavailable" if t.ate_se3_m is None else f"{t.ate_se3_m:.3f} m"
+        step = t.largest_reset_step_m
         print(
-            f"published: ATE (SE3) {t.ate_se3_m:.3f} m, best constant {t.constant_mean_m:.3f} m, "
+            f"published: ATE (SE3) {ate}, best constant {t.constant_mean_m:.3f} m, "
             f"{len(t.segments)} segment(s), largest step at a reset "
-            + ("none" if t.largest_reset_step_m is None else f"{t.largest_reset_step_m:.3f} m")
+            + ("none" if step is None else f"{step:.3f} m")
         )
     print(f"trajectories and metrics in {out}")
     return EXIT_OK
