@@ -186,3 +186,23 @@ def test_the_methods_are_scored_against_a_constant_position(recorded: Path, tmp_
             assert track["ratio_to_mean"] < 0.05, name
     assert doc["tracks"]["M-MSCwK"]["ratio_to_mean"] < 0.05
     assert "best constant" in (out / "report.md").read_text()
+
+
+def test_a_dataset_without_a_config_of_its_own_takes_the_files_options_and_no_sensors(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A dataset that brings no config (EuRoC): the algorithm options are the file's, the
+    sensors none (it declares none), and the file's own sensors are named in a warning."""
+    import dataclasses
+
+    from companion.cli.evaluate_dataset import config_source, dataset_config
+    from companion.drivers.dataset import open_dataset
+
+    ds = dataclasses.replace(open_dataset(real_like(recorded, tmp_path / "clip")), config=None)
+    table = {"vo": {"max_features": 77}, "rangefinders": [{"sensor_id": 4}]}
+    cfg = dataset_config(ds, toml_file(tmp_path / "vehicle.toml", table))
+    assert cfg.vo.max_features == 77 and cfg.rangefinders == () and cfg.attitude.sensor_ids == ()
+    err = capsys.readouterr().err
+    assert "rangefinders (ids [4]) differ from the sensors the dataset declares (ids [])" in err
+    assert dataset_config(ds, None).vo.max_features == 200  # the built-in options
+    assert config_source(ds, None) == "the built-in defaults"
