@@ -55,6 +55,7 @@ class VoRun:
     resets: int = 0
     # frames not given to the VO, by reason (companion.evaluation.frames), errors included
     dropped: dict[str, int] = field(default_factory=dict)
+    gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
@@ -153,6 +154,7 @@ def run_vo(
     run.resets = pipe.vo.resets
     run.peak_rss_mb = peak_rss_mb()
     run.dropped = dropped_frames(pipe, run.errors)
+    run.gaps = pipe.gaps
     return run
 
 
@@ -181,6 +183,7 @@ class ScaleRun:
     points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
     dropped: dict[str, int] = field(default_factory=dict)  # frames not given to the VO
+    gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
         """The accuracy of every method of the run (companion.evaluation.scale)."""
@@ -259,6 +262,7 @@ def run_scale(
     run.yaw_vo_rad = pipe.vo.yaw_vo_rad
     run.resets = pipe.vo.resets
     run.dropped = dropped_frames(pipe)
+    run.gaps = pipe.gaps
     return run
 
 

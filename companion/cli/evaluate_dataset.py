@@ -123,12 +123,17 @@ def report_skipped(ds: Dataset, out: Path) -> None:
 
 
 def frames_report(
-    ds: Dataset | None, frames: int, dropped: dict[str, int], features: Sequence[int] = ()
+    ds: Dataset | None,
+    frames: int,
+    dropped: dict[str, int],
+    features: Sequence[int] = (),
+    gaps: int = 0,
 ) -> dict[str, Any]:
     """The frames not given to the VO (``dropped``: by reason, companion.evaluation.frames;
     plus a recording's frames the service held): one line on stderr when any were, and the
     figures for the report (frames, given to the VO, by reason, the line, and the median of
-    the features tracked per frame given to the VO, ``features``, when known)."""
+    the features tracked per frame given to the VO, ``features``, when known; ``gaps``: new
+    VO maps after more than vo.max_gap_ms without a usable frame)."""
     from companion.evaluation.frames import dropped_line, dropped_total
 
     counts = {k: int(v) for k, v in dropped.items() if v}
@@ -145,6 +150,7 @@ def frames_report(
         "not_given_to_vo": counts,
         "line": line,
         "features_median": median,
+        "gaps": gaps,
     }
 
 
@@ -155,6 +161,11 @@ def frames_markdown(frames: dict[str, Any]) -> list[str]:
         "",
         frames["line"] or f"all {frames['frames']} frames were given to the VO",
     ]
+    if frames.get("gaps"):
+        lines.append(
+            f"{frames['gaps']} time(s) no usable frame for longer than vo.max_gap_ms: "
+            "the VO started a new map"
+        )
     if frames.get("features_median") is not None:
         lines.append(f"(features tracked per frame: median {frames['features_median']:g})")
     return lines
@@ -373,7 +384,7 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
         )
     extra = {
         "config": config_source(ds, config_path),
-        "frames": frames_report(ds, len(ds), run.dropped),
+        "frames": frames_report(ds, len(ds), run.dropped, gaps=run.gaps),
         "tracks": tracks,
         "published_method": cfg.scale.method,
     }

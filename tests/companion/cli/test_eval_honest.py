@@ -156,7 +156,9 @@ def test_after_a_reset_the_published_track_continues_and_each_segment_is_scored(
     clip = real_like(recorded, tmp_path / "gap", gap=GAP)
     code, out = evaluate(tmp_path, clip)
     assert code == 0
-    pub = json.loads((out / "eval.json").read_text())["tracks"]["published"]
+    doc = json.loads((out / "eval.json").read_text())
+    assert doc["frames"]["gaps"] == 1 and doc["frames"]["not_given_to_vo"] == {}
+    pub = doc["tracks"]["published"]
     assert [s["segment"] for s in pub["segments"]] == [0, 1]
     assert all(s["frames"] >= 90 and s["ate_se3_m"] < 0.1 for s in pub["segments"])
     (step,) = pub["reset_steps"]
