@@ -32,6 +32,7 @@ class VoRun:
     """Per-frame VO results of one run.
 
     time_us (F,), state (F,) VoState values, T_vo_cam (F, 4, 4) (NaN unless tracking),
+    features: tracked features of every frame the VO saw (its count may be below F),
     segment (F,) index of the VO map (it changes at every re-initialisation; -1 before the
     first), frame_ms (F,) time to each frame's pose [ms], total_ms (F,) including the keyframe
     work done after it, keyframe (F,) flags. poses: every pose the pipeline gave (the
@@ -47,10 +48,14 @@ class VoRun:
     total_ms: list[float] = field(default_factory=list)  # with the keyframe work after it
     scale_ms: list[float] = field(default_factory=list)
     keyframe: list[bool] = field(default_factory=list)
+    features: list[int] = field(default_factory=list)  # tracked, per frame given to the VO
     poses: list[PoseEstimate] = field(default_factory=list)
     errors: int = 0
     peak_rss_mb: float = 0.0
     resets: int = 0
+    # frames not given to the VO, by reason (companion.evaluation.frames), errors included
+    dropped: dict[str, int] = field(default_factory=dict)
+    gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
@@ -73,6 +78,15 @@ def feed_step(pipe: Pipeline, step: Any) -> PoseEstimate | None:
         if r.sample is not None:
             pipe.feed(r.sample)
     return pipe.feed_frame(step.frame)
+
+
+def dropped_frames(pipe: Pipeline, errors: int = 0) -> dict[str, int]:
+    """The frames ``pipe`` did not give to its VO, by reason: the frame check's verdicts,
+    the frames held for the autopilot's attitude, and ``errors`` (frames it raised on)."""
+    counts = dict(pipe.frame_check.counts)
+    counts["held_for_attitude"] = pipe.held_for_attitude
+    counts["errors"] = errors
+    return counts
 
 
 def peak_rss_mb() -> float:
@@ -130,6 +144,8 @@ def run_vo(
             run.time_us.append(ev.time_us)
             run.state.append(state)
             run.keyframe.append(out is not None and out.is_keyframe)
+            if out is not None:
+                run.features.append(len(out.features.pixels))
             run.T_vo_cam.append(T if T is not None else np.full((4, 4), np.nan))
             seg = pipe.vo.resets if pipe.vo.ever_initialized else -1
             run.segment.append(seg)
@@ -137,6 +153,8 @@ def run_vo(
                 next(progress, None)
     run.resets = pipe.vo.resets
     run.peak_rss_mb = peak_rss_mb()
+    run.dropped = dropped_frames(pipe, run.errors)
+    run.gaps = pipe.gaps
     return run
 
 
@@ -164,6 +182,8 @@ class ScaleRun:
     points_vo: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)  # frames not given to the VO
+    gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
         """The accuracy of every method of the run (companion.evaluation.scale)."""
@@ -241,6 +261,8 @@ def run_scale(
             next(progress, None)
     run.yaw_vo_rad = pipe.vo.yaw_vo_rad
     run.resets = pipe.vo.resets
+    run.dropped = dropped_frames(pipe)
+    run.gaps = pipe.gaps
     return run
 
 

@@ -31,9 +31,13 @@ from companion.cli.common import (
     run_name,
 )
 from companion.cli.evaluate_dataset import (
+    config_source,
     dataset_config,
     eval_scale_no_world,
+    frames_report,
+    published_track,
     report_skipped,
+    write_honest,
     write_replay,
 )
 from companion.cli.evaluate_dpose import eval_dpose
@@ -110,6 +114,7 @@ class VoInput:
     T_body_cam: Any = None
     gt_at: Callable[[int], Any] | None = None  # true body pose at a time [us], if known
     dataset: Dataset | None = None  # None: a simulated flight
+    config_source: str = "the SITL flags"  # where the algorithm options came from
 
 
 def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput:
@@ -126,12 +131,16 @@ def vo_input(args: argparse.Namespace, name: Callable[[Config], str]) -> VoInput
             ds.T_body_cam,
             ds.gt_pose_at if ds.has_ground_truth else None,
             ds,
+            config_source(ds, args.config),
         )
     cfg = load(args)  # straight from the simulator, no dataset on disk
     flight = sim.scenario(cfg)
     gt_poses: dict[int, Any] = {}
     events = sim.flight_events(flight, gt_poses)
-    return VoInput(cfg, name(cfg), flight.n_frames, events, gt_at=gt_poses.__getitem__)
+    source = f"{args.config or 'the built-in config'} with the SITL flags"
+    return VoInput(
+        cfg, name(cfg), flight.n_frames, events, gt_at=gt_poses.__getitem__, config_source=source
+    )
 
 
 def eval_vo(args: argparse.Namespace) -> int:
@@ -164,11 +173,25 @@ def eval_vo(args: argparse.Namespace) -> int:
     replay = write_replay(inp.dataset, run.poses, out) if inp.dataset is not None else None
     if replay is not None:
         print(replay)
+    tracks: dict[str, Any] = {}
     if inp.gt_at is not None and len(times):  # the camera's true trajectory, vs the VO's
         T_body_cam = inp.cfg.camera.T_body_cam() if inp.T_body_cam is None else inp.T_body_cam
         gt = np.array([inp.gt_at(int(t)) @ T_body_cam for t in times])
         write_tum(out / "groundtruth.tum", times * 1e-6, gt)
         print(write_vo_report(run.metrics(gt[:, :3, 3]), out, inp.name))
+        if run.poses:  # what the autopilot would get, split at its reset_counter
+            tracks["published"] = published_track(run.poses, inp.gt_at)
+    frames = frames_report(inp.dataset, inp.total, run.dropped, run.features, run.gaps)
+    write_honest(out, inp.config_source, frames, tracks, "published")
+    if "published" in tracks:
+        t = tracks["published"]
+        ate = "unavailable" if t.ate_se3_m is None else f"{t.ate_se3_m:.3f} m"
+        step = t.largest_reset_step_m
+        print(
+            f"published: ATE (SE3) {ate}, best constant {t.constant_mean_m:.3f} m, "
+            f"{len(t.segments)} segment(s), largest step at a reset "
+            + ("none" if step is None else f"{step:.3f} m")
+        )
     print(f"trajectories and metrics in {out}")
     return EXIT_OK
 
@@ -188,22 +211,43 @@ def eval_scale(args: argparse.Namespace) -> int:
     from companion.offline import run_scale
     from companion.reporting import write_plots, write_tables, write_trajectories
 
+    source = f"{args.config or 'the built-in config'} with the SITL flags"
     if args.dataset is not None:
         ds = open_dataset(args.dataset)
         if not ds.has_world:
             return eval_scale_no_world(args, ds, args.config)
+        source = config_source(ds, args.config)
     study = 6 if args.sensor_study else 0
     cfg, name, world, steps, total = _scale_input(args, study)
     out = out_dir(args, Path("out") / "eval" / name)
     with progress(total, f"eval {name}", not args.no_progress) as ticks:
         run = run_scale(cfg, steps, world, ticks, sensor_study=study)
     table = write_tables(run.metrics(), out, f"Metric scale on {name}")
+    frames = frames_report(None, total, run.dropped, gaps=run.gaps)
+    write_honest(out, source, frames, _tracks(run), cfg.scale.method)
     write_trajectories(run, out)
     plots = write_plots(run, world, out)
     print(table)
     print(f"VO resets: {run.resets}")
     print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))
     return EXIT_OK
+
+
+def _tracks(run: Any) -> dict[str, Any]:
+    """Every method's whole-flight and segment ATE and its constant baselines (ScaleRun)."""
+    from companion.evaluation.methods import method_track
+
+    tracking = np.array(run.tracking, dtype=bool)
+    if not tracking.any():
+        return {}
+    t = np.array(run.time_us) * 1e-6
+    gt = np.array(run.gt_position).reshape(-1, 3)
+    seg = np.array(run.segment, dtype=np.float64)
+    init = float(t[np.argmax(tracking)])
+    return {
+        n: method_track(t, np.array(run.position[n]).reshape(-1, 3), gt, seg, init)
+        for n in run.methods
+    }
 
 
 def _scale_input(args: argparse.Namespace, study: int) -> tuple[Config, str, Any, Any, int]:
@@ -213,9 +257,10 @@ def _scale_input(args: argparse.Namespace, study: int) -> tuple[Config, str, Any
         ds = open_dataset(args.dataset)
         if ds.sitl is None or ds.config is None or len(ds.gt_times_us) == 0:
             raise CompanionError(f"{ds.path}: a simulated world needs its ground truth")
-        if study and len(ds.config.rangefinders) < study:
+        cfg = dataset_config(ds, args.config)  # --config's algorithm options, if given
+        if study and len(cfg.rangefinders) < study:
             raise CompanionError("--sensor-study needs a recording with six distance sensors")
-        return ds.config, ds.path.name, sim.recorded_world(ds), dataset_steps(ds), len(ds)
+        return cfg, ds.path.name, sim.recorded_world(ds), dataset_steps(ds), len(ds)
     cfg = load(args)
     if study and len(cfg.rangefinders) < study:
         cfg = dataclasses.replace(cfg, rangefinders=STUDY_RANGEFINDERS)

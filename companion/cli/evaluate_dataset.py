@@ -19,9 +19,10 @@ from typing import Any
 import numpy as np
 
 from companion.cli.common import EXIT_OK, out_dir, progress
-from companion.config import Config, load_config
+from companion.config import Config, load_config, read_toml, to_dict
 from companion.drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
-from companion.errors import CompanionError
+from companion.drivers.dataset.format import ALGORITHM_SECTIONS
+from companion.errors import CompanionError, ConfigError
 from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
 from companion.types import PoseEstimate
@@ -30,16 +31,83 @@ NO_RANGES = "the dataset has no distance sensors (ranges.csv): no metric scale"
 
 
 def dataset_config(ds: Dataset, config_path: Path | None) -> Config:
-    """The config a dataset runs with: a dataset of ours brings its own (its calibration, the
-    sensors it declares, and a recording's algorithm options); another (EuRoC) takes the
-    algorithm options of ``--config`` (or the built-in one) with no distance sensors, since
-    it declares none. The camera model and T_body_cam always come from ``ds``."""
-    if ds.config is not None:
-        return ds.config
+    """The config a dataset runs with (docs/dataset.md, "Which config a dataset runs with").
+
+    The camera, T_body_cam and the distance sensors are always the dataset's own (its
+    calibration; EuRoC's sensor.yaml, no sensors). The algorithm options ([vo] [scale]
+    [attitude] [dpose]) are ``--config FILE``'s (the file over the built-in defaults, as
+    ``companion run --config FILE`` would fly them), else a recording's own config.toml, else
+    the built-in ones. The whole file is validated: an unknown key or a bad value is a
+    ConfigError naming it (exit 2); a [camera] or [[rangefinders]] in the file that differs
+    from the dataset's is a warning naming the keys (the dataset's calibration wins);
+    [service], [record] and [sitl] do not apply to a replay and are not used."""
+    if config_path is None:
+        if ds.config is not None:
+            return ds.config
+        return _without_sensors(Config())
     cfg = load_config(config_path)
+    for line in calibration_conflicts(ds, read_toml(Path(config_path)), cfg):
+        print(f"companion: warning: {config_path}: {line}", file=sys.stderr)
+    if ds.config is None:
+        return _without_sensors(cfg)
+    try:
+        return dataclasses.replace(ds.config, **{k: getattr(cfg, k) for k in ALGORITHM_SECTIONS})
+    except ConfigError as e:  # e.g. attitude.sensor_ids naming a sensor the dataset lacks
+        raise ConfigError(f"{config_path} on {ds.path.name}: {e}") from None
+
+
+def _without_sensors(cfg: Config) -> Config:
+    """``cfg`` with no distance sensors (a dataset that declares none has none)."""
     return dataclasses.replace(
         cfg, rangefinders=(), attitude=dataclasses.replace(cfg.attitude, sensor_ids=())
     )
+
+
+def config_source(ds: Dataset, config_path: Path | None) -> str:
+    """Where a dataset's algorithm options came from (for the report)."""
+    if config_path is not None:
+        return str(config_path)
+    if ds.config is not None and ds.folder is not None and ds.folder.exists("config.toml"):
+        return "the recording's config.toml"
+    return "the built-in defaults"
+
+
+def _flat(table: Any, prefix: str) -> dict[str, Any]:
+    """A nested table as {dotted key: leaf value}."""
+    if not isinstance(table, dict):
+        return {prefix: table}
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        out.update(_flat(v, f"{prefix}.{k}"))
+    return out
+
+
+def calibration_conflicts(ds: Dataset, raw: dict[str, Any], cfg: Config) -> list[str]:
+    """What a config file's [camera] and [[rangefinders]] (``raw``: the file as read, ``cfg``:
+    as validated) say that the dataset's calibration does not: one line per table, naming the
+    keys that differ (the dataset's calibration is used)."""
+    lines: list[str] = []
+    own = ds.config
+    if "camera" in raw:
+        given = _flat(to_dict(cfg.camera), "camera")
+        theirs = _flat(to_dict(own.camera), "camera") if own is not None else {}
+        keys = sorted(set(_flat(raw["camera"], "camera")) & set(given))
+        differ = [k for k in keys if own is None or given[k] != theirs.get(k)]
+        if differ:
+            lines.append(
+                f"{', '.join(differ[:6])}{' ...' if len(differ) > 6 else ''} "
+                f"{'differs' if len(differ) == 1 else 'differ'} from the dataset's own "
+                "calibration: the dataset's is used"
+            )
+    if "rangefinders" in raw:
+        ours = own.rangefinders if own is not None else ()
+        if cfg.rangefinders != ours:
+            lines.append(
+                f"rangefinders (ids {[r.sensor_id for r in cfg.rangefinders]}) differ from "
+                f"the sensors the dataset declares (ids {[r.sensor_id for r in ours]}): "
+                "the dataset's are used"
+            )
+    return lines
 
 
 def report_skipped(ds: Dataset, out: Path) -> None:
@@ -52,6 +120,154 @@ def report_skipped(ds: Dataset, out: Path) -> None:
         print(f"companion: warning: {line}", file=sys.stderr)
     counts = {name: {"skipped": c.skipped, "first": c.first} for name, c in ds.skipped.items()}
     (out / "skipped_rows.json").write_text(json.dumps(counts, indent=2) + "\n")
+
+
+def frames_report(
+    ds: Dataset | None,
+    frames: int,
+    dropped: dict[str, int],
+    features: Sequence[int] = (),
+    gaps: int = 0,
+) -> dict[str, Any]:
+    """The frames not given to the VO (``dropped``: by reason, companion.evaluation.frames;
+    plus a recording's frames the service held): one line on stderr when any were, and the
+    figures for the report (frames, given to the VO, by reason, the line, and the median of
+    the features tracked per frame given to the VO, ``features``, when known; ``gaps``: new
+    VO maps after more than vo.max_gap_ms without a usable frame)."""
+    from companion.evaluation.frames import dropped_line, dropped_total
+
+    counts = {k: int(v) for k, v in dropped.items() if v}
+    if ds is not None and ds.frame_held is not None and ds.frame_held.any():
+        counts["held_by_service"] = int(ds.frame_held.sum())
+    line = dropped_line(frames, counts)
+    if line is not None:
+        print(line, file=sys.stderr)
+    given = frames - dropped_total(counts)
+    median = float(np.median(features)) if len(features) else None
+    return {
+        "frames": frames,
+        "given_to_vo": given,
+        "not_given_to_vo": counts,
+        "line": line,
+        "features_median": median,
+        "gaps": gaps,
+    }
+
+
+def frames_markdown(frames: dict[str, Any]) -> list[str]:
+    """The report's lines on the frames not given to the VO."""
+    lines = [
+        "## Frames not given to the VO",
+        "",
+        frames["line"] or f"all {frames['frames']} frames were given to the VO",
+    ]
+    if frames.get("gaps"):
+        lines.append(
+            f"{frames['gaps']} time(s) no usable frame for longer than vo.max_gap_ms: "
+            "the VO started a new map"
+        )
+    if frames.get("features_median") is not None:
+        lines.append(f"(features tracked per frame: median {frames['features_median']:g})")
+    return lines
+
+
+def track_json(track: Any) -> dict[str, Any]:
+    """A TrackAccuracy as JSON (its segments and reset steps as lists of objects)."""
+    doc = {k: getattr(track, k) for k in track.__slots__}
+    doc["segments"] = [dataclasses.asdict(s) for s in track.segments]
+    doc["reset_steps"] = [dataclasses.asdict(s) for s in track.reset_steps]
+    doc["largest_reset_step_m"] = track.largest_reset_step_m
+    return doc
+
+
+def tracks_markdown(tracks: dict[str, Any], detail: str | None) -> list[str]:
+    """The report's table of whole-flight ATE against the constant-position baselines, one row
+    per track, and the per-segment table of the track ``detail``."""
+    lines = [
+        "## Whole flight, segments and a constant position",
+        "",
+        "ATE after an SE(3) alignment against two constants: the start held (no alignment) "
+        "and the best constant (the mean true position: what any constant scores aligned). "
+        "A ratio of 1 is no better than standing still. The published poses: every one; a "
+        "scale method: from 5 s after the VO's first pose, as the metric ATE above.",
+        "",
+    ]
+    rows = [
+        [
+            name,
+            str(t.frames),
+            _fmt(t.ate_se3_m, " m", 3),
+            _fmt(t.constant_start_m, " m", 3),
+            _fmt(t.constant_mean_m, " m", 3),
+            _fmt(t.ratio_to_mean, "", 3),
+            str(len(t.segments)),
+            "no reset" if t.largest_reset_step_m is None else f"{t.largest_reset_step_m:.3f} m",
+        ]
+        for name, t in tracks.items()
+    ]
+    header = ["track", "frames", "ATE (SE3)", "start held", "best constant"]
+    header += ["ATE / best constant", "segments", "largest step at a reset"]
+    lines.append(markdown_table(header, rows))
+    chosen = tracks.get(detail) if detail is not None else None
+    if chosen is not None and chosen.segments:
+        seg_rows = [
+            [
+                str(g.segment),
+                str(g.frames),
+                f"{g.duration_s:.1f} s",
+                _fmt(g.ate_se3_m, " m", 3),
+                _fmt(g.constant_mean_m, " m", 3),
+            ]
+            for g in chosen.segments
+        ]
+        lines += ["", f"Segments of {detail} (each aligned on its own):", ""]
+        lines.append(
+            markdown_table(
+                ["segment", "frames", "duration", "ATE (SE3)", "best constant"], seg_rows
+            )
+        )
+        lines += [""] if chosen.reset_steps else []
+        for r in chosen.reset_steps:
+            lines.append(
+                f"- reset at {r.time_s:.2f} s: the track steps {r.step_m:.3f} m, "
+                f"the truth {r.true_step_m:.3f} m"
+            )
+    return lines
+
+
+def write_honest(
+    out: Path,
+    config: str,
+    frames: dict[str, Any],
+    tracks: dict[str, Any],
+    detail: str | None,
+) -> None:
+    """eval.json (where the algorithm options came from, the frames not given to the VO, and
+    by track the whole-flight and segment ATE against a constant position) and the same as
+    sections at the end of report.md (after the evaluation's own report, if any)."""
+    doc = {
+        "config": config,
+        "frames": frames,
+        "tracks": {n: track_json(t) for n, t in tracks.items()},
+    }
+    (out / "eval.json").write_text(json.dumps(doc, indent=2) + "\n")
+    lines = [f"Algorithm options from {config}.", "", *frames_markdown(frames)]
+    if tracks:
+        lines += ["", *tracks_markdown(tracks, detail)]
+    report = out / "report.md"
+    before = report.read_text() if report.exists() else ""
+    report.write_text(before + ("\n" if before else "") + "\n".join(lines) + "\n")
+
+
+def published_track(poses: Sequence[PoseEstimate], gt_at: Any) -> Any:
+    """The published poses (their positions NED, split at their reset_counter) against the
+    true body positions at their times (``gt_at(time_us)``: T_world_body (4, 4))."""
+    from companion.evaluation.segments import track_accuracy
+
+    t = np.array([p.time_us for p in poses], dtype=np.float64) * 1e-6
+    est = np.array([p.position_ned_m for p in poses]).reshape(-1, 3)
+    gt = np.array([gt_at(p.time_us)[:3, 3] for p in poses]).reshape(-1, 3)
+    return track_accuracy(t, est, gt, [p.reset_counter for p in poses])
 
 
 def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
@@ -118,8 +334,9 @@ def write_replay(ds: Dataset, poses: Sequence[PoseEstimate], out: Path) -> str |
 # ------------------------------------------------------------------------------ no world
 def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path | None) -> int:
     """Every scale method on a dataset without a simulated world: metric (SE3) and Sim(3) ATE
-    against its ground truth side by side; the figures that need a true scale unavailable."""
-    from companion.evaluation.methods import MethodAccuracy, trajectory_accuracy
+    against its ground truth side by side, per segment and against a constant position; the
+    frames not given to the VO; the figures that need a true scale unavailable."""
+    from companion.evaluation.methods import MethodAccuracy, method_track, trajectory_accuracy
     from companion.evaluation.vo import vo_metrics
     from companion.offline import run_scale
 
@@ -143,17 +360,18 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
     t = np.array(run.time_us) * 1e-6
     tracking = np.array(run.tracking, dtype=bool)
     gt = np.array(run.gt_position).reshape(-1, 3)
+    segment = np.array(run.segment, dtype=np.float64)
     missing = NO_RANGES if not ds.ranges else ""
     rows: list[MethodAccuracy] = []
+    tracks: dict[str, Any] = {}
     if tracking.any():
         init = float(t[np.argmax(tracking)])
         R = so3.rot_z(run.yaw_vo_rad)
-        rows = [
-            trajectory_accuracy(
-                n, t, np.array(run.position[n]).reshape(-1, 3), gt, R, init, missing=missing
-            )
-            for n in run.methods
-        ]
+        for n in run.methods:
+            pos = np.array(run.position[n]).reshape(-1, 3)
+            rows.append(trajectory_accuracy(n, t, pos, gt, R, init, missing=missing))
+            if ds.has_ground_truth:
+                tracks[n] = method_track(t, pos, gt, segment, init)
     vo = None
     if tracking.any() and ds.has_ground_truth:
         vo = vo_metrics(
@@ -164,7 +382,13 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
             np.array(run.vo_position).reshape(-1, 3),
             np.array(run.gt_cam_position).reshape(-1, 3),
         )
-    table = _write_no_world(rows, vo, run, ds, out)
+    extra = {
+        "config": config_source(ds, config_path),
+        "frames": frames_report(ds, len(ds), run.dropped, gaps=run.gaps),
+        "tracks": tracks,
+        "published_method": cfg.scale.method,
+    }
+    table = _write_no_world(rows, vo, run, ds, out, extra)
     print(table)
     print(f"VO resets: {run.resets}")
     print(f"tables and TUM trajectories in {out}")
@@ -175,14 +399,21 @@ def _fmt(v: float | None, unit: str, digits: int) -> str:
     return "unavailable" if v is None else f"{v:.{digits}f}{unit}"
 
 
-def _write_no_world(rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path) -> str:
-    """scale_metrics.json, report.md and the TUM trajectories of a no-world evaluation."""
+def _write_no_world(
+    rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path, extra: dict[str, Any]
+) -> str:
+    """scale_metrics.json, report.md and the TUM trajectories of a no-world evaluation;
+    ``extra``: the config's source, the frames report, the tracks by method."""
+    tracks = extra["tracks"]
     doc = {
         "dataset": str(ds.path),
         "world": None,
         "ground_truth": ds.has_ground_truth,
         "distance_sensors": [r.sensor_id for r in ds.rangefinders],
+        "config": extra["config"],
+        "frames": extra["frames"],
         "methods": [dataclasses.asdict(r) for r in rows],
+        "tracks": {n: track_json(t) for n, t in tracks.items()},
         "vo": None if vo is None else {k: getattr(vo, k) for k in vo.__slots__},
     }
     (out / "scale_metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -213,7 +444,11 @@ def _write_no_world(rows: list[Any], vo: Any, run: Any, ds: Dataset, out: Path) 
         )
     if not rows:
         notes.append("- the VO never tracked: no method has an estimate")
-    table = "\n".join([metrics, "", *notes])
+    notes.append(f"- algorithm options from {extra['config']}")
+    more = frames_markdown(extra["frames"])
+    if tracks:
+        more += ["", *tracks_markdown(tracks, extra["published_method"])]
+    table = "\n".join([metrics, "", *notes, "", *more])
     (out / "report.md").write_text(f"# Metric scale on {ds.path.name} (no world)\n\n{table}\n")
     from companion.evaluation.trajectory import poses_from_positions
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.evaluation.segments import TrackAccuracy, track_accuracy
 from companion.evaluation.trajectory import ate_rmse, final_error_m, path_length
 from companion.types import F64
 
@@ -93,3 +94,18 @@ def trajectory_accuracy(
         final_error_m=final,
         unavailable=no_scale,
     )
+
+
+def method_track(
+    time_s: F64,
+    position_m: F64,
+    gt_position_m: F64,
+    segment: F64,
+    init_time_s: float,
+    settle_s: float = 5.0,
+) -> TrackAccuracy:
+    """A method's whole-flight and per-segment ATE and its constant-position baselines
+    (companion.evaluation.segments) over the frames :func:`trajectory_accuracy` evaluates
+    (from ``init_time_s + settle_s``); ``segment`` (F,) the VO map index of every frame."""
+    sel = time_s >= init_time_s + settle_s
+    return track_accuracy(time_s[sel], position_m[sel], gt_position_m[sel], segment[sel])

@@ -52,6 +52,9 @@ class PipelineStatus:
     dpose_resets: int = 0  # of them, corrections applied at once (each a new reset_counter)
     # the camera's clock over the last frames (vo.steady_clock; None before enough frames)
     clock: ClockReport | None = None
+    # frames the frame check kept from the VO, by verdict (FrameProblem value, count), the
+    # verdicts seen only: ("frozen", 35) = 35 repeated (duplicated) images
+    frames_refused: tuple[tuple[str, int], ...] = ()
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -93,4 +96,5 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         dpose_used=offset.updates,
         dpose_resets=offset.resets,
         clock=pipe.clock.report() if pipe.clock is not None else None,
+        frames_refused=tuple((k, n) for k, n in pipe.frame_check.counts.items() if n),
     )

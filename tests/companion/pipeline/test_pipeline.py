@@ -11,7 +11,7 @@ from companion.geometry import se3, so3
 from companion.offline import feed_step
 from companion.pipeline import Pipeline, PipelineStatus
 from companion.sitl.world.scenario import Scenario
-from companion.types import AttitudeSample, VoState
+from companion.types import AttitudeSample, CameraFrame, VoState
 
 
 def _ground_flight(seconds: float, terrain: str = "hills", **extra: object):
@@ -127,6 +127,14 @@ def test_the_status_snapshot_is_frozen_and_follows_the_pipeline() -> None:
     after = p.status()
     assert after.vo_state == "TRACKING" and after.keyframes >= 1 and after.scale == 1.0
     assert before.vo_state == "INITIALIZING"  # an old snapshot never changes
+    assert after.frames_refused == ()
+    last = st.frame
+    for dt_us, image in ((1, last.image_bgr), (2, last.image_bgr), (3, 0 * last.image_bgr)):
+        p.feed_frame(CameraFrame(last.time_us + dt_us, last.seq + dt_us, image))
+    p.feed_frame(last)  # its time again: out of order
+    # the frame check's verdicts, as a status display shows them (a repeated image: frozen)
+    assert p.status().frames_refused == (("out_of_order", 1), ("frozen", 2), ("dark", 1))
+    assert after.frames_refused == ()
     with pytest.raises(AttributeError):
         after.vo_state = "LOST"  # type: ignore[misc]
 
