@@ -23,6 +23,7 @@ from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Event, Pipeline
 from companion.types import F64, CameraFrame, PoseEstimate, VoState
+from companion.vo.frame_clock import ClockReport
 
 log = logging.getLogger("companion.offline")
 
@@ -55,6 +56,7 @@ class VoRun:
     resets: int = 0
     # frames not given to the VO, by reason (companion.evaluation.frames), errors included
     dropped: dict[str, int] = field(default_factory=dict)
+    clock: ClockReport | None = None  # the camera's clock at the end (vo.steady_clock)
     gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def tracking_mask(self) -> NDArray[np.bool_]:
@@ -155,6 +157,7 @@ def run_vo(
     run.peak_rss_mb = peak_rss_mb()
     run.dropped = dropped_frames(pipe, run.errors)
     run.gaps = pipe.gaps
+    run.clock = pipe.clock.report() if pipe.clock is not None else None
     return run
 
 
@@ -183,6 +186,7 @@ class ScaleRun:
     points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
     dropped: dict[str, int] = field(default_factory=dict)  # frames not given to the VO
+    clock: ClockReport | None = None  # the camera's clock at the end (vo.steady_clock)
     gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
 
     def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
@@ -263,6 +267,7 @@ def run_scale(
     run.resets = pipe.vo.resets
     run.dropped = dropped_frames(pipe)
     run.gaps = pipe.gaps
+    run.clock = pipe.clock.report() if pipe.clock is not None else None
     return run
 
 

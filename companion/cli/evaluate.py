@@ -181,7 +181,7 @@ def eval_vo(args: argparse.Namespace) -> int:
         print(write_vo_report(run.metrics(gt[:, :3, 3]), out, inp.name))
         if run.poses:  # what the autopilot would get, split at its reset_counter
             tracks["published"] = published_track(run.poses, inp.gt_at)
-    frames = frames_report(inp.dataset, inp.total, run.dropped, run.features, run.gaps)
+    frames = frames_report(inp.dataset, inp.total, run.dropped, run.features, run.gaps, run.clock)
     write_honest(out, inp.config_source, frames, tracks, "published")
     if "published" in tracks:
         t = tracks["published"]
@@ -223,7 +223,7 @@ def eval_scale(args: argparse.Namespace) -> int:
     with progress(total, f"eval {name}", not args.no_progress) as ticks:
         run = run_scale(cfg, steps, world, ticks, sensor_study=study)
     table = write_tables(run.metrics(), out, f"Metric scale on {name}")
-    frames = frames_report(None, total, run.dropped, gaps=run.gaps)
+    frames = frames_report(None, total, run.dropped, gaps=run.gaps, clock=run.clock)
     write_honest(out, source, frames, _tracks(run), cfg.scale.method)
     write_trajectories(run, out)
     plots = write_plots(run, world, out)

@@ -128,12 +128,14 @@ def frames_report(
     dropped: dict[str, int],
     features: Sequence[int] = (),
     gaps: int = 0,
+    clock: Any = None,
 ) -> dict[str, Any]:
     """The frames not given to the VO (``dropped``: by reason, companion.evaluation.frames;
     plus a recording's frames the service held): one line on stderr when any were, and the
     figures for the report (frames, given to the VO, by reason, the line, and the median of
     the features tracked per frame given to the VO, ``features``, when known; ``gaps``: new
-    VO maps after more than vo.max_gap_ms without a usable frame)."""
+    VO maps after more than vo.max_gap_ms without a usable frame; ``clock``: the camera
+    clock's ClockReport, a line on stderr when frames were re-timed)."""
     from companion.evaluation.frames import dropped_line, dropped_total
 
     counts = {k: int(v) for k, v in dropped.items() if v}
@@ -144,7 +146,14 @@ def frames_report(
         print(line, file=sys.stderr)
     given = frames - dropped_total(counts)
     median = float(np.median(features)) if len(features) else None
+    jitter = None
+    if clock is not None and clock.retimed:
+        from companion.vo.frame_clock import jitter_warning
+
+        jitter = f"eval: {jitter_warning(clock)}"
+        print(jitter, file=sys.stderr)
     return {
+        "clock": jitter,
         "frames": frames,
         "given_to_vo": given,
         "not_given_to_vo": counts,
@@ -166,6 +175,8 @@ def frames_markdown(frames: dict[str, Any]) -> list[str]:
             f"{frames['gaps']} time(s) no usable frame for longer than vo.max_gap_ms: "
             "the VO started a new map"
         )
+    if frames.get("clock"):
+        lines.append(frames["clock"].removeprefix("eval: "))
     if frames.get("features_median") is not None:
         lines.append(f"(features tracked per frame: median {frames['features_median']:g})")
     return lines
@@ -384,7 +395,7 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
         )
     extra = {
         "config": config_source(ds, config_path),
-        "frames": frames_report(ds, len(ds), run.dropped, gaps=run.gaps),
+        "frames": frames_report(ds, len(ds), run.dropped, gaps=run.gaps, clock=run.clock),
         "tracks": tracks,
         "published_method": cfg.scale.method,
     }

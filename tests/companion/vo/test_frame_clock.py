@@ -122,5 +122,8 @@ def test_a_flight_with_alternating_stamps_tracks_without_a_reset(
     after_start = tracking[int(np.argmax(tracking)) :]
     if steady_clock:
         assert run.resets == 0 and after_start.mean() >= 0.98
+        assert run.clock is not None and run.clock.jittery
+        assert run.clock.retimed >= len(run.state) - 10  # all but the first few
     else:
         assert run.resets >= 3 and after_start.mean() < 0.9
+        assert run.clock is None
