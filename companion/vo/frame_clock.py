@@ -13,7 +13,10 @@ frames dropped upstream keep their place), and judges the clock by the root mean
 the residuals:
 
 - at most ``max(min_jitter_ms, jitter_fraction * b)`` (a steady clock, e.g. the simulator's
-  or a good driver's): every stamp is passed through unchanged;
+  or a good driver's): every stamp is passed through unchanged; so it is when every interval
+  is a whole number (at least one) of the median interval within that tolerance: a steady
+  clock whose lost frames the sequence numbers do not count (a source that numbers only the
+  frames it kept, as a converted TUM RGB-D list does);
 - above it: the frame is re-timed to the line, ``a + b k`` (rounded to a microsecond, kept
   strictly after the previous frame), and counted in ``retimed``. A re-timed frame follows
   the one before it by ``b`` per frame step, pulled by ``pull`` (0.1) of the way towards the
@@ -108,7 +111,7 @@ class FrameClock:
         if len(self._k) >= self.min_frames:
             a, b, rms = self._line()
             self._fit = (a, b, rms)
-            if b > 0 and rms > max(self.min_jitter_us, self.jitter_fraction * b):
+            if self._jittery(b, rms):
                 line_us = a + b * (k - self._k[0])
                 if self._last_steady is not None:  # one period on, pulled gently to the line
                     ahead_us = self._last_steady + b * step
@@ -122,6 +125,30 @@ class FrameClock:
             out_us = self._last_out_us + 1
         self._last_out_us = out_us
         return out_us
+
+    def _jittery(self, b_us: float, rms_us: float) -> bool:
+        """Whether the stamps in the window jitter: off their line by more than the tolerance,
+        and not the stamps of a steady clock that lost frames the sequence numbers do not
+        count (a source that numbers only the frames it kept). Those intervals are whole
+        numbers ``n >= 1`` of a base period ``P``: ``P`` starts as their 10th percentile (at
+        least half the line's slope: with fewer than half the frames lost), ``n`` is each
+        interval over it, rounded, ``P`` is then fitted by least squares, and the intervals'
+        rms residual from ``n P`` must be within the tolerance."""
+        tol_us = max(self.min_jitter_us, self.jitter_fraction * b_us)
+        if b_us <= 0 or rms_us <= tol_us:
+            return False
+        per_step = np.diff(np.asarray(self._t, np.float64)) / np.maximum(
+            np.diff(np.asarray(self._k, np.float64)), 1.0
+        )
+        base_us = float(np.percentile(per_step, 10))
+        if base_us < 0.5 * b_us:
+            return True
+        n = np.rint(per_step / base_us)
+        if np.any(n < 1):
+            return True
+        period_us = float(per_step @ n) / float(n @ n)
+        resid_us = per_step - n * period_us
+        return float(np.sqrt(np.mean(resid_us**2))) > tol_us
 
     def _line(self) -> tuple[float, float, float]:
         """Least-squares line ``t = a + b (k - k0)`` over the window and the rms residual."""
@@ -143,7 +170,7 @@ class FrameClock:
         k = np.asarray(self._k, dtype=np.float64)
         t = np.asarray(self._t, dtype=np.float64)
         per_step = np.diff(t) / np.maximum(np.diff(k), 1.0)
-        jittery = b > 0 and rms > max(self.min_jitter_us, self.jitter_fraction * b)
+        jittery = self._jittery(b, rms)
         return ClockReport(
             period_ms=b * 1e-3,
             jitter_rms_ms=rms * 1e-3,

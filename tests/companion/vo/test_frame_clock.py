@@ -127,3 +127,12 @@ def test_a_flight_with_alternating_stamps_tracks_without_a_reset(
     else:
         assert run.resets >= 3 and after_start.mean() < 0.9
         assert run.clock is None
+
+
+def test_frames_lost_without_a_sequence_gap_are_not_jitter() -> None:
+    """A steady camera that lost every 5th frame while its frames were numbered 0, 1, 2, ...
+    (a converted list of kept frames): intervals of one and two periods, stamps exact, so they
+    pass unchanged."""
+    stamps = [k * PERIOD_US for k in range(300) if k % 5 != 2]
+    clock = FrameClock()
+    assert retime(clock, stamps) == stamps and clock.retimed == 0
