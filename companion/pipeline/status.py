@@ -48,6 +48,13 @@ class PipelineStatus:
     dpose_armed: bool = False  # d-Pose has its pattern
     dpose_used: int = 0  # d-Pose poses that corrected the published position
     dpose_resets: int = 0  # of them, corrections applied at once (each a new reset_counter)
+    # the camera's focal length checked in flight (companion/vo/focal_check.py): the median
+    # f_true / f_file over keyframe pairs, its spread (1.4826 MAD), the pairs; the warning once
+    # it is confidently more than 5 % off
+    lens_focal_ratio: float | None = None
+    lens_focal_spread: float | None = None
+    lens_focal_samples: int = 0
+    lens_warning: str | None = None
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -61,6 +68,7 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         sigma_deg = float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
     fix = pipe.compass.fix
     offset = pipe.dpose_stage.offset
+    focal = pipe.lens.estimate()
     return PipelineStatus(
         vo_state=out.state.name if out is not None else "INITIALIZING",
         features=int(len(out.features.pixels)) if out is not None else 0,
@@ -88,4 +96,8 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         dpose_armed=pipe.dpose_stage.armed,
         dpose_used=offset.updates,
         dpose_resets=offset.resets,
+        lens_focal_ratio=focal.ratio if focal is not None else None,
+        lens_focal_spread=focal.spread if focal is not None else None,
+        lens_focal_samples=focal.samples if focal is not None else 0,
+        lens_warning=pipe.lens.warning,
     )
