@@ -23,6 +23,7 @@ from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Event, Pipeline
 from companion.types import F64, CameraFrame, PoseEstimate, VoState
+from companion.vo.focal_check import FocalRatio
 
 log = logging.getLogger("companion.offline")
 
@@ -51,6 +52,8 @@ class VoRun:
     errors: int = 0
     peak_rss_mb: float = 0.0
     resets: int = 0
+    lens_focal: FocalRatio | None = None  # the focal length checked in flight (LensStage)
+    lens_warning: str | None = None
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
@@ -137,6 +140,7 @@ def run_vo(
                 next(progress, None)
     run.resets = pipe.vo.resets
     run.peak_rss_mb = peak_rss_mb()
+    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
     return run
 
 
@@ -164,6 +168,8 @@ class ScaleRun:
     points_vo: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     points_frame: int = -1  # the frame whose map points_vo holds
     resets: int = 0
+    lens_focal: FocalRatio | None = None  # the focal length checked in flight (LensStage)
+    lens_warning: str | None = None
 
     def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
         """The accuracy of every method of the run (companion.evaluation.scale)."""
@@ -241,6 +247,7 @@ def run_scale(
             next(progress, None)
     run.yaw_vo_rad = pipe.vo.yaw_vo_rad
     run.resets = pipe.vo.resets
+    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
     return run
 
 

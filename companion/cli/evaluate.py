@@ -47,6 +47,7 @@ from companion.drivers.dataset import (
 )
 from companion.errors import CompanionError, DatasetError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
+from companion.vo.focal_check import focal_summary
 
 if TYPE_CHECKING:
     from companion.cli.sim import Flight
@@ -169,6 +170,7 @@ def eval_vo(args: argparse.Namespace) -> int:
         gt = np.array([inp.gt_at(int(t)) @ T_body_cam for t in times])
         write_tum(out / "groundtruth.tum", times * 1e-6, gt)
         print(write_vo_report(run.metrics(gt[:, :3, 3]), out, inp.name))
+    print(focal_summary(run.lens_focal, run.lens_warning))
     print(f"trajectories and metrics in {out}")
     return EXIT_OK
 
@@ -202,6 +204,7 @@ def eval_scale(args: argparse.Namespace) -> int:
     plots = write_plots(run, world, out)
     print(table)
     print(f"VO resets: {run.resets}")
+    print(focal_summary(run.lens_focal, run.lens_warning))
     print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))
     return EXIT_OK
 

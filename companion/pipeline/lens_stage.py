@@ -11,6 +11,7 @@ from companion.types import F64, VoOutput, VoState
 from companion.vo.focal_check import FocalCheck, FocalRatio, KeyframeView, focal_warning
 
 log = logging.getLogger("companion.pipeline")
+MAX_WAITING = 8  # keyframes kept for the next work() before observe() pairs them itself
 
 
 class LensStage:
@@ -36,6 +37,8 @@ class LensStage:
             out.features.pixels[has].copy(),
         )
         self._waiting.append(view)
+        if len(self._waiting) >= MAX_WAITING:  # nobody runs the keyframe work (run_scale)
+            self.work()
 
     def work(self) -> bool:
         """Pair the keyframes kept since the last call; whether there were any."""
@@ -54,3 +57,8 @@ class LensStage:
     def estimate(self) -> FocalRatio | None:
         """The focal ratio so far (FocalCheck.estimate)."""
         return self.check.estimate()
+
+    def result(self) -> FocalRatio | None:
+        """The estimate once every kept keyframe is paired (the end of an offline run)."""
+        self.work()
+        return self.estimate()

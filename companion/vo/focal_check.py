@@ -218,3 +218,15 @@ def focal_warning(est: FocalRatio, threshold: float = 0.05, min_samples: int = 2
         f"pixels: f_true / f_file = {est.ratio:.3f} +- {est.spread:.3f} over {est.samples} "
         f"keyframe pairs); check [camera] fx fy"
     )
+
+
+def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:
+    """What ``companion eval`` prints: the ratio, its spread and the pairs (or why none), and
+    the warning on a line of its own when there is one."""
+    line = "lens focal ratio (f_true / f_file): no keyframe pairs with enough rotation"
+    if est is not None:
+        line = (
+            f"lens focal ratio (f_true / f_file): {est.ratio:.3f} (spread {est.spread:.3f}, "
+            f"+- {est.sigma:.3f}) over {est.samples} keyframe pairs"
+        )
+    return line if warning is None else f"{line}\nwarning: {warning}"
