@@ -37,7 +37,7 @@ q estimates f_true / f_assumed: the factor to multiply [camera] fx fy by. On tha
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,6 +50,7 @@ I64 = NDArray[np.int64]
 
 Q_MIN, Q_MAX = 0.7, 1.4  # the focal ratios searched
 Q_STEPS = 29  # log grid, 2.5 % apart, then a parabola through the least cost and neighbours
+MAX_POINTS = 120  # points of a pair used (the cost is a mean: more only costs time)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,45 +78,44 @@ class KeyframeView:
     pixels: F64
 
 
-def _skew(t: F64) -> F64:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def epipolar_cost(x1: F64, x2: F64, R_c2_c1: F64) -> float:
-    """Mean squared Sampson distance (normalised units^2) of rays x1, x2 (N, 3) under the
-    rotation R_c2_c1 (3, 3) and the best translation direction (module docstring)."""
-    Rx1 = x1 @ R_c2_c1.T
-    rows = np.cross(Rx1, x2)
-    w = np.ones(len(rows))
-    t = np.zeros(3)
+def epipolar_costs(x1: F64, x2: F64, R_c2_c1: F64) -> F64:
+    """Mean squared Sampson distances (Q,) [normalised units^2] of Q candidate sets of rays
+    x1, x2 (Q, M, 3) under the rotation R_c2_c1 (3, 3), each with its best translation
+    direction (module docstring; three reweightings)."""
+    rows = np.cross(x1 @ R_c2_c1.T, x2)  # (Q, M, 3): rows . t = x2^T [t]x R x1
+    w = np.ones(rows.shape[:2])
+    t = np.zeros((rows.shape[0], 3))
     for _ in range(3):
-        normal = (rows * w[:, None]).T @ rows
+        normal = np.einsum("qm,qmi,qmj->qij", w, rows, rows)
         _, vectors = np.linalg.eigh(normal)
-        t = vectors[:, 0]
-        E = _skew(t) @ R_c2_c1
-        line2 = x1 @ E.T
-        line1 = x2 @ E
-        den = line2[:, 0] ** 2 + line2[:, 1] ** 2 + line1[:, 0] ** 2 + line1[:, 1] ** 2
+        t = vectors[:, :, 0]  # (Q, 3), the least eigenvalue's
+        Rx1 = x1 @ R_c2_c1.T
+        line2 = np.cross(t[:, None, :], Rx1)  # E x1 = t x (R x1)
+        line1 = np.cross(x2, t[:, None, :]) @ R_c2_c1  # E^T x2 = R^T (x2 x t)
+        den = line2[..., 0] ** 2 + line2[..., 1] ** 2 + line1[..., 0] ** 2 + line1[..., 1] ** 2
         w = 1.0 / np.maximum(den, 1e-18)
-    return float(np.mean((rows @ t) ** 2 * w))
+    residual = np.einsum("qmi,qi->qm", rows, t)
+    costs: F64 = np.mean(residual**2 * w, axis=1)
+    return costs
 
 
 def pair_ratio(camera: CameraModel, px1: F64, px2: F64, R_c2_c1: F64) -> float | None:
     """f_true / f_assumed from the pixels (N, 2) of N points in two views and the rotation
-    R_c2_c1 (3, 3) between them; None when a candidate's rays cannot be computed."""
+    R_c2_c1 (3, 3) between them; None when a candidate's rays cannot be computed. At most
+    MAX_POINTS points (evenly spaced in the list) are used; every candidate's rays come from
+    one undistortion call."""
+    take = np.unique(np.linspace(0, len(px1) - 1, min(len(px1), MAX_POINTS)).astype(np.int64))
+    px = np.concatenate([px1[take], px2[take]])  # (2 M, 2)
     qs = np.exp(np.linspace(np.log(Q_MIN), np.log(Q_MAX), Q_STEPS))
-    costs = np.empty(Q_STEPS)
-    for i, q in enumerate(qs):
-        model = replace(camera, fx=camera.fx * q, fy=camera.fy * q)
-        try:
-            n1 = model.pixels_to_normalized(px1)
-            n2 = model.pixels_to_normalized(px2)
-        except GeometryError:
-            return None
-        ones = np.ones((len(n1), 1))
-        x1 = np.concatenate([n1, ones], axis=1)
-        x2 = np.concatenate([n2, ones], axis=1)
-        costs[i] = epipolar_cost(x1, x2, R_c2_c1) * model.fx * model.fy
+    centred = (px - np.array([camera.cx, camera.cy])) / np.array([camera.fx, camera.fy])
+    distorted = (centred[None, :, :] / qs[:, None, None]).reshape(-1, 2)  # (Q 2 M, 2)
+    try:
+        rays = camera.undistort_normalized(distorted).reshape(Q_STEPS, 2, len(take), 2)
+    except GeometryError:
+        return None
+    homogeneous = np.concatenate([rays, np.ones((Q_STEPS, 2, len(take), 1))], axis=3)
+    pixel_area = camera.fx * camera.fy * qs * qs  # normalised units^2 -> px^2 per candidate
+    costs = epipolar_costs(homogeneous[:, 0], homogeneous[:, 1], R_c2_c1) * pixel_area
     i = int(np.argmin(costs))
     if i == 0 or i == Q_STEPS - 1:
         return float(qs[i])
