@@ -32,6 +32,7 @@ from companion.dpose.options import DposeOptions
 from companion.errors import CompanionError, ConfigError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
+from companion.geometry.lens_check import lens_problem
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
@@ -86,6 +87,13 @@ class CameraConfig:
         ok = len(self.fourcc) == 4 and all(c.isascii() and c.isprintable() for c in self.fourcc)
         if self.fourcc and not ok:
             raise ConfigError(f"fourcc: 4 ASCII characters (MJPG, YUYV) or '', got {self.fourcc!r}")
+        problem = lens_problem(self.model())
+        if problem is not None:
+            raise ConfigError(
+                f"dist: the lens model (k1 k2 p1 p2 k3 = {list(self.dist)} with fx fy cx cy = "
+                f"{self.fx:g} {self.fy:g} {self.cx:g} {self.cy:g}) does not invert over the "
+                f"{self.width} x {self.height} image: {problem}"
+            )
 
     def model(self) -> CameraModel:
         """The camera model of these intrinsics."""

@@ -23,6 +23,7 @@ from companion.evaluation.vo import VoMetrics, vo_metrics
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Event, Pipeline
 from companion.types import F64, CameraFrame, PoseEstimate, VoState
+from companion.vo.focal_check import FocalRatio
 from companion.vo.frame_clock import ClockReport
 
 log = logging.getLogger("companion.offline")
@@ -58,6 +59,8 @@ class VoRun:
     dropped: dict[str, int] = field(default_factory=dict)
     clock: ClockReport | None = None  # the camera's clock at the end (vo.steady_clock)
     gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
+    lens_focal: FocalRatio | None = None  # the focal length checked in flight (LensStage)
+    lens_warning: str | None = None
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
@@ -158,6 +161,7 @@ def run_vo(
     run.dropped = dropped_frames(pipe, run.errors)
     run.gaps = pipe.gaps
     run.clock = pipe.clock.report() if pipe.clock is not None else None
+    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
     return run
 
 
@@ -188,6 +192,8 @@ class ScaleRun:
     dropped: dict[str, int] = field(default_factory=dict)  # frames not given to the VO
     clock: ClockReport | None = None  # the camera's clock at the end (vo.steady_clock)
     gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
+    lens_focal: FocalRatio | None = None  # the focal length checked in flight (LensStage)
+    lens_warning: str | None = None
 
     def metrics(self, settle_s: float = 5.0) -> list[ScaleMetrics]:
         """The accuracy of every method of the run (companion.evaluation.scale)."""
@@ -268,6 +274,7 @@ def run_scale(
     run.dropped = dropped_frames(pipe)
     run.gaps = pipe.gaps
     run.clock = pipe.clock.report() if pipe.clock is not None else None
+    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
     return run
 
 

@@ -51,6 +51,7 @@ from companion.drivers.dataset import (
 )
 from companion.errors import CompanionError, DatasetError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
+from companion.vo.focal_check import focal_summary
 
 if TYPE_CHECKING:
     from companion.cli.sim import Flight
@@ -192,6 +193,7 @@ def eval_vo(args: argparse.Namespace) -> int:
             f"{len(t.segments)} segment(s), largest step at a reset "
             + ("none" if step is None else f"{step:.3f} m")
         )
+    print(focal_summary(run.lens_focal, run.lens_warning))
     print(f"trajectories and metrics in {out}")
     return EXIT_OK
 
@@ -229,6 +231,7 @@ def eval_scale(args: argparse.Namespace) -> int:
     plots = write_plots(run, world, out)
     print(table)
     print(f"VO resets: {run.resets}")
+    print(focal_summary(run.lens_focal, run.lens_warning))
     print(f"tables, TUM trajectories and plots in {out}: " + ", ".join(p.name for p in plots))
     return EXIT_OK
 

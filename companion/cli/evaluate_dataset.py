@@ -26,6 +26,7 @@ from companion.errors import CompanionError, ConfigError
 from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
 from companion.types import PoseEstimate
+from companion.vo.focal_check import focal_summary
 
 NO_RANGES = "the dataset has no distance sensors (ranges.csv): no metric scale"
 
@@ -402,6 +403,7 @@ def eval_scale_no_world(args: argparse.Namespace, ds: Dataset, config_path: Path
     table = _write_no_world(rows, vo, run, ds, out, extra)
     print(table)
     print(f"VO resets: {run.resets}")
+    print(focal_summary(run.lens_focal, run.lens_warning))
     print(f"tables and TUM trajectories in {out}")
     return EXIT_OK
 

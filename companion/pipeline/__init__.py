@@ -4,7 +4,8 @@
 and accelerometer samples; ``ground`` the ranges' ground plane and the pad's gravity;
 ``gravity`` the accelerometer's tilt correction; ``heading`` the compass heading;
 ``scale_stage`` what the scale and roll/pitch take; ``output`` the published pose;
-``dpose_stage`` d-Pose's correction of it; ``status`` the frozen snapshot for displays.
+``dpose_stage`` d-Pose's correction of it; ``lens_stage`` the focal length checked in
+flight; ``status`` the frozen snapshot for displays.
 """
 
 from companion.pipeline.core import Pipeline

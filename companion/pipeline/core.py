@@ -24,6 +24,7 @@ from companion.pipeline.gravity import MotionGravity, MotionSample, Segment
 from companion.pipeline.ground import PadGravity, RangeGround
 from companion.pipeline.heading import CompassHeading
 from companion.pipeline.inputs import AttitudeHistory, Sample
+from companion.pipeline.lens_stage import LensStage
 from companion.pipeline.output import PoseOutput
 from companion.pipeline.scale_stage import TiltInput, ground_prior, laser_readings, scaled_cloud
 from companion.pipeline.status import PipelineStatus, status_of
@@ -105,6 +106,7 @@ class Pipeline:
         self.tilt_input: TiltInput | None = None  # its input
         self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
         self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
+        self.lens = LensStage(self.camera, self.T_body_cam)  # the focal length, in flight
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -199,6 +201,8 @@ class Pipeline:
         R_world_body = self.attitude_at(frame.time_us)  # the frame's attitude, for every stage
         out = self._vo_step(frame, R_world_body)
         self.vo_output = out
+        if out is not None:
+            self.lens.observe(out, R_world_body, self.vo.resets)
         if out is None or out.state != VoState.TRACKING:
             return None
         range_m = self._scale_step(frame.time_us, out)
@@ -327,7 +331,8 @@ class Pipeline:
         """Work that the last frame's pose did not need (building a keyframe: triangulation
         and local bundle adjustment). The service runs it after publishing; if nobody calls
         it, the next feed_frame does it first. Returns whether there was any."""
-        return self.vo.finish_pending()
+        built = self.vo.finish_pending()
+        return self.lens.work() or built
 
     def status(self) -> PipelineStatus:
         """An immutable snapshot of what the last frame left (for a status display on another

@@ -55,6 +55,13 @@ class PipelineStatus:
     # frames the frame check kept from the VO, by verdict (FrameProblem value, count), the
     # verdicts seen only: ("frozen", 35) = 35 repeated (duplicated) images
     frames_refused: tuple[tuple[str, int], ...] = ()
+    # the camera's focal length checked in flight (companion/vo/focal_check.py): the median
+    # f_true / f_file over keyframe pairs, its spread (1.4826 MAD), the pairs; the warning once
+    # it is confidently more than 5 % off
+    lens_focal_ratio: float | None = None
+    lens_focal_spread: float | None = None
+    lens_focal_samples: int = 0
+    lens_warning: str | None = None
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -68,6 +75,7 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         sigma_deg = float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
     fix = pipe.compass.fix
     offset = pipe.dpose_stage.offset
+    focal = pipe.lens.estimate()
     return PipelineStatus(
         vo_state=out.state.name if out is not None else "INITIALIZING",
         features=int(len(out.features.pixels)) if out is not None else 0,
@@ -97,4 +105,8 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         dpose_resets=offset.resets,
         clock=pipe.clock.report() if pipe.clock is not None else None,
         frames_refused=tuple((k, n) for k, n in pipe.frame_check.counts.items() if n),
+        lens_focal_ratio=focal.ratio if focal is not None else None,
+        lens_focal_spread=focal.spread if focal is not None else None,
+        lens_focal_samples=focal.samples if focal is not None else 0,
+        lens_warning=pipe.lens.warning,
     )

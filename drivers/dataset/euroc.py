@@ -51,7 +51,7 @@ def _euroc_camera(text: str) -> tuple[CameraModel, F64]:
         [parse_float(v, f"sensor.yaml, T_BS[{i}]", -1e6, 1e6) for i, v in enumerate(parts)]
     )
     model = CameraModel(width, height, fu, fv, cu, cv, *dist)
-    check_lens(model, "sensor.yaml")
+    check_lens(model, "sensor.yaml", "distortion_coefficients")
     return model, T.reshape(4, 4)
 
 

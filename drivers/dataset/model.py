@@ -21,9 +21,10 @@ from companion.drivers.safe_files import (
     SafeFolder,
     check_image_header,
 )
-from companion.errors import DatasetError, GeometryError
+from companion.errors import DatasetError
 from companion.geometry import se3
 from companion.geometry.camera import CameraModel
+from companion.geometry.lens_check import lens_problem
 from companion.types import (
     F64,
     AttitudeSample,
@@ -218,16 +219,12 @@ def decode_frame(
     return np.asarray(img, dtype=np.uint8)
 
 
-def check_lens(model: CameraModel, where: str) -> None:
-    """DatasetError naming ``where`` unless the camera model can serve the pipeline: finite,
-    positive intrinsics, and a distortion that inverts (undistortion converges) over the whole
-    image: its border and a grid inside (a hostile or broken calibration made the VO raise
-    deep inside a run)."""
-    try:
-        model.validate()
-        u = np.linspace(0.0, model.width - 1.0, 33)
-        v = np.linspace(0.0, model.height - 1.0, 25)
-        grid = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-        model.pixels_to_normalized(grid)
-    except (GeometryError, FloatingPointError, ValueError) as e:
-        raise DatasetError(f"{where}: the camera model cannot be used: {e}") from None
+def check_lens(model: CameraModel, where: str, dist_key: str = "dist") -> None:
+    """DatasetError naming ``where`` (the file and table) and ``dist_key`` unless the camera
+    model can serve the pipeline over its whole image: finite, positive intrinsics, a radial
+    distortion that increases up to the image's corners and an undistortion that converges
+    on every border pixel and a grid inside (``companion.geometry.lens_check``; a hostile
+    or broken calibration made the VO raise deep inside a run)."""
+    problem = lens_problem(model)
+    if problem is not None:
+        raise DatasetError(f"{where} {dist_key}: the camera model cannot be used: {problem}")

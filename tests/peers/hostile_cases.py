@@ -163,7 +163,7 @@ CASES = [
     ),
     Case(
         "calibration-lens-not-invertible",
-        "calibration.toml [camera]: the camera model cannot be used: undistortion did not",
+        "bad calibration.toml/config.toml: camera.dist: the lens model",
         _replace("calibration.toml", "dist = [-0.12,", "dist = [-40.0,"),
     ),
     Case(

@@ -1,0 +1,51 @@
+"""The focal length checked in flight (companion/pipeline/lens_stage.py): a seeded simulated
+figure8 (rolls, pitches and turns) rendered once, fed to pipelines whose camera file says
+fx fy 10 % larger, 10 % smaller than the renderer's, and right."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import pytest
+
+from companion.config import Config, load_config
+from companion.offline import feed_step
+from companion.pipeline import Pipeline
+
+# a 320 x 240 camera with the default's field of view keeps the flight short to render
+SMALL_CAMERA = {"width": 320, "height": 240, "fx": 230.0, "fy": 230.0, "cx": 159.5, "cy": 119.5}
+
+
+@pytest.fixture(scope="module")
+def flight() -> tuple[Config, list[Any]]:
+    from companion.sitl.world.scenario import Scenario
+
+    sitl = {"terrain": "hills", "trajectory": "figure8", "seconds": 8.0, "seed": 3}
+    cfg = load_config(None, {"camera": SMALL_CAMERA, "sitl": sitl})
+    return cfg, list(Scenario(cfg).steps())
+
+
+@pytest.mark.parametrize("file_over_true", [1.1, 0.9, 1.0])
+def test_a_wrong_focal_length_is_seen_in_flight(
+    flight: tuple[Config, list[Any]], file_over_true: float
+) -> None:
+    cfg, steps = flight
+    true = cfg.camera.model()
+    camera_file = replace(true, fx=true.fx * file_over_true, fy=true.fy * file_over_true)
+    pipe = Pipeline(cfg, camera=camera_file)
+    for step in steps:
+        feed_step(pipe, step)
+        pipe.background_work()
+    status = pipe.status()
+    ratio = status.lens_focal_ratio
+    assert ratio is not None and status.lens_focal_spread is not None
+    assert status.lens_focal_samples >= 30
+    if file_over_true == 1.0:
+        assert ratio == pytest.approx(1.0, abs=0.02)
+        assert status.lens_warning is None
+    else:
+        assert ratio == pytest.approx(1.0 / file_over_true, rel=0.03)
+        way = "too large" if file_over_true > 1.0 else "too small"
+        assert status.lens_warning is not None and way in status.lens_warning
+        assert "check [camera] fx fy" in status.lens_warning

@@ -1,0 +1,86 @@
+"""The focal length against the autopilot's rotation (companion/vo/focal_check.py), on seeded
+synthetic views: the pair estimate recovers f_true / f_file, a rotation about the optical axis
+counts for nothing, and the warning needs a confident estimate."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from companion.geometry import so3
+from companion.geometry.camera import CameraModel
+from companion.vo.focal_check import (
+    FocalCheck,
+    FocalRatio,
+    KeyframeView,
+    focal_summary,
+    focal_warning,
+    pair_ratio,
+    tilt_angle_rad,
+)
+
+TRUE = CameraModel(640, 480, 460.0, 460.0, 319.5, 239.5, -0.12, 0.05, 0.0005, -0.0003)
+
+
+def _views(seed: int, tilt_deg: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of N ground points (hilly, 6 m below) seen from two poses with a tilt and
+    a sideways translation; R_c2_c1 (3, 3)."""
+    rng = np.random.default_rng(seed)
+    n = 150
+    P1 = np.column_stack(
+        [rng.uniform(-3.5, 3.5, n), rng.uniform(-2.5, 2.5, n), 6.0 + rng.uniform(-0.5, 0.5, n)]
+    )
+    R_c2_c1 = so3.exp(np.radians([tilt_deg, -0.5 * tilt_deg, 8.0]))
+    t = np.array([0.6, -0.3, 0.05])  # sideways motion, as a multirotor tilts to accelerate
+    P2 = P1 @ R_c2_c1.T + t
+    uv1, _ = TRUE.project(P1)
+    uv2, _ = TRUE.project(P2)
+    keep = TRUE.in_image(uv1) & TRUE.in_image(uv2)
+    noise = rng.normal(0.0, 0.2, (2, int(keep.sum()), 2))  # KLT noise [px]
+    return uv1[keep] + noise[0], uv2[keep] + noise[1], R_c2_c1
+
+
+@pytest.mark.parametrize("file_over_true", [1.1, 1.0, 0.9])
+def test_a_pair_recovers_the_focal_ratio(file_over_true: float) -> None:
+    file_model = replace(TRUE, fx=TRUE.fx * file_over_true, fy=TRUE.fy * file_over_true)
+    estimates = [pair_ratio(file_model, *_views(seed)) for seed in range(8)]
+    assert all(q is not None for q in estimates)
+    assert np.median(np.asarray(estimates)) == pytest.approx(1.0 / file_over_true, rel=0.02)
+
+
+def test_rotation_about_the_optical_axis_is_no_tilt() -> None:
+    assert tilt_angle_rad(so3.exp(np.array([0.0, 0.0, 0.7]))) == pytest.approx(0.0, abs=1e-12)
+    rotvec = np.array([0.03, -0.04, 0.5])
+    assert tilt_angle_rad(so3.exp(rotvec)) == pytest.approx(0.05, rel=1e-9)
+
+
+def test_the_window_pairs_keyframes_of_one_map_with_enough_tilt() -> None:
+    file_model = replace(TRUE, fx=TRUE.fx * 1.1, fy=TRUE.fy * 1.1)
+    check = FocalCheck(file_model, min_points=30)
+    px1, px2, R_c2_c1 = _views(3)
+    ids = np.arange(len(px1), dtype=np.int64)
+    first = KeyframeView(0, 0, np.eye(3), ids, px1)
+    assert check.add(first) == 0
+    second = KeyframeView(500_000, 0, R_c2_c1.T, ids, px2)  # R_world_c2 = R_c1_c2
+    assert check.add(second) == 1
+    other_map = KeyframeView(1_000_000, 1, np.eye(3), ids, px1)
+    assert check.add(other_map) == 0
+    too_soon = KeyframeView(1_100_000, 1, R_c2_c1.T, ids, px2)  # 0.1 s < min_age_s
+    assert check.add(too_soon) == 0
+    est = check.estimate()
+    assert est is not None and est.samples == 1
+    assert est.ratio == pytest.approx(1.0 / 1.1, rel=0.03)
+
+
+def test_the_warning_needs_a_confident_estimate() -> None:
+    assert focal_warning(FocalRatio(1.103, 0.05, 0.007, 84)) is not None
+    text = focal_warning(FocalRatio(1.103, 0.05, 0.007, 84))
+    assert text is not None and "10.3 % too small" in text and "84 keyframe pairs" in text
+    assert "too large" in (focal_warning(FocalRatio(0.9, 0.05, 0.007, 84)) or "")
+    assert focal_warning(FocalRatio(1.103, 0.05, 0.007, 10)) is None  # too few pairs
+    assert focal_warning(FocalRatio(1.06, 0.05, 0.007, 84)) is None  # 6 % - 2 sigma < 5 %
+    assert focal_warning(FocalRatio(1.01, 0.05, 0.007, 84)) is None
+    assert "no keyframe pairs" in focal_summary(None)
+    assert "1.103 (spread 0.050" in focal_summary(FocalRatio(1.103, 0.05, 0.007, 84))
