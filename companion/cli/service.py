@@ -224,6 +224,19 @@ def _camera_text(cam: dict[str, Any]) -> str:
     )
 
 
+def _camera_check(vo: dict[str, Any]) -> str:
+    """The camera's clock and focal length as the pipeline checks them in flight."""
+    clock = "stamps steady"
+    if vo.get("frames_retimed"):
+        clock = (
+            f"stamps jitter {_fmt(vo.get('stamp_jitter_ms'), ' ms', 1)} rms: "
+            f"{vo['frames_retimed']} frames re-timed"
+        )
+    pairs = vo.get("focal_pairs") or 0
+    focal = f"focal x{vo['focal_ratio']:.3f} over {pairs} pairs" if pairs else "focal unchecked"
+    return f"{clock}  {focal}" + (f"  {vo['lens_warning']}" if vo.get("lens_warning") else "")
+
+
 def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
     vo, sc, att, out = st["vo"], st["scale"], st["attitude"], st["output"]
     matches = (sc.get("match_rate") or {}).items()
@@ -240,6 +253,7 @@ def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
             f"{sc['ranges_rejected']} rejected",
         ),
         ("  matches", "  ".join(f"sensor {k} {100 * v:.0f} %" for k, v in matches) or "-"),
+        ("camera check", _camera_check(vo)),
         (
             "roll/pitch",
             f"{_fmt(att['roll_deg'], '°')} / {_fmt(att['pitch_deg'], '°')}  "

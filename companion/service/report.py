@@ -143,6 +143,13 @@ class Report:
                 # maps dropped for starting before the attitude stream: north is the autopilot's
                 "held_for_attitude": p.held_for_attitude,
                 "heading_restarts": p.heading_restarts,
+                # the camera's clock (frames re-timed when its stamps jitter) and its lens: the
+                # focal length checked in flight against the autopilot's rotation
+                "frames_retimed": p.clock.retimed if p.clock is not None else 0,
+                "stamp_jitter_ms": p.clock.jitter_rms_ms if p.clock is not None else None,
+                "focal_ratio": p.lens_focal_ratio,
+                "focal_pairs": p.lens_focal_samples,
+                "lens_warning": p.lens_warning,
             },
             "scale": {
                 "method": p.method,

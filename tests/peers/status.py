@@ -32,7 +32,17 @@ SAMPLE: dict[str, Any] = {
         "dropped": 1,
         "last_frame_age_s": 0.02,
     },
-    "vo": {"state": "TRACKING", "features": 180, "keyframes": 9, "resets": 0},
+    "vo": {
+        "state": "TRACKING",
+        "features": 180,
+        "keyframes": 9,
+        "resets": 0,
+        "frames_retimed": 412,
+        "stamp_jitter_ms": 15.7,
+        "focal_ratio": 0.914,
+        "focal_pairs": 134,
+        "lens_warning": "camera focal length looks 8.5 % too large",
+    },
     "scale": {
         "method": "M-MSCwK",
         "value": 5.93,
