@@ -8,7 +8,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 OUT     ?= out
 
-.PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude \
+.PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude results-real \
 	results-dpose dist install uninstall clean
 
 all: test
@@ -93,6 +93,17 @@ results: venv
 	$(BIN)/companion eval --methods all --sensor-study --terrain hills --trajectory lawnmower \
 	  --seconds 60 --seed 1 --out $(RESULTS)/study-hills --no-progress
 	$(BIN)/companion report $(RESULTS)/*-*-*
+
+# docs/RESULTS.md, real sequences: rebuilt from their public git snapshots
+# (config/real_sequences.toml; SNAPSHOTS holds owner+name/repo bare clones), every method on each
+SNAPSHOTS ?= ../.mirror
+results-real: venv
+	@mkdir -p $(RESULTS)/real
+	$(BIN)/companion dataset rebuild --all --snapshots $(SNAPSHOTS) --out $(RESULTS)/real/data
+	for d in $(RESULTS)/real/data/*; do \
+	  $(BIN)/companion eval $$d --methods all --no-progress \
+	    --out $(RESULTS)/real/$$(basename $$d) || exit 1; done
+	$(BIN)/companion report $(RESULTS)/real/tum_* $(RESULTS)/real/rislab_*
 
 # docs/RESULTS.md, roll/pitch (issue 5) and d-Pose (issue 6)
 results-attitude: venv

@@ -258,15 +258,26 @@ def _sensors_plot(plt: Any, run: ScaleRun, out: Path) -> Path | None:
 def summary(dirs: list[Path]) -> str:
     """Markdown tables over several `eval --methods all` folders named TERRAIN-TRAJECTORY-SEED:
     per terrain and trajectory, every method averaged over the seeds, and whether each thesis
-    method beats each baseline (lower scale MSE and lower metric ATE)."""
+    method beats each baseline (lower scale MSE and lower metric ATE); folders of datasets
+    without a simulated world (real sequences, any name) make one "Real sequences" table
+    (companion/evaluation/real_table.py)."""
     groups: dict[tuple[str, str], list[list[dict[str, Any]]]] = {}
+    real: list[tuple[str, dict[str, Any]]] = []  # datasets without a world: real sequences
     for d in sorted(dirs):
         f = d / "scale_metrics.json"
-        parts = d.name.split("-")
-        if not f.exists() or len(parts) != 3:
+        if not f.exists():
             continue
-        groups.setdefault((parts[0], parts[1]), []).append(json.loads(f.read_text()))
+        doc = json.loads(f.read_text())
+        parts = d.name.split("-")
+        if isinstance(doc, dict):
+            real.append((d.name, doc))
+        elif len(parts) == 3:
+            groups.setdefault((parts[0], parts[1]), []).append(doc)
     out: list[str] = []
+    if real:
+        from companion.evaluation.real_table import real_sequences_table
+
+        out.append(real_sequences_table(real) + "\n")
     thesis = ["MSC", "MSCwK", "M-MSC", "M-MSCwK"]
     baselines = ["B7 window-ML", "B8 per-frame", "B9 plane"]
     for (terrain, traj), runs in sorted(groups.items()):

@@ -341,7 +341,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     text = summary([Path(d) for d in args.dirs])
     if not text:
-        raise CompanionError("no TERRAIN-TRAJECTORY-SEED folders with scale_metrics.json")
+        raise CompanionError(
+            "no TERRAIN-TRAJECTORY-SEED folders or real-sequence folders with scale_metrics.json"
+        )
     print(text)
     return EXIT_OK
 
