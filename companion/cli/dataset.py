@@ -106,7 +106,8 @@ def cmd_rebuild(args: argparse.Namespace) -> int:
     by_name = {e.name: e for e in entries}
     if args.all == bool(args.names):
         raise DatasetError(f"rebuild: NAME... or --all (the manifest has {sorted(by_name)})")
-    names = [e.name for e in entries if e.importer in FORMATS] if args.all else args.names
+    built = (*FORMATS, "rislab")
+    names = [e.name for e in entries if e.importer in built] if args.all else args.names
     for name in names:
         if name not in by_name:
             raise DatasetError(f"rebuild: {name!r} is not in {args.manifest} ({sorted(by_name)})")
