@@ -29,6 +29,10 @@ What the source gives and what this importer makes of it:
   ``[[rangefinders]]`` (their mounts, limits and noise model), sampled at their ``rate_hz``,
   with seeded noise. They test what the metric scale does with real images, not a real
   sensor's faults; meta.toml says so (``rangefinders_source``).
+- **Attitude**: the sequence has no autopilot; ``attitude.csv`` is made from the ground
+  truth at 100 Hz with 0.1 deg of noise, as the simulator's autopilot sends it, so the
+  pipeline gets what it would get in flight (the gravity priors, the north of its frame, the
+  focal check). meta.toml says so (``attitude_source``).
 - **Camera**: no calibration ships. The focal length is one of 235.5 or 471 px by the
   source's code, and the lens has a strong barrel distortion: both are arguments
   (``focal_px``, ``dist``), written into calibration.toml.
@@ -45,7 +49,12 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config, MountConfig, RangefinderConfig
-from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, RANGE_COLUMNS
+from companion.drivers.dataset.format import (
+    ATTITUDE_COLUMNS,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    RANGE_COLUMNS,
+)
 from companion.drivers.dataset.import_write import ImportSummary
 from companion.drivers.dataset.toml_text import toml_dumps
 from companion.drivers.dataset.tum import write_tum
@@ -229,6 +238,7 @@ def import_rislab(
     poses = body_poses(capture, exposure)
     write_tum(out / "groundtruth.txt", np.array([us(float(t)) for t in exposure]) * 1e-6, poses)
     n_ranges = _write_ranges(out, capture, cfg.rangefinders, exposure, t0, seed)
+    _write_attitude(out, capture, exposure, t0, seed)
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     path_m = float(steps.sum())
     tables = calibration_tables(cfg)
@@ -241,6 +251,10 @@ def import_rislab(
         "world": "none",
         "source": "ris-lab/opticflow-direct (images60fps, mocap_data.mat)",
         "licence": "none stated (all rights reserved): local evaluation only",
+        "attitude_source": (
+            "synthesised from the ground truth at 100 Hz with 0.1 deg of noise (an autopilot's "
+            "estimate stands in; the sequence has no autopilot)"
+        ),
         "rangefinders_source": (
             "synthesised from the ground truth over a flat floor (not a real sensor's readings)"
         ),
@@ -254,6 +268,33 @@ def import_rislab(
     return ImportSummary(
         len(ids), n_ranges, path_m, {"frames without a stamp or truth": span - len(ids)}
     )
+
+
+ATTITUDE_RATE_HZ = 100.0
+ATTITUDE_SIGMA_DEG = 0.1
+
+
+def _write_attitude(out: Path, capture: Capture, exposure: F64, t0: float, seed: int) -> None:
+    """attitude.csv: R_world_body at 100 Hz over the frames' span (times [s] less ``t0``)
+    with 0.1 deg of white noise (as the simulator's autopilot), and the body rates from
+    successive true attitudes [rad/s, FRD]: what an autopilot would send, made from the
+    ground truth (the sequence flew none of ours)."""
+    rng = np.random.default_rng(seed + 1)
+    dt_s = 1.0 / ATTITUDE_RATE_HZ
+    times = np.arange(exposure[0], exposure[-1] + dt_s, dt_s)
+    poses = body_poses(capture, np.append(times, times[-1] + dt_s))
+    with (out / "attitude.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(ATTITUDE_COLUMNS)
+        for i, t in enumerate(times):
+            R, R_next = poses[i, :3, :3], poses[i + 1, :3, :3]
+            rate = so3.log(R.T @ R_next) / dt_s
+            noise = so3.exp(rng.normal(0.0, np.radians(ATTITUDE_SIGMA_DEG), 3))
+            q = so3.matrix_to_quat(R @ noise)
+            w.writerow(
+                [int(round((float(t) - t0) * 1e6)), *(f"{v:.9f}" for v in q)]
+                + [f"{v:.6f}" for v in rate]
+            )
 
 
 def _write_ranges(

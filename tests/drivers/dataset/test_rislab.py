@@ -113,6 +113,12 @@ def test_the_import_opens_as_a_dataset_with_its_truth(tmp_path: Path) -> None:
     ranges = np.genfromtxt(tmp_path / "out" / "ranges.csv", delimiter=",", names=True)
     assert summary.readings == len(ranges) > 0
     assert set(np.unique(ranges["sensor_id"]).astype(int)) == {r.sensor_id for r in RISLAB_BEAMS}
+    # the attitude an autopilot would send: the true (level) one within its 0.1 deg noise, at
+    # 100 Hz over the frames, with the body rates of a body that does not turn
+    att = np.genfromtxt(tmp_path / "out" / "attitude.csv", delimiter=",", names=True)
+    assert len(att) >= 0.6 * 100 and np.all(np.diff(att["time_us"]) == 10_000)
+    tilt_deg = np.degrees(2 * np.arccos(np.clip(np.abs(att["qw"]), 0.0, 1.0)))
+    assert np.all(tilt_deg < 0.6) and np.allclose(att["wz_rad_s"], 0.0, atol=1e-6)
     # a level body: each beam's true distance is its mount's height above the floor / cos(tilt)
     assert np.all(np.abs(ranges["distance_m"] - ranges["true_distance_m"]) < 0.06)
     # the body 0.49-0.81 m above the floor over the frames, the beams a few degrees off
