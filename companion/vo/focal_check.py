@@ -66,12 +66,15 @@ MAX_POINTS = 120  # points of a pair used (the cost is a mean: more only costs t
 class FocalRatio:
     """The flight's estimate of f_true / f_assumed: the median ``ratio`` over ``samples``
     keyframe pairs, ``spread`` = 1.4826 * their median absolute deviation, ``sigma`` the
-    median's standard error (1.2533 * spread / sqrt(samples))."""
+    median's standard error (1.2533 * spread / sqrt(samples)); ``at_edge``: the pairs whose
+    best focal lay at an end of the search (Q_MIN or Q_MAX): no focal in the range fits them,
+    so the lens model or the mount is wrong rather than the focal length alone."""
 
     ratio: float
     spread: float
     sigma: float
     samples: int
+    at_edge: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -212,13 +215,23 @@ class FocalCheck:
         median = float(np.median(q))
         spread = 1.4826 * float(np.median(np.abs(q - median)))
         sigma = 1.2533 * spread / float(np.sqrt(len(q)))
-        return FocalRatio(median, spread, sigma, len(q))
+        edge = int(np.sum((q <= Q_MIN * (1 + 1e-9)) | (q >= Q_MAX * (1 - 1e-9))))
+        return FocalRatio(median, spread, sigma, len(q), edge)
 
 
 def focal_warning(est: FocalRatio, threshold: float = 0.05, min_samples: int = 20) -> str | None:
     """The operator's warning once the ratio is confidently off by more than ``threshold``
     (|ratio - 1| - 2 sigma > threshold over at least ``min_samples`` pairs), else None."""
-    if est.samples < min_samples or abs(est.ratio - 1.0) - 2.0 * est.sigma <= threshold:
+    if est.samples < min_samples:
+        return None
+    if 2 * est.at_edge > est.samples:
+        return (
+            f"the autopilot's rotation fits the tracked pixels at no focal length within "
+            f"x{Q_MIN:.2f}..x{Q_MAX:.2f} of the file's in {est.at_edge} of {est.samples} keyframe "
+            f"pairs: check [camera] fx fy and dist (a lens model that is wrong) and the camera "
+            f"mount"
+        )
+    if abs(est.ratio - 1.0) - 2.0 * est.sigma <= threshold:
         return None
     way = "too small" if est.ratio > 1.0 else "too large"
     pct = abs(est.ratio - 1.0) * 100.0
@@ -237,5 +250,6 @@ def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:
         line = (
             f"lens focal ratio (f_true / f_file): {est.ratio:.3f} (spread {est.spread:.3f}, "
             f"+- {est.sigma:.3f}) over {est.samples} keyframe pairs"
+            + (f", {est.at_edge} at an end of the search" if est.at_edge else "")
         )
     return line if warning is None else f"{line}\nwarning: {warning}"

@@ -84,3 +84,13 @@ def test_the_warning_needs_a_confident_estimate() -> None:
     assert focal_warning(FocalRatio(1.01, 0.05, 0.007, 84)) is None
     assert "no keyframe pairs" in focal_summary(None)
     assert "1.103 (spread 0.050" in focal_summary(FocalRatio(1.103, 0.05, 0.007, 84))
+
+
+def test_pairs_that_no_focal_fits_say_the_lens_or_mount_is_wrong() -> None:
+    """When most pairs' best focal is an end of the search, the median is not a measurement:
+    the warning says that no focal in the range fits, not a percentage."""
+    est = FocalRatio(0.7, 0.0, 0.0, 200, at_edge=180)
+    text = focal_warning(est) or ""
+    assert "no focal length within x0.70..x1.40" in text and "180 of 200" in text
+    assert "% too" not in text
+    assert "180 at an end of the search" in focal_summary(est)

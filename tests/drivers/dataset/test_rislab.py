@@ -117,7 +117,9 @@ def test_the_import_opens_as_a_dataset_with_its_truth(tmp_path: Path) -> None:
     # 100 Hz over the frames, with the body rates of a body that does not turn
     att = np.genfromtxt(tmp_path / "out" / "attitude.csv", delimiter=",", names=True)
     assert len(att) >= 0.6 * 100 and np.all(np.diff(att["time_us"]) == 10_000)
-    tilt_deg = np.degrees(2 * np.arccos(np.clip(np.abs(att["qw"]), 0.0, 1.0)))
+    quats = np.column_stack([att["qw"], att["qx"], att["qy"], att["qz"]])
+    down = np.array([so3.quat_to_matrix(q)[:, 2] for q in quats])  # body z in the world
+    tilt_deg = np.degrees(np.arccos(np.clip(down[:, 2], -1.0, 1.0)))
     assert np.all(tilt_deg < 0.6) and np.allclose(att["wz_rad_s"], 0.0, atol=1e-6)
     # a level body: each beam's true distance is its mount's height above the floor / cos(tilt)
     assert np.all(np.abs(ranges["distance_m"] - ranges["true_distance_m"]) < 0.06)
