@@ -27,13 +27,15 @@ class Tracks:
 
     px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
     anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
-    anchor_xy: (N, 2) its normalised coordinates there.
+    anchor_xy: (N, 2) its normalised coordinates there; prev_px: (N, 2) float32 pixels in the
+    frame before, right after :func:`track` (None once the tracks were re-made: a new map).
     """
 
     px: F32
     pid: I64
     anchor: I64
     anchor_xy: F64
+    prev_px: F32 | None = None
 
     @staticmethod
     def empty() -> Tracks:
@@ -48,15 +50,18 @@ class Tracks:
         return len(self.pid)
 
     def select(self, keep: NDArray[np.bool_]) -> Tracks:
-        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep])
+        prev = None if self.prev_px is None else self.prev_px[keep]
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev)
 
     def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
         n = len(px)
+        new_px = px.astype(np.float32)
         return Tracks(
-            np.concatenate([self.px, px.astype(np.float32)]),
+            np.concatenate([self.px, new_px]),
             np.concatenate([self.pid, -np.ones(n, np.int64)]),
             np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
             np.concatenate([self.anchor_xy, anchor_xy]),
+            None if self.prev_px is None else np.concatenate([self.prev_px, new_px]),
         )
 
 
@@ -125,6 +130,7 @@ def track(
     nxt = nxt.reshape(-1, 2)
     ok = (status.ravel() == 1) & camera.in_image(nxt, margin_px=2.0)
     kept = tracks.select(ok)
+    kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
     return thin(kept, opts.min_distance_px)
 

@@ -35,6 +35,7 @@ class PendingKeyframe(NamedTuple):
     R_world_body: F64 | None  # (3, 3) the autopilot's attitude at the frame
     gravity: Gravity | None  # the caller's tilt correction in the VO frame
     down: Down | None  # the caller's measured gravity in the body frame
+    held: bool = False  # the pose is a rotation held in place (odometry._hold_rotation)
 
 
 def camera_centre(T_cam_vo: F64) -> F64:

@@ -103,6 +103,30 @@ class VoOptions:
     max_rotation_deg_per_frame: float = opt(
         25.0, "a larger rotation between frames is a failure (LOST)", gt=0
     )
+    rotation_hold_frames: int = opt(
+        30,
+        "when the pose against the map fails but the 2D tracks fit one rotation of the camera "
+        "(turning in place: no parallax, so the map starves), follow that rotation with the "
+        "position held for at most this many frames in a row before LOST (companion/vo/"
+        "rotation.py); 0 = off",
+        ge=0,
+    )
+    rotation_min_inlier_ratio: float = opt(
+        0.7,
+        "the rotation hold needs this share of the tracks within rotation_inlier_px of it",
+        gt=0,
+        le=1,
+    )
+    rotation_inlier_px: float = opt(
+        6.0, "a track farther than this off the held rotation is an outlier [px]", gt=0
+    )
+    rotation_depth_prior: float = opt(
+        0.5,
+        "a keyframe taken while the rotation is held gives its untriangulated features a point "
+        "at the scene's median depth with this relative depth sigma (refined by the local BA "
+        "once the camera moves); 0 = off (they stay candidates)",
+        ge=0,
+    )
     max_gap_ms: float = opt(
         1000.0,
         "a longer gap between usable frames loses tracking (new VO map) [ms]; a shorter one "
