@@ -6,6 +6,7 @@ plane z = 1 of the camera frame (OpenCV: x right, y down, z forward).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -19,6 +20,7 @@ from companion.vo.options import VoOptions
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
+B = NDArray[np.bool_]
 
 
 @dataclass
@@ -63,6 +65,20 @@ class Tracks:
             np.concatenate([self.anchor_xy, anchor_xy]),
             None if self.prev_px is None else np.concatenate([self.prev_px, new_px]),
         )
+
+
+REFERENCE_SIZE_PX = (640, 480)  # the image size the options' pixel defaults are for
+
+
+def scaled_to_image(opts: VoOptions, width: int, height: int) -> VoOptions:
+    """The options with ``min_distance_px`` scaled by min(width / 640, height / 480) when
+    ``scale_to_image`` is on and the image is smaller than 640 x 480 (a 320 x 240 camera
+    gets 9 px: 18 px there leaves too few corners in view to start or keep a map); never
+    enlarged (752 x 480 keeps 18 px)."""
+    ratio = min(width / REFERENCE_SIZE_PX[0], height / REFERENCE_SIZE_PX[1])
+    if not opts.scale_to_image or ratio >= 1.0:
+        return opts
+    return dataclasses.replace(opts, min_distance_px=opts.min_distance_px * ratio)
 
 
 def detect(gray: U8, avoid_px: F32, n_max: int, min_distance_px: float) -> F32:
@@ -129,10 +145,33 @@ def track(
     )
     nxt = nxt.reshape(-1, 2)
     ok = (status.ravel() == 1) & camera.in_image(nxt, margin_px=2.0)
+    if opts.klt_fb_max_px > 0 and ok.any():
+        ok &= _forward_backward_ok(prev_gray, gray, tracks.px, nxt, opts)
     kept = tracks.select(ok)
     kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
     return thin(kept, opts.min_distance_px)
+
+
+def _forward_backward_ok(prev_gray: U8, gray: U8, px0: F32, px1: F32, opts: VoOptions) -> B:
+    """(N,) whether KLT from ``gray`` back into ``prev_gray`` returns each feature at px1
+    (N, 2) to within ``klt_fb_max_px`` of where it started, px0 (N, 2) (the forward-backward
+    check, Kalal et al., ICPR 2010): on a repeated texture (a checkerboard floor) a window can
+    lock one period off, and the way back then lands elsewhere."""
+    w = opts.klt_window_px
+    back, status, _ = cv2.calcOpticalFlowPyrLK(
+        gray,
+        prev_gray,
+        np.ascontiguousarray(px1, dtype=np.float32).reshape(-1, 1, 2),
+        px0.reshape(-1, 1, 2).copy(),
+        winSize=(w, w),
+        maxLevel=opts.klt_levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    err_px = np.linalg.norm(back.reshape(-1, 2) - px0, axis=1)
+    out: B = (status.ravel() == 1) & (err_px < opts.klt_fb_max_px)
+    return out
 
 
 def thin(tracks: Tracks, min_distance_px: float) -> Tracks:

@@ -37,7 +37,7 @@ from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.types import F64, CameraFrame, GroundPlane, VoFeatures, VoOutput, VoState
 from companion.vo import keyframes as policy
-from companion.vo.frontend import Tracks, track
+from companion.vo.frontend import Tracks, scaled_to_image, track
 from companion.vo.keyframes import Down, Gravity, PendingKeyframe
 from companion.vo.map import VoMap
 from companion.vo.options import VoOptions
@@ -63,7 +63,7 @@ class VisualOdometry:
     ) -> None:
         self.camera = camera
         self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
-        self.opts = options or VoOptions()
+        self.opts = scaled_to_image(options or VoOptions(), camera.width, camera.height)
         self.focal_px = 0.5 * (camera.fx + camera.fy)
         self.state = VoState.INITIALIZING
         self.resets = 0

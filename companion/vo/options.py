@@ -16,10 +16,21 @@ class VoOptions:
 
     max_features: int = opt(200, "features kept in tracking", ge=20, le=2000)
     min_distance_px: float = opt(18.0, "minimum distance between features [px]", gt=0)
+    scale_to_image: bool = opt(
+        True,
+        "min_distance_px is for 640 x 480: scaled down with a smaller image (320 x 240: "
+        "half), never up (companion/vo/frontend.py scaled_to_image)",
+    )
     klt_window_px: int = opt(15, "KLT window side [px]", ge=5, le=61)
     klt_levels: int = opt(3, "KLT pyramid levels above the image", ge=0, le=6)
     klt_predict_min_px: float = opt(
         8.0, "predicted flow above which the KLT starts from the prediction [px]", ge=0
+    )
+    klt_fb_max_px: float = opt(
+        1.0,
+        "drop a track that KLT back into the previous frame returns farther than this from "
+        "its start (forward-backward check: a repeated texture) [px]; 0 = off",
+        ge=0,
     )
     pixel_sigma_px: float = opt(1.0, "feature position noise [px]", gt=0)
     inlier_px: float = opt(2.5, "pose inlier threshold on reprojection error [px]", gt=0)

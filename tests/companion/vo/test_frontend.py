@@ -1,0 +1,55 @@
+"""The VO's frontend: the forward-backward KLT check and the pixel options scaled to the
+image."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from companion.geometry.camera import CameraModel
+from companion.vo.frontend import Tracks, detect, scaled_to_image, track
+from companion.vo.options import VoOptions
+
+
+def _texture(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    coarse = rng.uniform(0, 255, (60, 80)).astype(np.float32)
+    img = cv2.resize(coarse, (640, 480), interpolation=cv2.INTER_CUBIC)
+    out: np.ndarray = np.clip(img, 0, 255).astype(np.uint8)
+    return out
+
+
+def test_forward_backward_check_drops_tracks_that_lost_their_patch() -> None:
+    """The image moves by (5, 3) px, and its right half is replaced (something new in view):
+    KLT still reports most features there as found, at wrong places; back into the first
+    image they do not come home, and the check drops them, while the left half's true
+    tracks stay."""
+    before = _texture(1)
+    after = np.roll(before, (3, 5), axis=(0, 1))
+    after[:, 320:] = _texture(2)[:, 320:]
+    camera = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0)
+    px = detect(before, np.zeros((0, 2), np.float32), 200, 18.0)
+    tracks = Tracks.empty().extend(px, 0, np.zeros((len(px), 2)))
+    wrong, kept_left = {}, {}
+    for fb_px in (0.0, 1.0):
+        opts = dataclasses.replace(VoOptions(), klt_fb_max_px=fb_px, min_distance_px=1.0)
+        out = track(before, after, tracks, camera, opts)
+        assert out.prev_px is not None
+        err_px = np.linalg.norm(out.px - (out.prev_px + np.array([5.0, 3.0])), axis=1)
+        wrong[fb_px] = int((err_px > 1.0).sum())
+        kept_left[fb_px] = int(((out.prev_px[:, 0] < 300) & (err_px < 1.0)).sum())
+    assert wrong[0.0] > 50  # without the check, half the tracks are wrong
+    assert wrong[1.0] < 0.25 * wrong[0.0]
+    assert kept_left[1.0] >= 0.95 * kept_left[0.0] > 50  # the true tracks stay
+
+
+def test_pixel_options_scale_down_with_a_smaller_image_only() -> None:
+    opts = VoOptions()
+    assert scaled_to_image(opts, 320, 240).min_distance_px == 0.5 * opts.min_distance_px
+    assert scaled_to_image(opts, 640, 480) is opts
+    assert scaled_to_image(opts, 752, 480) is opts  # EuRoC: never enlarged
+    assert scaled_to_image(opts, 1280, 360).min_distance_px == 0.75 * opts.min_distance_px
+    off = dataclasses.replace(opts, scale_to_image=False)
+    assert scaled_to_image(off, 320, 240).min_distance_px == opts.min_distance_px
