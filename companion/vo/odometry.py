@@ -334,6 +334,7 @@ class VisualOdometry:
                 is_kf = True
         elif not self._estimate_pose() and not self._hold_rotation():
             lose_map(self)
+            self.rotation_frames = 0
             # with an attitude stream, the reference's attitude is refined by the caller from
             # the samples that arrive after this frame (set_reference_attitude); without one
             # it may be this frame's nearest sample, up to the caller's gap old
@@ -363,6 +364,7 @@ class VisualOdometry:
         The next frames start a new initialisation; its success counts a reset, so the
         poses after it carry a new reset_counter."""
         lose_map(self)
+        self.rotation_frames = 0
         self.tracks = Tracks.empty()
         self._pending_keyframe = None
         self._prev_gray = None
