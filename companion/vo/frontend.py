@@ -127,6 +127,8 @@ def track(
     (after skipped frames), else no motion."""
     if prev_gray is None or len(tracks) == 0:
         return Tracks.empty()
+    if opts.klt_normalize:
+        prev_gray, gray = normalized_grey(prev_gray), normalized_grey(gray)
     w = opts.klt_window_px
     flags = 0
     nxt_in = None
@@ -151,6 +153,16 @@ def track(
     kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
     return thin(kept, opts.min_distance_px)
+
+
+def normalized_grey(gray: U8) -> U8:
+    """(H, W) the image with its mean moved to 128 and its standard deviation to 48 grey
+    levels: an exposure's gain and offset removed before KLT, whose brightness-constancy
+    assumption a camera's auto-exposure breaks."""
+    mean, std = cv2.meanStdDev(gray)
+    gain = 48.0 / max(float(std[0, 0]), 1.0)
+    out: U8 = cv2.convertScaleAbs(gray, alpha=gain, beta=128.0 - gain * float(mean[0, 0]))
+    return out
 
 
 def _forward_backward_ok(prev_gray: U8, gray: U8, px0: F32, px1: F32, opts: VoOptions) -> B:

@@ -26,6 +26,11 @@ class VoOptions:
     klt_predict_min_px: float = opt(
         8.0, "predicted flow above which the KLT starts from the prediction [px]", ge=0
     )
+    klt_normalize: bool = opt(
+        False,
+        "KLT on images normalised to one mean and contrast (an auto-exposure's changes "
+        "removed; companion/vo/frontend.py normalized_grey)",
+    )
     klt_fb_max_px: float = opt(
         1.0,
         "drop a track that KLT back into the previous frame returns farther than this from "

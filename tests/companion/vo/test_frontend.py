@@ -1,5 +1,5 @@
-"""The VO's frontend: the forward-backward KLT check and the pixel options scaled to the
-image."""
+"""The VO's frontend: the forward-backward KLT check, KLT on normalised images across an
+exposure change, and the pixel options scaled to the image."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from companion.geometry.camera import CameraModel
-from companion.vo.frontend import Tracks, detect, scaled_to_image, track
+from companion.vo.frontend import Tracks, detect, normalized_grey, scaled_to_image, track
 from companion.vo.options import VoOptions
 
 
@@ -53,3 +53,28 @@ def test_pixel_options_scale_down_with_a_smaller_image_only() -> None:
     assert scaled_to_image(opts, 1280, 360).min_distance_px == 0.75 * opts.min_distance_px
     off = dataclasses.replace(opts, scale_to_image=False)
     assert scaled_to_image(off, 320, 240).min_distance_px == opts.min_distance_px
+
+
+def test_klt_on_normalised_images_follows_an_exposure_change() -> None:
+    """The image moves by (5, 3) px while the exposure halves (an auto-exposure leaving a
+    shadow): KLT on the raw grey levels loses nearly every feature, on normalised images
+    (vo.klt_normalize) it keeps them all, in place."""
+    before = _texture(1)
+    moved = np.roll(before, (3, 5), axis=(0, 1)).astype(np.float64)
+    after = np.clip(0.5 * moved + 10.0, 0, 255).astype(np.uint8)
+    camera = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0)
+    px = detect(before, np.zeros((0, 2), np.float32), 200, 18.0)
+    tracks = Tracks.empty().extend(px, 0, np.zeros((len(px), 2)))
+    right = {}
+    for normalize in (False, True):
+        opts = dataclasses.replace(VoOptions(), klt_normalize=normalize)
+        out = track(before, after, tracks, camera, opts)
+        assert out.prev_px is not None
+        err_px = np.linalg.norm(out.px - (out.prev_px + np.array([5.0, 3.0])), axis=1)
+        right[normalize] = int((err_px < 0.5).sum())
+    assert right[False] < 0.1 * len(px)
+    assert right[True] > 0.95 * len(px)
+    # the normalisation itself: a gain and an offset are gone, to a grey level
+    a = normalized_grey(before).astype(np.float64)
+    b = normalized_grey(np.clip(0.5 * before + 10.0, 0, 255).astype(np.uint8))
+    assert np.abs(a - b).max() <= 1.0 and abs(a.mean() - 128.0) < 1.0
