@@ -67,18 +67,19 @@ class Tracks:
         )
 
 
-REFERENCE_SIZE_PX = (640, 480)  # the image size the options' pixel defaults are for
+REFERENCE_SIZE_PX = (640, 480)  # the image size MIN_DISTANCE_PX is for
+MIN_DISTANCE_PX = 18.0  # vo.min_distance_px = 0 (auto) at 640 x 480
 
 
 def scaled_to_image(opts: VoOptions, width: int, height: int) -> VoOptions:
-    """The options with ``min_distance_px`` scaled by min(width / 640, height / 480) when
-    ``scale_to_image`` is on and the image is smaller than 640 x 480 (a 320 x 240 camera
-    gets 9 px: 18 px there leaves too few corners in view to start or keep a map); never
-    enlarged (752 x 480 keeps 18 px)."""
-    ratio = min(width / REFERENCE_SIZE_PX[0], height / REFERENCE_SIZE_PX[1])
-    if not opts.scale_to_image or ratio >= 1.0:
+    """The options with ``min_distance_px`` resolved for a width x height image: a value set
+    (> 0) as it is; 0 (auto) = 18 px scaled by min(width / 640, height / 480) when the image
+    is smaller than 640 x 480 (a 320 x 240 camera gets 9 px: 18 px there leaves too few
+    corners in view to start or keep a map), never enlarged (752 x 480 keeps 18 px)."""
+    if opts.min_distance_px > 0:
         return opts
-    return dataclasses.replace(opts, min_distance_px=opts.min_distance_px * ratio)
+    ratio = min(width / REFERENCE_SIZE_PX[0], height / REFERENCE_SIZE_PX[1], 1.0)
+    return dataclasses.replace(opts, min_distance_px=MIN_DISTANCE_PX * ratio)
 
 
 def detect(gray: U8, avoid_px: F32, n_max: int, min_distance_px: float) -> F32:

@@ -15,11 +15,11 @@ class VoOptions:
     """Tuning of the monocular VO; defaults are for 640x480 at 30 Hz looking down."""
 
     max_features: int = opt(200, "features kept in tracking", ge=20, le=2000)
-    min_distance_px: float = opt(18.0, "minimum distance between features [px]", gt=0)
-    scale_to_image: bool = opt(
-        True,
-        "min_distance_px is for 640 x 480: scaled down with a smaller image (320 x 240: "
-        "half), never up (companion/vo/frontend.py scaled_to_image)",
+    min_distance_px: float = opt(
+        0.0,
+        "minimum distance between features [px]; 0 = 18 px at 640 x 480, scaled down with a "
+        "smaller image (320 x 240: 9 px), never up (companion/vo/frontend.py scaled_to_image)",
+        ge=0,
     )
     klt_window_px: int = opt(15, "KLT window side [px]", ge=5, le=61)
     klt_levels: int = opt(3, "KLT pyramid levels above the image", ge=0, le=6)

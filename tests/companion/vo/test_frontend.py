@@ -45,14 +45,17 @@ def test_forward_backward_check_drops_tracks_that_lost_their_patch() -> None:
     assert kept_left[1.0] >= 0.95 * kept_left[0.0] > 50  # the true tracks stay
 
 
-def test_pixel_options_scale_down_with_a_smaller_image_only() -> None:
-    opts = VoOptions()
-    assert scaled_to_image(opts, 320, 240).min_distance_px == 0.5 * opts.min_distance_px
-    assert scaled_to_image(opts, 640, 480) is opts
-    assert scaled_to_image(opts, 752, 480) is opts  # EuRoC: never enlarged
-    assert scaled_to_image(opts, 1280, 360).min_distance_px == 0.75 * opts.min_distance_px
-    off = dataclasses.replace(opts, scale_to_image=False)
-    assert scaled_to_image(off, 320, 240).min_distance_px == opts.min_distance_px
+def test_min_distance_scales_down_with_a_smaller_image_only_when_automatic() -> None:
+    auto = VoOptions()
+    assert auto.min_distance_px == 0.0
+    assert scaled_to_image(auto, 640, 480).min_distance_px == 18.0
+    assert scaled_to_image(auto, 320, 240).min_distance_px == 9.0
+    assert scaled_to_image(auto, 752, 480).min_distance_px == 18.0  # EuRoC: never enlarged
+    assert scaled_to_image(auto, 1280, 360).min_distance_px == 0.75 * 18.0
+    # a value set by hand is the camera's own tuning (config/px4_sitl.toml: 10 px at
+    # 320 x 240), never scaled again
+    tuned = dataclasses.replace(auto, min_distance_px=10.0)
+    assert scaled_to_image(tuned, 320, 240) is tuned
 
 
 def test_klt_on_normalised_images_follows_an_exposure_change() -> None:
