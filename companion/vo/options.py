@@ -50,6 +50,13 @@ class VoOptions:
     kf_min_coverage: float = opt(
         0.5, "new keyframe when tracked points cover less of a 4 x 4 image grid", ge=0, le=1
     )
+    kf_low_tracks_ratio: float = opt(
+        0.3,
+        "new keyframe (for its new features) when fewer tracks than this share of "
+        "max_features are left, even while hovering or turning in place; 0 = only when moving",
+        ge=0,
+        le=1,
+    )
     kf_max_frames: int = opt(20, "at most this many frames between keyframes (when moving)", ge=1)
     min_parallax_deg: float = opt(1.0, "minimum triangulation angle [deg]", gt=0)
     gravity_sigma_deg: float = opt(
