@@ -17,6 +17,12 @@ Metric initialisation on the ground (issue 18): when the caller gives a ground p
 back-projected onto it: a map without parallax whose unit is the metre (``metric_sigma_rel``
 says how well). The two-view initialisation stays for starts in the air.
 
+Turning in place (issue "Real sequences", 2026-11-28): when PnP fails but the 2D tracks agree
+on one rotation from the frame before (companion/vo/rotation.py), the pose follows it with the
+camera's centre held, for at most ``rotation_hold_frames`` frames in a row; a keyframe taken
+meanwhile gives its new features a depth prior (``rotation_depth_prior``), so the map does not
+starve while there is no parallax to triangulate.
+
 States (companion/vo/states.py): INITIALIZING until the first initialisation; TRACKING;
 LOST from the frame where tracking fails until a new initialisation succeeds (then ``resets``
 counts up and the VO frame starts anew). A failed frame never produces a pose.
