@@ -6,6 +6,7 @@ plane z = 1 of the camera frame (OpenCV: x right, y down, z forward).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -19,6 +20,7 @@ from companion.vo.options import VoOptions
 F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
+B = NDArray[np.bool_]
 
 
 @dataclass
@@ -27,13 +29,15 @@ class Tracks:
 
     px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
     anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
-    anchor_xy: (N, 2) its normalised coordinates there.
+    anchor_xy: (N, 2) its normalised coordinates there; prev_px: (N, 2) float32 pixels in the
+    frame before, right after :func:`track` (None once the tracks were re-made: a new map).
     """
 
     px: F32
     pid: I64
     anchor: I64
     anchor_xy: F64
+    prev_px: F32 | None = None
 
     @staticmethod
     def empty() -> Tracks:
@@ -48,16 +52,34 @@ class Tracks:
         return len(self.pid)
 
     def select(self, keep: NDArray[np.bool_]) -> Tracks:
-        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep])
+        prev = None if self.prev_px is None else self.prev_px[keep]
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev)
 
     def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
         n = len(px)
+        new_px = px.astype(np.float32)
         return Tracks(
-            np.concatenate([self.px, px.astype(np.float32)]),
+            np.concatenate([self.px, new_px]),
             np.concatenate([self.pid, -np.ones(n, np.int64)]),
             np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
             np.concatenate([self.anchor_xy, anchor_xy]),
+            None if self.prev_px is None else np.concatenate([self.prev_px, new_px]),
         )
+
+
+REFERENCE_SIZE_PX = (640, 480)  # the image size MIN_DISTANCE_PX is for
+MIN_DISTANCE_PX = 18.0  # vo.min_distance_px = 0 (auto) at 640 x 480
+
+
+def scaled_to_image(opts: VoOptions, width: int, height: int) -> VoOptions:
+    """The options with ``min_distance_px`` resolved for a width x height image: a value set
+    (> 0) as it is; 0 (auto) = 18 px scaled by min(width / 640, height / 480) when the image
+    is smaller than 640 x 480 (a 320 x 240 camera gets 9 px: 18 px there leaves too few
+    corners in view to start or keep a map), never enlarged (752 x 480 keeps 18 px)."""
+    if opts.min_distance_px > 0:
+        return opts
+    ratio = min(width / REFERENCE_SIZE_PX[0], height / REFERENCE_SIZE_PX[1], 1.0)
+    return dataclasses.replace(opts, min_distance_px=MIN_DISTANCE_PX * ratio)
 
 
 def detect(gray: U8, avoid_px: F32, n_max: int, min_distance_px: float) -> F32:
@@ -106,6 +128,8 @@ def track(
     (after skipped frames), else no motion."""
     if prev_gray is None or len(tracks) == 0:
         return Tracks.empty()
+    if opts.klt_normalize:
+        prev_gray, gray = normalized_grey(prev_gray), normalized_grey(gray)
     w = opts.klt_window_px
     flags = 0
     nxt_in = None
@@ -124,9 +148,43 @@ def track(
     )
     nxt = nxt.reshape(-1, 2)
     ok = (status.ravel() == 1) & camera.in_image(nxt, margin_px=2.0)
+    if opts.klt_fb_max_px > 0 and ok.any():
+        ok &= _forward_backward_ok(prev_gray, gray, tracks.px, nxt, opts)
     kept = tracks.select(ok)
+    kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
     return thin(kept, opts.min_distance_px)
+
+
+def normalized_grey(gray: U8) -> U8:
+    """(H, W) the image with its mean moved to 128 and its standard deviation to 48 grey
+    levels: an exposure's gain and offset removed before KLT, whose brightness-constancy
+    assumption a camera's auto-exposure breaks."""
+    mean, std = cv2.meanStdDev(gray)
+    gain = 48.0 / max(float(std[0, 0]), 1.0)
+    out: U8 = cv2.convertScaleAbs(gray, alpha=gain, beta=128.0 - gain * float(mean[0, 0]))
+    return out
+
+
+def _forward_backward_ok(prev_gray: U8, gray: U8, px0: F32, px1: F32, opts: VoOptions) -> B:
+    """(N,) whether KLT from ``gray`` back into ``prev_gray`` returns each feature at px1
+    (N, 2) to within ``klt_fb_max_px`` of where it started, px0 (N, 2) (the forward-backward
+    check, Kalal et al., ICPR 2010): on a repeated texture (a checkerboard floor) a window can
+    lock one period off, and the way back then lands elsewhere."""
+    w = opts.klt_window_px
+    back, status, _ = cv2.calcOpticalFlowPyrLK(
+        gray,
+        prev_gray,
+        np.ascontiguousarray(px1, dtype=np.float32).reshape(-1, 1, 2),
+        px0.reshape(-1, 1, 2).copy(),
+        winSize=(w, w),
+        maxLevel=opts.klt_levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    err_px = np.linalg.norm(back.reshape(-1, 2) - px0, axis=1)
+    out: B = (status.ravel() == 1) & (err_px < opts.klt_fb_max_px)
+    return out
 
 
 def thin(tracks: Tracks, min_distance_px: float) -> Tracks:

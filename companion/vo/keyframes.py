@@ -35,6 +35,7 @@ class PendingKeyframe(NamedTuple):
     R_world_body: F64 | None  # (3, 3) the autopilot's attitude at the frame
     gravity: Gravity | None  # the caller's tilt correction in the VO frame
     down: Down | None  # the caller's measured gravity in the body frame
+    held: bool = False  # the pose is a rotation held in place (odometry._hold_rotation)
 
 
 def camera_centre(T_cam_vo: F64) -> F64:
@@ -53,13 +54,16 @@ def need_keyframe(
     opts: VoOptions,
 ) -> bool:
     """Whether the frame at T_cam_vo becomes a keyframe: moved ``kf_translation_ratio`` of
-    the median depth since ``last``; or (unless hovering) too few of its points still
+    the median depth since ``last``; or fewer tracks left than ``kf_low_tracks_ratio`` of
+    ``max_features`` (a view turned away in place); or (unless hovering) too few of its points still
     tracked, the points huddled in part of the image, too few tracks, or too many frames."""
     moved = float(np.linalg.norm(camera_centre(T_cam_vo) - camera_centre(last.T_cam_vo)))
     moved /= max(median_depth, 1e-9)
     n_pts = int((tracks.pid >= 0).sum())
     if moved > opts.kf_translation_ratio:
         return True
+    if len(tracks) < opts.kf_low_tracks_ratio * opts.max_features:
+        return True  # even hovering or turning in place: new features before the tracks starve
     if moved < 0.01:
         return False  # hovering: a keyframe would add no parallax
     if n_pts < opts.kf_tracked_ratio * max(len(last.obs), 1):

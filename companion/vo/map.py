@@ -86,6 +86,35 @@ class VoMap:
         z = se3.transform(T_cam_vo, X)[:, 2]
         return float(np.median(z))
 
+    def scene_depth(self, T_cam_vo: F64) -> float:
+        """The median depth of every map point in front of the camera at T_cam_vo (1 without
+        any)."""
+        if not self.points:
+            return 1.0
+        z = se3.transform(T_cam_vo, np.array(list(self.points.values())))[:, 2]
+        z = z[z > 0]
+        return float(np.median(z)) if len(z) else 1.0
+
+    def seed_candidates(
+        self, tracks: Tracks, kf: Keyframe, xy: F64, depth: float, sigma_rel: float
+    ) -> Tracks:
+        """The tracks with every candidate made a point at ``depth`` along its ray from the
+        keyframe ``kf`` (``xy`` (N, 2) the tracks' normalised coordinates there), depth sigma
+        ``sigma_rel`` * depth, observed by ``kf``: a depth prior for features seen while the
+        camera turns in place (no parallax to triangulate them), refined by the local BA once
+        a later keyframe sees them from elsewhere (SVO's depth filter starts a seed at the
+        scene's mean depth the same way: Forster et al., ICRA 2014)."""
+        pid = tracks.pid.copy()
+        anchor = tracks.anchor.copy()
+        T_vo_cam = se3.inverse(kf.T_cam_vo)
+        for i in np.flatnonzero(pid < 0):
+            ray = np.array([xy[i, 0], xy[i, 1], 1.0])
+            p = self.add_point(se3.transform(T_vo_cam, (ray * depth)[None])[0], sigma_rel * depth)
+            kf.obs[p] = xy[i].copy()
+            pid[i] = p
+            anchor[i] = kf.kf_id
+        return Tracks(tracks.px, pid, anchor, tracks.anchor_xy, tracks.prev_px)
+
     def triangulate_candidates(
         self, tracks: Tracks, kf: Keyframe, xy: F64, focal_px: float, opts: VoOptions
     ) -> Tracks:

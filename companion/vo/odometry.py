@@ -17,6 +17,12 @@ Metric initialisation on the ground (issue 18): when the caller gives a ground p
 back-projected onto it: a map without parallax whose unit is the metre (``metric_sigma_rel``
 says how well). The two-view initialisation stays for starts in the air.
 
+Turning in place (issue "Real sequences", 2026-11-28): when PnP fails but the 2D tracks agree
+on one rotation from the frame before (companion/vo/rotation.py), the pose follows it with the
+camera's centre held, for at most ``rotation_hold_frames`` frames in a row; a keyframe taken
+meanwhile gives its new features a depth prior (``rotation_depth_prior``), so the map does not
+starve while there is no parallax to triangulate.
+
 States (companion/vo/states.py): INITIALIZING until the first initialisation; TRACKING;
 LOST from the frame where tracking fails until a new initialisation succeeds (then ``resets``
 counts up and the VO frame starts anew). A failed frame never produces a pose.
@@ -37,11 +43,12 @@ from companion.geometry import se3, so3
 from companion.geometry.camera import CameraModel
 from companion.types import F64, CameraFrame, GroundPlane, VoFeatures, VoOutput, VoState
 from companion.vo import keyframes as policy
-from companion.vo.frontend import Tracks, track
+from companion.vo.frontend import Tracks, scaled_to_image, track
 from companion.vo.keyframes import Down, Gravity, PendingKeyframe
 from companion.vo.map import VoMap
 from companion.vo.options import VoOptions
 from companion.vo.pose import estimate_pose
+from companion.vo.rotation import fit_rotation
 from companion.vo.states import (
     Reference,
     lose_map,
@@ -62,7 +69,7 @@ class VisualOdometry:
     ) -> None:
         self.camera = camera
         self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
-        self.opts = options or VoOptions()
+        self.opts = scaled_to_image(options or VoOptions(), camera.width, camera.height)
         self.focal_px = 0.5 * (camera.fx + camera.fy)
         self.state = VoState.INITIALIZING
         self.resets = 0
@@ -79,6 +86,8 @@ class VisualOdometry:
         self._velocity_dt_us: int | None = None  # the interval T_prev -> T_cam_vo spans
         self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self.frames_since_kf = 0
+        self.rotation_frames = 0  # frames in a row whose pose is a rotation held in place
+        self.rotation_held = 0  # frames whose pose was held on a rotation (all maps)
         self._pending_keyframe: PendingKeyframe | None = None  # built by finish_pending
         self._keyframe_added = False  # a keyframe was built since the last output
         self.ref = Reference()  # the frame a new map would start from
@@ -201,6 +210,37 @@ class VisualOdometry:
         self.tracks = tr.select(keep)
         self.T_prev = self.T_cam_vo
         self.T_cam_vo = T_new
+        self.rotation_frames = 0
+        return True
+
+    def _hold_rotation(self) -> bool:
+        """This frame's pose when PnP failed: the rotation every 2D track agrees on
+        (companion/vo/rotation.py) from the frame before, the camera's centre held, for at
+        most ``rotation_hold_frames`` frames in a row. False when off, too long, or the
+        tracks do not fit one rotation (the camera also moved: parallax)."""
+        o = self.opts
+        tr = self.tracks
+        if self.rotation_frames >= o.rotation_hold_frames or tr.prev_px is None:
+            return False
+        if len(tr) < o.min_tracked_points:
+            return False
+        fit = fit_rotation(
+            self.normalized(tr.prev_px),
+            self.normalized(tr.px),
+            o.rotation_inlier_px / self.focal_px,
+            o.min_tracked_points,
+        )
+        if fit is None or fit.inliers.mean() < o.rotation_min_inlier_ratio:
+            return False
+        if np.degrees(so3.angle_between(fit.R_c1_c0, np.eye(3))) > o.max_rotation_deg_per_frame:
+            return False
+        R_new = fit.R_c1_c0 @ self.T_cam_vo[:3, :3]
+        centre = policy.camera_centre(self.T_cam_vo)
+        self.tracks = tr.select(fit.inliers)
+        self.T_prev = self.T_cam_vo
+        self.T_cam_vo = se3.make(R_new, -R_new @ centre)
+        self.rotation_frames += 1
+        self.rotation_held += 1
         return True
 
     def _check_candidates(self) -> None:
@@ -236,7 +276,7 @@ class VisualOdometry:
         """The keyframe of a pending frame (at the current pose): its gravity prior, its
         observations, the candidates triangulated, new corners, the local BA, the map
         bounded."""
-        gray, time_us, R_world_body, gravity, down = pending
+        gray, time_us, R_world_body, gravity, down, held = pending
         o = self.opts
         axial = False
         if o.axial_gravity_sigma_deg > 0:  # off: not worked out
@@ -256,6 +296,12 @@ class VisualOdometry:
         self.tracks = self.map.triangulate_candidates(tr, kf, xy, self.focal_px, o)
         self.map.keyframes.append(kf)
         new_features(self, gray)
+        if held and o.rotation_depth_prior > 0:
+            depth = self.map.scene_depth(self.T_cam_vo)
+            xy = self.normalized(self.tracks.px)
+            self.tracks = self.map.seed_candidates(
+                self.tracks, kf, xy, depth, o.rotation_depth_prior
+            )
         T_refined = self.map.local_ba(o, self.focal_px)
         if T_refined is not None:
             self.T_cam_vo = T_refined
@@ -292,8 +338,9 @@ class VisualOdometry:
         if self.state != VoState.TRACKING:
             if step_not_tracking(self, gray, frame.time_us, R_world_body, ground):
                 is_kf = True
-        elif not self._estimate_pose():
+        elif not self._estimate_pose() and not self._hold_rotation():
             lose_map(self)
+            self.rotation_frames = 0
             # with an attitude stream, the reference's attitude is refined by the caller from
             # the samples that arrive after this frame (set_reference_attitude); without one
             # it may be this frame's nearest sample, up to the caller's gap old
@@ -304,11 +351,12 @@ class VisualOdometry:
             depth = self.map.median_depth(self.tracks, self.T_cam_vo)
             last = self.map.keyframes[-1]
             o = self.opts
-            if policy.need_keyframe(
+            held = self.rotation_frames > 0
+            if (held and len(self.tracks) < 0.5 * o.max_features) or policy.need_keyframe(
                 last, self.T_cam_vo, self.tracks, depth, self.frames_since_kf, self.camera, o
             ):  # built after this frame's output (finish_pending)
                 self._pending_keyframe = PendingKeyframe(
-                    gray, frame.time_us, R_world_body, gravity, down
+                    gray, frame.time_us, R_world_body, gravity, down, held
                 )
         self._prev_gray = gray
         self._T_pred = None
@@ -322,6 +370,7 @@ class VisualOdometry:
         The next frames start a new initialisation; its success counts a reset, so the
         poses after it carry a new reset_counter."""
         lose_map(self)
+        self.rotation_frames = 0
         self.tracks = Tracks.empty()
         self._pending_keyframe = None
         self._prev_gray = None

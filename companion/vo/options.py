@@ -15,11 +15,28 @@ class VoOptions:
     """Tuning of the monocular VO; defaults are for 640x480 at 30 Hz looking down."""
 
     max_features: int = opt(200, "features kept in tracking", ge=20, le=2000)
-    min_distance_px: float = opt(18.0, "minimum distance between features [px]", gt=0)
+    min_distance_px: float = opt(
+        0.0,
+        "minimum distance between features [px]; 0 = 18 px at 640 x 480, scaled down with a "
+        "smaller image (320 x 240: 9 px), never up (companion/vo/frontend.py scaled_to_image)",
+        ge=0,
+    )
     klt_window_px: int = opt(15, "KLT window side [px]", ge=5, le=61)
     klt_levels: int = opt(3, "KLT pyramid levels above the image", ge=0, le=6)
     klt_predict_min_px: float = opt(
         8.0, "predicted flow above which the KLT starts from the prediction [px]", ge=0
+    )
+    klt_normalize: bool = opt(
+        False,
+        "KLT on images normalised to one mean and contrast (an auto-exposure's changes "
+        "removed; companion/vo/frontend.py normalized_grey)",
+    )
+    klt_fb_max_px: float = opt(
+        0.0,
+        "drop a track that KLT back into the previous frame returns farther than this from "
+        "its start (forward-backward check: a repeated texture) [px]; 0 = off (1 for a "
+        "camera over a repeated pattern: config/real_camera.toml)",
+        ge=0,
     )
     pixel_sigma_px: float = opt(1.0, "feature position noise [px]", gt=0)
     inlier_px: float = opt(2.5, "pose inlier threshold on reprojection error [px]", gt=0)
@@ -33,6 +50,13 @@ class VoOptions:
     kf_tracked_ratio: float = opt(0.65, "new keyframe when fewer of the KF's points track", gt=0)
     kf_min_coverage: float = opt(
         0.5, "new keyframe when tracked points cover less of a 4 x 4 image grid", ge=0, le=1
+    )
+    kf_low_tracks_ratio: float = opt(
+        0.3,
+        "new keyframe (for its new features) when fewer tracks than this share of "
+        "max_features are left, even while hovering or turning in place; 0 = only when moving",
+        ge=0,
+        le=1,
     )
     kf_max_frames: int = opt(20, "at most this many frames between keyframes (when moving)", ge=1)
     min_parallax_deg: float = opt(1.0, "minimum triangulation angle [deg]", gt=0)
@@ -102,6 +126,30 @@ class VoOptions:
     ba_iterations: int = opt(4, "Levenberg-Marquardt iterations of the local BA", ge=0, le=50)
     max_rotation_deg_per_frame: float = opt(
         25.0, "a larger rotation between frames is a failure (LOST)", gt=0
+    )
+    rotation_hold_frames: int = opt(
+        30,
+        "when the pose against the map fails but the 2D tracks fit one rotation of the camera "
+        "(turning in place: no parallax, so the map starves), follow that rotation with the "
+        "position held for at most this many frames in a row before LOST (companion/vo/"
+        "rotation.py); 0 = off",
+        ge=0,
+    )
+    rotation_min_inlier_ratio: float = opt(
+        0.7,
+        "the rotation hold needs this share of the tracks within rotation_inlier_px of it",
+        gt=0,
+        le=1,
+    )
+    rotation_inlier_px: float = opt(
+        6.0, "a track farther than this off the held rotation is an outlier [px]", gt=0
+    )
+    rotation_depth_prior: float = opt(
+        0.5,
+        "a keyframe taken while the rotation is held gives its untriangulated features a point "
+        "at the scene's median depth with this relative depth sigma (refined by the local BA "
+        "once the camera moves); 0 = off (they stay candidates)",
+        ge=0,
     )
     max_gap_ms: float = opt(
         1000.0,
