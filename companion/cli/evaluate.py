@@ -74,9 +74,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 return _refused("budget exceeded", budget.exceeded)
             except MemoryError:
                 return _refused("budget exceeded", "out of memory (--max-memory-mb)")
+            except (ImportError, OSError) as e:
+                # a library loaded under the memory cap cannot map its code: out of memory too
+                if args.max_memory_mb > 0 and _out_of_memory(e):
+                    return _refused("budget exceeded", "out of memory (--max-memory-mb)")
+                raise
         return _refused("budget exceeded", budget.exceeded) if budget.exceeded else code
     except DatasetError as e:
         return _refused("dataset error", str(e))
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether an ImportError or OSError is the loader or the OS out of address space."""
+    text = str(e).lower()
+    return "failed to map segment" in text or "cannot allocate memory" in text
 
 
 def _refused(kind: str, message: str) -> int:
