@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config, RangefinderConfig, from_dict, read_toml
-from companion.drivers.dataset.import_manifest import read_manifest, rebuild
-from companion.drivers.dataset.import_sources import FORMATS, TUM_CAMERAS, read_source
+from companion.drivers.dataset.import_manifest import IMPORTERS, read_manifest, rebuild
+from companion.drivers.dataset.import_sources import TUM_CAMERAS, read_source
 from companion.drivers.dataset.import_write import (
     DEFAULT_BEAMS,
     IMAGE_FORMATS,
@@ -106,8 +106,7 @@ def cmd_rebuild(args: argparse.Namespace) -> int:
     by_name = {e.name: e for e in entries}
     if args.all == bool(args.names):
         raise DatasetError(f"rebuild: NAME... or --all (the manifest has {sorted(by_name)})")
-    built = (*FORMATS, "rislab")
-    names = [e.name for e in entries if e.importer in built] if args.all else args.names
+    names = [e.name for e in entries if e.importer in IMPORTERS] if args.all else args.names
     for name in names:
         if name not in by_name:
             raise DatasetError(f"rebuild: {name!r} is not in {args.manifest} ({sorted(by_name)})")
@@ -121,7 +120,7 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("dataset", help="import real sequences into our dataset format")
     dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="{import,rebuild}")
     pi = dsub.add_parser("import", help="a real-sequence folder into our format")
-    pi.add_argument("format", choices=(*FORMATS, "rislab"), help="the source's format")
+    pi.add_argument("format", choices=IMPORTERS, help="the source's format")
     pi.add_argument("src", type=Path, help="the source folder")
     pi.add_argument("--out", type=Path, required=True, help="a new (or empty) folder")
     pi.add_argument(

@@ -4,8 +4,9 @@ their rebuild from git snapshots (``companion dataset rebuild``).
 An entry (``[[sequence]]``) names where the raw files are (``repository`` owner/name,
 ``revision`` the git commit, ``path`` in it, ``include`` the files and folders under ``path``
 the importer reads), the ``licence``, whether the sequence may be committed (``commit``), the
-``importer`` (a format of ``import_sources.FORMATS``) with its ``args`` (``camera``,
-``sequence``, ``frames``, ``seed``, ``image_format``, ``jpg_quality``) and the checksums:
+``importer`` (one of ``IMPORTERS``: a format of ``import_sources.FORMATS``, or ``rislab``)
+with its ``args`` (``camera``, ``sequence``, ``frames``, ``seed``, ``image_format``,
+``jpg_quality``; ``focal_px``, ``k1`` for rislab) and the checksums:
 ``sha256``, the SHA-256 of every file keyed by its path under ``path``, or (for thousands of files)
 ``tree_sha256``, the SHA-256 of the sorted lines "path sha256\n" of them all. A rebuild
 extracts those files from the snapshot (``git --git-dir SNAPSHOT archive REVISION``), checks
@@ -35,6 +36,8 @@ from companion.drivers.dataset.import_write import (
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import ConfigError, DatasetError
 
+# every importer a manifest entry (or `companion dataset import`) may name
+IMPORTERS = (*FORMATS, "rislab")
 ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format", "jpg_quality", "focal_px", "k1")
 _STR_KEYS = ("name", "repository", "revision", "path", "licence", "importer")
 
@@ -221,7 +224,7 @@ def run_importer(
     if entry.importer not in FORMATS:
         raise DatasetError(
             f"{entry.name}: importer {entry.importer!r} is not built here (this importer knows "
-            f"{', '.join((*FORMATS, 'rislab'))})"
+            f"{', '.join(IMPORTERS)})"
         )
     folder = SafeFolder(src)
     seq = read_source(
@@ -248,7 +251,7 @@ def run_importer(
 
 def rebuild(entry: RealSequence, snapshots: Path, out: Path) -> ImportSummary:
     """Extract the entry from its snapshot, check its checksums, import it into ``out``."""
-    if entry.importer not in (*FORMATS, "rislab"):
+    if entry.importer not in IMPORTERS:
         run_importer(entry, Path("."), out)  # raises: not built here
     with tempfile.TemporaryDirectory(prefix=f"rebuild-{entry.name}-") as tmp:
         root = extract(entry, snapshots, Path(tmp))

@@ -50,7 +50,6 @@ import csv
 import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -78,7 +77,9 @@ R_CAPTUREBODY_CAM = np.diag([1.0, -1.0, -1.0])
 R_WORLD_CAPTUREWORLD = np.diag([1.0, -1.0, -1.0])  # z up -> z down
 
 
-def _beam(sensor_id: int, x_m: float, y_m: float, roll_deg: float, pitch_deg: float) -> Any:
+def _beam(
+    sensor_id: int, x_m: float, y_m: float, roll_deg: float, pitch_deg: float
+) -> RangefinderConfig:
     return RangefinderConfig(
         sensor_id=sensor_id,
         mount=MountConfig(xyz_m=(x_m, y_m, 0.0), rpy_deg=(roll_deg, pitch_deg, 0.0)),
