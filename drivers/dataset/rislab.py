@@ -101,12 +101,13 @@ RISLAB_BEAMS: tuple[RangefinderConfig, ...] = (
 @dataclass(frozen=True, slots=True)
 class Capture:
     """The motion-capture record: time (S,) [s], frame (S,) image index, position (S, 3) [m]
-    and R_captureworld_capturebody (S, 3, 3); the invalid all-zero rows removed."""
+    and R_capturebody_captureworld (S, 3, 3), the record's quaternion as a matrix (it turns
+    the world into the body: see the module's docstring); the all-zero rows removed."""
 
     time_s: F64
     frame: np.ndarray
     position_m: F64
-    R: F64
+    R_capturebody_captureworld: F64
 
 
 def read_capture(path: Path) -> Capture:
@@ -167,7 +168,7 @@ def body_poses(capture: Capture, times_s: F64) -> F64:
     R_cb_body = R_CAPTUREBODY_CAM @ R_cam_body
     poses = np.empty((len(times_s), 4, 4))
     for n, i in enumerate(idx):
-        R = R_WORLD_CAPTUREWORLD @ capture.R[i].T @ R_cb_body  # the record's R is world->body
+        R = R_WORLD_CAPTUREWORLD @ capture.R_capturebody_captureworld[i].T @ R_cb_body
         poses[n] = se3.make(R, R_WORLD_CAPTUREWORLD @ capture.position_m[i])
     return poses
 
