@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,6 +49,9 @@ class VoRun:
     frame_ms: list[float] = field(default_factory=list)  # to the pose (the latency)
     total_ms: list[float] = field(default_factory=list)  # with the keyframe work after it
     scale_ms: list[float] = field(default_factory=list)
+    # per frame: the wall time [ms] of each stage to the pose (the pipeline's and, nested as
+    # "vo: ...", the VO's) and after it (keyframe, lens check): Pipeline.laps
+    stage_ms: list[dict[str, float]] = field(default_factory=list)
     keyframe: list[bool] = field(default_factory=list)
     features: list[int] = field(default_factory=list)  # tracked, per frame given to the VO
     poses: list[PoseEstimate] = field(default_factory=list)
@@ -115,12 +118,14 @@ def run_vo(
     camera: CameraModel | None = None,
     T_body_cam: F64 | None = None,
     checked: bool = False,
+    observe: Callable[[CameraFrame, Pipeline], None] | None = None,
 ) -> VoRun:
     """Feed every event to a fresh Pipeline and record the VO output of every frame.
 
     ``checked``: the frames already passed the service's frame check (a recording of the
     service): the replay then does what the service did, frame for frame: no second check,
-    and a frame on which the pipeline raises is logged, counted and skipped."""
+    and a frame on which the pipeline raises is logged, counted and skipped. ``observe``:
+    called after each frame's work, outside the timed span (a benchmark's floor)."""
     pipe = Pipeline(config, camera, T_body_cam)
     run = VoRun()
     for ev in events:
@@ -142,7 +147,14 @@ def run_vo(
             pipe.background_work()  # as the service does: after the pose is out
             run.frame_ms.append((t1 - t0) * 1e3)
             run.total_ms.append((time.perf_counter() - t0) * 1e3)
-            run.scale_ms.append(pipe.last_scale_ms)
+            run.scale_ms.append(pipe.laps.ms.get("scale", 0.0))
+            stages = dict(pipe.laps.ms)
+            if "vo" in stages:  # the VO ran on this frame
+                stages.update({f"vo: {k}": v for k, v in pipe.vo.laps.ms.items()})
+            stages.update(pipe.background_laps.ms)
+            run.stage_ms.append(stages)
+            if observe is not None:
+                observe(ev, pipe)
             out = pipe.vo_output  # None: the frame check rejected the frame
             state = out.state if out is not None else VoState.LOST
             T = out.T_vo_cam if out is not None and state == VoState.TRACKING else None
@@ -360,7 +372,7 @@ def run_attitude(
                 run.ranges_used.append(dict(inp.range_m))
         for name in SERIES:
             run.series[name].append(row[name])
-        run.attitude_ms.append(pipe.last_attitude_ms)
+        run.attitude_ms.append(pipe.laps.ms.get("roll/pitch", 0.0))
         if progress is not None:
             next(progress, None)
     return run

@@ -7,7 +7,10 @@ commands, so that the other commands start without it.
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
+import pstats
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -16,6 +19,7 @@ import cv2
 import numpy as np
 
 from companion.bench import bench_render, format_render_report, machine_description
+from companion.bench_vo import BOARD_FACTORS
 from companion.cli import sim
 from companion.cli.common import (
     EXIT_OK,
@@ -38,7 +42,10 @@ def cmd_bench_render(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_vo(args: argparse.Namespace) -> int:
-    """Benchmark the VO: per-frame time on one core (median, p99) and peak RSS."""
+    """Benchmark the pipeline on one core against its floor (companion/bench_vo.py): the
+    floor line, the frame and keyframe times, the per-stage table, the worker's delays at the
+    camera's rate, peak RSS; ``--profile``: cProfile of the run; ``--board``: an estimate."""
+    from companion.bench_vo import BOARD_FACTORS, KltFloor, floor_ratios, stage_table, worker_delays
     from companion.offline import run_vo
 
     cv2.setNumThreads(1)
@@ -46,32 +53,70 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
         args, lambda c: f"sitl {c.sitl.terrain}/{c.sitl.trajectory} {c.sitl.seconds:g} s"
     )
     name = str(args.dataset) if args.dataset is not None else inp.name
+    floor = KltFloor(inp.cfg.vo.klt_window_px, inp.cfg.vo.klt_levels)
+    profiler = cProfile.Profile() if args.profile is not None else None
     with progress(inp.total, "bench vo", not args.no_progress) as ticks:
-        run = run_vo(inp.cfg, inp.events, ticks, camera=inp.camera, T_body_cam=inp.T_body_cam)
-    ms = np.array(run.frame_ms)
-    kf = np.array(run.keyframe)
-    print(f"machine: {machine_description()}")
-    print(f"input: {name}, {len(ms)} frames, one core (cv2.setNumThreads(1))")
-    print(
-        f"frame time: median {np.median(ms):.2f} ms ({1000 / np.median(ms):.0f} fps), "
-        f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.1f} ms"
-    )
-    total_ms = np.array(run.total_ms)
-    print(
-        f"with the keyframe work after the pose: median {np.median(total_ms):.2f} ms, "
-        f"p99 {np.percentile(total_ms, 99):.2f} ms"
-    )
-    if kf.any():  # the keyframe flag is on the frame after the one that built it
-        built = np.roll(kf, -1)
-        print(f"keyframes: {int(kf.sum())}, work median {np.median(total_ms[built]):.2f} ms")
-    sc = np.array(run.scale_ms)[run.tracking_mask()]
-    if len(sc):
-        print(
-            f"scale ({inp.cfg.scale.method}, {len(inp.cfg.rangefinders)} sensors, within the "
-            f"frame time): median {np.median(sc):.3f} ms, p99 {np.percentile(sc, 99):.3f} ms"
+        if profiler is not None:
+            profiler.enable()
+        run = run_vo(
+            inp.cfg, inp.events, ticks, camera=inp.camera, T_body_cam=inp.T_body_cam, observe=floor
         )
-    print(f"tracking: {run.tracking_mask().mean():.3f} of frames, resets {run.resets}")
-    print(f"peak RSS: {run.peak_rss_mb:.0f} MB")
+        if profiler is not None:
+            profiler.disable()
+    ms = np.array(run.frame_ms)
+    total_ms = np.array(run.total_ms)
+    tracked = run.tracking_mask()
+    built = np.roll(np.array(run.keyframe), -1)  # flagged on the frame after the one that built
+    ratios = floor_ratios(floor.ms, ms[tracked], total_ms[built & tracked])
+    w, h = (
+        inp.camera.width if inp.camera else inp.cfg.camera.width,
+        (inp.camera.height if inp.camera else inp.cfg.camera.height),
+    )
+    print(f"machine: {machine_description()}")
+    print(f"input: {name}, {len(ms)} frames {w}x{h}, one core (cv2.setNumThreads(1))")
+    if profiler is not None:
+        print("(under cProfile: every time below is inflated by the profiler)")
+    print(ratios.line())
+    print(
+        f"floor: OpenCV's pyramidal KLT of the VO's features of the frame before (median "
+        f"{np.median(floor.features):.0f}), window {floor.window_px} px, {floor.levels} levels, "
+        "no initial flow, pose solve not counted"
+    )
+    print(
+        f"frame time (tracked frames, to the pose): median {ratios.frame_ms:.2f} ms "
+        f"({1000 / ratios.frame_ms:.0f} fps), p99 {ratios.p99_ms:.2f} ms, max {ms.max():.1f} ms"
+    )
+    print(
+        f"with the work after the pose: median {np.median(total_ms):.2f} ms, "
+        f"p99 {np.percentile(total_ms, 99):.2f} ms; keyframes {int(built.sum())}, "
+        f"work median {ratios.keyframe_ms:.2f} ms"
+    )
+    rate_hz = inp.cfg.camera.rate_hz
+    delays = worker_delays(run.time_us, run.total_ms)
+    print(
+        f"worker at the camera's stamps (~{rate_hz:g} Hz; a model on the measured times): a "
+        f"pose waits for the work before it at most {delays.delay_ms.max():.1f} ms, p99 "
+        f"{np.percentile(delays.delay_ms, 99):.1f} ms; {delays.dropped} frames skipped"
+    )
+    print(f"tracking: {tracked.mean():.3f} of frames, resets {run.resets}")
+    print(f"peak RSS (this process, the simulator's world included): {run.peak_rss_mb:.0f} MB")
+    print()
+    print("\n".join(stage_table(run.stage_ms, run.frame_ms)))
+    if args.board is not None:
+        f = BOARD_FACTORS[args.board]
+        print(
+            f"\n{args.board}: ESTIMATE, not a measurement: x{f:g} (a planning factor for "
+            f"OpenCV work on its core against this one): frame median ~{f * ratios.frame_ms:.0f} "
+            f"ms, p99 ~{f * ratios.p99_ms:.0f} ms, keyframe ~{f * ratios.keyframe_ms:.0f} ms; "
+            f"{rate_hz:g} Hz leaves {1000 / rate_hz:.1f} ms a frame"
+        )
+    if profiler is not None:
+        stats = pstats.Stats(profiler, stream=sys.stdout)
+        if args.profile:
+            stats.dump_stats(args.profile)
+            print(f"\nprofile written to {args.profile} (python -m pstats {args.profile})")
+        print()
+        stats.sort_stats("cumulative").print_stats(r"companion|cv2|\{", 30)
     return EXIT_OK
 
 
@@ -174,6 +219,18 @@ def add_bench(sub: Any) -> None:
     p_bv.add_argument("dataset", type=Path, nargs="?", help="dataset folder (default: SITL)")
     add_sitl_flags(p_bv)
     p_bv.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p_bv.add_argument(
+        "--profile",
+        nargs="?",
+        const="",
+        metavar="FILE",
+        help="run under cProfile, print the top functions (and write FILE.prof if given)",
+    )
+    p_bv.add_argument(
+        "--board",
+        choices=sorted(BOARD_FACTORS),
+        help="also print the planning estimate for a Raspberry Pi 4 (x5) or 5 (x2.5)",
+    )
     p_bv.set_defaults(func=cmd_bench_vo)
     p_ba = bench_sub.add_parser("attitude", help="roll/pitch cost per range update, one core")
     add_sitl_flags(p_ba)

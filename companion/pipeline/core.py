@@ -11,7 +11,6 @@ VO, the metric scale, roll/pitch, the compass heading, the published pose and d-
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 
@@ -44,6 +43,7 @@ from companion.types import (
 from companion.vo.frame_check import FrameCheck, FrameProblem
 from companion.vo.frame_clock import FrameClock
 from companion.vo.odometry import VisualOdometry
+from companion.vo.stage_times import Laps
 
 
 class Pipeline:
@@ -97,14 +97,15 @@ class Pipeline:
         self.scale_input: ScaleInput | None = None
         self.vo_output: VoOutput | None = None
         self.output = PoseOutput()
-        self.last_scale_ms = 0.0  # time spent on the scale in the last frame [ms]
         self.attitude: RollPitch | None = None
         n_sensors = len(config.attitude.sensor_ids or self.specs)
         if config.attitude.enabled and n_sensors >= 3:
             self.attitude = RollPitch(self.specs, config.attitude)
         self.tilt: TiltStep | None = None  # the roll/pitch result of the last frame
         self.tilt_input: TiltInput | None = None  # its input
-        self.last_attitude_ms = 0.0  # time spent on roll/pitch in the last frame [ms]
+        # the wall time [ms] of each stage of the last frame, to its pose and after it
+        self.laps = Laps()
+        self.background_laps = Laps()
         self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
         self.lens = LensStage(self.camera, self.T_body_cam)  # the focal length, in flight
 
@@ -178,14 +179,15 @@ class Pipeline:
         one, the VO drops its map and initialises anew, so the poses after a camera fault
         carry a new reset_counter. ``checked``: :meth:`check_frame` already ran on this frame
         (the service's camera reader runs it on every delivered frame)."""
+        laps = self.laps
+        laps.start()
         if self._first_frame_us is None:
             self._first_frame_us = frame.time_us
         self.scale_input = None
         self.tilt = None
         self.tilt_input = None
-        self.last_scale_ms = 0.0
-        self.last_attitude_ms = 0.0
         self.frame_problem = None if checked else self.check_frame(frame)
+        laps.lap("frame check")
         if self.frame_problem is not None:
             self.vo_output = None
             return None
@@ -199,16 +201,18 @@ class Pipeline:
             self.gaps += 1
         self._last_good_us = frame.time_us
         R_world_body = self.attitude_at(frame.time_us)  # the frame's attitude, for every stage
+        laps.lap("clock")
         out = self._vo_step(frame, R_world_body)
         self.vo_output = out
         if out is not None:
             self.lens.observe(out, R_world_body, self.vo.resets)
+        laps.lap("vo")
         if out is None or out.state != VoState.TRACKING:
             return None
         range_m = self._scale_step(frame.time_us, out)
-        t0 = time.perf_counter()
+        laps.lap("scale")
         self.tilt = self._tilt(frame.time_us, range_m, R_world_body)
-        self.last_attitude_ms = (time.perf_counter() - t0) * 1e3
+        laps.lap("roll/pitch")
         position_vo_m = self.metric_positions.get(self.method_name)
         R_vo_body = self.R_vo_body()
         self.compass.step(frame.time_us, position_vo_m, R_vo_body, self.vo, self.imu_gravity.imu)
@@ -217,11 +221,13 @@ class Pipeline:
             p = np.array(position_vo_m, dtype=np.float64)
             motion = MotionSample(frame.time_us, self._segment(), R_vo_body, p, R_world_body)
             self.imu_gravity.remember(motion)
+        laps.lap("heading, output")
         if pose is not None and self.dpose_stage.dpose is not None:
             assert self._first_frame_us is not None
             pose = self.dpose_stage.corrected(
                 frame, self._first_frame_us, pose, R_world_body, dict(range_m)
             )
+            laps.lap("d-Pose")
         return pose
 
     def _segment(self) -> Segment:
@@ -261,7 +267,6 @@ class Pipeline:
     def _scale_step(self, time_us: int, out: VoOutput) -> dict[int, float]:
         """Every scale method on a tracked frame: ``estimates`` and ``metric_positions``;
         returns the ranges [m] at the frame by sensor id."""
-        t0 = time.perf_counter()
         T_cam_vo = se3.inverse(out.T_vo_cam)
         readings = laser_readings(
             self.specs, self.ranges, self.T_cam_body, time_us, self.config.scale
@@ -280,7 +285,6 @@ class Pipeline:
             if est is not None:
                 cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
                 self.metric_positions[name] = cam_m + lever_m
-        self.last_scale_ms = (time.perf_counter() - t0) * 1e3
         return {sid: r.range_m for sid, r in readings.items()}
 
     def _tilt(
@@ -331,8 +335,13 @@ class Pipeline:
         """Work that the last frame's pose did not need (building a keyframe: triangulation
         and local bundle adjustment). The service runs it after publishing; if nobody calls
         it, the next feed_frame does it first. Returns whether there was any."""
+        laps = self.background_laps
+        laps.start()
         built = self.vo.finish_pending()
-        return self.lens.work() or built
+        laps.lap("keyframe")
+        lens = self.lens.work()
+        laps.lap("lens check")
+        return lens or built
 
     def status(self) -> PipelineStatus:
         """An immutable snapshot of what the last frame left (for a status display on another

@@ -30,7 +30,9 @@ class Tracks:
     px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
     anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
     anchor_xy: (N, 2) its normalised coordinates there; prev_px: (N, 2) float32 pixels in the
-    frame before, right after :func:`track` (None once the tracks were re-made: a new map).
+    frame before, right after :func:`track` (None once the tracks were re-made: a new map);
+    xy: (N, 2) the undistorted normalised coordinates of px, kept once computed (None: not
+    yet; the VO's ``tracks_xy``), so that a frame undistorts its features once.
     """
 
     px: F32
@@ -38,6 +40,7 @@ class Tracks:
     anchor: I64
     anchor_xy: F64
     prev_px: F32 | None = None
+    xy: F64 | None = None
 
     @staticmethod
     def empty() -> Tracks:
@@ -53,7 +56,10 @@ class Tracks:
 
     def select(self, keep: NDArray[np.bool_]) -> Tracks:
         prev = None if self.prev_px is None else self.prev_px[keep]
-        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev)
+        xy = None if self.xy is None else self.xy[keep]
+        return Tracks(
+            self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev, xy
+        )
 
     def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
         n = len(px)
@@ -64,6 +70,7 @@ class Tracks:
             np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
             np.concatenate([self.anchor_xy, anchor_xy]),
             None if self.prev_px is None else np.concatenate([self.prev_px, new_px]),
+            None if self.xy is None else np.concatenate([self.xy, anchor_xy]),
         )
 
 
@@ -153,6 +160,7 @@ def track(
     kept = tracks.select(ok)
     kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
+    kept.xy = None  # moved: undistorted anew
     return thin(kept, opts.min_distance_px)
 
 
@@ -198,15 +206,21 @@ def thin(tracks: Tracks, min_distance_px: float) -> Tracks:
     if n < 2:
         return tr
     r2 = (0.5 * min_distance_px) ** 2
-    d2 = np.sum((tr.px[:, None, :] - tr.px[None, :, :]) ** 2, axis=2)
+    x, y = tr.px[:, 0], tr.px[:, 1]
+    dx, dy = x[:, None] - x[None, :], y[:, None] - y[None, :]
+    d2 = dx * dx + dy * dy  # (N, N); a tenth of the time of a sum over a (N, N, 2) axis
     close = d2 < r2
     np.fill_diagonal(close, False)
     if not close.any():
         return tr
-    order = np.lexsort((np.arange(n), tr.pid < 0))  # with a point first, then older
-    keep = np.zeros(n, dtype=bool)
+    # a track with no close neighbour is kept and blocks none: the greedy pass runs over
+    # the crowded ones only (same result as over all, a fraction of the work)
+    crowded = np.flatnonzero(close.any(axis=1))
+    order = crowded[np.lexsort((crowded, tr.pid[crowded] < 0))]  # with a point, then older
+    keep = np.ones(n, dtype=bool)
+    keep[crowded] = False
     blocked = np.zeros(n, dtype=bool)
-    for i in order:
+    for i in order.tolist():
         if not blocked[i]:
             keep[i] = True
             blocked |= close[i]

@@ -49,6 +49,7 @@ from companion.vo.map import VoMap
 from companion.vo.options import VoOptions
 from companion.vo.pose import estimate_pose
 from companion.vo.rotation import fit_rotation
+from companion.vo.stage_times import Laps
 from companion.vo.states import (
     Reference,
     lose_map,
@@ -86,6 +87,7 @@ class VisualOdometry:
         self._velocity_dt_us: int | None = None  # the interval T_prev -> T_cam_vo spans
         self._T_pred: F64 | None = None  # this frame's predicted pose (interval-scaled)
         self.frames_since_kf = 0
+        self.laps = Laps()  # the wall time of each stage of the last frame [ms]
         self.rotation_frames = 0  # frames in a row whose pose is a rotation held in place
         self.rotation_held = 0  # frames whose pose was held on a rotation (all maps)
         self._pending_keyframe: PendingKeyframe | None = None  # built by finish_pending
@@ -108,6 +110,14 @@ class VisualOdometry:
     def normalized(self, px: NDArray[np.floating]) -> F64:
         """(N, 2) normalised camera coordinates of pixels (N, 2)."""
         return self.camera.pixels_to_normalized(np.asarray(px, dtype=np.float64))
+
+    def tracks_xy(self) -> F64:
+        """(N, 2) the undistorted normalised coordinates of the tracks' pixels, computed once
+        per set of pixels (kept in ``tracks.xy`` through selections)."""
+        tr = self.tracks
+        if tr.xy is None:
+            tr.xy = self.normalized(tr.px)
+        return tr.xy
 
     def _output(self, time_us: int, is_kf: bool) -> VoOutput:
         tr = self.tracks
@@ -164,7 +174,7 @@ class VisualOdometry:
             return pose, None
         tr = self.tracks
         T_new_old = T_pred @ se3.inverse(self.T_cam_vo)  # current camera -> predicted camera
-        rays = np.column_stack([self.normalized(tr.px), np.ones(len(tr))])
+        rays = np.column_stack([self.tracks_xy(), np.ones(len(tr))])
         has = tr.pid >= 0
         p_cur = rays * self.map.median_depth(
             self.tracks, self.T_cam_vo
@@ -188,7 +198,7 @@ class VisualOdometry:
         if has.sum() < self.opts.min_tracked_points:
             return False
         X = np.array([self.map.points[int(p)] for p in tr.pid[has]])
-        xy = self.normalized(tr.px[has])
+        xy = self.tracks_xy()[has]
         # constant-velocity prediction (over this frame's interval when frames were skipped)
         T_pred = self._T_pred
         if T_pred is None:
@@ -226,7 +236,7 @@ class VisualOdometry:
             return False
         fit = fit_rotation(
             self.normalized(tr.prev_px),
-            self.normalized(tr.px),
+            self.tracks_xy(),
             o.rotation_inlier_px / self.focal_px,
             o.min_tracked_points,
         )
@@ -249,7 +259,7 @@ class VisualOdometry:
         cand = np.flatnonzero(tr.pid < 0)
         if len(cand) == 0:
             return
-        xy = self.normalized(tr.px[cand])
+        xy = self.tracks_xy()[cand]
         keep = np.ones(len(tr), dtype=bool)
         for a in np.unique(tr.anchor[cand]):
             kf_a = self.map.keyframe(int(a))
@@ -289,8 +299,8 @@ class VisualOdometry:
             R_world_body, self.T_body_cam, self.T_cam_vo, o, gravity, axial, down
         )
         kf = self.map.new_keyframe(time_us, self.T_cam_vo.copy(), g_cam, g_sigma)
+        xy = self.tracks_xy()
         tr = self.tracks
-        xy = self.normalized(tr.px)
         for i in np.flatnonzero(tr.pid >= 0):
             kf.obs[int(tr.pid[i])] = xy[i]
         self.tracks = self.map.triangulate_candidates(tr, kf, xy, self.focal_px, o)
@@ -298,7 +308,7 @@ class VisualOdometry:
         new_features(self, gray)
         if held and o.rotation_depth_prior > 0:
             depth = self.map.scene_depth(self.T_cam_vo)
-            xy = self.normalized(self.tracks.px)
+            xy = self.tracks_xy()
             self.tracks = self.map.seed_candidates(
                 self.tracks, kf, xy, depth, o.rotation_depth_prior
             )
@@ -327,14 +337,20 @@ class VisualOdometry:
         keyframe prior's gravity; None: the attitude's alone. ``down``: (gravity in the body
         frame (3,), sigma_rad) measured by the caller at this frame, which replaces the
         attitude's for this frame's keyframe (the take-off pad's, companion/attitude/pad.py)."""
-        self.finish_pending()  # the previous frame's keyframe, if the caller did not run it
+        laps = self.laps
+        laps.start()
+        if self.finish_pending():  # the previous frame's keyframe, if the caller did not run it
+            laps.lap("keyframe")
         self.n_frames += 1
         img = frame.image_bgr
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
         is_kf = self._keyframe_added
         self._keyframe_added = False
+        laps.lap("grey")
         self._T_pred, guess_px = self._interval_prediction(frame.time_us)
+        laps.lap("predict")
         self.tracks = track(self._prev_gray, gray, self.tracks, self.camera, self.opts, guess_px)
+        laps.lap("track")
         if self.state != VoState.TRACKING:
             if step_not_tracking(self, gray, frame.time_us, R_world_body, ground):
                 is_kf = True
@@ -363,7 +379,10 @@ class VisualOdometry:
         if self.state == VoState.TRACKING and self._prev_time_us is not None:
             self._velocity_dt_us = frame.time_us - self._prev_time_us
         self._prev_time_us = frame.time_us
-        return self._output(frame.time_us, is_kf)
+        laps.lap("pose")
+        out = self._output(frame.time_us, is_kf)
+        laps.lap("vo output")
+        return out
 
     def lose(self) -> None:
         """Drop tracking and the map (the input was interrupted: a camera fault or a gap).

@@ -1,0 +1,106 @@
+"""``companion bench vo``'s figures (companion/bench_vo.py): the floor, the ratios, the stage
+table and the worker's delays on inputs whose answer is known; and the command end to end on
+the committed real clip (the figures go to docs/BENCHMARKS.md, never asserted)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.bench_vo import KltFloor, floor_ratios, stage_table, worker_delays
+from companion.types import CameraFrame
+
+CLIP = Path(__file__).parents[2] / "data" / "real" / "tum_fr1_rpy_clip"
+FLOOR_LINE = re.compile(
+    r"^floor: KLT (\d+\.\d+) ms; frame median (\d+\.\d+) ms = (\d+\.\d+)x floor; "
+    r"p99 (\d+\.\d+)x; keyframe (\d+\.\d+|nan)x$"
+)
+
+
+def test_floor_ratios_are_the_medians_over_the_floor_and_the_line_reads_back() -> None:
+    r = floor_ratios([2.0, 2.0, 4.0], [5.0, 6.0, 7.0, 100.0], [9.0, 11.0])
+    assert (r.floor_ms, r.frame_ms, r.keyframe_ms) == (2.0, 6.5, 10.0)
+    assert r.frame_ratio == 3.25 and r.keyframe_ratio == 5.0
+    assert r.p99_ms == pytest.approx(np.percentile([5.0, 6.0, 7.0, 100.0], 99))
+    m = FLOOR_LINE.match(r.line())
+    assert m is not None and float(m.group(3)) == 3.25 and float(m.group(5)) == 5.0
+    with pytest.raises(ValueError, match="no frame was tracked"):
+        floor_ratios([], [1.0], [])
+
+
+def test_stage_table_nests_the_vo_stages_and_puts_the_work_after_the_pose_last() -> None:
+    stages = [
+        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, "keyframe": 0.0},
+        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, "keyframe": 20.0},
+    ]
+    rows = stage_table(stages, [8.0, 8.0])
+    names = [r.split("|")[1].strip() for r in rows[2:]]
+    assert names == ["frame check", "vo", "vo: track", "scale", "keyframe (after the pose)"]
+    cells = {n: r.split("|") for n, r in zip(names, rows[2:], strict=True)}
+    assert cells["vo"][2].strip() == "2" and cells["vo"][5].strip() == "75.0 %"
+    kf = cells["keyframe (after the pose)"]
+    assert kf[2].strip() == "1" and kf[3].strip() == "20.000"  # the frame with work only
+
+
+def test_worker_delays_show_the_frame_after_a_long_keyframe_wait_and_a_skip() -> None:
+    t_us = [round(i * 1e6 / 30) for i in range(6)]  # 30 Hz: 33.3 ms apart
+    # frame 1 builds a keyframe: 80 ms of work in all, so frames 2 and 3 arrive meanwhile:
+    # 2 is skipped (3 is newer), 3 starts when the work ends
+    total = [10.0, 80.0, 10.0, 10.0, 10.0, 10.0]
+    d = worker_delays(t_us, total)
+    assert d.dropped == 1
+    assert len(d.delay_ms) == 5
+    np.testing.assert_allclose(d.delay_ms, [0.0, 0.0, 113.333 - 100.0, 0.0, 0.0], atol=1e-3)
+
+
+def test_klt_floor_times_the_features_of_the_frame_before_into_this_one() -> None:
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320), dtype=np.uint8), (5, 5), 0)
+    shifted = np.roll(img, 2, axis=1)
+    px = cv2.goodFeaturesToTrack(img, 50, 0.01, 8).reshape(-1, 2)
+    floor = KltFloor(15, 3)
+
+    def pipe(pixels: Any) -> Any:
+        return SimpleNamespace(vo_output=SimpleNamespace(features=SimpleNamespace(pixels=pixels)))
+
+    floor(CameraFrame(0, 0, cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)), pipe(px))
+    assert floor.ms == []  # nothing to track into the first frame
+    floor(CameraFrame(33_333, 1, shifted), pipe(px[:10]))
+    assert len(floor.ms) == 1 and floor.ms[0] > 0 and floor.features == [len(px)]
+    floor(CameraFrame(66_666, 2, shifted), SimpleNamespace(vo_output=None))  # 10 features
+    assert floor.features == [len(px), 10]
+
+
+@pytest.mark.skipif(not CLIP.is_dir(), reason=f"the committed clip {CLIP} is missing")
+def test_bench_vo_on_the_real_clip_prints_the_floor_line_the_stages_and_a_board_estimate(
+    tmp_path: Path,
+) -> None:
+    prof = tmp_path / "vo.prof"
+    cmd = [sys.executable, "-m", "companion.cli", "bench", "vo", str(CLIP), "--no-progress"]
+    res = subprocess.run(
+        [*cmd, "--board", "pi4", "--profile", str(prof)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    floor = [m for line in lines if (m := FLOOR_LINE.match(line))]
+    assert len(floor) == 1
+    klt_ms, frame_ms, ratio = (float(floor[0].group(i)) for i in (1, 2, 3))
+    assert klt_ms > 0 and ratio == pytest.approx(frame_ms / klt_ms, abs=0.01)
+    assert ratio > 1.0  # a frame does at least its KLT
+    stage_names = [line.split("|")[1].strip() for line in lines if line.startswith("| ")]
+    for stage in ("vo", "vo: track", "vo: pose", "scale", "roll/pitch"):
+        assert stage in stage_names
+    pi4 = [line for line in lines if line.startswith("pi4: ESTIMATE")]
+    assert len(pi4) == 1 and "not a measurement" in pi4[0]
+    assert prof.stat().st_size > 0 and "under cProfile" in res.stdout
