@@ -77,13 +77,16 @@ class VoMap:
                 return kf
         return None
 
+    def points_of(self, pids: NDArray[np.int64]) -> F64:
+        """(N, 3) the points of ids (N,) (each in the map), in the VO frame."""
+        return np.array([self.points[p] for p in pids.tolist()], dtype=np.float64).reshape(-1, 3)
+
     def median_depth(self, tracks: Tracks, T_cam_vo: F64) -> float:
         """The median depth of the tracked points seen from T_cam_vo (1 without any)."""
         has = tracks.pid >= 0
         if not has.any():
             return 1.0
-        X = np.array([self.points[int(p)] for p in tracks.pid[has]])
-        z = se3.transform(T_cam_vo, X)[:, 2]
+        z = se3.transform(T_cam_vo, self.points_of(tracks.pid[has]))[:, 2]
         return float(np.median(z))
 
     def scene_depth(self, T_cam_vo: F64) -> float:

@@ -125,9 +125,10 @@ class VisualOdometry:
         pts = np.full((n, 3), np.nan)
         sig = np.full(n, np.nan)
         has = tr.pid >= 0
-        for i in np.flatnonzero(has):
-            pts[i] = self.map.points[int(tr.pid[i])]
-            sig[i] = self.map.point_sigma[int(tr.pid[i])]
+        if has.any():
+            ids = tr.pid[has].tolist()
+            pts[has] = [self.map.points[p] for p in ids]
+            sig[has] = [self.map.point_sigma[p] for p in ids]
         feats = VoFeatures(tr.px.astype(np.float64), tr.pid.copy(), pts, sig)
         tracking = self.state == VoState.TRACKING
         T_vo_cam = se3.inverse(self.T_cam_vo) if tracking else np.full((4, 4), np.nan)
@@ -180,7 +181,7 @@ class VisualOdometry:
             self.tracks, self.T_cam_vo
         )  # features without a 3D point: at median depth
         if has.any():
-            X = np.array([self.map.points[int(p)] for p in tr.pid[has]])
+            X = self.map.points_of(tr.pid[has])
             p_cur[has] = se3.transform(self.T_cam_vo, X)
         uv, ok = self.camera.project(se3.transform(T_new_old, p_cur))
         ok &= np.all(np.isfinite(uv), axis=1)
@@ -197,7 +198,7 @@ class VisualOdometry:
         has = tr.pid >= 0
         if has.sum() < self.opts.min_tracked_points:
             return False
-        X = np.array([self.map.points[int(p)] for p in tr.pid[has]])
+        X = self.map.points_of(tr.pid[has])
         xy = self.tracks_xy()[has]
         # constant-velocity prediction (over this frame's interval when frames were skipped)
         T_pred = self._T_pred
