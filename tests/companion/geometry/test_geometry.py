@@ -138,6 +138,15 @@ def test_undistortion_matches_opencv_and_inverts_projection(cam: CameraModel) ->
     assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
 
 
+def test_undistortion_of_no_point_and_of_a_nan_pixel() -> None:
+    """An empty set is an empty answer (no iteration); a set with a NaN pixel raises instead
+    of returning coordinates (a folding lens: companion/geometry/lens_check.py)."""
+    cam = CAMERAS[0]
+    assert cam.pixels_to_normalized(np.zeros((0, 2))).shape == (0, 2)
+    with pytest.raises(GeometryError, match="did not converge"):
+        cam.pixels_to_normalized(np.array([[10.0, 10.0], [np.nan, 5.0]]))
+
+
 def test_pixel_rays_grid_and_behind_camera() -> None:
     cam = CAMERAS[0]
     rays = cam.pixel_rays()
