@@ -1,5 +1,5 @@
-"""Fusion of the drift-free range tilt with the VO rotation: a Kalman filter (filterpy) on the
-tilt error of the VO frame.
+"""Fusion of the drift-free range tilt with the VO rotation: a Kalman filter on the tilt error
+of the VO frame (companion/geometry/kalman.py).
 
 The VO frame is gravity-aligned at initialisation and then drifts slowly. We model the true
 attitude as R_world_body = Rz(yaw_vo) exp([e_x, e_y, 0]) R_vo_body, with the VO frame's tilt
@@ -22,10 +22,10 @@ VO's.
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from companion.attitude.ground import normal_from_tilt, tilt_from_normal
 from companion.geometry import so3
+from companion.geometry.kalman import RandomWalkKalman
 from companion.types import F64
 
 
@@ -67,9 +67,7 @@ class TiltFilter:
         self.correlation_s = correlation_s
         self.init_sigma = init_sigma_rad
         self.gate = gate_chi2
-        self.kf = KalmanFilter(dim_x=2, dim_z=2)
-        self.kf.F = np.eye(2)
-        self.kf.H = np.eye(2)
+        self.kf = RandomWalkKalman(2)
         self.accepted = 0
         self.rejected = 0
         self.reset(0)
@@ -92,8 +90,7 @@ class TiltFilter:
     def predict(self, time_us: int) -> None:
         """Random-walk prediction to ``time_us``."""
         dt = max(0.0, (time_us - self.time_us) * 1e-6)
-        self.kf.Q = np.eye(2) * self.q**2 * dt
-        self.kf.predict()
+        self.kf.predict(np.eye(2) * self.q**2 * dt)
         self.time_us = max(self.time_us, time_us)
 
     def update(
@@ -134,7 +131,7 @@ class TiltFilter:
         if float(y @ np.linalg.solve(S, y)) > self.gate:
             self.rejected += 1
             return False
-        self.kf.update(z.reshape(2, 1), R=R)
+        self.kf.update(z.reshape(2, 1), R)
         self.last_update_us[source] = time_us
         self.accepted += 1
         return True

@@ -14,6 +14,8 @@ from companion.errors import GeometryError
 from companion.types import F64
 
 _SMALL = 1e-10
+_I3 = np.eye(3)  # read only: arithmetic on it makes new arrays
+_I3.flags.writeable = False
 
 
 def hat(omega: ArrayLike) -> F64:
@@ -28,9 +30,9 @@ def exp(omega: ArrayLike) -> F64:
     theta = float(np.linalg.norm(w))
     K = hat(w)
     if theta < _SMALL:
-        R: F64 = np.eye(3) + K + 0.5 * K @ K
+        R: F64 = _I3 + K + 0.5 * K @ K
     else:
-        R = np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K @ K
+        R = _I3 + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta**2) * K @ K
     return R
 
 

@@ -1,4 +1,4 @@
-"""MSCwK: the scale as a Gaussian random walk, updated by scale measurements (filterpy).
+"""MSCwK: the scale as a Gaussian random walk, updated by scale measurements.
 
 State x = s [m per VO unit]; prediction over dt adds variance (q * s)^2 * dt (a relative
 random walk, to follow the VO's scale drift); a measurement z with sigma r updates it unless
@@ -9,7 +9,8 @@ the 99 % quantile), which rejects outliers such as a 10x wrong match.
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
+
+from companion.geometry.kalman import RandomWalkKalman
 
 
 class ScaleKalman:
@@ -18,9 +19,7 @@ class ScaleKalman:
     def __init__(self, random_walk_per_s: float, gate_chi2: float) -> None:
         self.q = random_walk_per_s
         self.gate = gate_chi2
-        self.kf = KalmanFilter(dim_x=1, dim_z=1)
-        self.kf.F = np.eye(1)
-        self.kf.H = np.eye(1)
+        self.kf = RandomWalkKalman(1)
         self.initialized = False
         self.time_us = 0
         self.accepted = 0
@@ -44,8 +43,7 @@ class ScaleKalman:
     def predict(self, time_us: int) -> None:
         """Random-walk prediction to ``time_us``."""
         dt = max(0.0, (time_us - self.time_us) * 1e-6)
-        self.kf.Q = np.array([[(self.q * self.scale) ** 2 * dt]])
-        self.kf.predict()
+        self.kf.predict(np.array([[(self.q * self.scale) ** 2 * dt]]))
         self.time_us = max(self.time_us, time_us)
 
     def update(self, time_us: int, z: float, sigma: float) -> bool:
@@ -63,6 +61,6 @@ class ScaleKalman:
         if y * y / S > self.gate:
             self.rejected += 1
             return False
-        self.kf.update(np.array([[z]]), R=np.array([[sigma**2]]))
+        self.kf.update(np.array([[z]]), np.array([[sigma**2]]))
         self.accepted += 1
         return True

@@ -27,6 +27,7 @@ EXTRAS_ONLY = (
     "evo",
     "pandas",
     "tomli_w",
+    "filterpy",  # dev only since issue 39: its import pulled scipy.stats into the service
     "companion.sitl",
 )
 
@@ -140,7 +141,8 @@ def test_runtime_dependencies_leave_the_extras_out() -> None:
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     runtime = {re.split(r"[<>=!~ ;\[]", d)[0].lower() for d in project["dependencies"]}
     extras = project["optional-dependencies"]
-    for heavy in ("numba", "scikit-image", "matplotlib", "evo", "pandas", "mypy", "pytest"):
+    heavy_ones = ("numba", "scikit-image", "matplotlib", "evo", "pandas", "mypy", "pytest")
+    for heavy in (*heavy_ones, "filterpy"):
         assert heavy not in runtime, heavy
     for needed in ("numpy", "scipy", "opencv-python-headless", "pymavlink", "mavsdk", "pyserial"):
         assert needed in runtime, needed
