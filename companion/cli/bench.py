@@ -23,6 +23,7 @@ from companion.bench_vo import BOARD_FACTORS
 from companion.cli import sim
 from companion.cli.common import (
     EXIT_OK,
+    EXIT_PROBLEMS,
     add_sitl_flags,
     dpose_config,
     exit_on_sigterm,
@@ -67,6 +68,13 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
     total_ms = np.array(run.total_ms)
     tracked = run.tracking_mask()
     built = np.roll(np.array(run.keyframe), -1)  # flagged on the frame after the one that built
+    if not tracked.any() or not floor.ms:
+        print(
+            f"bench vo: the VO tracked no frame of {name} ({len(ms)} frames, resets "
+            f"{run.resets}): no frame time to set against the floor",
+            file=sys.stderr,
+        )
+        return EXIT_PROBLEMS
     ratios = floor_ratios(floor.ms, ms[tracked], total_ms[built & tracked])
     w, h = (
         inp.camera.width if inp.camera else inp.cfg.camera.width,

@@ -104,3 +104,19 @@ def test_bench_vo_on_the_real_clip_prints_the_floor_line_the_stages_and_a_board_
     pi4 = [line for line in lines if line.startswith("pi4: ESTIMATE")]
     assert len(pi4) == 1 and "not a measurement" in pi4[0]
     assert prof.stat().st_size > 0 and "under cProfile" in res.stdout
+
+
+@pytest.mark.skipif(not CLIP.is_dir(), reason=f"the committed clip {CLIP} is missing")
+def test_bench_vo_says_so_in_one_line_when_the_vo_never_tracks(tmp_path: Path) -> None:
+    cfg = tmp_path / "never.toml"
+    cfg.write_text("[vo]\nmax_features = 20\ninit_min_points = 5000\n")  # can never start
+    cmd = [sys.executable, "-m", "companion.cli", "bench", "vo", str(CLIP), "--no-progress"]
+    res = subprocess.run(
+        [*cmd, "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+    assert "tracked no frame" in res.stderr and "floor:" not in res.stdout
