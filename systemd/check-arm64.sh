@@ -49,16 +49,69 @@ die() {
 	exit 1
 }
 
+# the host's CA bundle, given to pip inside the root: a machine that reaches PyPI through a
+# TLS-inspecting proxy trusts that proxy's CA in its own bundle only
+HOST_CA=${SSL_CERT_FILE:-/etc/ssl/certs/ca-certificates.crt}
+ROOT_CA=/usr/local/share/companion-check/host-ca.pem
+
+# qemu for proot, behind a seccomp filter that answers ENOSYS to statx and faccessat2: proot
+# 5.1 (Debian 12's) does not translate the paths of these two newer calls, so a guest's
+# `[ -x FILE ]` (glibc's faccessat2) and `ls` (statx) would look at the host's FILE; with
+# ENOSYS, qemu and glibc fall back to fstatat, which proot translates. The wrapper execs the
+# static qemu copied into the root (proot maps the wrapper's own exec into the guest).
+QEMU_IN_ROOT=/usr/local/libexec/qemu-aarch64-static
+QEMU_WRAPPER=$ARM64_ROOT/usr/local/libexec/qemu-enosys
+qemu_wrapper() {
+	mkdir -p "$ARM64_ROOT/usr/local/libexec"
+	cmp -s "$(command -v qemu-aarch64-static)" "$ARM64_ROOT$QEMU_IN_ROOT" ||
+		cp "$(command -v qemu-aarch64-static)" "$ARM64_ROOT$QEMU_IN_ROOT"
+	[ -x "$QEMU_WRAPPER" ] && return
+	gcc -O2 -Wall -DQEMU="\"$QEMU_IN_ROOT\"" -x c -o "$QEMU_WRAPPER" - <<'EOF_C'
+#include <errno.h>
+#include <linux/audit.h>
+#include <linux/filter.h>
+#include <linux/seccomp.h>
+#include <stddef.h>
+#include <stdio.h>
+#include <sys/prctl.h>
+#include <unistd.h>
+
+int main(int argc, char **argv) {
+	(void)argc;
+	struct sock_filter f[] = {
+		BPF_STMT(BPF_LD | BPF_W | BPF_ABS, offsetof(struct seccomp_data, arch)),
+		BPF_JUMP(BPF_JMP | BPF_JEQ | BPF_K, AUDIT_ARCH_X86_64, 1, 0),
+		BPF_STMT(BPF_RET | BPF_K, SECCOMP_RET_ALLOW),
+		BPF_STMT(BPF_LD | BPF_W | BPF_ABS, offsetof(struct seccomp_data, nr)),
+		BPF_JUMP(BPF_JMP | BPF_JEQ | BPF_K, 332 /* statx */, 1, 0),
+		BPF_JUMP(BPF_JMP | BPF_JEQ | BPF_K, 439 /* faccessat2 */, 0, 1),
+		BPF_STMT(BPF_RET | BPF_K, SECCOMP_RET_ERRNO | ENOSYS),
+		BPF_STMT(BPF_RET | BPF_K, SECCOMP_RET_ALLOW),
+	};
+	struct sock_fprog prog = {sizeof f / sizeof f[0], f};
+	if (prctl(PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0) || prctl(PR_SET_SECCOMP, SECCOMP_MODE_FILTER, &prog)) {
+		perror("qemu-enosys: seccomp");
+		return 127;
+	}
+	argv[0] = QEMU;
+	execv(QEMU, argv);
+	perror("qemu-enosys: " QEMU);
+	return 127;
+}
+EOF_C
+}
+
 # run a command inside the arm64 root (as its root; a clean environment)
 arm() {
-	proot -0 -q qemu-aarch64-static -r "$ARM64_ROOT" -b /dev -b /proc -b /sys \
+	proot -0 -q "$QEMU_WRAPPER" -r "$ARM64_ROOT" -b /dev -b /proc -b /sys \
 		-b /etc/resolv.conf -w / /usr/bin/env -i HOME=/root LANG=C.UTF-8 \
-		PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin "$@"
+		PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
+		PIP_CERT=$ROOT_CA SSL_CERT_FILE=$ROOT_CA PIP_DISABLE_PIP_VERSION_CHECK=1 "$@"
 }
 
 host_tools() {
 	local missing="" tool pkg
-	for tool in qemu-aarch64-static:qemu-user-static proot:proot debootstrap:debootstrap; do
+	for tool in qemu-aarch64-static:qemu-user-static proot:proot debootstrap:debootstrap gcc:gcc; do
 		pkg=${tool#*:}
 		command -v "${tool%%:*}" >/dev/null || [ -x "/usr/sbin/${tool%%:*}" ] || missing="$missing $pkg"
 	done
@@ -76,6 +129,10 @@ host_tools() {
 }
 
 make_root() {
+	if [ ! -f "$READY" ] && [ -x "$ARM64_ROOT/usr/bin/dpkg" ] && [ ! -e "$ARM64_ROOT/debootstrap" ]; then
+		# the second stage removes /debootstrap when it succeeds: a complete root, not marked
+		echo "Debian $(cat "$ARM64_ROOT/etc/debian_version") arm64, made $(date -u +%F)" >"$READY"
+	fi
 	if [ -f "$READY" ]; then
 		say "reusing the arm64 root $ARM64_ROOT ($(cat "$READY"))"
 	else
@@ -86,10 +143,18 @@ make_root() {
 				--include="${ROOT_PACKAGES// /,}" "$SUITE" "$ARM64_ROOT" "$MIRROR"
 		fi
 		# debootstrap in a container links proc to the host's /proc: a folder for proot's bind
-		[ -L "$ARM64_ROOT/proc" ] && rm "$ARM64_ROOT/proc" && mkdir "$ARM64_ROOT/proc"
+		if [ -L "$ARM64_ROOT/proc" ]; then rm "$ARM64_ROOT/proc" && mkdir "$ARM64_ROOT/proc"; fi
+		qemu_wrapper
 		say "second stage under qemu (slow: every package's scripts run emulated)"
 		arm /usr/bin/env DEBOOTSTRAP_DIR=/debootstrap /bin/sh /debootstrap/debootstrap --second-stage
 		echo "Debian $(cat "$ARM64_ROOT/etc/debian_version") arm64, made $(date -u +%F)" >"$READY"
+	fi
+	qemu_wrapper
+	mkdir -p "$ARM64_ROOT$(dirname "$ROOT_CA")"
+	if [ -f "$HOST_CA" ]; then
+		cp "$HOST_CA" "$ARM64_ROOT$ROOT_CA"
+	else
+		cp "$ARM64_ROOT/etc/ssl/certs/ca-certificates.crt" "$ARM64_ROOT$ROOT_CA"
 	fi
 	local missing="" p
 	for p in $ROOT_PACKAGES; do
@@ -112,7 +177,7 @@ build_wheel() {
 		"$SRC/companion" "$SRC/drivers" "$SRC/sitl" "$SRC/systemd" "$SRC/config" "$SRC/docs" \
 		"$HOST_CHECK/src/"
 	find "$HOST_CHECK/src" -name __pycache__ -prune -exec rm -rf {} +
-	"$HOST_PY" -m pip wheel -q --no-deps --no-build-isolation --wheel-dir "$HOST_CHECK/dist" \
+	"$HOST_PY" -m pip wheel -q --no-deps --wheel-dir "$HOST_CHECK/dist" \
 		"$HOST_CHECK/src" >/dev/null
 	rm -rf "$HOST_CHECK/src/build" "$HOST_CHECK/src"/*.egg-info
 	WHEEL=$(cd "$HOST_CHECK/dist" && ls companion-*.whl)
@@ -161,6 +226,10 @@ make_install() {
 		return
 	fi
 	local t0
+	if [ -e "$ARM64_ROOT/opt/companion/.installed" ]; then
+		say "make uninstall first (an earlier run's install; its config and state are kept)"
+		arm make -C "$CHECK/src" uninstall
+	fi
 	t0=$(date +%s)
 	say "make install WHEEL=$WHEEL inside arm64 (systemd/board-install.sh as root)"
 	arm make -C "$CHECK/src" install PY=/usr/bin/python3 WHEEL="$CHECK/dist/$WHEEL" \
