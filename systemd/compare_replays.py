@@ -13,6 +13,19 @@ and the first row whose position differs by more than the tolerance.
 prints one line per stage and a JSON summary (``COMPARE {...}``); exit 0 when every stage is
 within the tolerance, 1 when one is not, 2 for a missing or malformed file (named with its row).
 Needs numpy only (the host's venv runs it).
+
+When the poses differ, the frontend's first steps on the clip's first two frames show where:
+
+    python systemd/compare_replays.py --probe CLIP OUT.npz [--reference X86.npz]
+
+runs, with OpenCV, what companion/vo/frontend.py does (decode, grey, half-size pyramid, the
+corner response of goodFeaturesToTrack, its corners, cornerSubPix, KLT) and saves each output;
+with --reference each stage starts from the reference's output of the stage before, so a
+difference belongs to the stage that shows it. Then
+
+    python systemd/compare_replays.py --probe-diff X86.npz ARM64.npz
+
+prints each stage's largest difference.
 """
 
 from __future__ import annotations
@@ -23,11 +36,13 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
+Array = npt.NDArray[Any]
 
 
 class ReplayFileError(ValueError):
@@ -165,6 +180,15 @@ def compare_dirs(x86: Path, arm64: Path, tolerance_m: float) -> list[StageDiff]:
     ]
 
 
+def published_ate(folder: Path) -> str:
+    """``FOLDER ATE m`` of the published poses from `companion eval`'s eval.json, or why not."""
+    try:
+        track = json.loads((folder / "eval.json").read_text())["tracks"]["published"]
+        return f"{folder.name} {track['ate_se3_m']:.4f} m"
+    except (OSError, ValueError, KeyError, TypeError):
+        return f"{folder.name} unavailable"
+
+
 def describe(d: StageDiff, tolerance_m: float) -> str:
     """One line for a person."""
     if d.first_time_mismatch_row is not None:
@@ -181,12 +205,91 @@ def describe(d: StageDiff, tolerance_m: float) -> str:
     )
 
 
+# ------------------------------------------------------------------ where a difference starts
+PROBE_STAGES = ("decode", "grey", "pyramid", "min_eigen", "corners", "subpix", "klt")
+
+
+def probe_frontend(clip: Path, reference: Path | None) -> dict[str, Any]:
+    """The frontend's steps on the first two frames of ``clip`` (frames.csv order), as
+    companion/vo/frontend.py runs them (detect: pyrDown, goodFeaturesToTrack with blockSize
+    3, quality 0.01, 9 px, a 4 px border mask, 200 corners; cornerSubPix 3x3, 10 iterations;
+    track: KLT 15 px window, 3 levels, 20 iterations). Each stage's input is the reference's
+    (``reference``, an earlier probe's .npz) when given, else this run's own."""
+    import cv2
+
+    ref = dict(np.load(reference)) if reference is not None else {}
+    rows = (clip / "frames.csv").read_text().splitlines()[1:3]
+    paths = [clip / row.split(",")[2] for row in rows]
+    out: dict[str, Any] = {}
+    images: list[Any] = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in paths]
+    for path, image in zip(paths, images, strict=True):
+        if image is None:
+            raise ReplayFileError(f"{path}: not an image OpenCV reads")
+    out["decode"] = np.stack(images)
+    bgr = ref.get("decode", out["decode"])
+    out["grey"] = np.stack([cv2.cvtColor(b, cv2.COLOR_BGR2GRAY) for b in bgr])
+    grey = ref.get("grey", out["grey"])
+    out["pyramid"] = cv2.pyrDown(grey[0])
+    small = ref.get("pyramid", out["pyramid"])
+    out["min_eigen"] = cv2.cornerMinEigenVal(small, 3, 3)
+    mask = np.zeros(small.shape, np.uint8)
+    mask[4:-4, 4:-4] = 255
+    corners = cv2.goodFeaturesToTrack(small, 200, 0.01, 9.0, mask=mask, blockSize=3)
+    out["corners"] = (corners.reshape(-1, 2) * 2.0 + 0.5).astype(np.float32)
+    px = ref.get("corners", out["corners"]).astype(np.float32).copy()
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)
+    cv2.cornerSubPix(grey[0], px.reshape(-1, 1, 2), (3, 3), (-1, -1), criteria)
+    out["subpix"] = px
+    start = ref.get("subpix", out["subpix"]).astype(np.float32).reshape(-1, 1, 2)
+    nxt, _, _ = cv2.calcOpticalFlowPyrLK(
+        grey[0],
+        grey[1],
+        start,
+        None,
+        winSize=(15, 15),
+        maxLevel=3,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+    )
+    out["klt"] = nxt.reshape(-1, 2)
+    return out
+
+
+def probe_diff(a: dict[str, Array], b: dict[str, Array]) -> list[tuple[str, str]]:
+    """(stage, its largest difference, or what differs) for each stage, in order."""
+    lines = []
+    for stage in PROBE_STAGES:
+        x, y = a[stage], b[stage]
+        if x.shape != y.shape:
+            lines.append((stage, f"shapes differ: {x.shape} vs {y.shape}"))
+            continue
+        d = np.abs(x.astype(np.float64) - y.astype(np.float64))
+        size = float(np.abs(x).max()) if x.size else 0.0
+        lines.append(
+            (
+                stage,
+                f"largest difference {d.max():.3g} ({int((d > 0).sum())} of {d.size} "
+                f"values differ; largest value {size:.3g})",
+            )
+        )
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
-    parser.add_argument("x86", type=Path, help="the reference replay's folder")
-    parser.add_argument("arm64", type=Path, help="the other replay's folder")
+    parser.add_argument("x86", type=Path, help="the reference replay's folder (or probe)")
+    parser.add_argument("arm64", type=Path, help="the other replay's folder (or probe)")
     parser.add_argument("--tolerance-m", type=float, default=1e-6)
+    parser.add_argument("--probe", action="store_true", help="X86 is a clip, ARM64 the .npz")
+    parser.add_argument("--reference", type=Path, help="--probe: the reference probe's .npz")
+    parser.add_argument("--probe-diff", action="store_true", help="compare two probes")
     args = parser.parse_args(argv)
+    if args.probe:
+        np.savez(args.arm64, **probe_frontend(args.x86, args.reference))
+        return 0
+    if args.probe_diff:
+        for stage, text in probe_diff(dict(np.load(args.x86)), dict(np.load(args.arm64))):
+            print(f"probe {stage}: {text}")
+        return 0
     try:
         diffs = compare_dirs(args.x86, args.arm64, args.tolerance_m)
     except ReplayFileError as e:
@@ -194,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for d in diffs:
         print(describe(d, args.tolerance_m))
+    print("published ATE (SE3): " + ", ".join(published_ate(f) for f in (args.x86, args.arm64)))
     print("COMPARE " + json.dumps([dataclasses.asdict(d) for d in diffs]))
     return 0 if all(d.within(args.tolerance_m) for d in diffs) else 1
 
