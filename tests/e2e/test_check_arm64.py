@@ -205,3 +205,20 @@ def test_the_replay_on_a_board_imports_no_extra(tmp_path: Path) -> None:
     assert poses[0].startswith("time_us,x_m,y_m,z_m,qw") and len(poses) > frames // 2
     # and the comparison reads what eval writes: a replay equals itself
     assert cmp.main([str(out), str(out)]) == 0
+
+
+def test_the_stage_probe_is_reproducible_and_shows_a_changed_stage(tmp_path: Path) -> None:
+    first = cmp.probe_frontend(CLIP, None)
+    assert set(first) == set(cmp.PROBE_STAGES)
+    assert first["decode"].shape == (2, 480, 640, 3) and len(first["corners"]) > 50
+    np.savez(tmp_path / "x86.npz", **first)
+    again = cmp.probe_frontend(CLIP, tmp_path / "x86.npz")  # fed the reference's inputs
+    for stage, text in cmp.probe_diff(first, again):
+        assert text.startswith("largest difference 0 (0 of"), (stage, text)
+    # a KLT output moved by 0.25 px on one feature: that stage, that size, nothing before it
+    moved = dict(again)
+    moved["klt"] = again["klt"].copy()
+    moved["klt"][7, 1] += 0.25
+    diffs = dict(cmp.probe_diff(first, moved))
+    assert diffs["klt"].startswith("largest difference 0.25 (1 of")
+    assert diffs["subpix"].startswith("largest difference 0 (0 of")
