@@ -147,6 +147,7 @@ make_root() {
 		qemu_wrapper
 		say "second stage under qemu (slow: every package's scripts run emulated)"
 		arm /usr/bin/env DEBOOTSTRAP_DIR=/debootstrap /bin/sh /debootstrap/debootstrap --second-stage
+		say "the arm64 root took $(($(date +%s) - T0)) s"
 		echo "Debian $(cat "$ARM64_ROOT/etc/debian_version") arm64, made $(date -u +%F)" >"$READY"
 	fi
 	qemu_wrapper
@@ -261,7 +262,7 @@ first_start() {
 	done
 	for i in "first" "second"; do
 		arm /bin/bash -c "TIMEFORMAT='%R'; { time $CHECK/venv/bin/companion config --config $config >/dev/null 2>&1; } 2>&1" |
-			sed "s/^/  companion config --config $config, $i run: /; s/\$/ s/"
+			sed "s#^#  companion config --config $config, $i run: #; s/\$/ s/"
 	done
 	arm /bin/bash -c "TIMEFORMAT='%R'; { time $COMPANION --version >/dev/null 2>&1; } 2>&1" |
 		sed "s#^#  $COMPANION --version (after make install): #; s/\$/ s/"
