@@ -9,7 +9,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out
 
 .PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude results-real \
-	results-dpose dist install uninstall clean
+	results-dpose dist install uninstall check-arm64 clean
 
 all: test
 
@@ -135,6 +135,14 @@ install:
 
 uninstall:
 	bash systemd/board-install.sh uninstall
+
+# The board's install and a recorded replay on arm64 Debian 12, emulated here (qemu-user-static
+# and proot over a debootstrap root in ARM64_ROOT, default /var/tmp/companion-arm64, reused):
+# `pip install` and `make install` from wheels, the first start, and `companion eval` of the
+# TUM clip compared pose by pose with x86's (systemd/check-arm64.sh; docs/install.md,
+# "arm64"). As root; minutes, so not in `make test`. HOST_PY: the x86 Python to compare with.
+check-arm64:
+	HOST_PY='$(or $(HOST_PY),$(abspath $(BIN)/python))' bash systemd/check-arm64.sh
 
 clean:
 	rm -rf $(VENV) $(OUT) dist .mypy_cache .ruff_cache .pytest_cache
