@@ -58,8 +58,8 @@ demo-px4: venv
 	$(BIN)/companion sitl px4 --mission $(or $(MISSION),square) --seed $(or $(SEED),1) --out $(OUT)/px4-$(or $(MISSION),square)
 
 lint: venv
-	$(BIN)/ruff check companion drivers sitl tests
-	$(BIN)/ruff format --check companion drivers sitl tests
+	$(BIN)/ruff check companion drivers sitl tests systemd
+	$(BIN)/ruff format --check companion drivers sitl tests systemd
 	$(BIN)/lint-imports --no-cache   # the one-way layers (pyproject.toml [tool.importlinter])
 
 typecheck: venv

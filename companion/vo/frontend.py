@@ -30,9 +30,7 @@ class Tracks:
     px: (N, 2) float32 pixels in the current frame; pid: (N,) map point id or -1 (candidate);
     anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
     anchor_xy: (N, 2) its normalised coordinates there; prev_px: (N, 2) float32 pixels in the
-    frame before, right after :func:`track` (None once the tracks were re-made: a new map);
-    xy: (N, 2) the undistorted normalised coordinates of px, kept once computed (None: not
-    yet; the VO's ``tracks_xy``), so that a frame undistorts its features once.
+    frame before, right after :func:`track` (None once the tracks were re-made: a new map).
     """
 
     px: F32
@@ -40,7 +38,6 @@ class Tracks:
     anchor: I64
     anchor_xy: F64
     prev_px: F32 | None = None
-    xy: F64 | None = None
 
     @staticmethod
     def empty() -> Tracks:
@@ -56,10 +53,7 @@ class Tracks:
 
     def select(self, keep: NDArray[np.bool_]) -> Tracks:
         prev = None if self.prev_px is None else self.prev_px[keep]
-        xy = None if self.xy is None else self.xy[keep]
-        return Tracks(
-            self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev, xy
-        )
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev)
 
     def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
         n = len(px)
@@ -70,7 +64,6 @@ class Tracks:
             np.concatenate([self.anchor, np.full(n, anchor, np.int64)]),
             np.concatenate([self.anchor_xy, anchor_xy]),
             None if self.prev_px is None else np.concatenate([self.prev_px, new_px]),
-            None if self.xy is None else np.concatenate([self.xy, anchor_xy]),
         )
 
 
@@ -160,7 +153,6 @@ def track(
     kept = tracks.select(ok)
     kept.prev_px = tracks.px[ok]
     kept.px = nxt[ok].astype(np.float32)
-    kept.xy = None  # moved: undistorted anew
     return thin(kept, opts.min_distance_px)
 
 

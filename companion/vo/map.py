@@ -116,7 +116,7 @@ class VoMap:
             kf.obs[p] = xy[i].copy()
             pid[i] = p
             anchor[i] = kf.kf_id
-        return Tracks(tracks.px, pid, anchor, tracks.anchor_xy, tracks.prev_px, tracks.xy)
+        return Tracks(tracks.px, pid, anchor, tracks.anchor_xy, tracks.prev_px)
 
     def triangulate_candidates(
         self, tracks: Tracks, kf: Keyframe, xy: F64, focal_px: float, opts: VoOptions
@@ -152,7 +152,7 @@ class VoMap:
                 kf_a.obs[p] = anchor_xy[i].copy()
                 kf.obs[p] = xy[i].copy()
                 pid[i] = p
-        return Tracks(tracks.px, pid, anchor, anchor_xy, xy=xy)
+        return Tracks(tracks.px, pid, anchor, anchor_xy)
 
     def local_ba(self, opts: VoOptions, focal_px: float) -> F64 | None:
         """Bundle adjustment of the last ``window_keyframes`` keyframes (the first two fixed)

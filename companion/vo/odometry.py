@@ -111,14 +111,6 @@ class VisualOdometry:
         """(N, 2) normalised camera coordinates of pixels (N, 2)."""
         return self.camera.pixels_to_normalized(np.asarray(px, dtype=np.float64))
 
-    def tracks_xy(self) -> F64:
-        """(N, 2) the undistorted normalised coordinates of the tracks' pixels, computed once
-        per set of pixels (kept in ``tracks.xy`` through selections)."""
-        tr = self.tracks
-        if tr.xy is None:
-            tr.xy = self.normalized(tr.px)
-        return tr.xy
-
     def _output(self, time_us: int, is_kf: bool) -> VoOutput:
         tr = self.tracks
         n = len(tr)
@@ -175,7 +167,7 @@ class VisualOdometry:
             return pose, None
         tr = self.tracks
         T_new_old = T_pred @ se3.inverse(self.T_cam_vo)  # current camera -> predicted camera
-        rays = np.column_stack([self.tracks_xy(), np.ones(len(tr))])
+        rays = np.column_stack([self.normalized(tr.px), np.ones(len(tr))])
         has = tr.pid >= 0
         p_cur = rays * self.map.median_depth(
             self.tracks, self.T_cam_vo
@@ -199,7 +191,7 @@ class VisualOdometry:
         if has.sum() < self.opts.min_tracked_points:
             return False
         X = self.map.points_of(tr.pid[has])
-        xy = self.tracks_xy()[has]
+        xy = self.normalized(tr.px[has])
         # constant-velocity prediction (over this frame's interval when frames were skipped)
         T_pred = self._T_pred
         if T_pred is None:
@@ -237,7 +229,7 @@ class VisualOdometry:
             return False
         fit = fit_rotation(
             self.normalized(tr.prev_px),
-            self.tracks_xy(),
+            self.normalized(tr.px),
             o.rotation_inlier_px / self.focal_px,
             o.min_tracked_points,
         )
@@ -260,7 +252,7 @@ class VisualOdometry:
         cand = np.flatnonzero(tr.pid < 0)
         if len(cand) == 0:
             return
-        xy = self.tracks_xy()[cand]
+        xy = self.normalized(tr.px[cand])
         keep = np.ones(len(tr), dtype=bool)
         for a in np.unique(tr.anchor[cand]):
             kf_a = self.map.keyframe(int(a))
@@ -300,8 +292,8 @@ class VisualOdometry:
             R_world_body, self.T_body_cam, self.T_cam_vo, o, gravity, axial, down
         )
         kf = self.map.new_keyframe(time_us, self.T_cam_vo.copy(), g_cam, g_sigma)
-        xy = self.tracks_xy()
         tr = self.tracks
+        xy = self.normalized(tr.px)
         for i in np.flatnonzero(tr.pid >= 0):
             kf.obs[int(tr.pid[i])] = xy[i]
         self.tracks = self.map.triangulate_candidates(tr, kf, xy, self.focal_px, o)
@@ -309,7 +301,7 @@ class VisualOdometry:
         new_features(self, gray)
         if held and o.rotation_depth_prior > 0:
             depth = self.map.scene_depth(self.T_cam_vo)
-            xy = self.tracks_xy()
+            xy = self.normalized(self.tracks.px)
             self.tracks = self.map.seed_candidates(
                 self.tracks, kf, xy, depth, o.rotation_depth_prior
             )

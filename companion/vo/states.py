@@ -100,8 +100,8 @@ def start_on_plane(
         if R_world_body is not None:
             vo.ref.yaw_rad = so3.matrix_to_rpy(R_world_body)[2]
             vo.ref.yaw_known = True
-    xy = vo.tracks_xy()
     tr = vo.tracks
+    xy = vo.normalized(tr.px)
     rays = np.column_stack([xy, np.ones(len(tr))])
     cos = (rays @ plane.normal_cam) / np.linalg.norm(rays, axis=1)
     good = cos > 0.35
@@ -118,7 +118,7 @@ def start_on_plane(
     for i in np.flatnonzero(good):
         pid[i] = p = vo.map.add_point(pts_vo[i], float(depth[i] * sigma_rel))
         kf0.obs[p] = xy[i].copy()
-    vo.tracks = Tracks(tr.px, pid, np.full(len(tr), kf0.kf_id, np.int64), xy.copy(), xy=xy)
+    vo.tracks = Tracks(tr.px, pid, np.full(len(tr), kf0.kf_id, np.int64), xy.copy())
     vo.map.keyframes = [kf0]
     _started(vo, T_c0_vo, time_us)
     vo.metric_sigma_rel = sigma_rel
@@ -136,7 +136,7 @@ def start_two_view(vo: VisualOdometry, gray: U8, time_us: int, R_world_body: F64
         # no map on a heading that is not the autopilot's: this frame is the reference
         restart_reference(vo, gray, time_us, R_world_body)
         return False
-    x1 = vo.tracks_xy()
+    x1 = vo.normalized(tr.px)
     flow_px = np.linalg.norm(x1 - tr.anchor_xy, axis=1) * vo.focal_px
     if np.median(flow_px) < vo.opts.init_min_parallax_px:
         return False
@@ -164,7 +164,7 @@ def start_two_view(vo: VisualOdometry, gray: U8, time_us: int, R_world_body: F64
         kf0.obs[p] = tr.anchor_xy[i].copy()
         kf1.obs[p] = x1[i].copy()
     anchor = np.where(good, -1, kf0.kf_id)
-    vo.tracks = Tracks(tr.px, pid, anchor.astype(np.int64), tr.anchor_xy, xy=x1)
+    vo.tracks = Tracks(tr.px, pid, anchor.astype(np.int64), tr.anchor_xy)
     vo.map.keyframes = [kf0, kf1]
     vo.metric_sigma_rel = None  # the unit is the median depth, not a metre
     _started(vo, T_c1_vo, time_us)

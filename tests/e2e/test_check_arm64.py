@@ -10,6 +10,7 @@ is compiled at run time (numba is the `sim` extra's).
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import re
 import shutil
@@ -122,6 +123,16 @@ def test_compare_finds_the_row_and_size_of_a_difference(tmp_path: Path) -> None:
         assert not d.within(1e-6) and d.within(1e-5)
     assert cmp.main([str(tmp_path / "x86"), str(tmp_path / "arm64")]) == 1
     assert cmp.main([str(tmp_path / "x86"), str(tmp_path / "arm64"), "--tolerance-m", "1e-5"]) == 0
+    # different poses, equally accurate (the published ATEs of eval.json within 10 %): exit 3;
+    # one clearly worse: exit 1
+    for folder, ate_m in (("x86", 0.0406), ("arm64", 0.0401)):
+        doc = {"tracks": {"published": {"ate_se3_m": ate_m}}}
+        (tmp_path / folder / "eval.json").write_text(json.dumps(doc))
+    assert cmp.main([str(tmp_path / "x86"), str(tmp_path / "arm64")]) == 3
+    assert cmp.main([str(tmp_path / "x86"), str(tmp_path / "arm64"), "--ate-rel", "0.001"]) == 1
+    worse = {"tracks": {"published": {"ate_se3_m": 0.06}}}
+    (tmp_path / "arm64" / "eval.json").write_text(json.dumps(worse))
+    assert cmp.main([str(tmp_path / "x86"), str(tmp_path / "arm64")]) == 1
 
 
 def test_compare_refuses_other_times_and_names_a_bad_file(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]

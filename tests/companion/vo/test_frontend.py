@@ -106,23 +106,3 @@ def test_thin_keeps_what_the_greedy_pass_over_every_track_keeps() -> None:
         out = thin(tracks, 18.0)
         assert np.array_equal(out.pid, pid[keep]), trial
         assert np.array_equal(out.px, px[keep])
-
-
-def test_tracks_keep_their_undistorted_coordinates_only_while_their_pixels_stand() -> None:
-    """Tracks.xy (undistorted once a frame) follows selections and extensions, and is
-    dropped when KLT moves the pixels: never the coordinates of other pixels."""
-    camera = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, k1=-0.12, k2=0.05, p1=5e-4, p2=-3e-4)
-    before = _texture(3)
-    after = np.roll(before, (2, 4), axis=(0, 1))
-    px = detect(before, np.zeros((0, 2), np.float32), 100, 18.0)
-    tracks = Tracks.empty().extend(px, 0, camera.pixels_to_normalized(px))
-    tracks.xy = camera.pixels_to_normalized(tracks.px)
-    keep = np.arange(len(tracks)) % 3 != 0
-    sel = tracks.select(keep)
-    assert sel.xy is not None
-    np.testing.assert_array_equal(sel.xy, camera.pixels_to_normalized(sel.px))
-    more = sel.extend(px[:5], 1, camera.pixels_to_normalized(px[:5]))
-    assert more.xy is not None
-    np.testing.assert_allclose(more.xy, camera.pixels_to_normalized(more.px), atol=1e-15)
-    moved = track(before, after, more, camera, VoOptions())
-    assert len(moved) > 0 and moved.xy is None  # moved pixels: undistorted anew
