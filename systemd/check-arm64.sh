@@ -103,9 +103,13 @@ int main(int argc, char **argv) {
 EOF_C
 }
 
-# run a command inside the arm64 root (as its root; a clean environment)
+# run a command inside the arm64 root (as its root; a clean environment). Only the device
+# nodes a build needs are bound, never the host's /dev: proot runs a guest's mount, umount
+# and mknod as the real root on the paths it binds, and debootstrap's second stage unmounts
+# /dev/pts and makes /dev/ptmx anew, which took the host's pseudo-terminals away
 arm() {
-	proot -0 -q "$QEMU_WRAPPER" -r "$ARM64_ROOT" -b /dev -b /proc -b /sys \
+	proot -0 -q "$QEMU_WRAPPER" -r "$ARM64_ROOT" -b /dev/null -b /dev/zero -b /dev/random \
+		-b /dev/urandom -b /dev/shm -b /proc -b /sys \
 		-b /etc/resolv.conf -w / /usr/bin/env -i HOME=/root LANG=C.UTF-8 \
 		PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
 		PIP_CERT=$ROOT_CA SSL_CERT_FILE=$ROOT_CA PIP_DISABLE_PIP_VERSION_CHECK=1 "$@"

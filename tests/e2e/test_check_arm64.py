@@ -55,6 +55,10 @@ def test_the_script_parses_and_stays_out_of_make_test() -> None:
     text = SCRIPT.read_text()
     assert "ARM64_ROOT=${ARM64_ROOT:-/var/tmp/companion-arm64}" in text
     assert "--only-binary=:all:" in text and "compare_replays.py" in text
+    # never the host's whole /dev in the root: proot runs a guest's umount and mknod on what
+    # it binds, and debootstrap's second stage took the host's /dev/pts away that way
+    binds = re.findall(r"-b (\S+)", text)
+    assert "/dev/null" in binds and "/dev" not in binds and "/dev/pts" not in binds
 
 
 def _quat_about(axis: list[float], angle_rad: float) -> np.ndarray:
