@@ -48,7 +48,6 @@ class VoRun:
     segment: list[int] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)  # to the pose (the latency)
     total_ms: list[float] = field(default_factory=list)  # with the keyframe work after it
-    scale_ms: list[float] = field(default_factory=list)
     # per frame: the wall time [ms] of each stage to the pose (the pipeline's and, nested as
     # "vo: ...", the VO's) and after it (keyframe, lens check): Pipeline.laps
     stage_ms: list[dict[str, float]] = field(default_factory=list)
@@ -147,7 +146,6 @@ def run_vo(
             pipe.background_work()  # as the service does: after the pose is out
             run.frame_ms.append((t1 - t0) * 1e3)
             run.total_ms.append((time.perf_counter() - t0) * 1e3)
-            run.scale_ms.append(pipe.laps.ms.get("scale", 0.0))
             stages = dict(pipe.laps.ms)
             if "vo" in stages:  # the VO ran on this frame
                 stages.update({f"vo: {k}": v for k, v in pipe.vo.laps.ms.items()})

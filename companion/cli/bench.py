@@ -76,10 +76,8 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
         )
         return EXIT_PROBLEMS
     ratios = floor_ratios(floor.ms, ms[tracked], total_ms[built & tracked])
-    w, h = (
-        inp.camera.width if inp.camera else inp.cfg.camera.width,
-        (inp.camera.height if inp.camera else inp.cfg.camera.height),
-    )
+    size = inp.camera or inp.cfg.camera  # a dataset's own calibration, else the config's
+    w, h = size.width, size.height
     print(f"machine: {machine_description()}")
     print(f"input: {name}, {len(ms)} frames {w}x{h}, one core (cv2.setNumThreads(1))")
     if profiler is not None:

@@ -21,6 +21,7 @@ from types import ModuleType
 
 import numpy as np
 import pytest
+from peers.refuse_extras import REFUSE_EXTRAS
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "systemd" / "check-arm64.sh"
@@ -169,27 +170,20 @@ def test_compare_refuses_other_times_and_names_a_bad_file(tmp_path: Path, capsys
 
 # `companion eval DIR` on a real clip with every extra's module refused: it must replay and
 # write its poses without trying to import any of them
-_EVAL_PROBE = r"""
-import importlib.abc, sys
+_EVAL_PROBE = (
+    r"""
+import sys
 
 BLOCKED = ("numba", "llvmlite", "skimage", "matplotlib", "evo", "tomli_w", "companion.sitl")
-attempts = []
-
-
-class RefuseExtras(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if any(name == b or name.startswith(b + ".") for b in BLOCKED):
-            attempts.append(name)
-            raise ModuleNotFoundError(f"blocked by the test: {name}", name=name)
-        return None
-
-
-sys.meta_path.insert(0, RefuseExtras())
+"""
+    + REFUSE_EXTRAS
+    + r"""
 from companion.cli import main
 
 code = main(["eval", sys.argv[1], "--out", sys.argv[2], "--no-progress"])
 print("ATTEMPTS", ",".join(attempts) or "-", "EXIT", code)
 """
+)
 
 
 def test_the_replay_on_a_board_imports_no_extra(tmp_path: Path) -> None:

@@ -15,41 +15,21 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from peers.refuse_extras import EXTRAS_ONLY, REFUSE_EXTRAS
 
 REPO = Path(__file__).resolve().parents[2]
-
-# what only the simulator (sim extra), the evaluation (eval extra) or their dependencies bring
-EXTRAS_ONLY = (
-    "numba",
-    "llvmlite",
-    "skimage",
-    "matplotlib",
-    "evo",
-    "pandas",
-    "tomli_w",
-    "filterpy",  # dev only since issue 39: its import pulled scipy.stats into the service
-    "companion.sitl",
-)
 
 # Runs in a fresh interpreter: a meta path finder refuses (and records) every import of the
 # extras' modules, then the board's whole product is imported and the service's commands run:
 # `--version`, `config` and `run` for 1.5 s on the board config (no devices: it waits for them).
-_PROBE = r"""
-import contextlib, importlib, importlib.abc, io, json, pkgutil, sys
+_PROBE = (
+    r"""
+import contextlib, importlib, io, json, pkgutil, sys
 
 BLOCKED = set(sys.argv[1].split(","))
-attempts = []
-
-
-class RefuseExtras(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if any(name == b or name.startswith(b + ".") for b in BLOCKED):
-            attempts.append(name)
-            raise ModuleNotFoundError(f"blocked by the test: {name}", name=name)
-        return None
-
-
-sys.meta_path.insert(0, RefuseExtras())
+"""
+    + REFUSE_EXTRAS
+    + r"""
 out = {"exit": {}, "import_errors": {}}
 
 import companion
@@ -92,6 +72,7 @@ except ModuleNotFoundError:
 out["attempts_after_check"] = list(attempts)
 print("PROBE " + json.dumps(out))
 """
+)
 
 
 def board_config(tmp_path: Path) -> Path:
