@@ -107,7 +107,9 @@ def replay_config(own: Config | None, override: Override | None) -> Config:
     base = own
     if base is None:
         base = dataclasses.replace(
-            Config(), rangefinders=(), attitude=dataclasses.replace(Config().attitude, sensor_ids=())
+            Config(),
+            rangefinders=(),
+            attitude=dataclasses.replace(Config().attitude, sensor_ids=()),
         )
     if override is None or not override.tables:
         return base
@@ -333,20 +335,24 @@ def software_commit() -> dict[str, Any]:
     try:
         head = subprocess.run(
             ["git", "-C", str(here), "rev-parse", "HEAD"],
-            capture_output=True, text=True, timeout=10, check=True,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
         ).stdout.strip()
         dirty = subprocess.run(
             ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True, text=True, timeout=10, check=True,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
         ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "dirty": None}
     return {"commit": head or None, "dirty": bool(dirty)}
 
 
-def replay_document(
-    recordings: list[dict[str, Any]], override: Override | None
-) -> dict[str, Any]:
+def replay_document(recordings: list[dict[str, Any]], override: Override | None) -> dict[str, Any]:
     """The replay file: what ran (version, commit), the override (its path and SHA-256,
     None: each recording's own options), when (UTC), and the recordings' entries."""
     return {

@@ -95,7 +95,7 @@ def verdict(rule: MetricRule, a: Any, b: Any) -> str:
         return "new"
     if b is None:
         return "gone"
-    if isinstance(a, bool) or isinstance(b, bool) or rule.direction == "none" and a == b:
+    if isinstance(a, bool) or isinstance(b, bool) or (rule.direction == "none" and a == b):
         return "same" if a == b else "changed"
     diff = float(b) - float(a)
     if abs(diff) <= max(rule.abs_tol, rule.rel_tol * abs(float(a))):
@@ -262,7 +262,9 @@ def compare_text(result: dict[str, Any], show_same: bool = False) -> list[str]:
         if rec["status"] != "both":
             detail = ""
             if rec["status"] == "failed":
-                detail = f": A {rec['error_a'] or 'ok'}; B {rec['error_b'] or 'ok'} {rec['verdict']}"
+                detail = (
+                    f": A {rec['error_a'] or 'ok'}; B {rec['error_b'] or 'ok'} {rec['verdict']}"
+                )
             lines.append(f"{rec['name']} ({rec['key']}): {rec['status']}{detail}")
             continue
         shown = [r for r in rec["rows"] if show_same or r["verdict"] != "same"]

@@ -118,9 +118,7 @@ def add_compare(sub: Any) -> None:
     p.add_argument("a", type=Path, metavar="A.json", help="the replay before")
     p.add_argument("b", type=Path, metavar="B.json", help="the replay after")
     p.add_argument("--json", action="store_true", help="the comparison as JSON on stdout")
-    p.add_argument(
-        "--all", action="store_true", help="list the metrics that stayed the same too"
-    )
+    p.add_argument("--all", action="store_true", help="list the metrics that stayed the same too")
     p.add_argument(
         "--fail-if-worse",
         action="store_true",

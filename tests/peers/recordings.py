@@ -12,7 +12,6 @@ from pathlib import Path
 from companion.config import load_config
 from companion.drivers.dataset import DatasetWriter, dataset_steps, open_dataset
 from companion.pipeline import Pipeline
-
 from peers import small_camera
 
 
