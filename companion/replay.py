@@ -189,8 +189,9 @@ def against_published(
 ) -> dict[str, Any]:
     """The replayed poses against the ones the service sent, matched by frame time: counts,
     the position difference [m] (largest and 95th percentile), the yaw and the whole
-    rotation's difference [deg], the largest velocity difference [m/s] (NaN, unknown, on one
-    side only counts as infinite), and ``identical``: every published pose replayed with the
+    rotation's difference [deg], the largest velocity difference [m/s] over the components
+    known on both sides and how many poses have a velocity known on one side only (NaN: not
+    yet known), and ``identical``: every published pose replayed with the
     same bits (position, quaternion, velocity). reset_counter is not compared: the wire's
     continues across the service's restarts."""
     by_time = {p.time_us: p for p in poses}
@@ -198,6 +199,7 @@ def against_published(
     yaw: list[float] = []
     ang: list[float] = []
     vel: list[float] = []
+    velocity_one_sided = 0
     identical = bool(published)
     for sent in published:
         mine = by_time.get(sent.time_us)
@@ -208,9 +210,11 @@ def against_published(
         dyaw = _yaw_rad(mine.quat_wxyz_ned_frd) - _yaw_rad(sent.quat_wxyz)
         yaw.append(abs(float(np.degrees(np.angle(np.exp(1j * dyaw))))))
         ang.append(_angle_deg(mine.quat_wxyz_ned_frd, sent.quat_wxyz))
-        both = np.isnan(mine.velocity_ned_m_s) & np.isnan(sent.velocity_ned_m_s)
-        dv = np.where(both, 0.0, np.abs(mine.velocity_ned_m_s - sent.velocity_ned_m_s))
-        vel.append(float(np.nan_to_num(dv, nan=np.inf).max()))
+        known = np.isnan(mine.velocity_ned_m_s) == np.isnan(sent.velocity_ned_m_s)
+        if not known.all():  # known on one side only
+            velocity_one_sided += 1
+        dv = np.abs(mine.velocity_ned_m_s - sent.velocity_ned_m_s)
+        vel.append(float(np.nan_to_num(dv, nan=0.0).max()))
         identical = identical and all(
             _same_bits(x, y)
             for x, y in (
@@ -237,6 +241,7 @@ def against_published(
         "yaw_diff_p95_deg": top(yaw, 95),
         "angle_diff_max_deg": top(ang),
         "velocity_diff_max_m_s": top(vel),
+        "velocity_known_one_side": velocity_one_sided,
         "identical": identical,
     }
 
@@ -352,6 +357,17 @@ def software_commit() -> dict[str, Any]:
     return {"commit": head or None, "dirty": bool(dirty)}
 
 
+def finite_or_none(value: Any) -> Any:
+    """``value`` with every float that is not finite replaced by None (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [finite_or_none(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
 def replay_document(recordings: list[dict[str, Any]], override: Override | None) -> dict[str, Any]:
     """The replay file: what ran (version, commit), the override (its path and SHA-256,
     None: each recording's own options), when (UTC), and the recordings' entries."""
@@ -363,6 +379,6 @@ def replay_document(recordings: list[dict[str, Any]], override: Override | None)
         "override": None
         if override is None
         else {"path": str(override.path), "sha256": override.sha256, "tables": override.tables},
-        "recordings": recordings,
+        "recordings": finite_or_none(recordings),
         "failed": sum("error" in r for r in recordings),
     }

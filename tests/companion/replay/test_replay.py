@@ -20,11 +20,12 @@ from peers.recordings import service_recording, simulated_flight
 
 from companion.cli import main
 from companion.config import to_dict
-from companion.drivers.dataset import PublishedPose, open_dataset
+from companion.drivers.dataset import Dataset, PublishedPose, open_dataset
 from companion.errors import ConfigError
 from companion.geometry import so3
 from companion.replay import (
     against_published,
+    finite_or_none,
     read_override,
     recording_id,
     replay_config,
@@ -145,24 +146,27 @@ def _sent(pose: PoseEstimate) -> PublishedPose:
 
 
 def test_the_difference_from_what_flew_in_metres_and_degrees() -> None:
-    """Three sent poses: one replayed the same (NaN velocity on both sides agrees), one
-    moved 0.3 m and turned 10 deg in yaw, one not replayed; and one replayed pose the
-    service did not send."""
+    """Four sent poses: one replayed the same (NaN velocity on both sides agrees), one
+    moved 0.3 m, turned 10 deg in yaw and 0.05 m/s faster, one not replayed, one whose
+    velocity the replay does not know yet; and one replayed pose the service did not send."""
     nan3 = [float("nan")] * 3
     mine = [
         _pose(1_000, [1.0, 2.0, -3.0], 30.0, nan3),
-        _pose(2_000, [1.3, 2.0, -3.0], 40.0, [0.1, 0.0, 0.0]),
+        _pose(2_000, [1.3, 2.0, -3.0], 40.0, [0.1, 0.05, 0.0]),
         _pose(4_000, [0.0, 0.0, 0.0], 0.0, [0.0, 0.0, 0.0]),
+        _pose(5_000, [0.0, 0.0, 0.0], 0.0, nan3),
     ]
     sent = [_sent(mine[0]), _sent(_pose(2_000, [1.0, 2.0, -3.0], 30.0, [0.1, 0.0, 0.0]))]
     sent.append(_sent(_pose(3_000, [0.0, 0.0, 0.0], 0.0, nan3)))
+    sent.append(_sent(_pose(5_000, [0.0, 0.0, 0.0], 0.0, [9.0, 9.0, 9.0])))
     d = against_published(sent, mine)
-    assert d["published_poses"] == 3 and d["published_matched"] == 2
+    assert d["published_poses"] == 4 and d["published_matched"] == 3
     assert d["published_missing"] == 1 and d["replayed_not_published"] == 1
     assert d["position_diff_max_m"] == pytest.approx(0.3, abs=1e-12)
     assert d["yaw_diff_max_deg"] == pytest.approx(10.0, abs=1e-9)
     assert 9.9 < d["angle_diff_max_deg"] < 10.1  # about a tilted body's z: close to 10
-    assert d["velocity_diff_max_m_s"] == 0.0 and d["identical"] is False
+    assert d["velocity_diff_max_m_s"] == pytest.approx(0.05, abs=1e-12)
+    assert d["velocity_known_one_side"] == 1 and d["identical"] is False
     same = against_published(sent[:1], mine[:1])
     assert same["identical"] is True and same["angle_diff_max_deg"] == 0.0
     # a yaw across +-180 deg is 2 deg, not 358
@@ -170,6 +174,11 @@ def test_the_difference_from_what_flew_in_metres_and_degrees() -> None:
         [_sent(_pose(1, [0, 0, 0], 179.0, nan3))], [_pose(1, [0, 0, 0], -179.0, nan3)]
     )
     assert across["yaw_diff_max_deg"] == pytest.approx(2.0, abs=1e-9)
+
+
+def test_json_gets_no_nan() -> None:
+    doc = finite_or_none({"a": [1.0, float("nan")], "b": {"c": float("inf"), "d": 2, "e": None}})
+    assert doc == {"a": [1.0, None], "b": {"c": None, "d": 2, "e": None}}
 
 
 def test_cpu_spread_of_known_values() -> None:
@@ -272,3 +281,25 @@ def test_companion_help_lists_replay_and_compare(capsys: pytest.CaptureFixture[s
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "replay" in text and "re-run flight recordings" in text and "compare" in text
+
+
+def test_a_recording_that_crashes_mid_replay_is_reported_and_the_others_measured(
+    rec: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Reading frame 40 of one recording raises something no reader should (a bug, not a bad
+    file): that recording's entry says so, the next one is still replayed, exit 1."""
+    crashes = tmp_path / "crashes"
+    shutil.copytree(rec, crashes)
+    real = Dataset.load_frame
+
+    def load_frame(self: Dataset, index: int) -> Any:
+        if self.path.name == "crashes" and index == 40:
+            raise RuntimeError("a bug in the reader")
+        return real(self, index)
+
+    monkeypatch.setattr(Dataset, "load_frame", load_frame)
+    out = tmp_path / "out.json"
+    assert main(["replay", str(crashes), str(rec), "--json", str(out), "--no-progress"]) == 1
+    first, second = json.loads(out.read_text())["recordings"]
+    assert first["kind"] == "crash (RuntimeError)" and first["error"] == "a bug in the reader"
+    assert second["metrics"]["identical"] is True and second["metrics"]["frames"] == 150
