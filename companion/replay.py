@@ -13,8 +13,8 @@ eval`` prints for the published track). :func:`replay_document` gathers the reco
 what ran them (the software's version and commit, the override's SHA-256, the date);
 ``companion.replay_compare`` compares two such documents.
 
-Units: times [ms] of CPU (``time.process_time``: every thread of this process, so OpenCV's
-own threads count too; reading the images is not counted), positions [m], angles [deg].
+Units: times [ms] of CPU (``time.process_time``, with OpenCV on one thread: one core's work;
+reading the images is not counted), positions [m], angles [deg].
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -47,7 +47,7 @@ from companion.drivers.dataset import Dataset, PublishedPose, open_dataset
 from companion.drivers.dataset.format import ALGORITHM_SECTIONS
 from companion.errors import CompanionError, ConfigError, DatasetError
 from companion.geometry import so3
-from companion.offline import run_vo
+from companion.offline import VoRun, run_vo
 from companion.pipeline import Event, Pipeline
 from companion.types import CameraFrame, PoseEstimate, VoState
 
@@ -268,28 +268,61 @@ def against_truth(ds: Dataset, poses: Sequence[PoseEstimate]) -> dict[str, float
     }
 
 
+class Beside(Protocol):
+    """Work run beside the replay on every frame, after its CPU time is read (a benchmark's
+    floor: the CLI's KLT floor, ``companion.bench_vo.KltFloor``): ``start`` with the config
+    the recording replays with, called with each frame after its work, then ``metrics`` with
+    the run (more flat metrics)."""
+
+    def start(self, config: Config) -> None: ...
+
+    def __call__(self, frame: CameraFrame, pipe: Pipeline) -> None: ...
+
+    def metrics(self, run: VoRun) -> dict[str, Any]: ...
+
+
 def replay_recording(
-    path: Path, override: Override | None = None, progress: Progress | None = None
+    path: Path,
+    override: Override | None = None,
+    progress: Progress | None = None,
+    beside: Beside | None = None,
 ) -> dict[str, Any]:
     """Replay one recording (its own config, or ``override`` laid over it) and measure it:
     ``{"path", "name", "id", "software", "complete", "config", "metrics"}``, ``metrics``
-    flat (numbers, flags, None where the recording cannot say). Raises what opening or
-    reading the recording raises (DatasetError naming the file and the row) and ConfigError
-    when the override does not fit it."""
+    flat (numbers, flags, None where the recording cannot say). OpenCV runs on one thread
+    (as ``companion bench vo``): the CPU per frame is one core's work, steadier from run to
+    run (the poses are the same bits). Raises what opening or reading the recording raises
+    (DatasetError naming the file and the row) and ConfigError when the override does not
+    fit it."""
+    import cv2
+
     ds = open_dataset(path)
     cfg = replay_config(ds.config, override)
     cpu = _CpuPerFrame()
+    if beside is not None:
+        beside.start(cfg)
+
+    def observe(frame: CameraFrame, pipe: Pipeline) -> None:
+        cpu.observe(frame, pipe)
+        if beside is not None:
+            beside(frame, pipe)
+
     label = f"replay {ds.path.name}"
-    with progress(len(ds), label) if progress is not None else nullcontext(None) as ticks:
-        run = run_vo(
-            cfg,
-            cpu.events(ds.events()),
-            ticks,
-            camera=ds.camera,
-            T_body_cam=ds.T_body_cam,
-            checked=ds.frames_checked,
-            observe=cpu.observe,
-        )
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with progress(len(ds), label) if progress is not None else nullcontext(None) as ticks:
+            run = run_vo(
+                cfg,
+                cpu.events(ds.events()),
+                ticks,
+                camera=ds.camera,
+                T_body_cam=ds.T_body_cam,
+                checked=ds.frames_checked,
+                observe=observe,
+            )
+    finally:
+        cv2.setNumThreads(threads)
     counters = [p.reset_counter for p in run.poses]
     tracked = sum(s == VoState.TRACKING for s in run.state)
     metrics: dict[str, Any] = {
@@ -303,6 +336,8 @@ def replay_recording(
         **spread_ms("cpu_ms", cpu.ms),
         "wall_ms_median": float(np.median(run.total_ms)) if run.total_ms else None,
     }
+    if beside is not None:
+        metrics.update(beside.metrics(run))
     if ds.published:
         metrics.update(against_published(ds.published, run.poses))
     if ds.has_ground_truth and len(run.poses) >= 3:

@@ -59,6 +59,8 @@ METRICS: dict[str, MetricRule] = {
     "cpu_ms_p99": _CPU_TAIL,
     "cpu_ms_max": _CPU_TAIL,
     "cpu_ms_mean": _CPU,
+    "frame_to_floor": _CPU,
+    "p99_to_floor": _CPU_TAIL,
     "published_matched": _EXACT,
     "published_missing": _EXACT,
     "position_diff_max_m": _POSE_DIFF,

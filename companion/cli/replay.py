@@ -42,6 +42,41 @@ def _summary(entry: dict[str, Any]) -> str:
     return f"{entry['name']}: " + ", ".join(parts)
 
 
+class KltFloorBeside:
+    """The KLT floor of ``companion bench vo`` beside the replay (``companion.bench_vo``):
+    per frame one pyramidal KLT of the frame before's features, timed alone; the metrics
+    ``klt_floor_ms`` (its median) and ``frame_to_floor`` / ``p99_to_floor``: the time to the
+    pose of the tracked frames (median, 99th percentile) over it, figures that move less
+    from one machine to another than milliseconds do."""
+
+    def __init__(self) -> None:
+        self.floor: Any = None
+
+    def start(self, config: Any) -> None:
+        from companion.bench_vo import KltFloor
+
+        self.floor = KltFloor(config.vo.klt_window_px, config.vo.klt_levels)
+
+    def __call__(self, frame: Any, pipe: Any) -> None:
+        self.floor(frame, pipe)
+
+    def metrics(self, run: Any) -> dict[str, Any]:
+        import numpy as np
+
+        from companion.bench_vo import floor_ratios
+
+        frame_ms = np.asarray(run.frame_ms)[run.tracking_mask()]
+        none = {"klt_floor_ms": None, "frame_to_floor": None, "p99_to_floor": None}
+        if not len(frame_ms) or not self.floor.ms:
+            return none
+        r = floor_ratios(self.floor.ms, frame_ms, [])
+        return {
+            "klt_floor_ms": r.floor_ms,
+            "frame_to_floor": r.frame_ratio,
+            "p99_to_floor": r.p99_ratio,
+        }
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     """Replay every recording; a recording that fails to open or crashes mid-replay gets an
     entry with its error and the others go on (exit 1 when any failed). A bad override is a
@@ -56,7 +91,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     entries: list[dict[str, Any]] = []
     for rec in args.recordings:
         try:
-            entry = replay_recording(rec, override, bar)
+            entry = replay_recording(rec, override, bar, KltFloorBeside())
         except KeyboardInterrupt:
             raise
         except Exception as e:  # this recording's failure, not the others'

@@ -13,6 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 import tomli_w
@@ -45,8 +46,11 @@ def rec(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def own(rec: Path) -> dict[str, Any]:
-    """The recording replayed with its own options."""
-    return replay_recording(rec)
+    """The recording replayed with its own options (OpenCV on one thread, then as before)."""
+    threads = cv2.getNumThreads()
+    entry = replay_recording(rec)
+    assert cv2.getNumThreads() == threads
+    return entry
 
 
 def toml_file(path: Path, table: dict[str, Any]) -> Path:
@@ -229,6 +233,9 @@ def test_replay_and_compare_from_the_command_line(
     assert bad["kind"] == "dataset error" and "frame 80" in bad["error"], bad
     assert missing["kind"] == "dataset error" and "none" in missing["error"]
     assert good["metrics"]["identical"] is True
+    # the KLT floor of `bench vo` beside it: the same poses, its figures there
+    assert good["metrics"]["klt_floor_ms"] > 0.0 and good["metrics"]["frame_to_floor"] > 0.0
+    assert good["metrics"]["p99_to_floor"] >= good["metrics"]["frame_to_floor"]
     assert good["metrics"]["poses"] == own["metrics"]["poses"]
     out = capsys.readouterr().out
     assert "broken: FAILED" in out and "rec: 150 frames" in out and "identical to what flew" in out
