@@ -40,6 +40,7 @@ from companion.config import (
     Config,
     decode_utf8,
     from_dict,
+    merge,
     parse_toml,
     to_dict,
 )
@@ -115,7 +116,7 @@ def replay_config(own: Config | None, override: Override | None) -> Config:
         return base
     sections = {}
     for name, table in override.tables.items():
-        merged = {**to_dict(getattr(base, name)), **table}
+        merged = merge(to_dict(getattr(base, name)), table)  # tables inside merged too
         sections[name] = from_dict(_SECTION_TYPES[name], merged, f"{name}.")
     try:
         return dataclasses.replace(base, **sections)

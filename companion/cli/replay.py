@@ -35,6 +35,11 @@ def _summary(entry: dict[str, Any]) -> str:
             if m["identical"]
             else f"vs what flew: max {m['position_diff_max_m'] or 0.0:.3g} m, "
             f"yaw {m['yaw_diff_max_deg'] or 0.0:.3g} deg"
+            + (
+                f", {m['published_missing']} of {m['published_poses']} sent poses not replayed"
+                if m["published_missing"]
+                else ""
+            )
         )
     if m.get("ate_m") is not None:
         pct = m.get("ate_pct_path")
