@@ -235,7 +235,6 @@ def test_replay_and_compare_from_the_command_line(
     assert good["metrics"]["identical"] is True
     # the KLT floor of `bench vo` beside it: the same poses, its figures there
     assert good["metrics"]["klt_floor_ms"] > 0.0 and good["metrics"]["frame_to_floor"] > 0.0
-    assert good["metrics"]["p99_to_floor"] >= good["metrics"]["frame_to_floor"]
     assert good["metrics"]["poses"] == own["metrics"]["poses"]
     out = capsys.readouterr().out
     assert "broken: FAILED" in out and "rec: 150 frames" in out and "identical to what flew" in out

@@ -80,6 +80,9 @@ def test_verdicts_by_direction_and_tolerance() -> None:
     assert verdict(METRICS["ate_m"], 0.05, 0.06) == "worse"
     assert verdict(METRICS["position_diff_max_m"], 0.0, 0.2) == "changed"  # no direction
     assert verdict(METRICS["identical"], True, False) == "changed"
+    # fewer features: less CPU and a lower KLT floor, so a higher ratio; not "worse"
+    assert verdict(METRICS["frame_to_floor"], 3.10, 4.25) == "changed"
+    assert verdict(METRICS["frame_to_floor"], 3.10, 3.30) == "same"
     assert verdict(METRICS["identical"], True, True) == "same"
     assert verdict(METRICS["ate_m"], None, 0.05) == "new"
     assert verdict(METRICS["ate_m"], 0.05, None) == "gone"
