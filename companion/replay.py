@@ -273,13 +273,13 @@ class Beside(Protocol):
     """Work run beside the replay on every frame, after its CPU time is read (a benchmark's
     floor: the CLI's KLT floor, ``companion.bench_vo.KltFloor``): ``start`` with the config
     the recording replays with, called with each frame after its work, then ``metrics`` with
-    the run (more flat metrics)."""
+    the run and the CPU [ms] of each of its frames (``run.time_us``'s; more flat metrics)."""
 
     def start(self, config: Config) -> None: ...
 
     def __call__(self, frame: CameraFrame, pipe: Pipeline) -> None: ...
 
-    def metrics(self, run: VoRun) -> dict[str, Any]: ...
+    def metrics(self, run: VoRun, cpu_ms: Sequence[float]) -> dict[str, Any]: ...
 
 
 def replay_recording(
@@ -338,7 +338,7 @@ def replay_recording(
         "wall_ms_median": float(np.median(run.total_ms)) if run.total_ms else None,
     }
     if beside is not None:
-        metrics.update(beside.metrics(run))
+        metrics.update(beside.metrics(run, cpu.ms))
     if ds.published:
         metrics.update(against_published(ds.published, run.poses))
     if ds.has_ground_truth and len(run.poses) >= 3:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -49,33 +51,39 @@ def _summary(entry: dict[str, Any]) -> str:
 
 class KltFloorBeside:
     """The KLT floor of ``companion bench vo`` beside the replay (``companion.bench_vo``):
-    per frame one pyramidal KLT of the frame before's features, timed alone; the metrics
-    ``klt_floor_ms`` (its median) and ``frame_to_floor``: the median time to the pose of the
+    per frame one pyramidal KLT of the frame before's features. Both sides in CPU time
+    (``time.process_time``, as the replay's CPU per frame; ``bench vo``'s wall times moved
+    the ratio from 3.8 to 4.8 between two replays of one recording on a loaded machine):
+    ``klt_floor_ms``, the floor's median, and ``frame_to_floor``, the median CPU of the
     tracked frames over it, a figure that moves less from one machine to another than
-    milliseconds do. (Its 99th percentile is left out: wall times, and a loaded machine's
-    preemptions moved it from 5.4 to 9.6 between two replays of one recording.)"""
+    milliseconds do."""
 
     def __init__(self) -> None:
         self.floor: Any = None
+        self.cpu_ms: list[float] = []
 
     def start(self, config: Any) -> None:
         from companion.bench_vo import KltFloor
 
         self.floor = KltFloor(config.vo.klt_window_px, config.vo.klt_levels)
+        self.cpu_ms = []
 
     def __call__(self, frame: Any, pipe: Any) -> None:
+        timed = len(self.floor.ms)
+        t0 = time.process_time()
         self.floor(frame, pipe)
+        if len(self.floor.ms) > timed:  # it tracked the frame before's features
+            self.cpu_ms.append((time.process_time() - t0) * 1e3)
 
-    def metrics(self, run: Any) -> dict[str, Any]:
+    def metrics(self, run: Any, cpu_ms: Sequence[float]) -> dict[str, Any]:
         import numpy as np
 
         from companion.bench_vo import floor_ratios
 
-        frame_ms = np.asarray(run.frame_ms)[run.tracking_mask()]
-        none: dict[str, Any] = {"klt_floor_ms": None, "frame_to_floor": None}
-        if not len(frame_ms) or not self.floor.ms:
-            return none
-        r = floor_ratios(self.floor.ms, frame_ms, [])
+        frame_ms = np.asarray(cpu_ms)[run.tracking_mask()]
+        if not len(frame_ms) or not self.cpu_ms:
+            return {"klt_floor_ms": None, "frame_to_floor": None}
+        r = floor_ratios(self.cpu_ms, frame_ms, [])
         return {"klt_floor_ms": r.floor_ms, "frame_to_floor": r.frame_ratio}
 
 
