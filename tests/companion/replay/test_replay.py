@@ -38,10 +38,10 @@ from companion.types import PoseEstimate
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 5 s figure eight over the town (320x240, seeded) as the recorder writes it, with its
+    """A 4 s figure eight over the town (320x240, seeded) as the recorder writes it, with its
     ground truth."""
     root = tmp_path_factory.mktemp("replay")
-    return service_recording(simulated_flight(root / "flight", 5.0), root / "rec")
+    return service_recording(simulated_flight(root / "flight", 4.0), root / "rec")
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_with_its_own_options_the_replay_is_what_flew_bit_for_bit(
     m = own["metrics"]
     ds = open_dataset(rec)
     assert own["software"] == "companion test" and own["id"] == recording_id(ds)
-    assert m["frames"] == m["frames_replayed"] == len(ds) == 150
+    assert m["frames"] == m["frames_replayed"] == len(ds) == 120
     assert m["published_poses"] == m["published_matched"] == m["poses"] == len(ds.published)
     assert m["published_missing"] == 0 and m["replayed_not_published"] == 0
     assert m["identical"] is True
@@ -77,7 +77,7 @@ def test_with_its_own_options_the_replay_is_what_flew_bit_for_bit(
     cpu = [m[f"cpu_ms_{k}"] for k in ("median", "p95", "p99", "max")]
     assert 0.0 < cpu[0] <= cpu[1] <= cpu[2] <= cpu[3]
     assert cpu[0] <= m["cpu_ms_mean"] * 3  # a mean, not a sum
-    # the ground truth: the published track of a 9 m figure eight, within centimetres
+    # the ground truth: the published track of a figure eight of metres, within centimetres
     assert 5.0 < m["path_m"] < 20.0
     assert 0.0 < m["ate_m"] < 0.15
     assert m["ate_pct_path"] == pytest.approx(100.0 * m["ate_m"] / m["path_m"], rel=1e-12)
@@ -237,7 +237,7 @@ def test_replay_and_compare_from_the_command_line(
     assert good["metrics"]["klt_floor_ms"] > 0.0 and good["metrics"]["frame_to_floor"] > 0.0
     assert good["metrics"]["poses"] == own["metrics"]["poses"]
     out = capsys.readouterr().out
-    assert "broken: FAILED" in out and "rec: 150 frames" in out and "identical to what flew" in out
+    assert "broken: FAILED" in out and "rec: 120 frames" in out and "identical to what flew" in out
 
     over = toml_file(tmp_path / "over.toml", {"vo": {"max_features": 90}})
     assert (
@@ -308,4 +308,4 @@ def test_a_recording_that_crashes_mid_replay_is_reported_and_the_others_measured
     assert main(["replay", str(crashes), str(rec), "--json", str(out), "--no-progress"]) == 1
     first, second = json.loads(out.read_text())["recordings"]
     assert first["kind"] == "crash (RuntimeError)" and first["error"] == "a bug in the reader"
-    assert second["metrics"]["identical"] is True and second["metrics"]["frames"] == 150
+    assert second["metrics"]["identical"] is True and second["metrics"]["frames"] == 120
