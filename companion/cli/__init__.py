@@ -5,6 +5,8 @@ One module per group of commands; each parses its arguments and calls functions 
 - :mod:`.service`: ``run``, ``status``, ``config``
 - :mod:`.evaluate`: ``eval``, ``report``; :mod:`.evaluate_dpose` (``eval --dpose``) and
   :mod:`.flight` (``eval --phases``: the published poses by flight phase) beside it
+- :mod:`.replay`: ``replay`` (flight recordings through this version) and ``compare`` (two
+  replays side by side)
 - :mod:`.dataset`: ``dataset import | rebuild`` (real sequences into our format)
 - :mod:`.bench`: ``bench render | vo | attitude | dpose | soak``
 - :mod:`.sim`: ``sitl record | sheet | run | px4``, ``demo``; and the one place where the
@@ -127,6 +129,18 @@ COMMANDS: tuple[Command, ...] = (
         "summarise scale evaluations over seeds",
         "companion.cli.evaluate",
         "add_report",
+    ),
+    Command(
+        "replay",
+        "re-run flight recordings through this version",
+        "companion.cli.replay",
+        "add_replay",
+    ),
+    Command(
+        "compare",
+        "what changed between two replays (companion replay)",
+        "companion.cli.replay",
+        "add_compare",
     ),
     Command(
         "dataset",
