@@ -209,7 +209,7 @@ class McapDatasetWriter:
                 pose.velocity_ned_m_s,
                 pose.reset_counter,
                 pose.quality_pct,
-                pose.covariance_6x6,
+                pose.covariance_6x6 if np.isfinite(pose.covariance_6x6).any() else None,
             ),
         )
         pose_msg, tf_msg = ms.pose_messages(pose, self.T_body_cam)
