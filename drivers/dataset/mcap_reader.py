@@ -197,8 +197,14 @@ class _Read:
             self.attached[f["name"]] = f["data"]
         elif rec.kind == "metadata":
             self.metadata[f["name"]] = f["data"]
-        elif rec.kind == "message" and f["channel_id"] in self.channels:
+        elif rec.kind == "message" and f["channel_id"] in self.channels and self.ours:
             self._message(self.channels[f["channel_id"]], f["data"], rec.where)
+
+    @property
+    def ours(self) -> bool:
+        """Our metadata came first: the file is a recording of ours (another's messages on
+        topics of the same names are not read)."""
+        return self.metadata.get(META_NAME, {}).get("format") == FORMAT_NAME
 
     def _message(self, topic: str, data: bytes, where: Where | None) -> None:
         at = 0 if where is None else where.chunk
@@ -266,7 +272,9 @@ def _meta(strings: dict[str, str]) -> dict[str, Any]:
     """A metadata record's strings as values (true/false, integers)."""
     out: dict[str, Any] = {}
     for k, v in strings.items():
-        out[k] = {"true": True, "false": False}.get(v, int(v) if v.isdigit() and len(v) < 19 else v)
+        out[k] = {"true": True, "false": False}.get(
+            v, int(v) if v.isascii() and v.isdigit() and len(v) < 19 else v
+        )
     return out
 
 
@@ -293,13 +301,13 @@ def read_mcap(path: Path) -> Dataset:
                 r.take(rec)
         except TornError as e:
             torn = str(e)
+    if torn and closed:
+        raise DatasetError(f"{path}: damaged MCAP file: {torn}")
     if META_NAME not in r.metadata:
         why = f" ({torn})" if torn else ""
         raise DatasetError(
             f"{path}: not a {FORMAT_NAME} MCAP recording: no {META_NAME!r} metadata{why}"
         )
-    if torn and closed:
-        raise DatasetError(f"{path}: damaged MCAP file: {torn}")
     meta = _meta(r.metadata[META_NAME])
     if meta.get("format") != FORMAT_NAME:
         raise DatasetError(

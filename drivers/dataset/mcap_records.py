@@ -136,7 +136,9 @@ def chunk_records(body: bytes, offset: int) -> bytes:
             offset, f"a chunk of {size} bytes decompressed (more than {MAX_CHUNK_BYTES})"
         )
     if compression == "zstd":
-        try:
+        try:  # the frame's own size claim first: it is what zstd would allocate
+            if zstandard.frame_content_size(data) not in (size, -1):
+                raise TornError(offset, "a zstd chunk whose frame claims another size")
             out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
         except zstandard.ZstdError as e:
             raise TornError(offset, f"a zstd chunk that does not decompress ({e})") from None
