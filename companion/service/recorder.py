@@ -53,7 +53,7 @@ from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate
 
 log = logging.getLogger("companion.recorder")
 
-SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
+SYNC_PERIOD_S = 1.0  # fsync this often (what a power cut keeps); MCAP: close the chunk too
 CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 SIBLING_ATTEMPTS = 1000  # record.dir taken: record into record.dir-2 .. record.dir-1000
@@ -246,6 +246,9 @@ class Recorder:
         last_sync = time.monotonic()
         try:
             while True:
+                if time.monotonic() - last_sync > SYNC_PERIOD_S:  # also when frames pause
+                    writer.sync()
+                    last_sync = time.monotonic()
                 try:
                     item = self._queue.get(timeout=0.2)
                 except queue.Empty:
@@ -264,9 +267,6 @@ class Recorder:
                     break  # over budget: stopped
                 self._bytes = writer.bytes_written
                 self._cpu_s = time.thread_time()  # the writer's own CPU time so far
-                if time.monotonic() - last_sync > SYNC_PERIOD_S:
-                    writer.sync()
-                    last_sync = time.monotonic()
         except (OSError, DatasetError) as e:
             self._stop(f"writing failed: {e}")
         except Exception as e:  # a bug: the recording ends, the service does not
