@@ -269,3 +269,20 @@ def test_sigkill_leaves_an_mcap_file_readable_to_its_last_whole_chunk(tmp_path: 
         fh.write(b"\x06" + (10**6).to_bytes(8, "little") + b"torn")
     again = open_dataset(path)
     assert len(again) == len(ds) and not again.complete and size < path.stat().st_size
+
+
+def test_the_disk_budget_closes_a_valid_mcap_file_that_says_why(tmp_path: Path) -> None:
+    said: list[str] = []
+    cfg = load_config(overrides={**SMALL, "record": {"dir": str(tmp_path / "rec"), "max_mb": 0.3}})
+    inputs = synthetic(40)  # about 20 kB per grey PNG of noise: the budget holds about 14
+    with Recorder(cfg.record, cfg).running(said.append) as rec:
+        for frame, ranges, atts, imus in inputs:
+            rec.frame(frame, ranges, atts, imus)
+    assert rec.state == "stopped" and "record.max_mb" in rec.reason and len(said) == 1
+    assert (tmp_path / "rec.mcap").stat().st_size <= 0.3e6
+    ds = open_dataset(tmp_path / "rec.mcap")
+    assert ds.complete and ds.meta["stop_reason"] == rec.reason
+    assert 5 <= len(ds) < 40 and rec.frames_not_recorded == 40 - len(ds)
+    with (tmp_path / "rec.mcap").open("rb") as fh:  # the reason on /log, for the viewers
+        logs = [m.data for _, c, m in make_reader(fh).iter_messages() if c.topic == ms.LOG]
+    assert len(logs) == 1 and b"record.max_mb" in logs[0]
