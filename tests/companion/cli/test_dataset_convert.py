@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from peers.recordings import CLIP, record_clip
+from peers.clip_recordings import CLIP, record_clip
 
 from companion.cli import main
 from companion.drivers.dataset import Dataset, open_dataset, read_poses_csv

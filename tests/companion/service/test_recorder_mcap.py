@@ -26,7 +26,7 @@ import jsonschema
 import numpy as np
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
-from peers.recordings import record_clip
+from peers.clip_recordings import record_clip
 
 from companion.cli import main
 from companion.config import load_config
