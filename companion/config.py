@@ -250,6 +250,8 @@ class SitlConfig:
 
 
 RecordImageFormat = Literal["png", "jpg"]
+RecordFormat = Literal["mcap", "folder"]
+RecordImage = Literal["auto", "colour", "grey"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -258,7 +260,17 @@ class RecordOptions:
     as a dataset (docs/dataset.md) that ``companion eval DIR`` replays."""
 
     dir: str = opt(
-        "", "record into this folder (empty = off); {start} = the start time YYYYmmdd-HHMMSS"
+        "",
+        "record here (empty = off): mcap: the file DIR.mcap, folder: the folder DIR; "
+        "{start} = the start time YYYYmmdd-HHMMSS",
+    )
+    format: RecordFormat = opt(
+        "mcap", "mcap (one file; Foxglove, PlotJuggler) or folder (our CSV + image files)"
+    )
+    image: RecordImage = opt(
+        "auto",
+        "mcap: grey (a third of the size; the replay stays exact, the VO reads grey), colour, "
+        "or auto (grey unless d-Pose, which reads colour, is on)",
     )
     max_mb: float = opt(2000.0, "disk budget of one recording [MB]; recording stops there", gt=0)
     min_free_mb: float = opt(200.0, "stop recording when the disk has less free [MB]", ge=0)

@@ -5,6 +5,7 @@
                              [--camera fr1|fr2|fr3] [--sequence NN] [--image-format keep|png|jpg]
                              [--jpg-quality Q]
     companion dataset rebuild NAME... | --all --snapshots DIR --out DIR [--manifest FILE]
+    companion dataset convert SRC DST
 
 FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti; rislab (the RIS lab's
 downward flight: images60fps/ and mocap_data.mat; ``--focal-px``, ``--k1``: its lens). The
@@ -12,7 +13,9 @@ distance sensors are synthesised from the depth images: the ``[[rangefinders]]``
 ``--config`` (mounts in the camera frame: the body is the camera), else four beams near the
 optical axis. ``rebuild``
 reads config/real_sequences.toml, extracts each sequence from its git snapshot, checks its
-checksums and imports it into DIR/NAME. Exit codes: 0 done, 2 bad input (a malformed list line,
+checksums and imports it into DIR/NAME. ``convert`` turns a flight recording folder into one
+MCAP file (DST ending in ``.mcap``) or an MCAP recording into a folder, losslessly (the replay
+is the same, bit for bit). Exit codes: 0 done, 2 bad input (a malformed list line,
 a checksum that differs, a bad config: the message names the file, line or key).
 """
 
@@ -115,10 +118,29 @@ def cmd_rebuild(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert(args: argparse.Namespace) -> int:
+    """A flight recording from a folder into an MCAP file, or back."""
+    from companion.drivers.dataset import open_dataset
+    from companion.drivers.dataset.convert import convert_recording
+
+    ds = open_dataset(args.src)
+    try:
+        done = convert_recording(ds, args.dst)
+    except FileExistsError:
+        raise DatasetError(f"{args.dst} exists: convert writes a new file or folder") from None
+    print(
+        f"{args.dst}: {done.frames} frames, {done.samples} samples, {done.published} "
+        f"published poses{'' if ds.complete else ' (the source was not closed)'}"
+    )
+    return 0
+
+
 def add_parser(sub: Any) -> None:
     """``companion dataset``."""
     p = sub.add_parser("dataset", help="import real sequences into our dataset format")
-    dsub = p.add_subparsers(dest="dataset_command", required=True, metavar="{import,rebuild}")
+    dsub = p.add_subparsers(
+        dest="dataset_command", required=True, metavar="{import,rebuild,convert}"
+    )
     pi = dsub.add_parser("import", help="a real-sequence folder into our format")
     pi.add_argument("format", choices=IMPORTERS, help="the source's format")
     pi.add_argument("src", type=Path, help="the source folder")
@@ -159,3 +181,7 @@ def add_parser(sub: Any) -> None:
         help=f"the manifest (default {DEFAULT_MANIFEST})",
     )
     pr.set_defaults(func=cmd_rebuild)
+    pc = dsub.add_parser("convert", help="a flight recording: folder <-> MCAP file, lossless")
+    pc.add_argument("src", type=Path, help="a recording: a folder, or an .mcap file")
+    pc.add_argument("dst", type=Path, help="a new .mcap file, or a new folder")
+    pc.set_defaults(func=cmd_convert)

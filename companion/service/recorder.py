@@ -1,11 +1,13 @@
-"""The flight recorder: what the service's pipeline was fed, as a dataset ``companion eval DIR``
-replays through the same Pipeline (docs/dataset.md, "Recordings").
+"""The flight recorder: what the service's pipeline was fed, as a dataset ``companion eval``
+replays through the same Pipeline (docs/dataset.md, "Flight recordings", "MCAP recordings"):
+one MCAP file by default (``record.format = "mcap"``: ``McapDatasetWriter``; Foxglove and
+PlotJuggler open it), or a folder of our format (``"folder"``: ``DatasetWriter``).
 
 The service hands over, on the pipeline's worker thread and before it feeds them, each frame
 with the attitudes and ranges queued for it (``frame``), and from the event loop each pose it
 sent (``pose``). Both only put a reference into a bounded queue (``record.queue_frames``): no
 disk work, no encoding, no waiting. A writer thread encodes the images (PNG: lossless, so the
-replay is fed the same bytes) and appends them with ``drivers.dataset.DatasetWriter``.
+replay is fed the same bytes; grey in an MCAP file unless d-Pose reads colour) and appends them.
 
 The flight output always wins: a full queue (the disk is slower than the camera), the disk
 budget (``record.max_mb``), too little free space (``record.min_free_mb``) or a write error
@@ -14,13 +16,13 @@ last frame, and the reason is said once (the service's warnings, log, MQTT) and 
 status. A recording is not resumed after it stopped: a replay must see every frame the
 pipeline saw, so a recording with a hole would not replay what was flown.
 
-The recording's folder is its own (the service runs as root): ``record.dir`` made at the start,
-or an empty folder we own that nobody else may write into (made beforehand, e.g. by systemd).
-Anything else there (a folder of an earlier run when ``record.dir`` has no ``{start}``, a
-file, a symbolic link, a folder others may write into) is left alone: the recording goes into
-a new sibling ``record.dir-2``, ``-3``... and the service says so; when none can be made, it
-runs without a recording and says why. Every file in it is created new, never through a link
-(O_EXCL | O_NOFOLLOW, drivers/files.py).
+The recording is its own (the service runs as root): the file ``record.dir``.mcap, or the
+folder ``record.dir``, made new at the start (a folder: or an empty one we own that nobody else
+may write into, made beforehand, e.g. by systemd). Anything else there (an earlier run's when
+``record.dir`` has no ``{start}``, a symbolic link, a folder others may write into) is left
+alone: the recording goes into a new sibling ``-2``, ``-3``... and the service says so; when
+none can be made, it runs without a recording and says why. Every file is created new, never
+through a link (O_EXCL | O_NOFOLLOW, drivers/files.py).
 """
 
 from __future__ import annotations
@@ -40,13 +42,18 @@ from typing import Any
 
 from companion import __version__
 from companion.config import Config, RecordOptions
-from companion.drivers.dataset import DatasetWriter
+from companion.drivers.dataset.recording import (
+    RecordingWriter,
+    image_mode,
+    make_writer,
+    recording_path,
+)
 from companion.errors import DatasetError
 from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
 
 log = logging.getLogger("companion.recorder")
 
-SYNC_PERIOD_S = 1.0  # fsync the CSV files this often (what a power cut keeps)
+SYNC_PERIOD_S = 1.0  # fsync this often (what a power cut keeps); MCAP: close the chunk too
 CLOSE_TIMEOUT_S = 30.0  # at exit, wait this long at most for the queue to reach the disk
 WRITER_NICE = 10  # the writer thread's niceness: on a busy board the pipeline goes first
 SIBLING_ATTEMPTS = 1000  # record.dir taken: record into record.dir-2 .. record.dir-1000
@@ -96,7 +103,7 @@ class Recorder:
         self.options = options
         self.config = config
         self.enabled = bool(options.dir)
-        # record.dir as configured; start() records into a folder it makes there (or beside)
+        # record.dir as configured; start() records there (or beside it)
         self.path = recording_dir(options.dir) if self.enabled else None
         self.state = "recording" if self.enabled else "off"
         self.reason = ""
@@ -105,7 +112,7 @@ class Recorder:
         self._queue: queue.Queue[Item | None] = queue.Queue()
         self._queued_frames = 0
         self._lock = threading.Lock()
-        self._writer: DatasetWriter | None = None
+        self._writer: RecordingWriter | None = None
         self._thread: threading.Thread | None = None
         self._notify: Callable[[str], object] = log.warning
         self._frames = 0
@@ -115,52 +122,46 @@ class Recorder:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, notify: Callable[[str], object] | None = None) -> None:
-        """Create the dataset folder and start the writer thread. ``notify(text)`` tells the
-        operator why a recording stopped (called from any thread). A folder that cannot be
-        written leaves the service running without a recording (said through ``notify``)."""
+        """Create the recording and start the writer thread. ``notify(text)`` tells the
+        operator why a recording stopped (called from any thread). A recording that cannot be
+        written leaves the service running without one (said through ``notify``)."""
         if notify is not None:
             self._notify = notify
         if not self.enabled or self.path is None:
             return
         o = self.options
         try:
-            self.path = self._new_folder(self.path)
-            self._writer = DatasetWriter(
-                self.path,
-                self.config,
-                image_format=o.image_format,
-                png_compression=o.png_compression,
-                jpg_quality=o.jpg_quality,
-                software=__version__,
-            )
+            self.path, self._writer = self._claim(self.path)
         except Exception as e:  # whatever it is, the service runs on without a recording
             self._stop(f"cannot record into {self.path}: {e}")
             return
-        log.info("recording into %s (%s, budget %g MB)", self.path, o.image_format, o.max_mb)
+        what = f"{o.format}, {image_mode(o, self.config)} {o.image_format}"
+        log.info("recording into %s (%s, budget %g MB)", self.path, what, o.max_mb)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
 
-    def _new_folder(self, wanted: Path) -> Path:
-        """The recording's folder, made now: ``wanted`` (record.dir), or when anything is
-        there already, a new sibling ``wanted-2``, ``wanted-3``... (said through notify). A
-        folder made here is empty and ours: no link can have been planted in it. OSError when
-        none can be made (the caller records nothing and says why)."""
+    def _claim(self, wanted: Path) -> tuple[Path, RecordingWriter]:
+        """The recording, made now: ``wanted`` (from record.dir), or when anything is there
+        already, a new sibling ``-2``, ``-3``... (said through notify); a folder may be an
+        empty one of ours made beforehand (systemd's StateDirectory=). Made here, it is new
+        and ours: no link can have been planted in it. OSError when none can be made (the
+        caller records nothing and says why)."""
         wanted.parent.mkdir(parents=True, exist_ok=True)
-        if _empty_folder_of_ours(wanted):
-            return wanted  # made for us beforehand (e.g. systemd's StateDirectory=)
+        o = self.options
         for k in range(1, SIBLING_ATTEMPTS + 1):
-            path = wanted if k == 1 else wanted.with_name(f"{wanted.name}-{k}")
+            path = recording_path(wanted, o, k)
+            ours = o.format == "folder" and _empty_folder_of_ours(path)
             try:
-                path.mkdir(mode=0o755)  # never through a link: EEXIST when one is there
+                writer = make_writer(path, self.config, o, __version__, ours)
             except FileExistsError:
                 continue
             if k > 1:
                 self._notify(
-                    f"recorder: record.dir {wanted} exists and is not an empty folder of "
+                    f"recorder: {recording_path(wanted, o)} exists and is not an empty folder of "
                     f"ours; recording into {path} instead (put {{start}} in record.dir for "
-                    "a folder per run)"
+                    "a recording per run)"
                 )
-            return path
+            return path, writer
         raise FileExistsError(
             f"{wanted} and its siblings up to -{SIBLING_ATTEMPTS} all exist; clear them out "
             "or put {start} in record.dir"
@@ -245,6 +246,9 @@ class Recorder:
         last_sync = time.monotonic()
         try:
             while True:
+                if time.monotonic() - last_sync > SYNC_PERIOD_S:  # also when frames pause
+                    writer.sync()
+                    last_sync = time.monotonic()
                 try:
                     item = self._queue.get(timeout=0.2)
                 except queue.Empty:
@@ -263,9 +267,6 @@ class Recorder:
                     break  # over budget: stopped
                 self._bytes = writer.bytes_written
                 self._cpu_s = time.thread_time()  # the writer's own CPU time so far
-                if time.monotonic() - last_sync > SYNC_PERIOD_S:
-                    writer.sync()
-                    last_sync = time.monotonic()
         except (OSError, DatasetError) as e:
             self._stop(f"writing failed: {e}")
         except Exception as e:  # a bug: the recording ends, the service does not
@@ -288,7 +289,7 @@ class Recorder:
         with self._lock:
             self.frames_not_recorded += frames
 
-    def _write_frame(self, writer: DatasetWriter, rec: FrameRecord) -> bool:
+    def _write_frame(self, writer: RecordingWriter, rec: FrameRecord) -> bool:
         """Encode and append one frame; False (and stopped) when it would break the budget."""
         encoded = writer.encode(rec.frame.image_bgr)
         need = writer.frame_bytes(encoded, len(rec.ranges), len(rec.attitudes), len(rec.imus))
@@ -326,6 +327,7 @@ class Recorder:
         return {
             "enabled": self.enabled,
             "dir": str(self.path) if self.path is not None else None,
+            "format": self.options.format,
             "state": self.state,
             "frames": self._frames,
             "poses": self._poses,

@@ -18,11 +18,14 @@ The modules:
 - ``rows``: the CSV rows under the bounded-reading discipline (drivers/safe_files.py);
 - ``model``: ``Dataset`` (what a dataset holds, its events in ingest order), ``dataset_steps``;
 - ``ours`` and ``euroc``: the two readers; ``detect``: ``open_dataset`` picks one;
-- ``tum``: TUM trajectories; ``writer`` and ``toml_text``: ``DatasetWriter`` and its files.
+- ``tum``: TUM trajectories; ``writer`` and ``toml_text``: ``DatasetWriter`` and its files;
+- ``mcap_schemas``, ``mcap_writer``, ``mcap_records``, ``mcap_reader``: a recording as one
+  MCAP file (its channels, ``McapDatasetWriter``, the bounded record reader, ``read_mcap``).
 """
 
 from companion.drivers.dataset.detect import open_dataset
 from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, PublishedPose
+from companion.drivers.dataset.mcap_writer import McapDatasetWriter, mcap_path
 from companion.drivers.dataset.model import Dataset, DatasetStep, check_lens, dataset_steps
 from companion.drivers.dataset.rows import read_poses_csv
 from companion.drivers.dataset.tum import read_tum, write_tum
@@ -34,10 +37,12 @@ __all__ = [
     "Dataset",
     "DatasetStep",
     "DatasetWriter",
+    "McapDatasetWriter",
     "PublishedPose",
     "calibration_tables",
     "check_lens",
     "dataset_steps",
+    "mcap_path",
     "open_dataset",
     "read_poses_csv",
     "read_tum",

@@ -5,7 +5,7 @@ folder's discipline. ``dataset_steps`` groups the inputs per frame for offline e
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,7 +51,8 @@ class Dataset:
     the recorded frames passed the service's frame check (a replay must not check them again).
     published: the poses the service sent (a recording's published.csv). complete: False
     for a recording that did not close (a crash, SIGKILL, power loss): it was read up to its
-    last complete frame.
+    last complete frame. image_bytes: the encoded image (PNG, JPEG) of a frame by index, for
+    a dataset whose frames are not files (an MCAP recording: frame_paths is then empty).
     """
 
     path: Path
@@ -80,9 +81,10 @@ class Dataset:
     folder: SafeFolder | None = None  # where the files are read from (drivers/safe_files.py)
     frame_names: list[str] = field(default_factory=list)  # (F,) as frames.csv names them
     skipped: dict[str, RowCount] = field(default_factory=dict)  # per file: rows left out
+    image_bytes: Callable[[int], bytes] | None = None  # frame index -> its encoded image
 
     def __len__(self) -> int:
-        return len(self.frame_paths)
+        return len(self.frame_times_us)
 
     @property
     def has_world(self) -> bool:
@@ -98,7 +100,9 @@ class Dataset:
         file inside the folder whose header has the calibration's size (checked before it is
         decoded); DatasetError naming the frame otherwise."""
         size = (self.camera.width, self.camera.height)
-        if self.folder is not None and index < len(self.frame_names):
+        if self.image_bytes is not None:
+            img = decode_image(self.image_bytes(index), size, f"{self.path} frame {index}")
+        elif self.folder is not None and index < len(self.frame_names):
             img = decode_frame(self.folder, self.frame_names[index], size, f"frame {index}")
         else:
             path = self.frame_paths[index]
@@ -211,11 +215,17 @@ def decode_frame(
     """The BGR image of file ``name``: read under the folder's discipline, its header's size
     checked against ``size`` (the calibration's) before it is decoded."""
     data = folder.read_bytes(name, MAX_IMAGE_BYTES, f"{where} ({name})")
-    check_image_header(data, f"{where} ({name})", size)
+    return decode_image(data, size, f"{where} ({name})")
+
+
+def decode_image(data: bytes, size: tuple[int, int], where: str) -> NDArray[np.uint8]:
+    """The BGR image (grey ones expanded to three equal channels) of PNG or JPEG bytes,
+    their header's size checked against ``size`` before they are decoded."""
+    check_image_header(data, where, size)
     flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
     img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     if img is None or img.shape[:2] != (size[1], size[0]):
-        raise DatasetError(f"{where} ({name}): the image does not decode")
+        raise DatasetError(f"{where}: the image does not decode")
     return np.asarray(img, dtype=np.uint8)
 
 

@@ -48,16 +48,26 @@ def _ours_config(folder: SafeFolder, meta: dict[str, Any]) -> tuple[Config, Sitl
     meta.toml declares a simulated world, its [sitl] table."""
     calib = folder.read_toml("calibration.toml")
     algo = folder.read_toml("config.toml") if folder.exists("config.toml") else {}
+    return config_from_tables(calib, algo, meta, str(folder.shown))
+
+
+def config_from_tables(
+    calib: dict[str, Any], algo: dict[str, Any], meta: dict[str, Any], where: str
+) -> tuple[Config, SitlConfig | None]:
+    """The config of a dataset from its calibration.toml and config.toml tables (a folder's
+    files, an MCAP recording's attachments) and the [sitl] table of its meta; DatasetError
+    naming ``where`` for anything that is not a valid config."""
+    calib = dict(calib)
     calib.pop("matrices", None)
     calib.setdefault("rangefinders", [])  # the dataset's sensors, never the built-in ones
     unknown = sorted(set(algo) - set(ALGORITHM_SECTIONS))
     if unknown:
-        raise DatasetError(f"{folder.shown}/config.toml: unexpected tables {unknown[:5]}")
+        raise DatasetError(f"{where}/config.toml: unexpected tables {unknown[:5]}")
     has_world = "sitl" in meta and meta.get("world", "sitl") != "none"
     try:
         cfg = from_dict(Config, {**calib, **algo, "sitl": meta.get("sitl", {})})
     except ConfigError as e:
-        raise DatasetError(f"{folder.shown}: bad calibration.toml/config.toml: {e}") from None
+        raise DatasetError(f"{where}: bad calibration.toml/config.toml: {e}") from None
     return cfg, (cfg.sitl if has_world else None)
 
 

@@ -63,7 +63,7 @@ def write_poses_csv(path: Path, poses: Sequence[PoseEstimate]) -> None:
             fh.write(",".join(str(v) for v in _pose_row(p)) + "\n")
 
 
-def _png_params(level: int) -> list[int]:
+def png_params(level: int) -> list[int]:
     """cv2.imencode parameters of a PNG compression level: 0 stored; 1 the Sub filter with
     Huffman coding only (a camera image with sensor noise: 83 % of raw at a third of zlib
     level 1's time, docs/BENCHMARKS.md); 2..9 zlib's levels with adaptive filters."""
@@ -125,7 +125,7 @@ class DatasetWriter:
         self.path = path
         self.image_format = image_format
         self._encode_params = (
-            _png_params(png_compression)
+            png_params(png_compression)
             if image_format == "png"
             else [cv2.IMWRITE_JPEG_QUALITY, jpg_quality]
         )

@@ -37,6 +37,8 @@ FLIGHT_S = float(os.environ.get("COMPANION_RECORDER_SECONDS", "14"))
 
 
 def with_record(cfg: Config, folder: Path, **options: object) -> Config:
+    """``cfg`` recording into ``folder`` (a folder recording unless ``format`` says else)."""
+    options = {"format": "folder", **options}
     return dataclasses.replace(
         cfg, record=dataclasses.replace(cfg.record, dir=str(folder), **options)
     )
@@ -180,7 +182,8 @@ KILLED = textwrap.dedent(
     from companion.service.recorder import Recorder
     from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
     camera = {"width": 320, "height": 240}  # the frames' size below
-    cfg = load_config(overrides={"record": {"dir": sys.argv[1]}, "camera": camera})
+    record = {"dir": sys.argv[1], "format": sys.argv[2]}
+    cfg = load_config(overrides={"record": record, "camera": camera})
     rec = Recorder(cfg.record, cfg).running()
     rng = np.random.default_rng(1)
     k = 0
@@ -203,7 +206,7 @@ KILLED = textwrap.dedent(
 def test_sigkill_leaves_a_recording_readable_to_its_last_complete_frame(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
     proc = subprocess.Popen(
-        [sys.executable, "-c", KILLED, str(rec)], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", KILLED, str(rec), "folder"], stdout=subprocess.PIPE, text=True
     )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "recording"
