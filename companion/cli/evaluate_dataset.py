@@ -70,6 +70,8 @@ def config_source(ds: Dataset, config_path: Path | None) -> str:
         return str(config_path)
     if ds.config is not None and ds.folder is not None and ds.folder.exists("config.toml"):
         return "the recording's config.toml"
+    if ds.config is not None and ds.path.suffix == ".mcap":
+        return "the recording's config.toml (attached to the MCAP file)"
     return "the built-in defaults"
 
 

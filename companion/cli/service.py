@@ -306,8 +306,9 @@ def add_run(sub: Any) -> None:
         "--record",
         type=Path,
         metavar="DIR",
-        help="record what the pipeline is fed into the new folder DIR ({start}: the start "
-        "time); `companion eval DIR` replays it ([record] in the config: budget, format)",
+        help="record what the pipeline is fed into the new file DIR.mcap ({start}: the start "
+        "time; record.format = 'folder': the new folder DIR); `companion eval DIR.mcap` "
+        "replays it ([record] in the config: budget, format, image)",
     )
     p_run.add_argument("--terrain", help=argparse.SUPPRESS)
     p_run.add_argument("--trajectory", help=argparse.SUPPRESS)
