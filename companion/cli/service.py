@@ -87,6 +87,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     log = logging.getLogger("companion")
     cfg = load(args)
     check_path_keys(cfg)  # a FIFO state or timestamp file would block the start forever
+    if args.web is not None:  # --web [HOST:]PORT: the live page there, checked as [web] is
+        cfg = with_web(cfg, args.web)
     if args.record is not None:  # --record DIR: the [record] options, into this folder
         import dataclasses
 
@@ -106,6 +108,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{summary['latency_ms_p50']:.1f}" if summary["latency_ms_p50"] is not None else "-",
     )
     return EXIT_OK
+
+
+def with_web(cfg: Config, flag: str) -> Config:
+    """``cfg`` with the live page on at ``--web [HOST:]PORT`` (the rest of [web] kept); a
+    ConfigError naming ``--web`` or the [web] key (a Wi-Fi address without web.token)."""
+    import dataclasses
+
+    from companion.config import from_dict, to_dict
+    from companion.service_options import WebOptions, web_flag
+
+    web = from_dict(WebOptions, {**to_dict(cfg.web), **web_flag(flag)}, "web.")
+    return dataclasses.replace(cfg, web=web)
 
 
 async def _serve(
@@ -308,6 +322,12 @@ def add_run(sub: Any) -> None:
         metavar="DIR",
         help="record what the pipeline is fed into the new folder DIR ({start}: the start "
         "time); `companion eval DIR` replays it ([record] in the config: budget, format)",
+    )
+    p_run.add_argument(
+        "--web",
+        metavar="[HOST:]PORT",
+        help="serve the live page on PORT (HOST: 127.0.0.1; another address needs web.token "
+        'in the config); docs/service.md, "The live page"',
     )
     p_run.add_argument("--terrain", help=argparse.SUPPRESS)
     p_run.add_argument("--trajectory", help=argparse.SUPPRESS)
