@@ -304,7 +304,6 @@ def test_a_slow_viewer_gets_the_newest_frames_not_a_queue(tmp_path) -> None:
                 return {
                     "slow": slow_numbers,
                     "fast": fast_numbers,
-                    "rendered_before": rendered_before,
                     "stats": web.status(),
                 }
 
