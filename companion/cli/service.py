@@ -190,6 +190,15 @@ def _mqtt_line(m: dict[str, Any]) -> str:
     return f"{state}, {m.get('queued', 0)} queued, {m.get('dropped', 0)} dropped"
 
 
+def _web_line(w: dict[str, Any]) -> str:
+    """The live page: where, and who watches (or why it is off)."""
+    if not w.get("enabled"):
+        return "disabled"
+    if not w.get("listening", True):
+        return f"OFF: {w.get('problem') or 'not listening'}"
+    return f"{w.get('url', '-')}  {w.get('viewers', 0)} viewer(s)"
+
+
 def _signing_text(ap: dict[str, Any]) -> str:
     sg = ap.get("signing")
     if not sg:
@@ -291,6 +300,7 @@ def format_status(st: dict[str, Any]) -> str:
         ("camera", _camera_text(st["camera"])),
         *_estimate_rows(st),
         ("MQTT", _mqtt_line(st["mqtt"])),
+        ("web", _web_line(st.get("web") or {"enabled": False})),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]

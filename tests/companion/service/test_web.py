@@ -339,3 +339,10 @@ def test_a_port_in_use_leaves_the_service_running_and_says_why(tmp_path) -> None
     assert web["enabled"] and not web["listening"] and web["viewers"] == 0
     assert f"cannot listen on 127.0.0.1:{port}" in web["problem"]
     assert any("web: cannot listen" in w and "the live page is off" in w for w in st["warnings"])
+    # `companion status` takes the section and shows why the page is off
+    from companion.cli.service import format_status
+    from companion.drivers.status import validate_status
+
+    validate_status(json.loads(json.dumps(st, default=str)))
+    (line,) = [x for x in format_status(st).splitlines() if x.startswith("web ")]
+    assert f"OFF: cannot listen on 127.0.0.1:{port}" in line
