@@ -346,3 +346,80 @@ def test_a_port_in_use_leaves_the_service_running_and_says_why(tmp_path) -> None
     validate_status(json.loads(json.dumps(st, default=str)))
     (line,) = [x for x in format_status(st).splitlines() if x.startswith("web ")]
     assert f"OFF: cannot listen on 127.0.0.1:{port}" in line
+
+
+def test_a_failure_in_the_page_is_counted_and_said_and_the_page_runs_on(
+    tmp_path, monkeypatch, caplog
+) -> None:
+    """The producer's render raises (a bug): counted, logged once, the status still goes out,
+    the next views are drawn again; a viewer that drops its connection leaves no trace."""
+    import aiohttp
+
+    import companion.service.web as web_module
+
+    page = Page(tmp_path)
+    view, _, _ = _view()
+    real = web_module.render
+    calls = {"n": 0}
+
+    def flaky(*args: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] <= 3:
+            raise ValueError("a bug in the drawing")
+        return real(*args)
+
+    monkeypatch.setattr(web_module, "render", flaky)
+
+    async def main() -> tuple[list[str], dict[str, Any], bool]:
+        async with page.server() as web, aiohttp.ClientSession() as http:
+            producer = asyncio.create_task(web.loop())
+            kinds: list[str] = []
+            async with http.ws_connect(f"{page.base}/ws?token={TOKEN}") as ws:
+                for _ in range(12):
+                    page.view.offer(view.frame, view.vo, view.scale_input, view.status, None)
+                    await asyncio.sleep(0.1)
+                while True:
+                    try:
+                        msg = await ws.receive(timeout=0.5)
+                    except TimeoutError:
+                        break
+                    if msg.type == aiohttp.WSMsgType.TEXT:
+                        kinds.append(json.loads(msg.data)["type"])
+                    elif msg.type == aiohttp.WSMsgType.BINARY:
+                        kinds.append("jpeg")
+            await asyncio.sleep(0.2)  # the server sees the viewer gone
+            alive = not producer.done()
+            page.rt.stop()
+            await producer
+            return kinds, web.status(), alive
+
+    kinds, st, alive = asyncio.run(main())
+    assert alive and st["errors"] == 3 and "ValueError: a bug in the drawing" in st["problem"]
+    assert "status" in kinds and kinds.count("frame") == kinds.count("jpeg") >= 3
+    assert len([r for r in caplog.records if "producer failed" in r.getMessage()]) == 1
+    assert st["viewers"] == 0 and page.view.latest is None
+
+
+def test_the_autopilots_own_position_feeds_the_page_not_the_session(tmp_path) -> None:
+    """LOCAL_POSITION_NED is parsed only with the page on, from the autopilot's system only."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.service.app import Service
+
+    service = Service(service_config(tmp_path, {"web": {"enabled": True}}))
+    assert service.web is not None
+
+    def message(system_id: int, north_m: float) -> Any:
+        mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=1)
+        buf = mavlink.MAVLink_local_position_ned_message(1000, north_m, 2.0, -5.0, 0, 0, 0)
+        return mav.parse_char(buf.pack(mav))
+
+    service._on_message(message(1, 1.0), 0)
+    service._on_message(message(1, 3.0), 0)
+    service._on_message(message(7, 9.0), 0)  # another vehicle's
+    assert list(service.web.autopilot.points) == [(1.0, 2.0), (3.0, 2.0)]
+    assert service.stats.foreign_messages == 0  # not the session's to count
+    (tmp_path / "off").mkdir()
+    off = Service(service_config(tmp_path / "off", {}))
+    assert off.web is None and 32 not in off.link._parser.wanted
+    assert 32 in service.link._parser.wanted
