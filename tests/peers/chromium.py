@@ -74,13 +74,14 @@ async def chromium(profile: Path, start_timeout_s: float = 30.0) -> AsyncIterato
     """A headless Chromium with its profile in ``profile``; yields its first page."""
     import aiohttp
 
+    port_file = profile / "DevToolsActivePort"
+    port_file.unlink(missing_ok=True)  # a profile used before: its browser's port, not ours
     proc = subprocess.Popen(
         [CHROMIUM, *FLAGS, f"--user-data-dir={profile}", "about:blank"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
     try:
-        port_file = profile / "DevToolsActivePort"
         deadline = time.monotonic() + start_timeout_s
         while not port_file.exists() or len(port_file.read_text().split()) < 2:
             if proc.poll() is not None or time.monotonic() > deadline:
