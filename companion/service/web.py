@@ -112,7 +112,7 @@ class WebServer:
     async def __aenter__(self) -> WebServer:
         app = web.Application(middlewares=[self._guard], client_max_size=4096)
         app.router.add_get("/", self._page)
-        app.router.add_get("/ws", self._socket)
+        app.router.add_get("/ws", self._socket, allow_head=False)
         runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
         await runner.setup()
         try:
