@@ -423,3 +423,31 @@ def test_the_autopilots_own_position_feeds_the_page_not_the_session(tmp_path) ->
     off = Service(service_config(tmp_path / "off", {}))
     assert off.web is None and 32 not in off.link._parser.wanted
     assert 32 in service.link._parser.wanted
+
+
+def test_the_service_stops_promptly_with_a_viewer_connected(tmp_path) -> None:
+    """The server closes while a viewer is connected and reading: its socket is closed, the
+    server's exit takes well under the viewer heartbeat's 10 s, nothing is left counted."""
+    import aiohttp
+
+    page = Page(tmp_path)
+
+    async def main() -> tuple[float, Any, int]:
+        async with aiohttp.ClientSession() as http:
+            web = page.server()
+            await web.__aenter__()
+            producer = asyncio.create_task(web.loop())
+            ws = await http.ws_connect(f"{page.base}/ws?token={TOKEN}")
+            first = await ws.receive(timeout=5.0)  # the status
+            assert json.loads(first.data)["type"] == "status"
+            t0 = asyncio.get_running_loop().time()
+            page.rt.stop()
+            await producer
+            await web.__aexit__(None, None, None)
+            took_s = asyncio.get_running_loop().time() - t0
+            last = await ws.receive(timeout=5.0)
+            return took_s, last.type, page.view.viewers
+
+    took_s, last, viewers = asyncio.run(main())
+    assert took_s < 5.0 and viewers == 0
+    assert last in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING)
