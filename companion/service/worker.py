@@ -124,7 +124,9 @@ class PipelineWorker:
         pose = None if held else p.feed_frame(frame, checked=True)  # checked by the intake
         self.status = p.status()  # a new frozen snapshot: the loop reads only this
         if self.view is not None:  # nothing at all while nobody watches
-            self.view.offer(frame, p.vo_output, p.scale_input, self.status, pose)
+            # a held frame never reached the VO: the outputs left are an earlier frame's
+            vo, scale_input = (None, None) if held else (p.vo_output, p.scale_input)
+            self.view.offer(frame, vo, scale_input, self.status, pose)
         return pose
 
     def _background(self) -> None:

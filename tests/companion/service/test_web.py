@@ -125,6 +125,13 @@ def test_the_worker_makes_no_view_while_nobody_watches(tmp_path) -> None:
     view.viewers = 0
     service.worker.process(frames[0], [], [], [])
     assert view.offered == 6
+    # a frame held for the autopilot's attitude: drawn without an earlier frame's features
+    view.viewers = 1
+    service.stats.autopilot_heartbeat_ns = 1  # an autopilot, no ATTITUDE yet: held
+    service.worker.pipeline.vo.lose()
+    service.worker.process(frames[0], [], [], [])
+    assert view.latest.frame is frames[0] and view.latest.vo is None
+    assert service.worker.pipeline.vo_output is not None  # the earlier frame's, not drawn
 
 
 def test_a_track_keeps_a_point_per_5_cm_or_second_and_gives_each_viewer_what_it_lacks() -> None:
