@@ -14,8 +14,9 @@ OUT     ?= out
 all: test
 
 # System packages: only what the Python wheels do not bring (venv support on Debian's python3,
-# the Mosquitto broker that the MQTT tests start on 127.0.0.1, and GStreamer with its Python
-# bindings for `gst:` cameras: the pip OpenCV has no GStreamer; docs/decisions.md, "Cameras").
+# the Mosquitto broker that the MQTT tests start on 127.0.0.1, GStreamer with its Python
+# bindings for `gst:` cameras: the pip OpenCV has no GStreamer; docs/decisions.md, "Cameras";
+# and Chromium, the headless browser that opens the live page in tests/e2e/test_web_browser.py).
 GST_DEBS := python3-gi gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
 	gstreamer1.0-plugins-base gstreamer1.0-plugins-good
 sysdeps:
@@ -31,6 +32,10 @@ sysdeps:
 	  echo "installing mosquitto (apt-get)"; \
 	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto >/dev/null 2>&1 || { \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto; }; }
+	@command -v chromium >/dev/null 2>&1 || { \
+	  echo "installing chromium (apt-get)"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || { \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }; }
 
 $(STAMP): pyproject.toml | sysdeps
 	$(PY) -m venv $(VENV)

@@ -36,7 +36,7 @@ from companion.geometry.lens_check import lens_problem
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
-from companion.service_options import ServiceOptions, check_link_number
+from companion.service_options import ServiceOptions, WebOptions, check_link_number
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -299,6 +299,7 @@ class Config:
     attitude: AttitudeOptions = opt(AttitudeOptions(), "roll/pitch from the distance sensors")
     dpose: DposeOptions = opt(DposeOptions(), "d-Pose in the published pose")
     service: ServiceOptions = opt(ServiceOptions(), "the service: links and output")
+    web: WebOptions = opt(WebOptions(), "the live page in a browser ([web])")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
     record: RecordOptions = opt(RecordOptions(), "the flight recorder ([record])")
 

@@ -5,6 +5,7 @@ the config is composed below everything that uses it)."""
 
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass
 from typing import Literal
 
@@ -239,3 +240,76 @@ class ServiceOptions:
                 f"frame_wait_ms: must be < stale_frame_ms ({self.stale_frame_ms}), "
                 f"got {self.frame_wait_ms}"
             )
+
+
+MIN_TOKEN_CHARS = 16  # a web token shorter than this is guessable over Wi-Fi
+LOOPBACK_NAMES = ("localhost",)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address or a name) is this machine only: 127.0.0.0/8, ::1 or
+    ``localhost``. Any other name, ``0.0.0.0`` and ``::`` (every interface) are not."""
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True, slots=True)
+class WebOptions:
+    """The live page in a browser (companion/service/web.py; docs/service.md, "The live
+    page"): the camera with its features and laser dots, the scale, the track, the health
+    lines. Read-only: GET requests only, nothing of the service can be changed from it."""
+
+    enabled: bool = opt(False, "serve the live page (costs nothing while nobody watches)")
+    host: str = opt(
+        "127.0.0.1",
+        "address to listen on: loopback by default (an SSH tunnel); another address (the "
+        "vehicle's Wi-Fi, 0.0.0.0) needs web.token",
+    )
+    port: int = opt(8080, "TCP port of the page", ge=1, le=MAX_PORT)
+    token: str = opt(
+        "",
+        f"the page's password, asked on every request (?token= or the X-Companion-Token "
+        f"header): required unless host is loopback; >= {MIN_TOKEN_CHARS} printable ASCII "
+        "characters, no spaces",
+        secret=True,
+    )
+    image_hz: float = opt(5.0, "camera images sent to a viewer per second at most", gt=0, le=10)
+    image_width: int = opt(
+        480, "images sent this wide [px] at most (smaller for phones; 0 = the camera's)", ge=0
+    )
+    jpeg_quality: int = opt(70, "JPEG quality of the images sent", ge=20, le=95)
+
+    def __post_init__(self) -> None:
+        if not self.host or any(c.isspace() for c in self.host):
+            raise ConfigError(f"host: an address or a host name, got {self.host!r}")
+        if self.token and (
+            len(self.token) < MIN_TOKEN_CHARS or not all("!" <= c <= "~" for c in self.token)
+        ):
+            raise ConfigError(
+                f"token: at least {MIN_TOKEN_CHARS} printable ASCII characters without spaces "
+                f"(got {len(self.token)} characters)"
+            )
+        if self.enabled and not self.token and not is_loopback(self.host):
+            raise ConfigError(
+                f"token: required when host is not loopback (host = {self.host!r}: anyone on "
+                'that network could watch); set web.token, or host = "127.0.0.1" and an SSH '
+                "tunnel"
+            )
+        if 0 < self.image_width < 80:
+            raise ConfigError(f"image_width: 0 (the camera's) or >= 80 px, got {self.image_width}")
+
+
+def web_flag(text: str) -> dict[str, object]:
+    """``companion run --web [HOST:]PORT`` as [web] keys (enabled, host, port); ConfigError
+    naming ``--web`` when it is not that."""
+    host, sep, port = text.rpartition(":")
+    if not port.isdigit() or not 1 <= int(port[:6]) <= MAX_PORT or (sep and not host):
+        raise ConfigError(f"--web: expected [HOST:]PORT with a port 1..{MAX_PORT}, got {text!r}")
+    keys: dict[str, object] = {"enabled": True, "port": int(port)}
+    if host:
+        keys["host"] = host.strip("[]")
+    return keys

@@ -257,6 +257,15 @@ STATUS_SCHEMA: dict[str, Any] = {
         "queued": Opt(int),
         "dropped": Opt(int),
     },
+    "web": Opt(  # the live page (companion/service/web.py)
+        {
+            "enabled": bool,
+            "url": Opt(str),
+            "listening": Opt(bool),
+            "viewers": Opt(int),
+            "problem": Opt((str, type(None))),
+        }
+    ),
 }
 
 

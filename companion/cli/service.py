@@ -87,6 +87,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     log = logging.getLogger("companion")
     cfg = load(args)
     check_path_keys(cfg)  # a FIFO state or timestamp file would block the start forever
+    if args.web is not None:  # --web [HOST:]PORT: the live page there, checked as [web] is
+        cfg = with_web(cfg, args.web)
     if args.record is not None:  # --record DIR: the [record] options, into this folder
         import dataclasses
 
@@ -106,6 +108,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{summary['latency_ms_p50']:.1f}" if summary["latency_ms_p50"] is not None else "-",
     )
     return EXIT_OK
+
+
+def with_web(cfg: Config, flag: str) -> Config:
+    """``cfg`` with the live page on at ``--web [HOST:]PORT`` (the rest of [web] kept); a
+    ConfigError naming ``--web`` or the [web] key (a Wi-Fi address without web.token)."""
+    import dataclasses
+
+    from companion.config import from_dict, to_dict
+    from companion.service_options import WebOptions, web_flag
+
+    web = from_dict(WebOptions, {**to_dict(cfg.web), **web_flag(flag)}, "web.")
+    return dataclasses.replace(cfg, web=web)
 
 
 async def _serve(
@@ -174,6 +188,15 @@ def _mqtt_line(m: dict[str, Any]) -> str:
         return "disabled"
     state = "connected" if m.get("connected") else "NOT connected"
     return f"{state}, {m.get('queued', 0)} queued, {m.get('dropped', 0)} dropped"
+
+
+def _web_line(w: dict[str, Any]) -> str:
+    """The live page: where, and who watches (or why it is off)."""
+    if not w.get("enabled"):
+        return "disabled"
+    if not w.get("listening", True):
+        return f"OFF: {w.get('problem') or 'not listening'}"
+    return f"{w.get('url', '-')}  {w.get('viewers', 0)} viewer(s)"
 
 
 def _signing_text(ap: dict[str, Any]) -> str:
@@ -277,6 +300,7 @@ def format_status(st: dict[str, Any]) -> str:
         ("camera", _camera_text(st["camera"])),
         *_estimate_rows(st),
         ("MQTT", _mqtt_line(st["mqtt"])),
+        ("web", _web_line(st.get("web") or {"enabled": False})),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]
@@ -309,6 +333,12 @@ def add_run(sub: Any) -> None:
         help="record what the pipeline is fed into the new file DIR.mcap ({start}: the start "
         "time; record.format = 'folder': the new folder DIR); `companion eval DIR.mcap` "
         "replays it ([record] in the config: budget, format, image)",
+    )
+    p_run.add_argument(
+        "--web",
+        metavar="[HOST:]PORT",
+        help="serve the live page on PORT (HOST: 127.0.0.1; another address needs web.token "
+        'in the config); docs/service.md, "The live page"',
     )
     p_run.add_argument("--terrain", help=argparse.SUPPRESS)
     p_run.add_argument("--trajectory", help=argparse.SUPPRESS)

@@ -10,7 +10,8 @@ The parts, each a module with its concern:
 - worker: frames and samples through the Pipeline on a worker thread;
 - publisher: poses shaped for the autopilot and sent;
 - operator_messages: the health check's warnings, STATUSTEXT;
-- report: the status and the exit summary; mqtt_feed: what goes to the broker.
+- report: the status and the exit summary; mqtt_feed: what goes to the broker;
+- web: the live page in a browser (``[web]``), fed by the worker's 1-slot view (web_view).
 
 Structure: ``Service`` is an async context manager that enters its components through one
 AsyncExitStack (a failure part-way closes what was already open) and runs one TaskGroup of
@@ -22,6 +23,8 @@ Threads, and the one rule for what crosses them:
   inside the receive callback), ServiceStats, MQTT, the status socket;
 - the worker thread owns the Pipeline and publishes a frozen snapshot of its status after
   each frame (worker.py): the status, MQTT and the exit summary read only that;
+- the worker thread hands the live page, only while somebody watches, a frozen view of
+  references into a 1-slot holder (web_view.py); the page renders it on its own thread;
 - the camera reader thread shares only under the frame intake's lock, and reports a camera
   fault's start and end with ``call_soon_threadsafe`` (frame_intake.py);
 - serial readers (TFmini, a serial autopilot link) hand their samples and bytes to the loop
@@ -59,8 +62,12 @@ from companion.service.runtime import Runtime, ServiceStats
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
+from companion.service.web import WebServer
+from companion.service.web_view import LatestView
 from companion.service.worker import PipelineWorker
 from companion.types import VoState
+
+LOCAL_POSITION_NED = 32  # MAVLINK_MSG_ID_LOCAL_POSITION_NED: the autopilot's own estimate
 
 
 class Service:
@@ -80,6 +87,8 @@ class Service:
         self.resets = ResetCounter(state_dir(o.state_dir) / RESET_COUNTER_FILE)
         pipeline = Pipeline(config)  # touched by the worker thread only
         self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
+        # the live page draws the autopilot's own estimate beside ours
+        web_inputs = frozenset({LOCAL_POSITION_NED}) if config.web.enabled else frozenset()
         self.link = MavlinkLink(
             o.mavlink_url,
             o.system_id,
@@ -88,7 +97,7 @@ class Service:
             Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
             o.mavlink_local_port,
             # the rest is skipped unparsed (floods, streams)
-            wanted=messages.SERVICE_INPUTS | ardupilot.ARDUPILOT_INPUTS,
+            wanted=messages.SERVICE_INPUTS | ardupilot.ARDUPILOT_INPUTS | web_inputs,
         )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt = MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
@@ -111,9 +120,16 @@ class Service:
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self.intake = FrameIntake(rt, self.camera, pipeline.check_frame)
         self.publisher = Publisher(rt, self.link, self.session, self.resets, self.recorder)
+        self.web_view = LatestView() if config.web.enabled else None
         self.worker = PipelineWorker(
-            rt, pipeline, self.intake, self.session, self.publisher, self.recorder
+            rt, pipeline, self.intake, self.session, self.publisher, self.recorder, self.web_view
         )
+        self.web = None
+        if self.web_view is not None:
+            self.web = WebServer(
+                rt, config.web, self.web_view, pipeline.camera, config.scale, self.status
+            )
+            self.worker.on_sent = self.web.on_pose
         self.operator = OperatorMessages(
             rt,
             self.link,
@@ -137,6 +153,7 @@ class Service:
                 self.recorder,
                 self.mqtt,
                 self.status_server,
+                self.web,
             ),
         )
         self.mqtt_feed = MqttFeed(rt, self.mqtt, self.status, self.publisher) if self.mqtt else None
@@ -152,7 +169,12 @@ class Service:
         return self.worker.pipeline
 
     def _on_message(self, msg: Any, rx_ns: int) -> None:
-        """The link's callback (the session is made after the link)."""
+        """The link's callback (the session is made after the link); the autopilot's
+        LOCAL_POSITION_NED (asked for only with the live page) to the page."""
+        if self.web is not None and msg.get_msgId() == LOCAL_POSITION_NED:
+            if msg.get_srcSystem() == self.config.service.system_id:
+                self.web.on_local_position(msg)
+            return
         self.session.on_message(msg, rx_ns)
 
     def _tfmini(self, rf: Any) -> Any:
@@ -183,6 +205,8 @@ class Service:
             loops["statustext"] = self.operator.statustext_loop()
         if self.systemd.watchdog_s:
             loops["watchdog"] = self._watchdog_loop()
+        if self.web is not None:
+            loops["web"] = self.web.loop()
         if self.mqtt_feed is not None:
             loops["mqtt-status"] = self.mqtt_feed.status_loop()
             loops["mqtt-pose"] = self.mqtt_feed.pose_loop()
@@ -208,6 +232,8 @@ class Service:
             await stack.enter_async_context(self.link)
             if self.mqtt is not None:
                 await stack.enter_async_context(self.mqtt)
+            if self.web is not None:  # a port in use is said; the service runs on
+                await stack.enter_async_context(self.web)
             # the recorder says why it stopped from its thread:
             warn = self.runtime.warn
             stack.enter_context(self.recorder.running(lambda t: loop.call_soon_threadsafe(warn, t)))

@@ -28,6 +28,7 @@ from companion.service.operator_messages import OperatorMessages
 from companion.service.recorder import Recorder
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.service.status import StatusServer
+from companion.service.web import WebServer
 from companion.service.worker import PipelineWorker
 
 
@@ -46,6 +47,7 @@ class ReportSources:
     recorder: Recorder
     mqtt: MqttPublisher | None
     status_server: StatusServer
+    web: WebServer | None = None  # the live page ([web]), when enabled
 
 
 class Report:
@@ -119,6 +121,7 @@ class Report:
             "statustext": vars(src.operator.limiter.stats),
             "mqtt": dataclasses.asdict(src.mqtt.stats) if src.mqtt else None,
             "status_socket": dataclasses.asdict(src.status_server.stats),
+            "web": src.web.status() if src.web else None,
         }
 
     def status(self) -> dict[str, Any]:
@@ -186,6 +189,8 @@ class Report:
             # floods refused
             "status_socket": dataclasses.asdict(self.src.status_server.stats),
             "recorder": self.src.recorder.status(),
+            # the live page: where, who watches, what it sent and skipped, why it is off
+            "web": self.src.web.status() if self.src.web else {"enabled": False},
             "warnings": list(s.warnings),
         }
 

@@ -105,7 +105,12 @@ class Runtime:
         self.stats = ServiceStats(started_ns=self.clock())
         self.stop_event = asyncio.Event()
         # what a warning must never show (a driver's error may quote the camera URL)
-        self.secrets = [*url_secrets(o.camera_url), *url_secrets(o.mavlink_url), o.mqtt.password]
+        self.secrets = [
+            *url_secrets(o.camera_url),
+            *url_secrets(o.mavlink_url),
+            o.mqtt.password,
+            config.web.token,
+        ]
         self.warning_listeners: list[Callable[[str], None]] = []
         self.stop_listeners: list[Callable[[], None]] = []  # woken on stop (a waiting loop)
 

@@ -5,7 +5,9 @@ Inputs: frames (``FrameIntake.next_frame``), ranges, attitudes and IMU samples
 (``AutopilotSession.take_samples``). Outputs: poses to the ``Publisher``, the frames and
 samples to the recorder, ``status`` (the pipeline's frozen ``PipelineStatus`` snapshot, the
 only thing the event loop reads of the pipeline), ``vo_state``, the
-processing counters and timings in ``ServiceStats``.
+processing counters and timings in ``ServiceStats``; with the live page, while somebody
+watches, each frame's view into its 1-slot holder (``LatestView.offer``: references only), and
+each pose sent to ``on_sent`` (on the loop).
 
 Threads: the worker thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) owns the
 Pipeline and replaces ``status`` (a reference swap, atomic in CPython) after each frame.
@@ -16,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 
 from companion.pipeline import Pipeline, PipelineStatus, Sample
 from companion.service.autopilot_session import AutopilotSession
@@ -23,6 +26,7 @@ from companion.service.frame_intake import FrameIntake
 from companion.service.publisher import Publisher
 from companion.service.recorder import Recorder
 from companion.service.runtime import Runtime
+from companion.service.web_view import LatestView
 from companion.types import (
     AttitudeSample,
     CameraFrame,
@@ -49,6 +53,7 @@ class PipelineWorker:
         session: AutopilotSession,
         publisher: Publisher,
         recorder: Recorder,
+        view: LatestView | None = None,
     ) -> None:
         self.rt = rt
         self.pipeline = pipeline  # touched by the worker thread only
@@ -56,6 +61,8 @@ class PipelineWorker:
         self.session = session
         self.publisher = publisher
         self.recorder = recorder
+        self.view = view  # the live page's holder (None: no page)
+        self.on_sent: Callable[[PoseEstimate], None] | None = None  # each pose sent, on the loop
         self.status: PipelineStatus = pipeline.status()  # the worker replaces it
         self.vo_state = VoState.INITIALIZING  # of the last frame processed
         self._vo_start_logged = -1  # vo_resets of the last initialisation logged
@@ -90,7 +97,10 @@ class PipelineWorker:
             s.process_ms.append((time.perf_counter() - t0) * 1e3)
             s.frames_processed += 1
             self._after_frame()
+            sent = s.published
             self.publisher.publish(frame, pose)
+            if pose is not None and s.published > sent and self.on_sent is not None:
+                self.on_sent(pose)
             await asyncio.to_thread(self._background)  # after the send
             s.cycle_ms.append((time.perf_counter() - t0) * 1e3)
 
@@ -113,6 +123,10 @@ class PipelineWorker:
         self.recorder.frame(frame, ranges, atts, imus, held)  # a reference into its queue
         pose = None if held else p.feed_frame(frame, checked=True)  # checked by the intake
         self.status = p.status()  # a new frozen snapshot: the loop reads only this
+        if self.view is not None:  # nothing at all while nobody watches
+            # a held frame never reached the VO: the outputs left are an earlier frame's
+            vo, scale_input = (None, None) if held else (p.vo_output, p.scale_input)
+            self.view.offer(frame, vo, scale_input, self.status, pose)
         return pose
 
     def _background(self) -> None:

@@ -125,7 +125,15 @@ def test_runtime_dependencies_leave_the_extras_out() -> None:
     heavy_ones = ("numba", "scikit-image", "matplotlib", "evo", "pandas", "mypy", "pytest")
     for heavy in (*heavy_ones, "filterpy"):
         assert heavy not in runtime, heavy
-    for needed in ("numpy", "scipy", "opencv-python-headless", "pymavlink", "mavsdk", "pyserial"):
+    for needed in (
+        "numpy",
+        "scipy",
+        "opencv-python-headless",
+        "pymavlink",
+        "mavsdk",
+        "pyserial",
+        "aiohttp",  # the live page
+    ):
         assert needed in runtime, needed
     assert {"sim", "eval", "dev"} <= set(extras)
     assert any(d.startswith("numba") for d in extras["sim"])
@@ -160,6 +168,7 @@ def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
         "companion/cli/__init__.py",
         "companion/service/app.py",
         "companion/py.typed",
+        "companion/service/web_page.html",  # the live page, package data
         "companion/drivers/camera/__init__.py",
         "companion/drivers/mavlink.py",
         "companion/drivers/rangefinder.py",
