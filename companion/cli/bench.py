@@ -1,4 +1,5 @@
-"""``companion bench render | vo | attitude | dpose | soak``: the figures of docs/BENCHMARKS.md.
+"""``companion bench render | vo | attitude | dpose | record | soak``: the figures of
+docs/BENCHMARKS.md.
 
 Simulated flights come through ``companion.cli.sim``; the Pipeline is imported inside the
 commands, so that the other commands start without it.
@@ -207,8 +208,61 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+RECORD_OPTIONS: tuple[tuple[str, dict[str, Any]], ...] = (  # `companion bench record`
+    ("folder, PNG", {"format": "folder"}),
+    ("MCAP, colour PNG", {"format": "mcap", "image": "colour"}),
+    ("MCAP, grey PNG (auto)", {"format": "mcap", "image": "auto"}),
+    ("MCAP, grey JPEG 95", {"format": "mcap", "image": "grey", "image_format": "jpg"}),
+)
+
+
+def cmd_bench_record(args: argparse.Namespace) -> int:
+    """The flight recorder's size and writer CPU per frame, by [record] option: the first
+    ``--frames`` frames of a dataset (with their samples) through a ``Recorder`` each, into
+    a temporary folder; per minute = per frame x 1800 (30 Hz). The writer's CPU is its own
+    thread's (``writer_cpu_s``): it does not depend on what else the machine runs."""
+    import dataclasses
+    import tempfile
+
+    from companion.drivers.dataset import dataset_steps, open_dataset
+    from companion.service.recorder import Recorder
+
+    if args.frames < 1:
+        raise ConfigError(f"--frames: must be >= 1, got {args.frames}")
+    ds = open_dataset(args.dataset)
+    steps = [s for _, s in zip(range(args.frames), dataset_steps(ds), strict=False)]
+    if ds.config is None:
+        raise ConfigError(f"{args.dataset}: not a dataset of ours (no calibration.toml)")
+    base = load(args)
+    base = dataclasses.replace(base, camera=ds.config.camera, rangefinders=ds.config.rangefinders)
+    print(f"machine: {machine_description()}")
+    print(f"{args.dataset}: {len(steps)} frames {ds.camera.width}x{ds.camera.height}")
+    print("| option | size per frame | per minute at 30 Hz | writer CPU per frame | replay |")
+    print("|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory(prefix="bench-record-") as tmp:
+        for k, (name, keys) in enumerate(RECORD_OPTIONS):
+            record = dataclasses.replace(
+                base.record, dir=f"{tmp}/rec{k}", queue_frames=len(steps) + 2, **keys
+            )
+            cfg = dataclasses.replace(base, record=record)
+            with Recorder(record, cfg).running() as rec:
+                for s in steps:
+                    rec.frame(s.frame, [r.sample for r in s.ranges if r.sample], s.attitudes)
+            st = rec.status()
+            path = rec.path
+            assert path is not None
+            files = path.rglob("*") if path.is_dir() else [path]
+            size = sum(f.stat().st_size for f in files if f.is_file()) / max(st["frames"], 1)
+            exact = "exact" if record.image_format == "png" else "approximate"
+            print(
+                f"| {name} | {size / 1e3:.1f} kB | {size * 1800 / 1e9:.2f} GB | "
+                f"{st['writer_cpu_s'] / max(st['frames'], 1) * 1e3:.1f} ms | {exact} |"
+            )
+    return EXIT_OK
+
+
 def add_bench(sub: Any) -> None:
-    """``companion bench render | vo | attitude | dpose | soak``."""
+    """``companion bench render | vo | attitude | dpose | record | soak``."""
     p_bench = sub.add_parser("bench", help="benchmarks")
     bench_sub = p_bench.add_subparsers(dest="bench_command", required=True)
     p_br = bench_sub.add_parser("render", help="SITL rendering speed on one core")
@@ -245,6 +299,13 @@ def add_bench(sub: Any) -> None:
     p_bd = bench_sub.add_parser("dpose", help="d-Pose cost per frame, one core")
     add_sitl_flags(p_bd)
     p_bd.set_defaults(func=cmd_bench_dpose)
+    p_brec = bench_sub.add_parser(
+        "record", help="the flight recorder's size and writer CPU per frame, by [record] option"
+    )
+    p_brec.add_argument("dataset", type=Path, help="a dataset (e.g. `companion sitl record`)")
+    p_brec.add_argument("--config", type=Path, help="TOML config file (default: built-in)")
+    p_brec.add_argument("--frames", type=int, default=300, help="frames recorded per option")
+    p_brec.set_defaults(func=cmd_bench_record)
     p_bs = bench_sub.add_parser(
         "soak", help="the service process against the SITL for a long flight: memory, drops"
     )

@@ -190,6 +190,10 @@ class Service:
         )
 
     # ------------------------------------------------------------------ lifecycle
+    def _record_warning(self, text: str) -> None:
+        """A warning (already redacted) on the recording's /log."""
+        self.recorder.log_line(self.runtime.clock() // 1000, text, "WARNING", "companion.service")
+
     def _loops(self) -> dict[str, Coroutine[Any, Any, None]]:
         """The loops to run, by task name."""
         loops: dict[str, Coroutine[Any, Any, None]] = {
@@ -237,6 +241,7 @@ class Service:
             # the recorder says why it stopped from its thread:
             warn = self.runtime.warn
             stack.enter_context(self.recorder.running(lambda t: loop.call_soon_threadsafe(warn, t)))
+            self.runtime.warning_listeners.append(self._record_warning)
             tg = await stack.enter_async_context(asyncio.TaskGroup())
             for name, coro in self._loops().items():
                 self.tasks.append(tg.create_task(coro, name=name))

@@ -25,6 +25,8 @@ from companion.types import VoState
 CAMERA_SILENT_S = 1.0  # no frame for this long (or 10 frame periods, if longer): said, shown
 AUTOPILOT_UNHEARD_S = 5.0  # no heartbeat this long after the start: said, with the link's error
 HEALTH_PERIOD_S = 0.5
+# MAV_SEVERITY 0..7 (EMERGENCY .. DEBUG) as a recording's foxglove.Log level
+LOG_LEVEL_OF_SEVERITY = ("FATAL", "FATAL", "FATAL", "ERROR", "WARNING", "INFO", "INFO", "DEBUG")
 
 
 @dataclass(eq=False, repr=False)
@@ -147,6 +149,8 @@ class OperatorMessages:
         for msg in messages.statustext(self.link.mav, severity, text, self._text_id):
             self.link.send(msg)
         self.rt.stats.statustexts.append((int(severity), text))
+        level = LOG_LEVEL_OF_SEVERITY[min(max(int(severity), 0), 7)]
+        self.worker.recorder.log_line(self.rt.clock() // 1000, text, level, "companion.statustext")
 
     def last_words(self, tasks: Sequence[asyncio.Task[None]]) -> None:
         """At exit: what is still pending, then why we stop (the first of ``tasks`` that

@@ -32,7 +32,6 @@ import logging
 import os
 import queue
 import shutil
-import stat
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -44,8 +43,10 @@ from companion import __version__
 from companion.config import Config, RecordOptions
 from companion.drivers.dataset.recording import (
     RecordingWriter,
+    empty_folder_of_ours,
     image_mode,
     make_writer,
+    recording_dir,
     recording_path,
 )
 from companion.errors import DatasetError
@@ -71,28 +72,21 @@ class FrameRecord:
     held: bool = False
 
 
-Item = FrameRecord | PoseEstimate
+@dataclass(frozen=True, slots=True)
+class Note:
+    """For the recording's viewers, not its replay (an MCAP's /companion/state and /log): the
+    pipeline's ``status`` after the frame of ``time_us`` with the autopilot clock's
+    ``offset_us``, or (``status`` None) a ``text`` line of ``level`` said by ``name``."""
+
+    time_us: int
+    status: Any = None
+    offset_us: float | None = None
+    text: str = ""
+    level: str = "INFO"
+    name: str = ""
 
 
-def _empty_folder_of_ours(path: Path) -> bool:
-    """Whether ``path`` is an empty folder (not a link to one) that we own and nobody else
-    may write into: nobody can have planted anything in it, nor can while we record."""
-    try:
-        st = path.lstat()
-    except FileNotFoundError:
-        return False
-    return (
-        stat.S_ISDIR(st.st_mode)
-        and st.st_uid == os.geteuid()
-        and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
-        and not any(path.iterdir())
-    )
-
-
-def recording_dir(template: str, start: time.struct_time | None = None) -> Path:
-    """``record.dir`` with ``{start}`` replaced by the start time (local, YYYYmmdd-HHMMSS)."""
-    stamp = time.strftime("%Y%m%d-%H%M%S", start or time.localtime())
-    return Path(template.replace("{start}", stamp)).expanduser()
+Item = FrameRecord | PoseEstimate | Note
 
 
 class Recorder:
@@ -150,7 +144,7 @@ class Recorder:
         o = self.options
         for k in range(1, SIBLING_ATTEMPTS + 1):
             path = recording_path(wanted, o, k)
-            ours = o.format == "folder" and _empty_folder_of_ours(path)
+            ours = o.format == "folder" and empty_folder_of_ours(path)
             try:
                 writer = make_writer(path, self.config, o, __version__, ours)
             except FileExistsError:
@@ -235,6 +229,17 @@ class Recorder:
         if self.state == "recording":
             self._queue.put(pose)
 
+    def pipeline_state(self, time_us: int, status: Any, offset_us: float | None) -> None:
+        """The pipeline's frozen status after the frame of ``time_us`` (a reference) and the
+        autopilot clock's offset (ours - its, [us]; None: not known yet)."""
+        if self.state == "recording":
+            self._queue.put(Note(time_us, status, offset_us))
+
+    def log_line(self, time_us: int, text: str, level: str, name: str) -> None:
+        """A line the service said (a warning, a STATUSTEXT): on the recording's /log."""
+        if self.state == "recording":
+            self._queue.put(Note(time_us, text=text, level=level, name=name))
+
     # ------------------------------------------------------------------ the writer thread
     def _run(self) -> None:
         """The writer thread: the only one that touches the DatasetWriter. After a stop it
@@ -260,7 +265,12 @@ class Recorder:
                 if isinstance(item, FrameRecord):
                     with self._lock:
                         self._queued_frames -= 1
-                if isinstance(item, PoseEstimate):
+                if isinstance(item, Note):
+                    if item.status is not None:
+                        writer.write_state(item.time_us, item.status, item.offset_us)
+                    else:
+                        writer.log(item.time_us, item.text, item.level, item.name)
+                elif isinstance(item, PoseEstimate):
                     writer.write_pose(item)
                     self._poses += 1
                 elif not self._write_frame(writer, item):

@@ -47,6 +47,7 @@ RANGE = "/companion/range"
 ATTITUDE = "/companion/attitude"
 IMU = "/companion/imu"
 PUBLISHED = "/companion/published"
+STATE = "/companion/state"
 
 PROTOBUF_TOPICS: dict[str, Any] = {
     IMAGE: CompressedImage,
@@ -133,6 +134,31 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         },
         optional=("covariance_diag",),
     ),
+    STATE: _schema(
+        "companion.State",
+        "the pipeline after a frame (time_us: the frame's): the VO's state, features, "
+        "keyframes and resets; the published scale method, its scale [m per VO unit] and "
+        "sigma (null before the first), the sensors of its last update; roll and pitch from "
+        "the distance sensors [deg] and their sigma; d-Pose corrections; the autopilot's "
+        "clock: autopilot_offset_us = ours - the autopilot's (its boot time, as PX4's .ulg "
+        "and ArduPilot's .bin stamp), null until time sync converged",
+        {
+            "time_us": _INT,
+            "vo_state": {"type": "string"},
+            "features": _INT,
+            "keyframes": _INT,
+            "vo_resets": _INT,
+            "method": {"type": "string"},
+            "scale": _OPT_NUM,
+            "scale_sigma": _OPT_NUM,
+            "sensors_used": _INT,
+            "roll_deg": _OPT_NUM,
+            "pitch_deg": _OPT_NUM,
+            "tilt_sigma_deg": _OPT_NUM,
+            "dpose_used": _INT,
+            "autopilot_offset_us": _OPT_NUM,
+        },
+    ),
 }
 
 
@@ -212,6 +238,33 @@ def published_json(
     return to_json(data)
 
 
+def _opt(value: float | None) -> float | None:
+    return None if value is None else _floats([value])[0]
+
+
+def state_json(time_us: int, status: Any, autopilot_offset_us: float | None) -> bytes:
+    """/companion/state of the pipeline's status after a frame (``status``: a
+    ``companion.pipeline.PipelineStatus``, read by name)."""
+    return to_json(
+        {
+            "time_us": time_us,
+            "vo_state": str(status.vo_state),
+            "features": int(status.features),
+            "keyframes": int(status.keyframes),
+            "vo_resets": int(status.vo_resets),
+            "method": str(status.method),
+            "scale": _opt(status.scale),
+            "scale_sigma": _opt(status.scale_sigma),
+            "sensors_used": int(status.sensors_used),
+            "roll_deg": _opt(status.roll_deg),
+            "pitch_deg": _opt(status.pitch_deg),
+            "tilt_sigma_deg": _opt(status.tilt_sigma_deg),
+            "dpose_used": int(status.dpose_used),
+            "autopilot_offset_us": _opt(autopilot_offset_us),
+        }
+    )
+
+
 # ------------------------------------------------------------------------------ protobuf
 def descriptor_set(message_class: Any) -> bytes:
     """The FileDescriptorSet of a protobuf message class with every file it depends on (the
@@ -273,10 +326,16 @@ def pose_messages(pose: PoseEstimate, T_body_cam: F64) -> tuple[bytes, bytes]:
     return bytes(msg.SerializeToString()), bytes(tf.SerializeToString())
 
 
-def log_message(time_us: int, text: str, warning: bool = True) -> bytes:
-    """foxglove.Log of a line the recorder said (``name`` companion.recorder)."""
-    level = Log.Level.WARNING if warning else Log.Level.INFO
-    msg = Log(timestamp=_stamp(time_us), level=level, message=text, name="companion.recorder")
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "FATAL")
+
+
+def log_message(
+    time_us: int, text: str, level: str = "WARNING", name: str = "companion.recorder"
+) -> bytes:
+    """foxglove.Log of a line: ``level`` one of LOG_LEVELS; ``name`` who said it
+    (companion.recorder, companion.service: the service's warnings, companion.statustext:
+    the lines sent to the ground station)."""
+    msg = Log(timestamp=_stamp(time_us), level=Log.Level.Value(level), message=text, name=name)
     return bytes(msg.SerializeToString())
 
 

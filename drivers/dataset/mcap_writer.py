@@ -222,9 +222,16 @@ class McapDatasetWriter:
         self._add(ms.PUBLISHED, time_us, data)
         self.poses += 1
 
-    def log(self, time_us: int, text: str, warning: bool = True) -> None:
-        """A line on /log (foxglove.Log)."""
-        self._add(ms.LOG, time_us, ms.log_message(time_us, text, warning))
+    def log(
+        self, time_us: int, text: str, level: str = "WARNING", name: str = "companion.recorder"
+    ) -> None:
+        """A line on /log (foxglove.Log; ``level`` one of ``mcap_schemas.LOG_LEVELS``)."""
+        self._add(ms.LOG, time_us, ms.log_message(time_us, text, level, name))
+
+    def write_state(self, time_us: int, status: Any, autopilot_offset_us: float | None) -> None:
+        """The pipeline's state after the frame of ``time_us`` on /companion/state (for the
+        viewers: a replay recomputes it)."""
+        self._add(ms.STATE, time_us, ms.state_json(time_us, status, autopilot_offset_us))
 
     def sync(self) -> None:
         """Close the chunk being filled, write it to the OS and fsync the file."""

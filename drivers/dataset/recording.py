@@ -1,9 +1,13 @@
 """The flight recorder's writer, as ``[record]`` asks (companion/service/recorder.py): one
-MCAP file (``McapDatasetWriter``, the default) or a folder of our format (``DatasetWriter``).
+MCAP file (``McapDatasetWriter``, the default) or a folder of our format (``DatasetWriter``),
+and where it goes (``recording_dir``, ``recording_path``, ``empty_folder_of_ours``).
 """
 
 from __future__ import annotations
 
+import os
+import stat
+import time
 from pathlib import Path
 
 from companion.config import Config, RecordOptions
@@ -60,3 +64,24 @@ def make_writer(
         jpg_quality=o.jpg_quality,
         software=software,
     )
+
+
+def empty_folder_of_ours(path: Path) -> bool:
+    """Whether ``path`` is an empty folder (not a link to one) that we own and nobody else
+    may write into: nobody can have planted anything in it, nor can while we record."""
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return False
+    return (
+        stat.S_ISDIR(st.st_mode)
+        and st.st_uid == os.geteuid()
+        and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+        and not any(path.iterdir())
+    )
+
+
+def recording_dir(template: str, start: time.struct_time | None = None) -> Path:
+    """``record.dir`` with ``{start}`` replaced by the start time (local, YYYYmmdd-HHMMSS)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", start or time.localtime())
+    return Path(template.replace("{start}", stamp)).expanduser()

@@ -239,6 +239,13 @@ class DatasetWriter:
         self._files["published.csv"].flush()
         self.poses += 1
 
+    def write_state(self, time_us: int, status: Any, autopilot_offset_us: float | None) -> None:
+        """Nothing: a folder keeps what a replay needs (an MCAP also keeps the pipeline's
+        state and the service's lines for its viewers)."""
+
+    def log(self, time_us: int, text: str, level: str = "WARNING", name: str = "") -> None:
+        """Nothing (see :meth:`write_state`)."""
+
     def sync(self) -> None:
         """fsync the CSV files (what a power cut keeps; the images are checked on read)."""
         for fh in self._files.values():

@@ -5,7 +5,8 @@ both see the same stretch of flight and the same load.
 
 Prints, per state, the worker's per-frame time (``ServiceStats.process_ms``: the frame through
 ``PipelineWorker.process`` and back on the loop, which includes the view's handover) as
-median, p90 and mean, and the handover itself (``LatestView.offer``) per frame.
+median, p90 and mean, the handover itself (``LatestView.offer``) per frame, and the page
+thread's own CPU (downscale, JPEG, the laser matches) per image and per frame watched.
 
     PYTHONPATH=$PWD:$PWD/tests .venv/bin/python tests/e2e/web_cost.py [SECONDS]
 
@@ -39,6 +40,19 @@ def main(seconds: float = 44.0) -> None:
         tmp, seconds, overrides={"web": {"enabled": True, "port": port, "token": TOKEN}}
     )
     offer_ns: list[int] = []
+    render_cpu_s: list[float] = []  # the page thread's CPU per image rendered
+    import companion.service.web as web_module
+
+    render = web_module.render
+
+    def timed_render(*args: Any) -> Any:
+        t0 = time.thread_time()
+        try:
+            return render(*args)
+        finally:
+            render_cpu_s.append(time.thread_time() - t0)
+
+    web_module.render = timed_render  # type: ignore[assignment]
     windows: list[tuple[bool, list[float], int]] = []
 
     async def measure(service: Service, stub_done: asyncio.Task[Any]) -> None:
@@ -96,6 +110,13 @@ def main(seconds: float = 44.0) -> None:
             f"{'1 viewer ' if watched else 'no viewer'}: {len(times)} frames, worker per frame "
             f"p50 {statistics.median(times):.2f} ms, p90 {q[8]:.2f} ms, mean "
             f"{statistics.fmean(times):.2f} ms; {images} images sent"
+        )
+    watched_frames = sum(len(ts) for w, ts, _ in windows if w)
+    if render_cpu_s and watched_frames:
+        print(
+            f"the page's thread: {len(render_cpu_s)} images rendered, CPU p50 "
+            f"{statistics.median(render_cpu_s) * 1e3:.2f} ms an image, "
+            f"{sum(render_cpu_s) * 1e3 / watched_frames:.3f} ms per frame watched"
         )
     if offer_ns:
         us = [n / 1e3 for n in offer_ns]

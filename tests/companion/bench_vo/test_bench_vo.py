@@ -122,3 +122,29 @@ def test_bench_vo_says_so_in_one_line_when_the_vo_never_tracks(tmp_path: Path) -
     assert res.returncode == 1, (res.stdout, res.stderr)
     assert "Traceback" not in res.stderr
     assert "tracked no frame" in res.stderr and "floor:" not in res.stdout
+
+
+@pytest.mark.skipif(not CLIP.is_dir(), reason=f"the committed clip {CLIP} is missing")
+def test_bench_record_sizes_each_option_and_grey_is_under_half_the_folder() -> None:
+    """`companion bench record`: one table row per [record] option over the same frames; the
+    grey PNG (the default, exact) is well under half the colour one (the issue's bound)."""
+    cmd = [sys.executable, "-m", "companion.cli", "bench", "record", str(CLIP), "--frames", "20"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    rows = {
+        cells[1].strip(): cells[2:]
+        for line in res.stdout.splitlines()
+        if line.startswith("| ") and "kB" in line
+        for cells in [line.split("|")]
+    }
+    assert set(rows) == {
+        "folder, PNG",
+        "MCAP, colour PNG",
+        "MCAP, grey PNG (auto)",
+        "MCAP, grey JPEG 95",
+    }
+    kb = {name: float(cells[0].split()[0]) for name, cells in rows.items()}
+    assert kb["MCAP, grey PNG (auto)"] < 0.5 * kb["folder, PNG"]
+    assert kb["MCAP, colour PNG"] > 2 * kb["MCAP, grey PNG (auto)"]  # colour costs more
+    assert rows["MCAP, grey PNG (auto)"][3].strip() == "exact"
+    assert rows["MCAP, grey JPEG 95"][3].strip() == "approximate"

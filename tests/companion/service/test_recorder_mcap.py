@@ -32,6 +32,7 @@ from companion.cli import main
 from companion.config import load_config
 from companion.drivers.dataset import mcap_schemas as ms
 from companion.drivers.dataset import open_dataset, read_poses_csv
+from companion.pipeline import Pipeline
 from companion.service.recorder import Recorder
 from companion.types import AttitudeSample, CameraFrame, ImuSample, PoseEstimate, RangeSample
 
@@ -94,11 +95,17 @@ def record_synthetic(path: Path, n: int = 12, **record: object) -> tuple[Recorde
     cfg = load_config(overrides={**SMALL, "record": {"dir": str(path), **record}})
     inputs = synthetic(n)
     poses = synthetic_poses(8, inputs[n - 8][0].time_us)
+    status = Pipeline(cfg).status()  # a real PipelineStatus: no scale yet (null)
     with Recorder(cfg.record, cfg).running() as rec:
         for k, (frame, ranges, atts, imus) in enumerate(inputs):
             rec.frame(frame, ranges, atts, imus, held=k == 2)
+            rec.pipeline_state(frame.time_us, status, None if k < 3 else -1234.5)
             if k >= n - len(poses):
                 rec.pose(poses[k - (n - len(poses))])
+        rec.log_line(
+            inputs[4][0].time_us, "camera lost: dark frames", "WARNING", "companion.service"
+        )
+        rec.log_line(inputs[5][0].time_us, "CMP: VO lost", "ERROR", "companion.statustext")
     return rec, inputs, poses
 
 
@@ -108,6 +115,7 @@ def test_every_channel_has_a_schema_and_every_message_validates_against_it(
     rec, inputs, poses = record_synthetic(tmp_path / "rec")
     assert rec.state == "closed" and rec.path == tmp_path / "rec.mcap"
     counts: dict[str, int] = {}
+    logs: list[tuple[str, str]] = []
     decoder = DecoderFactory()
     with (tmp_path / "rec.mcap").open("rb") as fh:
         reader = make_reader(fh)
@@ -126,13 +134,16 @@ def test_every_channel_has_a_schema_and_every_message_validates_against_it(
                 decode = decoder.decoder_for(channel.message_encoding, schema)
                 assert decode is not None
                 decoded = decode(message.data)
+                if channel.topic == ms.LOG:
+                    logs.append((decoded.name, type(decoded).Level.Name(decoded.level)))
                 stamped = decoded.transforms[0] if channel.topic == ms.TF else decoded
                 stamp = stamped.timestamp
                 assert stamp.seconds * 10**9 + stamp.nanos == message.log_time
         attached = {a.name: a.data.decode() for a in reader.iter_attachments()}
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
     n = len(inputs)
-    assert counts[ms.IMAGE] == counts[ms.FRAME] == n == rec.status()["frames"]
+    assert counts[ms.IMAGE] == counts[ms.FRAME] == counts[ms.STATE] == n == rec.status()["frames"]
+    assert logs == [("companion.service", "WARNING"), ("companion.statustext", "ERROR")]
     assert counts[ms.POSE] == counts[ms.TF] == counts[ms.PUBLISHED] == len(poses) == 8
     assert counts[ms.RANGE] == counts[ms.ATTITUDE] == 2 * n and counts[ms.IMU] == n // 2
     assert "[camera]" in attached["calibration.toml"] and "[vo]" in attached["config.toml"]
