@@ -123,9 +123,10 @@ class PipelineWorker:
         self.recorder.frame(frame, ranges, atts, imus, held)  # a reference into its queue
         pose = None if held else p.feed_frame(frame, checked=True)  # checked by the intake
         self.status = p.status()  # a new frozen snapshot: the loop reads only this
-        sync = self.session.sync  # the autopilot's clock, for a recording's viewers
-        offset_us = sync.offset_at(self.rt.clock()) / 1e3 if sync.converged else None
-        self.recorder.pipeline_state(frame.time_us, self.status, offset_us)
+        if self.recorder.state == "recording":  # for its viewers, with the autopilot's clock
+            sync = self.session.sync
+            offset_us = sync.offset_at(self.rt.clock()) / 1e3 if sync.converged else None
+            self.recorder.pipeline_state(frame.time_us, self.status, offset_us)
         if self.view is not None:  # nothing at all while nobody watches
             # a held frame never reached the VO: the outputs left are an earlier frame's
             vo, scale_input = (None, None) if held else (p.vo_output, p.scale_input)

@@ -23,8 +23,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 from peers import sitl_flight
 
 from companion.cli import main
@@ -339,23 +342,34 @@ def same(a: np.ndarray, b: np.ndarray) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(4 * FLIGHT_S + 300)
 def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -> None:
-    """The service flies the SITL stub with --record; `companion eval DIR` replays the
-    recording through a fresh Pipeline: every pose the service sent comes out again, equal
-    to 1e-9 (the pipeline is deterministic given the same inputs in the same order, and the
-    recording keeps both: PNG frames, exact floats, the order of ingestion)."""
+    """The service flies the SITL stub with --record (the default: one MCAP file); the file,
+    read with the `mcap` library, has a valid schema for every message, an image per frame
+    the pipeline took, a pose per pose sent, the pipeline's state per frame and the
+    STATUSTEXT lines sent; `companion eval rec.mcap` replays it through a fresh Pipeline:
+    every pose the service sent comes out again, equal to 1e-9 (the pipeline is deterministic
+    given the same inputs in the same order, and the recording keeps both: lossless frames,
+    exact floats, the order of ingestion)."""
     # room for the whole flight in the writer's queue: on a machine loaded by other work the
     # (niced) writer may fall far behind, and back-pressure has its own test above
-    service = fly_recording(tmp_path, queue_frames=int(FLIGHT_S * 30) + 60)
+    service = fly_recording(tmp_path, format="mcap", queue_frames=int(FLIGHT_S * 30) + 60)
     summary = service.summary()
     assert summary["pipeline_errors"] == 0
     assert summary["recorder"]["state"] == "closed", summary["recorder"]
     sent = list(service.stats.sent)  # the last 200 poses sent, as the service held them
     assert summary["published"] >= 100 and len(sent) >= 100
 
-    rec = tmp_path / "rec"
+    rec = tmp_path / "rec.mcap"
+    counts, logs, offsets = read_mcap_validated(rec)
+    assert counts["/camera/image"] == counts["/companion/frame"] == summary["frames_processed"]
+    assert counts["/companion/state"] == summary["frames_processed"]
+    assert counts["/pose"] == counts["/companion/published"] == summary["published"]
+    statustexts = [text for name, text in logs if name == "companion.statustext"]
+    said = [t for _, t in service.stats.statustexts]  # the last words come after the close
+    assert statustexts and statustexts == said[: len(statustexts)], (statustexts, said)
+    assert offsets[-1] is not None  # the stub answers TIMESYNC: its clock's offset is known
     ds = open_dataset(rec)
     assert ds.complete and len(ds) == summary["frames_processed"]
-    published = read_poses_csv(rec / "published.csv")
+    published = ds.published
     assert len(published) == summary["published"]
 
     out = tmp_path / "replay"
@@ -375,6 +389,34 @@ def test_a_recorded_sitl_flight_replays_to_the_published_poses(tmp_path: Path) -
     check = json.loads((out / "replay.json").read_text())
     assert check["matched"] == check["published"] == len(published)
     assert check["max_position_diff_m"] <= 1e-9 and check["max_angle_diff_rad"] <= 1e-6
+
+
+def read_mcap_validated(
+    path: Path,
+) -> tuple[dict[str, int], list[tuple[str, str]], list[float | None]]:
+    """An MCAP recording read with the `mcap` library, each JSON message validated against
+    its channel's JSON schema and each protobuf one decoded with the schema the file carries:
+    the messages per topic, the /log lines (name, text) and /companion/state's clock offsets."""
+    counts: dict[str, int] = {}
+    logs: list[tuple[str, str]] = []
+    offsets: list[float | None] = []
+    decoder = DecoderFactory()
+    with path.open("rb") as fh:
+        for schema, channel, message in make_reader(fh).iter_messages():
+            assert schema is not None, channel.topic
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.message_encoding == "json":
+                data = json.loads(message.data)
+                jsonschema.validate(data, json.loads(schema.data))
+                if channel.topic == "/companion/state":
+                    offsets.append(data["autopilot_offset_us"])
+                continue
+            decode = decoder.decoder_for(channel.message_encoding, schema)
+            assert decode is not None, channel.topic
+            decoded = decode(message.data)
+            if channel.topic == "/log":
+                logs.append((decoded.name, decoded.message))
+    return counts, logs, offsets
 
 
 @pytest.mark.slow
