@@ -4,7 +4,8 @@ with a token as on a vehicle's Wi-Fi. The page loads, its camera image and pose 
 between two screenshots, and the health line of a camera fault injected mid-flight (2 s of
 black frames) appears in its DOM.
 
-``COMPANION_WEB_DOCS_PNG=docs/web-live-page.png`` also writes the last screenshot there (the
+``COMPANION_WEB_DOCS_PNG=docs/web-live-page.png`` also writes the last screenshot there, and
+the page on a phone's screen beside it as ``web-live-page-phone.png`` (the
 docs' picture of the page: docs/service.md, "The live page")."""
 
 from __future__ import annotations
@@ -82,6 +83,20 @@ def test_the_live_page_in_chromium_during_a_sitl_flight(tmp_path) -> None:
             seen["health_last"] = await page.evaluate(js.format("health"))
             seen["track_points"] = await page.evaluate("tracks.ours.length")
             seen["viewers"] = service.status()["web"]["viewers"]
+            # a phone held upright: the page fits its width (nothing to scroll sideways)
+            await page.call(
+                "Emulation.setDeviceMetricsOverride",
+                width=390,
+                height=844,
+                deviceScaleFactor=2,
+                mobile=True,
+            )
+            await asyncio.sleep(1.5)
+            seen["phone"] = await page.screenshot(shots / "phone.png")
+            seen["phone_width"] = await page.evaluate("document.documentElement.scrollWidth")
+            seen["phone_camera"] = await page.evaluate(
+                "document.getElementById('camera').getBoundingClientRect().width"
+            )
         return seen
 
     async def fly() -> tuple[dict[str, Any], dict[str, Any]]:
@@ -111,5 +126,8 @@ def test_the_live_page_in_chromium_during_a_sitl_flight(tmp_path) -> None:
     web = status["web"]
     assert web["listening"] and web["images_sent"] > 20 and web["errors"] == 0
     assert web["refused"] == 0
+    assert seen["phone_width"] <= 390 and 300 <= seen["phone_camera"] <= 390
     if docs_png:
         Path(docs_png).write_bytes(seen["last"])
+        phone = Path(docs_png)
+        phone.with_name(f"{phone.stem}-phone.png").write_bytes(seen["phone"])
