@@ -270,7 +270,7 @@ class StatusServer:
             conn.close()
             return
         try:
-            data = (json.dumps(self.provider(), default=_jsonable) + "\n").encode()
+            data = (json.dumps(self.provider(), default=jsonable) + "\n").encode()
         except Exception:  # a bug in the status: said, and this client closed unanswered
             log.exception("status socket: the status could not be made")
             conn.close()
@@ -330,8 +330,9 @@ def _peer(conn: socket.socket) -> tuple[int, int]:
     return (uid, pid)
 
 
-def _jsonable(value: Any) -> Any:
-    """numpy scalars and arrays, sets and paths for json.dumps."""
+def jsonable(value: Any) -> Any:
+    """numpy scalars and arrays, sets and paths for json.dumps (its ``default``; the status
+    socket's and the live page's)."""
     if hasattr(value, "tolist"):
         return value.tolist()
     if isinstance(value, (set, frozenset)):

@@ -38,6 +38,7 @@ from aiohttp import WSMsgType, web
 from companion.geometry.camera import CameraModel
 from companion.scale.options import ScaleOptions
 from companion.service.runtime import Runtime
+from companion.service.status import jsonable
 from companion.service.web_access import PAGE_HEADERS, authorised, same_origin
 from companion.service.web_view import LatestView, Rendered, Track, render
 from companion.service_options import WebOptions
@@ -221,7 +222,7 @@ class WebServer:
             "health": [[sev, text] for sev, text in list(s.statustexts)[-HEALTH_LINES:]],
             "warnings": list(s.warnings),
         }
-        return json.dumps(message, default=_jsonable)
+        return json.dumps(message, default=jsonable)
 
     def _failed(self, e: BaseException) -> None:
         self.stats.errors += 1
@@ -322,12 +323,3 @@ async def _drain(ws: web.WebSocketResponse) -> None:
 
 def _track_json(name: str, start: int, points: list[tuple[float, float]]) -> str:
     return json.dumps({"type": "track", "which": name, "from": start, "points": points})
-
-
-def _jsonable(value: Any) -> Any:
-    """numpy values, sets and the rest of a status for json.dumps."""
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    if isinstance(value, (set, frozenset)):
-        return sorted(value)
-    return str(value)

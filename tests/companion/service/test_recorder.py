@@ -17,7 +17,6 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 import threading
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from peers import sitl_flight
+from peers.killed_recorder import KILLED_RECORDER
 
 from companion.cli import main
 from companion.config import Config, load_config
@@ -177,39 +177,12 @@ def test_a_full_queue_stops_the_recording_never_the_caller(
     assert rec.frames_not_recorded == 15
 
 
-KILLED = textwrap.dedent(
-    """
-    import sys, time, numpy as np
-    sys.modules["tomli_w"] = None  # the service's install has no TOML writer (the sim extra)
-    from companion.config import load_config
-    from companion.service.recorder import Recorder
-    from companion.types import AttitudeSample, CameraFrame, ImuSample, RangeSample
-    camera = {"width": 320, "height": 240}  # the frames' size below
-    record = {"dir": sys.argv[1], "format": sys.argv[2]}
-    cfg = load_config(overrides={"record": record, "camera": camera})
-    rec = Recorder(cfg.record, cfg).running()
-    rng = np.random.default_rng(1)
-    k = 0
-    while True:  # until killed
-        t = 1_000_000 + k * 33_333
-        img = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
-        rec.frame(
-            CameraFrame(t, k, img),
-            [RangeSample(t - 100, 1, 3.0 + k * 1e-3, 0.1, 40.0, 100)],
-            [AttitudeSample(t - 50, np.array([1.0, 0, 0, 0]), np.zeros(3))],
-        )
-        if k == 5:
-            print("recording", flush=True)
-        k += 1
-        time.sleep(0.01)  # a camera's pace: the recorder keeps up
-    """
-)
-
-
 def test_sigkill_leaves_a_recording_readable_to_its_last_complete_frame(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
     proc = subprocess.Popen(
-        [sys.executable, "-c", KILLED, str(rec), "folder"], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", KILLED_RECORDER, str(rec), "folder"],
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "recording"

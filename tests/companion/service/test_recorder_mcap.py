@@ -17,7 +17,6 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from peers.clip_recordings import record_clip
+from peers.killed_recorder import KILLED_RECORDER
 
 from companion.cli import main
 from companion.config import load_config
@@ -227,40 +227,15 @@ def test_a_recorded_clip_replays_bit_for_bit_from_the_mcap_file(tmp_path: Path) 
     assert check["max_position_diff_m"] == 0.0
 
 
-KILLED = textwrap.dedent(
-    """
-    import sys, time, numpy as np
-    sys.modules["tomli_w"] = None  # the service's install has no TOML writer (the sim extra)
-    from companion.config import load_config
-    from companion.service.recorder import Recorder
-    from companion.types import AttitudeSample, CameraFrame, RangeSample
-    cfg = load_config(overrides={"record": {"dir": sys.argv[1]}, "camera": {"width": 320,
-        "height": 240}})
-    rec = Recorder(cfg.record, cfg).running()
-    rng = np.random.default_rng(1)
-    k = 0
-    while True:  # until killed
-        t = 1_000_000 + k * 33_333
-        rec.frame(
-            CameraFrame(t, k, rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)),
-            [RangeSample(t - 100, 1, 3.0 + k * 1e-3, 0.1, 40.0, 100)],
-            [AttitudeSample(t - 50, np.array([1.0, 0, 0, 0]), np.zeros(3))],
-        )
-        if k == 5:
-            print("recording", flush=True)
-        k += 1
-        time.sleep(0.01)  # a camera's pace: the recorder keeps up
-    """
-)
-
-
 def test_sigkill_leaves_an_mcap_file_readable_to_its_last_whole_chunk(tmp_path: Path) -> None:
     """Killed with SIGKILL after more than a chunk (4 MB: about 50 of these noise frames) and
     a sync: the file has no footer; the reader takes every whole chunk, stops cleanly at the
     torn tail and says the recording is not complete."""
     path = tmp_path / "rec.mcap"
     proc = subprocess.Popen(
-        [sys.executable, "-c", KILLED, str(tmp_path / "rec")], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", KILLED_RECORDER, str(tmp_path / "rec"), "mcap"],
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "recording"
