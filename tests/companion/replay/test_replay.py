@@ -309,3 +309,20 @@ def test_a_recording_that_crashes_mid_replay_is_reported_and_the_others_measured
     first, second = json.loads(out.read_text())["recordings"]
     assert first["kind"] == "crash (RuntimeError)" and first["error"] == "a bug in the reader"
     assert second["metrics"]["identical"] is True and second["metrics"]["frames"] == 120
+
+
+def test_an_mcap_recording_replays_as_a_folder_does(tmp_path: Path) -> None:
+    """A recording in the default format (one MCAP file, grey images) replays bit for bit to
+    what it published, and its folder twin (`companion dataset convert`) gives the same
+    metrics: the replay reads recordings through open_dataset, whatever their format."""
+    from peers.clip_recordings import record_clip
+
+    recorder, poses = record_clip(tmp_path / "clip", frames=40)
+    mcap = tmp_path / "clip.mcap"
+    assert recorder.path == mcap and len(poses) > 10
+    from_mcap = replay_recording(mcap)["metrics"]
+    assert from_mcap["identical"] is True and from_mcap["published_matched"] == len(poses)
+    assert main(["dataset", "convert", str(mcap), str(tmp_path / "folder")]) == 0
+    from_folder = replay_recording(tmp_path / "folder")["metrics"]
+    for key in ("frames", "poses", "identical", "vo_resets", "position_diff_max_m"):
+        assert from_folder[key] == from_mcap[key], key
