@@ -241,6 +241,8 @@ class Handover:
                 self.pairs.clear()  # a return that did not last: start again
                 self.last_fit_us = None
             return
+        if self.state == "held" and self.reason.startswith("GPS lost"):
+            self.reason = "GPS back: verifying it against the held alignment"
         fit = self._refit(s.time_us)
         if fit is None:
             return
