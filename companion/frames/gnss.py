@@ -159,6 +159,7 @@ class GnssMonitor:
         self.reasons = sample_reasons(fix, self.opts)
         if self.last_us is not None and fix.time_us - self.last_us > self.opts.max_age_s * 1e6:
             self._bad(self.last_us + int(self.opts.max_age_s * 1e6))  # silence was bad
+            self.good = False  # a loss, whether or not :meth:`at` was asked meanwhile
         self.last_us = fix.time_us
         if self.reasons:
             self._bad(fix.time_us)

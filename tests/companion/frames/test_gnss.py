@@ -93,6 +93,13 @@ def test_silence_is_a_loss_dated_at_its_start() -> None:
     assert not silent.good and silent.bad_since_us == 1_000_000
     assert silent.reasons == ("no GPS sample for 2.5 s",)
     assert m.update(_fix(2.6)).good  # no return hysteresis with good_after_s = 0
+    # a silence seen only by the next fix is a loss all the same: 3 s of good fixes to return
+    unasked = GnssMonitor()
+    assert [unasked.update(_fix(0.5 * k)).good for k in range(8)][-1]
+    after = unasked.update(_fix(6.0))
+    assert not after.good and after.sample_good and after.bad_since_us is None
+    back = [unasked.update(_fix(6.0 + 0.2 * k)).good for k in range(1, 16)]
+    assert back.index(True) == 14  # at 9.0 s
 
 
 def test_a_slow_loss_verdict_waits_and_keeps_the_first_bad_stamp() -> None:
