@@ -80,6 +80,8 @@ def _options(args: argparse.Namespace) -> CheckOptions:
         raise ConfigError(f"--watch-s: must be >= 0, got {args.watch_s}")
     if getattr(args, "timeout_s", 1) <= 0:
         raise ConfigError(f"--timeout-s: must be > 0, got {args.timeout_s}")
+    if getattr(args, "with_gps", False) and getattr(args, "no_gnss", False):
+        raise ConfigError("--with-gps and --no-gnss: one or the other (GPS fitted, or none)")
     return CheckOptions(**values)
 
 

@@ -35,3 +35,9 @@ class CheckOptions:
     no_gnss: bool = opt(
         False, "configure: also turn GNSS fusion off (EKF2_GPS_CTRL = 0) where none is fitted"
     )
+    with_gps: bool = opt(
+        False,
+        "GPS and our vision together: judge / write the parameters for a handover at GPS loss "
+        "and return (PX4: EKF2_GPS_CTRL, EKF2_EV_CTRL without yaw, EKF2_HGT_REF; ArduPilot: "
+        "EKF3 source set 1 GPS, set 2 ExtNav, VISO_TYPE 3; docs/gps.md)",
+    )

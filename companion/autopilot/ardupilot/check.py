@@ -7,14 +7,16 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from companion.autopilot.ardupilot.ekf3_diagnosis import ArduPilotObservations, diagnose
+from companion.autopilot.ardupilot.gps_rules import with_gps
 from companion.autopilot.ardupilot.link import ArduPilotLink, Watched
 from companion.autopilot.ardupilot.rules import ArduPilotContext, evaluate
 from companion.autopilot.options import CheckOptions
-from companion.autopilot.params import Param, finite_params
+from companion.autopilot.params import Param, Row, finite_params
 from companion.autopilot.reach import resolve_link
 from companion.autopilot.report import (
     CheckReport,
@@ -49,7 +51,15 @@ def context(
         declination_deg=(
             cfg.service.ardupilot.declination_deg if cfg.service.ardupilot.set_declination else None
         ),
+        with_gps=opts.with_gps,
     )
+
+
+def evaluate_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
+    """Every row (:func:`.rules.evaluate`); with ``ctx.with_gps`` judged for GPS (set 1) and
+    our vision (set 2) together (:mod:`.gps_rules`)."""
+    rows = evaluate(params, ctx)
+    return with_gps(rows, params, ctx) if ctx.with_gps else rows
 
 
 def _session(
@@ -73,7 +83,7 @@ async def run_check(cfg: Config, opts: CheckOptions) -> CheckReport[ArduPilotCon
     )
     ctx = context(cfg, opts, status, seen)
     finite, not_finite = finite_params(params)
-    rows = not_finite + tuple(evaluate(finite, ctx))
+    rows = not_finite + tuple(evaluate_rows(finite, ctx))
     verdict = None
     if seen is not None:
         verdict = diagnose(ArduPilotObservations(opts.watch_s, seen, status), finite, ctx)

@@ -10,9 +10,8 @@ import asyncio
 import math
 from collections.abc import Callable
 
-from companion.autopilot.ardupilot.check import context, header
+from companion.autopilot.ardupilot.check import context, evaluate_rows, header
 from companion.autopilot.ardupilot.link import ArduPilotLink
-from companion.autopilot.ardupilot.rules import evaluate
 from companion.autopilot.configure import (
     GPS_WATCH_S,
     ConfigureReport,
@@ -74,7 +73,7 @@ async def run_configure(
 
         def rows_of(values: dict[str, Param]) -> list[Row]:
             finite, not_finite = finite_params(values)
-            return [*not_finite, *evaluate(finite, ctx)]
+            return [*not_finite, *evaluate_rows(finite, ctx)]
 
         return await plan_and_write(session, head, params, rows_of, opts.yes, confirm, show)
     finally:

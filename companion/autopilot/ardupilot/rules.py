@@ -81,6 +81,7 @@ class ArduPilotContext:
     origin_seen: bool | None = None  # the EKF holds an origin (None: not watched)
     no_gnss: bool = False  # configure --no-gnss: also turn the GPS off (GPS1_TYPE = 0)
     declination_deg: float | None = None  # [service.ardupilot] declination_deg, when set
+    with_gps: bool = False  # --with-gps: GPS (set 1) and our vision (set 2) together
     odometry: bool = field(init=False)  # we send ODOMETRY
     vpe: bool = field(init=False)  # we send VISION_POSITION_ESTIMATE
 
@@ -99,7 +100,7 @@ def value_of(params: Mapping[str, Param], name: str) -> float | None:
     return float(p.value) if p is not None else None
 
 
-def _row(
+def param_row(
     params: Mapping[str, Param],
     name: str,
     judge: Callable[[float], Judgement],
@@ -136,29 +137,29 @@ def evaluate(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
         *_gps_rows(params, ctx),
         *_rangefinder_rows(params, ctx),
         # MAV_SYSID since ArduPilot 4.7 (SYSID_THISMAV before)
-        _row(
+        param_row(
             params,
             "MAV_SYSID" if "MAV_SYSID" in params else "SYSID_THISMAV",
             partial(_judge_sysid, ctx),
         ),
-        _row(params, "ARMING_CHECK", _judge_arming),
+        param_row(params, "ARMING_CHECK", _judge_arming),
     ]
 
 
 # ---------------------------------------------------------------- visual odometry
 def _viso_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
-    rows = [_row(params, "VISO_TYPE", _judge_viso_type, VISO_TYPES)]
+    rows = [param_row(params, "VISO_TYPE", _judge_viso_type, VISO_TYPES)]
     if value_of(params, "VISO_TYPE") in (None, 0.0) and "VISO_POS_X" not in params:
         return rows  # the group is hidden until VISO_TYPE is set and the autopilot rebooted
     for axis in "XYZ":
-        rows.append(_row(params, f"VISO_POS_{axis}", _judge_offset, unit="m"))
+        rows.append(param_row(params, f"VISO_POS_{axis}", _judge_offset, unit="m"))
     rows += [
-        _row(params, "VISO_ORIENT", _judge_orient),
-        _row(params, "VISO_SCALE", _judge_scale),
-        _row(params, "VISO_DELAY_MS", partial(_judge_delay, ctx), unit="ms"),
-        _row(params, "VISO_QUAL_MIN", partial(_judge_qual_min, ctx)),
-        _row(params, "VISO_POS_M_NSE", _noise_judge(0.05, 0.5, "position", 0.1), unit="m"),
-        _row(params, "VISO_YAW_M_NSE", _noise_judge(0.05, 0.5, "yaw", 0.1), unit="rad"),
+        param_row(params, "VISO_ORIENT", _judge_orient),
+        param_row(params, "VISO_SCALE", _judge_scale),
+        param_row(params, "VISO_DELAY_MS", partial(_judge_delay, ctx), unit="ms"),
+        param_row(params, "VISO_QUAL_MIN", partial(_judge_qual_min, ctx)),
+        param_row(params, "VISO_POS_M_NSE", _noise_judge(0.05, 0.5, "position", 0.1), unit="m"),
+        param_row(params, "VISO_YAW_M_NSE", _noise_judge(0.05, 0.5, "yaw", 0.1), unit="rad"),
     ]
     return rows
 
@@ -267,23 +268,23 @@ def _noise_judge(lo: float, hi: float, what: str, target: float) -> Callable[[fl
 # ---------------------------------------------------------------- EKF3 sources
 def _source_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
     return [
-        _row(
+        param_row(
             params,
             "EK3_SRC1_POSXY",
             partial(_judge_pos_source, ctx, "horizontal position"),
             SOURCES,
         ),
-        _row(
+        param_row(
             params,
             "EK3_SRC1_VELXY",
             partial(_judge_vel_source, ctx, "horizontal velocity"),
             SOURCES,
         ),
-        _row(params, "EK3_SRC1_POSZ", partial(_judge_posz_source, ctx), SOURCES),
-        _row(
+        param_row(params, "EK3_SRC1_POSZ", partial(_judge_posz_source, ctx), SOURCES),
+        param_row(
             params, "EK3_SRC1_VELZ", partial(_judge_vel_source, ctx, "vertical velocity"), SOURCES
         ),
-        _row(params, "EK3_SRC1_YAW", _judge_yaw_source, YAW_SOURCES),
+        param_row(params, "EK3_SRC1_YAW", _judge_yaw_source, YAW_SOURCES),
         *_declination_rows(params, ctx),
     ]
 
@@ -297,9 +298,9 @@ def _declination_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> lis
     turns the whole flight (7 deg = 2.4 m at 20 m from home)."""
     if value_of(params, "EK3_SRC1_YAW") != COMPASS:
         return []
-    rows = [_row(params, "COMPASS_DEC", partial(_judge_declination, ctx), unit="rad")]
+    rows = [param_row(params, "COMPASS_DEC", partial(_judge_declination, ctx), unit="rad")]
     if ctx.declination_deg is not None:
-        rows.append(_row(params, "COMPASS_AUTODEC", _judge_autodec))
+        rows.append(param_row(params, "COMPASS_AUTODEC", _judge_autodec))
     return rows
 
 
@@ -432,7 +433,7 @@ def _judge_yaw_source(v: float) -> Judgement:
 # ---------------------------------------------------------------- GPS and the origin
 def _gps_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> list[Row]:
     name = "GPS1_TYPE" if "GPS1_TYPE" in params else "GPS_TYPE"
-    rows = [_row(params, name, partial(_judge_gps_type, ctx), GPS_TYPES)]
+    rows = [param_row(params, name, partial(_judge_gps_type, ctx), GPS_TYPES)]
     gps_on = (value_of(params, name) or 0) != 0
     uses_gps = any(
         value_of(params, f"EK3_SRC1_{s}") == GPS for s in ("POSXY", "VELXY", "POSZ", "VELZ")
@@ -503,9 +504,9 @@ def _rangefinder_rows(params: Mapping[str, Param], ctx: ArduPilotContext) -> lis
     rows = []
     for sid in ctx.autopilot_sensor_ids:
         n = sid + 1
-        rows.append(_row(params, f"RNGFND{n}_TYPE", partial(_judge_rng_type, sid)))
+        rows.append(param_row(params, f"RNGFND{n}_TYPE", partial(_judge_rng_type, sid)))
         if (value_of(params, f"RNGFND{n}_TYPE") or 0) != 0:
-            rows.append(_row(params, f"RNGFND{n}_ORIENT", partial(_judge_rng_orient, sid)))
+            rows.append(param_row(params, f"RNGFND{n}_ORIENT", partial(_judge_rng_orient, sid)))
     return rows
 
 

@@ -68,6 +68,7 @@ def resolve(cfg: Config, opts: CheckOptions) -> Px4Target:
         odometry_frame=cfg.service.odometry_frame,
         oldest_stamp_ms=cfg.oldest_stamp_ms(),
         velocity_sigma_m_s=cfg.service.odometry_velocity_sigma_m_s,
+        with_gps=opts.with_gps,
     )
     return Px4Target(target.url, ctx, target.socket)
 

@@ -21,3 +21,4 @@ class LinkContext:
     # ODOMETRY centring's (service.odometry_centre_frames - 1) / 2 frames [ms]
     oldest_stamp_ms: float = 100.0
     velocity_sigma_m_s: float = 0.1  # service.odometry_velocity_sigma_m_s
+    with_gps: bool = False  # --with-gps: GPS and our vision together (docs/gps.md)

@@ -28,10 +28,15 @@ from collections.abc import Mapping
 
 from companion.autopilot.params import Param, Row
 from companion.autopilot.px4.ekf2_rules import ekf2_rows
+from companion.autopilot.px4.gps_rules import with_gps
 from companion.autopilot.px4.link_context import LinkContext
 from companion.autopilot.px4.port_rules import link_rows
 
 
 def evaluate(params: Mapping[str, Param], ctx: LinkContext) -> list[Row]:
-    """Every row, EKF2 first, then the companion's MAVLink instance."""
-    return [*ekf2_rows(params, ctx), *link_rows(params, ctx)]
+    """Every row, EKF2 first (with ``ctx.with_gps``: judged for GPS and vision together,
+    :mod:`.gps_rules`), then the companion's MAVLink instance."""
+    ekf2 = ekf2_rows(params, ctx)
+    if ctx.with_gps:
+        ekf2 = with_gps(ekf2, params, ctx)
+    return [*ekf2, *link_rows(params, ctx)]
