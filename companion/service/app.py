@@ -62,7 +62,6 @@ from companion.service.runtime import Runtime, ServiceStats
 from companion.service.state import RESET_COUNTER_FILE, ResetCounter, state_dir
 from companion.service.status import StatusServer
 from companion.service.systemd import SdNotify
-from companion.service.web import WebServer
 from companion.service.web_view import LatestView
 from companion.service.worker import PipelineWorker
 from companion.types import VoState
@@ -126,6 +125,8 @@ class Service:
         )
         self.web = None
         if self.web_view is not None:
+            from companion.service.web import WebServer  # aiohttp: loaded with the page only
+
             self.web = WebServer(
                 rt, config.web, self.web_view, pipeline.camera, config.scale, self.status
             )

@@ -14,7 +14,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,8 +28,10 @@ from companion.service.operator_messages import OperatorMessages
 from companion.service.recorder import Recorder
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.service.status import StatusServer
-from companion.service.web import WebServer
 from companion.service.worker import PipelineWorker
+
+if TYPE_CHECKING:  # aiohttp is loaded with the page only (app.py)
+    from companion.service.web import WebServer
 
 
 @dataclass

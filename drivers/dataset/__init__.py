@@ -20,12 +20,13 @@ The modules:
 - ``ours`` and ``euroc``: the two readers; ``detect``: ``open_dataset`` picks one;
 - ``tum``: TUM trajectories; ``writer`` and ``toml_text``: ``DatasetWriter`` and its files;
 - ``mcap_schemas``, ``mcap_writer``, ``mcap_records``, ``mcap_reader``: a recording as one
-  MCAP file (its channels, ``McapDatasetWriter``, the bounded record reader, ``read_mcap``).
+  MCAP file (its channels, ``McapDatasetWriter``, the bounded record reader, ``read_mcap``),
+  imported only when a recording is MCAP: the service with neither recording nor MCAP
+  replays does not load mcap, zstandard or protobuf.
 """
 
 from companion.drivers.dataset.detect import open_dataset
 from companion.drivers.dataset.format import FORMAT_NAME, FORMAT_VERSION, PublishedPose
-from companion.drivers.dataset.mcap_writer import McapDatasetWriter, mcap_path
 from companion.drivers.dataset.model import Dataset, DatasetStep, check_lens, dataset_steps
 from companion.drivers.dataset.rows import read_poses_csv
 from companion.drivers.dataset.tum import read_tum, write_tum
@@ -37,12 +38,10 @@ __all__ = [
     "Dataset",
     "DatasetStep",
     "DatasetWriter",
-    "McapDatasetWriter",
     "PublishedPose",
     "calibration_tables",
     "check_lens",
     "dataset_steps",
-    "mcap_path",
     "open_dataset",
     "read_poses_csv",
     "read_tum",

@@ -7,7 +7,6 @@ from pathlib import Path
 
 from companion.drivers.dataset.euroc import read_euroc
 from companion.drivers.dataset.format import FORMAT_NAME
-from companion.drivers.dataset.mcap_reader import read_mcap
 from companion.drivers.dataset.model import Dataset
 from companion.drivers.dataset.ours import read_ours
 from companion.drivers.safe_files import (
@@ -24,6 +23,8 @@ def open_dataset(path: str | Path) -> Dataset:
     parse are left out and counted (``Dataset.skipped``)."""
     p = Path(path)
     if p.suffix == ".mcap" or (p.exists() and not p.is_dir()):
+        from companion.drivers.dataset.mcap_reader import read_mcap  # mcap, zstd: on use
+
         return read_mcap(p)
     if not p.is_dir():
         raise DatasetError(f"dataset folder not found: {p}")

@@ -9,12 +9,15 @@ import os
 import stat
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeAlias
 
 from companion.config import Config, RecordOptions
-from companion.drivers.dataset.mcap_writer import McapDatasetWriter, mcap_path
 from companion.drivers.dataset.writer import DatasetWriter
 
-RecordingWriter = DatasetWriter | McapDatasetWriter
+if TYPE_CHECKING:  # at run time imported on use: a service that records no MCAP never loads it
+    from companion.drivers.dataset.mcap_writer import McapDatasetWriter
+
+RecordingWriter: TypeAlias = "DatasetWriter | McapDatasetWriter"
 
 
 def image_mode(options: RecordOptions, config: Config) -> str:
@@ -32,6 +35,8 @@ def recording_path(wanted: Path, options: RecordOptions, k: int = 1) -> Path:
     ``wanted.mcap`` or the folder ``wanted``; ``k`` > 1: the k-th sibling (``wanted-k.mcap``,
     ``wanted-k``), when that is taken."""
     if options.format == "mcap":
+        from companion.drivers.dataset.mcap_writer import mcap_path  # mcap, zstd: on use
+
         p = mcap_path(wanted)
         return p if k == 1 else p.with_name(f"{p.stem}-{k}{p.suffix}")
     return wanted if k == 1 else wanted.with_name(f"{wanted.name}-{k}")
@@ -45,6 +50,8 @@ def make_writer(
     own that nobody else may write into (systemd's StateDirectory=), used as it is."""
     o = options
     if o.format == "mcap":
+        from companion.drivers.dataset.mcap_writer import McapDatasetWriter
+
         return McapDatasetWriter(
             path,
             config,

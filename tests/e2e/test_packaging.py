@@ -281,3 +281,25 @@ def test_a_simulator_command_without_the_sim_extra_names_the_extra(tmp_path: Pat
     assert "Traceback" not in r.stderr, r.stderr[-3000:]
     assert "needs the 'sim' extra" in r.stderr and "pip install 'companion[sim]'" in r.stderr
     assert not (tmp_path / "d").exists()
+
+
+ON_USE_ONLY = ("aiohttp", "mcap", "zstandard", "google.protobuf", "foxglove_schemas_protobuf")
+
+
+def test_the_page_and_mcap_packages_load_only_when_used() -> None:
+    """The service with [web] off and no MCAP recording loads neither aiohttp nor the MCAP
+    stack (15 MB of the process's memory at start on x86); a replay of a folder neither."""
+    probe = (
+        "import sys, json\n"
+        "import companion.service.app, companion.cli.service, companion.drivers.dataset\n"
+        "from companion.service.recorder import Recorder\n"
+        f"print(json.dumps(sorted(m for m in {ON_USE_ONLY!r} if m in sys.modules)))\n"
+        "from companion.drivers.dataset.recording import make_writer\n"
+        "import companion.service.web, companion.drivers.dataset.mcap_reader\n"
+        f"print(json.dumps(sorted(m for m in {ON_USE_ONLY!r} if m in sys.modules)))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    before, after = (json.loads(line) for line in r.stdout.splitlines()[-2:])
+    assert before == [], before
+    assert after == sorted(ON_USE_ONLY)  # the probe sees them when they are loaded

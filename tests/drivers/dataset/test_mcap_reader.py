@@ -15,8 +15,9 @@ import pytest
 from mcap.writer import Writer
 
 from companion.config import Config, load_config
-from companion.drivers.dataset import McapDatasetWriter, open_dataset
 from companion.drivers.dataset import mcap_schemas as ms
+from companion.drivers.dataset import open_dataset
+from companion.drivers.dataset.mcap_writer import McapDatasetWriter
 from companion.errors import DatasetError
 from companion.types import AttitudeSample, CameraFrame, RangeSample
 
