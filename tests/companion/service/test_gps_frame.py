@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
+from peers.mavlink_peers import EncodingLink as FakeLink
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.config import load_config
@@ -32,18 +33,6 @@ from companion.types import PoseEstimate
 YAW = math.radians(37.0)
 OFFSET = np.array([5.0, -3.0, 0.4])
 RATE_HZ = 30.0
-
-
-class FakeLink:
-    """What the GPS frame's actions use of the link: an encoder and send."""
-
-    def __init__(self) -> None:
-        self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
-        self.sent: list = []
-
-    def send(self, msg: object) -> bool:
-        self.sent.append(msg)
-        return True
 
 
 def vehicle(t_s: float) -> tuple[np.ndarray, float]:
@@ -174,7 +163,7 @@ def test_a_reset_of_our_frame_while_held_keeps_the_output_continuous() -> None:
 
 
 def test_an_unanswered_action_is_retried_and_given_up() -> None:
-    frame, link, f = fly(seconds=40.0, echo=False)
+    frame, link, _ = fly(seconds=40.0, echo=False)
     sets = [bytewise_int32(m.param_value) for m in link.sent if m.get_type() == "PARAM_SET"]
     assert sets == [0] * 5  # MAX_TRIES, a second apart
     status = frame.status()["handover"]
@@ -203,24 +192,3 @@ def test_malformed_fixes_and_origins_are_counted_and_dropped() -> None:
     s = frame.status()
     assert s["gps"]["dropped"] == 5 and s["gps"]["fixes"] == 0 and not s["gps"]["origin"]
     assert s["state"] == "own" and not s["gps"]["good"]
-
-
-def test_auto_tells_the_autopilot_its_heartbeat_names() -> None:
-    from companion.service.runtime import AutopilotKind
-
-    rt = Runtime(load_config(None, {"gps": {"align": True, "handover": "auto"}}))
-    link = FakeLink()
-    frame = GpsFrame(rt, link)
-    assert frame.actions.target() is None
-    rt.stats.autopilot_kind = AutopilotKind.ARDUPILOT
-    frame.actions.on_loss()
-    cmd = link.sent[-1]
-    assert cmd.get_type() == "COMMAND_LONG" and cmd.command == 42007 and cmd.param1 == 2.0
-    frame.actions.on_command_ack(42007, 5)  # IN_PROGRESS: not an answer
-    assert frame.actions.current is not None and frame.actions.current.result == "pending"
-    frame.actions.on_command_ack(42007, 4)
-    assert frame.actions.status()[-1]["result"] == "refused (MAV_RESULT_FAILED)"
-    frame.actions.on_return()
-    assert link.sent[-1].param1 == 1.0
-    frame.actions.on_command_ack(42007, 0)
-    assert frame.actions.status()[-1]["result"] == "acknowledged"
