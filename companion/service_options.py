@@ -266,6 +266,11 @@ class GpsOptions:
         "px4_gps_ctrl), ardupilot (MAV_CMD_SET_EKF_SOURCE_SET 2, then 1), auto (by the "
         "HEARTBEAT), none",
     )
+    align_height: bool = opt(
+        False,
+        "move our height onto GPS altitude too (off: z stays ours, the autopilot's height "
+        "reference: EKF2_HGT_REF 3 is ours, ArduPilot's EK3_SRCn_POSZ the baro)",
+    )
     px4_gps_ctrl: int = opt(7, "EKF2_GPS_CTRL written back after the return", ge=1, le=15)
     max_eph_m: float = opt(3.0, "a fix is good with eph <= this [m]", gt=0, le=100)
     min_satellites: int = opt(6, "... and at least this many satellites", ge=4, le=64)

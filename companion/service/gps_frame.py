@@ -7,7 +7,9 @@ boot clock), the autopilot's ATTITUDE yaw [rad] (``on_attitude``), and every pos
 to publish, in our own frame (``align``). A fix becomes the GPS position in the autopilot's
 local NED about its origin (its own projection: PX4's or ArduPilot's, by the HEARTBEAT), is
 held until a pose after it arrives, and is paired with our position interpolated between the
-two poses around its stamp; a fix or origin out of range is counted and dropped.
+two poses around its stamp; a fix or origin out of range is counted and dropped. GPS altitude
+is used only with [gps] align_height: otherwise the pair's height is ours, so the alignment
+moves nothing in z (research section 4: the height stays the autopilot's height reference).
 
 Output: ``align(pose)``: the pose in the autopilot's frame (position Rz p + t, attitude and
 velocity turned by the yaw, the covariance's position block turned: the variances along the
@@ -189,6 +191,8 @@ class GpsFrame:
             ours = last.position_ned_m + a * (cur.position_ned_m - last.position_ned_m)
             yaw = wrap_rad(last.yaw_rad + a * wrap_rad(cur.yaw_rad - last.yaw_rad))
             self.pairs += 1
+            if not self.rt.config.gps.align_height:  # GPS altitude unused: z stays ours
+                ned = np.array([ned[0], ned[1], ours[2]])
             self._step(t_fix, ours, yaw, verdict, cur.reset_counter, ned, self._yaw_at(t_fix))
         out = self._step(cur.time_us, cur.position_ned_m, cur.yaw_rad, verdict, cur.reset_counter)
         self.last = cur

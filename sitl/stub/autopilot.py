@@ -342,7 +342,7 @@ class SimAutopilot:
                         boot_us,
                         truth + np.asarray(self.opts.gps_offset_ned_m, np.float64),
                         "gps_loss" in active(self.opts.faults, self.t_sim_of_mono(now)),
-                        self.gps_noise.at(now * 1e-9),
+                        self.gps_noise.at(t),  # by flight time: the same noise each run
                     )
                 )
             await asyncio.sleep(0.01)

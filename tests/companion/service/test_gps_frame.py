@@ -116,7 +116,7 @@ def runs(states: list[str]) -> list[str]:
 
 
 def test_a_loss_and_return_go_aligned_held_slewing_aligned_without_a_step() -> None:
-    frame, link, f = fly()
+    frame, link, f = fly(gps={"align_height": True})
     assert runs(f.states) == ["own", "aligning", "aligned", "held", "slewing", "aligned"], runs(
         f.states
     )
@@ -147,7 +147,7 @@ def test_a_loss_and_return_go_aligned_held_slewing_aligned_without_a_step() -> N
 
 
 def test_a_reset_of_our_frame_while_held_keeps_the_output_continuous() -> None:
-    frame, _, f = fly(reset_at_s=36.0)
+    frame, _, f = fly(reset_at_s=36.0, gps={"align_height": True})
     assert frame.reanchors == 1
     out, ours, ref = np.array(f.out), np.array(f.ours), np.array(f.ref)
     t = np.array(f.t_s)
@@ -160,6 +160,16 @@ def test_a_reset_of_our_frame_while_held_keeps_the_output_continuous() -> None:
     err = np.linalg.norm(out - ref, axis=1)
     assert err[held].max() < 0.45 + 15 * 0.023 + 0.05, err[held].max()
     assert runs(f.states)[-1] == "aligned" and err[-30:].max() < 0.45
+
+
+def test_without_align_height_the_height_stays_ours() -> None:
+    frame, _, f = fly(seconds=25.0)
+    assert runs(f.states)[-1] == "aligned"
+    out, ours, ref = np.array(f.out), np.array(f.ours), np.array(f.ref)
+    assert frame.handover.applied.translation_ned_m[2] == 0.0
+    assert np.array_equal(out[:, 2], ours[:, 2])  # the yaw turns about z: z untouched
+    horizontal = np.linalg.norm(out[-30:, :2] - ref[-30:, :2], axis=1)
+    assert horizontal.max() < 0.45, horizontal.max()
 
 
 def test_an_unanswered_action_is_retried_and_given_up() -> None:
