@@ -108,6 +108,7 @@ class GpsFrame:
         self.out: HandoverOutput | None = None
         self.verdict: GnssVerdict | None = None
         self.jumps = 0  # first alignments applied at once (each steps the reset counter)
+        self.jumped = False  # the last pose aligned was the first of such a jump
         self.fixes = self.dropped = self.pairs = self.unpaired = self.reanchors = 0
         self._returning = False  # held -> slewing: the return's actions wait for "aligned"
 
@@ -182,6 +183,7 @@ class GpsFrame:
             self._reanchor(last, cur)
             last = None
         verdict = self.monitor.at(cur.time_us)
+        jumps = self.jumps
         while self.pending and self.pending[0][0] <= cur.time_us:
             t_fix, ned = self.pending.popleft()
             if last is None or t_fix < last.time_us or cur.time_us - last.time_us > MAX_PAIR_GAP_US:
@@ -196,6 +198,7 @@ class GpsFrame:
             self._step(t_fix, ours, yaw, verdict, cur.reset_counter, ned, self._yaw_at(t_fix))
         out = self._step(cur.time_us, cur.position_ned_m, cur.yaw_rad, verdict, cur.reset_counter)
         self.last = cur
+        self.jumped = self.jumps != jumps
         aligned = apply(out.applied, pose)
         return dataclasses.replace(aligned, reset_counter=pose.reset_counter + self.jumps)
 

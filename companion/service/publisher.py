@@ -75,7 +75,9 @@ class Publisher:
         if sent:
             t = self.rt.clock()
             if s.published and pose.reset_counter != s.last_reset_counter:
-                self.rt.warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
+                jumped = self.gps is not None and self.gps.jumped
+                what = "frame aligned to GPS at once" if jumped else "VO re-initialised"
+                self.rt.warn(f"{what}: reset_counter {pose.reset_counter}")
             s.published += 1
             s.stamped_at_send += send_us is not None
             s.publish_times_ns.append(t)

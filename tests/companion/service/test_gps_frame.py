@@ -56,6 +56,7 @@ class Flight:
     out: list[np.ndarray] = field(default_factory=list)  # what went out
     ref: list[np.ndarray] = field(default_factory=list)  # the truth in the autopilot's frame
     resets: list[int] = field(default_factory=list)
+    jumped: list[int] = field(default_factory=list)  # the poses that were the first of a jump
 
 
 def fly(
@@ -108,6 +109,8 @@ def fly(
         flight.out.append(pose.position_ned_m)
         flight.ref.append(ref_truth)
         flight.resets.append(pose.reset_counter)
+        if frame.jumped:
+            flight.jumped.append(k)
     return frame, link, flight
 
 
@@ -135,6 +138,7 @@ def test_a_loss_and_return_go_aligned_held_slewing_aligned_without_a_step() -> N
     assert err[-30:].max() < 0.45, err[-30:].max()  # slewed back onto the GPS
     # the first alignment is a jump with a new reset counter; nothing else jumps
     assert resets[first] == resets[first - 1] + 1 and resets[-1] == resets[first]
+    assert f.jumped == [first]  # told to the publisher (its warning names the jump)
     step = np.linalg.norm(np.diff(out, axis=0), axis=1)
     own = np.linalg.norm(np.diff(ours, axis=0), axis=1)
     bound = 0.1 / RATE_HZ + own + 1e-9
