@@ -287,6 +287,11 @@ class GpsOptions:
     )
 
     def __post_init__(self) -> None:
+        if self.handover != "none" and not self.align:
+            raise ConfigError(
+                f"handover: {self.handover!r} acts at the GPS frame's loss and return: needs "
+                "align = true"
+            )
         if self.min_window_s > self.window_s:
             raise ConfigError(
                 f"min_window_s: at most window_s ({self.window_s:g} s), got {self.min_window_s:g}"

@@ -265,6 +265,7 @@ def test_a_fifo_config_or_state_file_is_refused_at_once(
         ("min_window_s = 30", "gps.min_window_s"),
         ("slew_rate_m_s = -0.1", "gps.slew_rate_m_s"),
         ("align = 'yes'", "gps.align"),
+        ("handover = 'px4'", "gps.handover"),  # without align = true
     ],
 )
 def test_a_bad_gps_option_names_its_key_and_exits_2(

@@ -43,3 +43,12 @@ def test_the_noise_has_its_sigma_and_correlation_time() -> None:
     assert r == pytest.approx(math.exp(-1.0), abs=0.05)
     again = gps.GpsNoise(0.3, 1.0, seed=5)
     assert np.array_equal(again.at(0.0), x[0])  # seeded
+
+
+def test_a_gps_loss_is_a_fault_in_the_others_syntax() -> None:
+    from companion.sitl.stub.faults import Fault, active
+
+    f = Fault.parse("gps_loss@12+10")
+    assert (f.kind, f.start_s, f.end_s) == ("gps_loss", 12.0, 22.0)
+    assert active([f], 11.9) == set() and active([f], 12.0) == {"gps_loss"}
+    assert active([f], 22.0) == set()
