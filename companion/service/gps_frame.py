@@ -182,7 +182,7 @@ class GpsFrame:
         if last is not None and cur.reset_counter != last.reset_counter:
             self._reanchor(last, cur)
             last = None
-        verdict = self.monitor.at(cur.time_us)
+        verdict = self.verdict = self.monitor.at(cur.time_us)  # a silence too
         jumps = self.jumps
         while self.pending and self.pending[0][0] <= cur.time_us:
             t_fix, ned = self.pending.popleft()

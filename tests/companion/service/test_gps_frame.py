@@ -206,3 +206,22 @@ def test_malformed_fixes_and_origins_are_counted_and_dropped() -> None:
     s = frame.status()
     assert s["gps"]["dropped"] == 5 and s["gps"]["fixes"] == 0 and not s["gps"]["origin"]
     assert s["state"] == "own" and not s["gps"]["good"]
+
+
+def test_a_silent_receiver_is_a_loss_the_status_names() -> None:
+    rt = Runtime(load_config(None, {"gps": {"align": True, "good_after_s": 1.0}}))
+    frame = GpsFrame(rt, FakeLink())
+    lat0, lon0, alt0 = stub_gps.GPS_ORIGIN
+    frame.on_origin(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1e3))
+    for k in range(int(12.0 * RATE_HZ)):
+        t_us = int(k / RATE_HZ * 1e6)
+        p, yaw = vehicle(k / RATE_HZ)
+        if k % 6 == 0 and k < 3 * RATE_HZ:  # fixes for 3 s, then none at all
+            msg = stub_gps.gps_raw_int(frame.actions.link.mav, t_us, p, False, np.zeros(3))
+            frame.on_gps_raw(msg, t_us)
+        frame.align(pose_at(t_us, p, yaw, 0))
+        if k == int(2.5 * RATE_HZ):
+            assert frame.status()["gps"]["good"]
+    gps = frame.status()["gps"]
+    assert not gps["good"] and gps["reasons"][0].startswith("no GPS sample for 9.")
+    assert frame.status()["state"] == "own"  # lost before an alignment
