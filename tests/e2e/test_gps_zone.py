@@ -94,16 +94,6 @@ def test_a_gps_denied_zone_is_flown_through_without_a_jump(tmp_path) -> None:
         return stub, report, timeline, status
 
     stub, report, timeline, status = asyncio.run(fly())
-    rec0 = [r for r in stub.stats.received if r.kind == report["message"]]
-    np.savez(
-        tmp_path / "flight.npz",
-        t=[r.t_sim_s for r in rec0],
-        out=[r.position for r in rec0],
-        truth=[r.true_position for r in rec0],
-        resets=[r.reset_counter for r in rec0],
-        timeline_t=[a for a, _ in timeline],
-        timeline_s=[b for _, b in timeline],
-    )
     frame = status["frame"]
     print(runs([s for _, s in timeline]), frame, report.get("position_error_m_rms"))
     assert "error" not in report, report
