@@ -36,7 +36,7 @@ from companion.geometry.lens_check import lens_problem
 from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
-from companion.service_options import ServiceOptions, WebOptions, check_link_number
+from companion.service_options import GpsOptions, ServiceOptions, WebOptions, check_link_number
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -300,6 +300,7 @@ class Config:
     dpose: DposeOptions = opt(DposeOptions(), "d-Pose in the published pose")
     service: ServiceOptions = opt(ServiceOptions(), "the service: links and output")
     web: WebOptions = opt(WebOptions(), "the live page in a browser ([web])")
+    gps: GpsOptions = opt(GpsOptions(), "GPS in, GPS out: our output in its frame ([gps])")
     sitl: SitlConfig = opt(SitlConfig(), "the simulator")
     record: RecordOptions = opt(RecordOptions(), "the flight recorder ([record])")
 

@@ -246,6 +246,58 @@ MIN_TOKEN_CHARS = 16  # a web token shorter than this is guessable over Wi-Fi
 LOOPBACK_NAMES = ("localhost",)
 
 
+GpsHandover = Literal["none", "px4", "ardupilot", "auto"]
+
+
+@dataclass(frozen=True, slots=True)
+class GpsOptions:
+    """Our output in the autopilot's GPS-aided frame (companion/service/gps_frame.py,
+    docs/gps.md): GPS_RAW_INT's verdict, the 4-DoF alignment of our track to the GPS fixes,
+    held through a GPS loss and slewed back onto GPS (companion/frames/)."""
+
+    align: bool = opt(
+        False,
+        "read GPS_RAW_INT / GPS_GLOBAL_ORIGIN and send our estimate in the autopilot's GPS "
+        "frame (off: our own frame, as without GPS)",
+    )
+    handover: GpsHandover = opt(
+        "none",
+        "the autopilot's actions at a GPS loss and after the return: px4 (EKF2_GPS_CTRL 0, then "
+        "px4_gps_ctrl), ardupilot (MAV_CMD_SET_EKF_SOURCE_SET 2, then 1), auto (by the "
+        "HEARTBEAT), none",
+    )
+    align_height: bool = opt(
+        False,
+        "move our height onto GPS altitude too (off: z stays ours, the autopilot's height "
+        "reference: EKF2_HGT_REF 3 is ours, ArduPilot's EK3_SRCn_POSZ the baro)",
+    )
+    px4_gps_ctrl: int = opt(7, "EKF2_GPS_CTRL written back after the return", ge=1, le=15)
+    max_eph_m: float = opt(3.0, "a fix is good with eph <= this [m]", gt=0, le=100)
+    min_satellites: int = opt(6, "... and at least this many satellites", ge=4, le=64)
+    good_after_s: float = opt(3.0, "GPS good again after this long of good fixes [s]", ge=0, le=60)
+    window_s: float = opt(20.0, "the alignment's window of pairs [s]", gt=1, le=300)
+    min_window_s: float = opt(8.0, "pairs needed before a fit [s]", gt=0, le=300)
+    max_rms_m: float = opt(1.0, "a fit is taken when GPS and our track agree within [m RMS]", gt=0)
+    slew_rate_m_s: float = opt(
+        0.1, "the output moves onto a new alignment at most [m/s]", gt=0, le=5
+    )
+    slew_rate_deg_s: float = opt(0.5, "... and turns at most [deg/s]", gt=0, le=30)
+    max_return_offset_m: float = opt(
+        30.0, "a return this far from the held alignment at the vehicle is refused [m]", gt=0
+    )
+
+    def __post_init__(self) -> None:
+        if self.handover != "none" and not self.align:
+            raise ConfigError(
+                f"handover: {self.handover!r} acts at the GPS frame's loss and return: needs "
+                "align = true"
+            )
+        if self.min_window_s > self.window_s:
+            raise ConfigError(
+                f"min_window_s: at most window_s ({self.window_s:g} s), got {self.min_window_s:g}"
+            )
+
+
 def is_loopback(host: str) -> bool:
     """Whether ``host`` (an address or a name) is this machine only: 127.0.0.0/8, ::1 or
     ``localhost``. Any other name, ``0.0.0.0`` and ``::`` (every interface) are not."""

@@ -292,6 +292,20 @@ def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
     ]
 
 
+def _frame_line(fr: dict[str, Any]) -> str:
+    """[gps] align: the output's frame, its agreement with GPS, the alignment, the verdict."""
+    if not fr.get("enabled"):
+        return "own (gps.align off)"
+    gps = fr["gps"]
+    verdict = "good" if gps["good"] else "bad: " + "; ".join(gps["reasons"][:2])
+    t = fr["translation_ned_m"]
+    return (
+        f"{fr['state']}  agree {_fmt(fr['agreement_m'], ' m', 2)}  yaw {fr['yaw_deg']:.2f}°  "
+        f"t ({t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}) m  fit age {_fmt(fr['age_s'], ' s', 1)}  "
+        f"GPS {verdict}"
+    )
+
+
 def format_status(st: dict[str, Any]) -> str:
     """The status JSON as a readable table (plain text, aligned)."""
     rows = [
@@ -301,6 +315,7 @@ def format_status(st: dict[str, Any]) -> str:
         *_estimate_rows(st),
         ("MQTT", _mqtt_line(st["mqtt"])),
         ("web", _web_line(st.get("web") or {"enabled": False})),
+        ("frame", _frame_line(st.get("frame") or {"enabled": False})),
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"{k:<{width}}  {v}" for k, v in rows]

@@ -27,8 +27,10 @@ Inputs (:class:`HandoverInput`) are plain samples on our clock: our position (NE
 [m]) and yaw [rad] at ``time_us``; the GPS verdict (:mod:`companion.frames.gnss`); when a fix
 is at hand, the reference position at the same instant (the caller interpolates ours to the
 fix's stamp: :func:`companion.frames.alignment.match_pairs`) and the autopilot's yaw.
-Not handled here: a reset of our own frame during a denial (the held alignment then maps the
-old frame).
+A reset of our own frame (a new ``reset_counter``): the caller says how the new frame lies in
+the old (:meth:`Handover.reanchor`, from our last pose before and first after it); every
+alignment in hand (applied, target, held) is carried over onto the new frame so that the output
+goes on where it was, and the pairs and fits of the old frame are dropped.
 """
 
 from __future__ import annotations
@@ -128,6 +130,15 @@ def slew(
     return FrameAlignment(wrap_rad(yaw), out - so3.rot_z(yaw) @ position_ned_m)
 
 
+def compose(first: FrameAlignment, then: FrameAlignment) -> FrameAlignment:
+    """``then`` after ``first``: p -> then(first(p))."""
+    R = so3.rot_z(then.yaw_rad)
+    return FrameAlignment(
+        wrap_rad(first.yaw_rad + then.yaw_rad),
+        R @ first.translation_ned_m + then.translation_ned_m,
+    )
+
+
 class Handover:
     """The state machine; :meth:`step` once per output sample, in time order."""
 
@@ -172,6 +183,19 @@ class Handover:
             fit_age_s=(s.time_us - self.fit.newest_us) * 1e-6 if self.fit else math.nan,
             reason=self.reason,
         )
+
+    def reanchor(self, new_to_old: FrameAlignment) -> None:
+        """Our frame was reset: ``new_to_old`` maps a point of the new frame into the old one.
+        The applied and target alignments (the held one too) now map the new frame, so the
+        output is continuous; the old frame's pairs and fits are dropped (a refit waits for
+        ``min_window_s`` of the new frame's pairs; a loss meanwhile holds the applied one)."""
+        self.applied = compose(new_to_old, self.applied)
+        self.target = compose(new_to_old, self.target)
+        self.pairs.clear()
+        self.fits.clear()
+        self.last_fit_us = None
+        if self.state in ("aligned", "slewing", "held"):
+            self.reason = f"our frame reset: the {self.state} alignment carried over onto it"
 
     def _to_target(self, position_ned_m: F64) -> tuple[float, float]:
         d = self.target.apply_points(position_ned_m) - self.applied.apply_points(position_ned_m)

@@ -6,6 +6,8 @@ rangefinders, status socket, MQTT, recorder) and the parts that share one ``Runt
 The parts, each a module with its concern:
 - autopilot_session: every message in (a dispatch table by kind), HEARTBEAT, TIMESYNC, the
   model of PX4's time sync; autopilot_requests: message rates, ArduPilot's EKF origin;
+- gps_frame ([gps] align): GPS fixes in, our poses in the autopilot's GPS frame out, held
+  through a GPS loss (companion/frames/handover.py); gps_actions: the autopilot told;
 - frame_intake: the camera reader thread, the frame check, the queue, the wait rule;
 - worker: frames and samples through the Pipeline on a worker thread;
 - publisher: poses shaped for the autopilot and sent;
@@ -49,9 +51,10 @@ from companion.drivers.timesync import ClockSync, RequesterModel
 from companion.pipeline import Pipeline
 from companion.redact import redact_url
 from companion.service import preflight
-from companion.service.autopilot_requests import EkfOrigin, MessageRates
+from companion.service.autopilot_requests import GPS_INPUTS, EkfOrigin, MessageRates
 from companion.service.autopilot_session import AutopilotSession
 from companion.service.frame_intake import FrameIntake
+from companion.service.gps_frame import GpsFrame
 from companion.service.mqtt import MqttPublisher
 from companion.service.mqtt_feed import MqttFeed
 from companion.service.operator_messages import OperatorMessages
@@ -88,6 +91,7 @@ class Service:
         self.camera = open_camera(o.camera_url, camera=config.camera)  # size etc. checked
         # the live page draws the autopilot's own estimate beside ours
         web_inputs = frozenset({LOCAL_POSITION_NED}) if config.web.enabled else frozenset()
+        gps_inputs = GPS_INPUTS if config.gps.align else frozenset()
         self.link = MavlinkLink(
             o.mavlink_url,
             o.system_id,
@@ -96,7 +100,7 @@ class Service:
             Signing.from_options(o.signing),  # a bad key file stops here (exit 2)
             o.mavlink_local_port,
             # the rest is skipped unparsed (floods, streams)
-            wanted=messages.SERVICE_INPUTS | ardupilot.ARDUPILOT_INPUTS | web_inputs,
+            wanted=messages.SERVICE_INPUTS | ardupilot.ARDUPILOT_INPUTS | web_inputs | gps_inputs,
         )
         self.status_server = StatusServer(status_path(o.status_socket), self.status)
         self.mqtt = MqttPublisher(o.mqtt, o.system_id) if o.mqtt.enabled else None
@@ -107,6 +111,7 @@ class Service:
         self.px4_stamps = RequesterModel(clock=self.sync)  # its round trips by our clock sync
         self.rates = MessageRates(rt, self.link, self.sync, self.px4_stamps)
         self.origin = EkfOrigin(rt, self.link)
+        self.gps = GpsFrame(rt, self.link) if config.gps.align else None
         self.session = AutopilotSession(
             rt,
             self.link,
@@ -115,10 +120,13 @@ class Service:
             self.px4_stamps,
             self.rates,
             self.origin,
+            self.gps,
         )
         self.tfminis = [self._tfmini(rf) for rf in config.rangefinders if rf.serial]
         self.intake = FrameIntake(rt, self.camera, pipeline.check_frame)
-        self.publisher = Publisher(rt, self.link, self.session, self.resets, self.recorder)
+        self.publisher = Publisher(
+            rt, self.link, self.session, self.resets, self.recorder, self.gps
+        )
         self.web_view = LatestView() if config.web.enabled else None
         self.worker = PipelineWorker(
             rt, pipeline, self.intake, self.session, self.publisher, self.recorder, self.web_view
@@ -139,6 +147,7 @@ class Service:
             self.worker,
             self.tfminis,
             self.camera_url_shown,
+            self.gps,
         )
         self.report = Report(
             rt,
@@ -155,6 +164,7 @@ class Service:
                 self.mqtt,
                 self.status_server,
                 self.web,
+                self.gps,
             ),
         )
         self.mqtt_feed = MqttFeed(rt, self.mqtt, self.status, self.publisher) if self.mqtt else None
@@ -208,6 +218,8 @@ class Service:
         }
         if self.config.service.statustext.enabled:
             loops["statustext"] = self.operator.statustext_loop()
+        if self.gps is not None and self.config.gps.handover != "none":
+            loops["gps-handover"] = self.gps.actions.loop()
         if self.systemd.watchdog_s:
             loops["watchdog"] = self._watchdog_loop()
         if self.web is not None:

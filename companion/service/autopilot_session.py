@@ -7,6 +7,8 @@ Outputs: the samples for the pipeline (``take_samples``: ranges, attitudes, IMU,
 our clock sync (``sync``) and the model of PX4's (``px4_stamps``, ``stamp_at_send``), the
 latest body rates [rad/s] (``attitude_rates``, for ODOMETRY). Message rates and the EKF origin
 are asked for by ``autopilot_requests``; incoming COMMAND_ACK and GLOBAL_POSITION_INT go there.
+With [gps] align: GPS_RAW_INT, GPS_GLOBAL_ORIGIN and the ATTITUDE yaw to the GPS frame
+(``gps_frame``), PARAM_VALUE and COMMAND_ACK to its handover actions.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 from companion.drivers import ardupilot, messages
 from companion.drivers.timesync import ClockSync, RequesterModel, reply_for
 from companion.service.autopilot_requests import EkfOrigin, MessageRates
+from companion.service.gps_frame import GpsFrame
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.types import F64, AttitudeSample, ImuSample, RangeSample
 
@@ -55,6 +58,7 @@ class AutopilotSession:
     px4_stamps: RequesterModel  # PX4's own time sync as our answers drive it
     rates: MessageRates
     origin: EkfOrigin
+    gps: GpsFrame | None = None  # [gps] align: the GPS frame fed here
     # ts1 of our recent requests
     timesync_sent: deque[int] = field(init=False, default_factory=lambda: deque(maxlen=16))
     # the latest ATTITUDE's body rates [rad/s]
@@ -75,6 +79,10 @@ class AutopilotSession:
             "ATTITUDE": self._on_attitude,
             "SCALED_IMU": self._on_scaled_imu,
         }
+        if self.gps is not None:
+            self._handlers["GPS_RAW_INT"] = self._on_gps_raw
+            self._handlers["GPS_GLOBAL_ORIGIN"] = self._on_gps_origin
+            self._handlers["PARAM_VALUE"] = self._on_param_value
 
     # ------------------------------------------------------------------ messages in
     def on_message(self, msg: Any, rx_ns: int) -> None:
@@ -128,6 +136,8 @@ class AutopilotSession:
             and getattr(msg, "target_component", 0) in (0, self.link.mav.srcComponent)
         ):
             self.rates.on_command_ack(msg.command, msg.result)
+            if self.gps is not None:
+                self.gps.actions.on_command_ack(int(msg.command), int(msg.result))
 
     def _on_distance_sensor(self, msg: Any, rx_ns: int) -> None:
         s = self.rt.stats
@@ -149,6 +159,21 @@ class AutopilotSession:
         att = self._sample(msg, messages.attitude_from_message, self.attitudes, "attitudes")
         if att is not None:
             self.attitude_rates = att.rates_rad_s
+            if self.gps is not None:
+                self.gps.on_attitude(att.time_us, float(msg.yaw))
+
+    def _on_gps_raw(self, msg: Any, rx_ns: int) -> None:
+        if self.gps is not None and self._from_autopilot(msg):
+            self.gps.on_gps_raw(msg, rx_ns // 1000)
+
+    def _on_gps_origin(self, msg: Any, rx_ns: int) -> None:
+        if self.gps is not None and self._from_autopilot(msg):
+            self.gps.on_origin(int(msg.latitude), int(msg.longitude), int(msg.altitude))
+
+    def _on_param_value(self, msg: Any, rx_ns: int) -> None:
+        if self.gps is not None and self._from_autopilot(msg):
+            name = str(msg.param_id).split("\x00")[0]
+            self.gps.actions.on_param_value(name, float(msg.param_value))
 
     def _on_scaled_imu(self, msg: Any, rx_ns: int) -> None:
         self._sample(msg, messages.imu_from_scaled, self.imus, "imus")

@@ -11,13 +11,15 @@ what is pending and why we stop.
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from companion.drivers import messages
-from companion.service import statustext
+from companion.service import frame_events, statustext
 from companion.service.frame_intake import FrameIntake
+from companion.service.gps_frame import GpsFrame
 from companion.service.runtime import Runtime
 from companion.service.worker import PipelineWorker
 from companion.types import VoState
@@ -40,6 +42,7 @@ class OperatorMessages:
     worker: PipelineWorker
     tfminis: Sequence[Any]
     camera_url_shown: str
+    gps: GpsFrame | None = None  # [gps] align: its state in the STATUSTEXT
 
     def __post_init__(self) -> None:
         st = self.rt.config.service.statustext
@@ -107,6 +110,7 @@ class OperatorMessages:
         t_s = now * 1e-9
         dpose_armed, dpose_used = self.worker.status.dpose_armed, self.worker.status.dpose_used
         hb = s.autopilot_heartbeat_ns
+        frame = self.gps.out if self.gps is not None else None
         return statustext.OperatorState(
             camera=camera,
             vo_state=p.vo_state,
@@ -121,6 +125,9 @@ class OperatorMessages:
             dpose_locked=self._dpose_lock.update(dpose_used, t_s),
             armed=s.autopilot_armed,
             link_rival=self.link.rival_address(now),
+            frame=(frame.state if frame else "own") if self.gps is not None else None,
+            frame_agree_m=_finite(frame.agreement_m) if frame else None,
+            frame_to_target_m=_finite(frame.to_target_m) if frame else None,
         )
 
     def offer_start(self, version: str, preflight_warnings: Sequence[str]) -> None:
@@ -135,7 +142,9 @@ class OperatorMessages:
         while not self.rt.stopping:
             now = self.rt.clock()
             cur = self.state(now)
-            for event in statustext.transitions(self._operator, cur):
+            events = statustext.transitions(self._operator, cur)
+            events += frame_events.transitions(self._operator, cur)
+            for event in events:
                 self.limiter.offer(event, now * 1e-9)
             self._operator = cur
             if self.link.connected:
@@ -164,3 +173,7 @@ class OperatorMessages:
         self.limiter.offer(statustext.stop_event(error, self.rt.stats.autopilot_armed), now_s)
         for severity, text in self.limiter.drain(now_s):
             self._send(severity, text)
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None

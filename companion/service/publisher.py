@@ -7,6 +7,8 @@ session's). Outputs: VISION_POSITION_ESTIMATE and / or ODOMETRY on the link
 (``service.output``), the send counters and latencies in ``ServiceStats``, the pose to the
 recorder, ``last_pose`` (for MQTT). A pose whose frame is older than ``stale_frame_ms`` is not
 sent; the ``reset_counter`` on the wire never repeats an earlier run's (``ResetCounter``).
+With [gps] align, each pose goes out in the autopilot's GPS frame (``gps_frame``: fed our pose
+as the pipeline made it); without it the pose is passed on untouched.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 
 from companion.drivers import ardupilot, messages
 from companion.service.autopilot_session import AutopilotSession
+from companion.service.gps_frame import GpsFrame
 from companion.service.recorder import Recorder
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.service.state import ResetCounter
@@ -35,6 +38,7 @@ class Publisher:
     session: AutopilotSession
     resets: ResetCounter
     recorder: Recorder
+    gps: GpsFrame | None = None  # [gps] align: our poses in the autopilot's GPS frame
     last_pose: PoseEstimate | None = field(init=False, default=None)  # the last one sent
     # for centred ODOMETRY
     _recent_poses: deque[PoseEstimate] = field(init=False, default_factory=lambda: deque(maxlen=15))
@@ -55,6 +59,8 @@ class Publisher:
         if age_ms > self.rt.config.service.stale_frame_ms:  # too old to help the autopilot
             s.stale += 1
             return
+        if self.gps is not None:  # in the autopilot's frame (its reset counter stepped by jumps)
+            pose = self.gps.align(pose)
         # the counter on the wire never repeats the last one an earlier run sent
         pose = dataclasses.replace(pose, reset_counter=self.resets.wire(pose.reset_counter))
         o = self.rt.config.service.output
@@ -69,7 +75,9 @@ class Publisher:
         if sent:
             t = self.rt.clock()
             if s.published and pose.reset_counter != s.last_reset_counter:
-                self.rt.warn(f"VO re-initialised: reset_counter {pose.reset_counter}")
+                jumped = self.gps is not None and self.gps.jumped
+                what = "frame aligned to GPS at once" if jumped else "VO re-initialised"
+                self.rt.warn(f"{what}: reset_counter {pose.reset_counter}")
             s.published += 1
             s.stamped_at_send += send_us is not None
             s.publish_times_ns.append(t)

@@ -23,6 +23,7 @@ from companion.redact import redact_text
 from companion.service.autopilot_requests import EkfOrigin
 from companion.service.autopilot_session import AutopilotSession
 from companion.service.frame_intake import FrameIntake
+from companion.service.gps_frame import GpsFrame
 from companion.service.mqtt import MqttPublisher
 from companion.service.operator_messages import OperatorMessages
 from companion.service.recorder import Recorder
@@ -50,6 +51,7 @@ class ReportSources:
     mqtt: MqttPublisher | None
     status_server: StatusServer
     web: WebServer | None = None  # the live page ([web]), when enabled
+    gps: GpsFrame | None = None  # [gps] align: the GPS frame
 
 
 class Report:
@@ -124,6 +126,7 @@ class Report:
             "mqtt": dataclasses.asdict(src.mqtt.stats) if src.mqtt else None,
             "status_socket": dataclasses.asdict(src.status_server.stats),
             "web": src.web.status() if src.web else None,
+            "frame": src.gps.status() if src.gps else None,
         }
 
     def status(self) -> dict[str, Any]:
@@ -193,6 +196,8 @@ class Report:
             "recorder": self.src.recorder.status(),
             # the live page: where, who watches, what it sent and skipped, why it is off
             "web": self.src.web.status() if self.src.web else {"enabled": False},
+            # [gps] align: the output's frame, the GPS verdict, the autopilot's actions
+            "frame": self.src.gps.status() if self.src.gps else {"enabled": False},
             "warnings": list(s.warnings),
         }
 

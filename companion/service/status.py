@@ -1,10 +1,9 @@
 """The service's state on a Unix socket, for `companion status` (and scripts).
 
-Protocol: connect to the socket; the service writes one JSON object (UTF-8, one line) and
-closes. Nothing is read from the client. A flood of connections is rate-limited (see
-``StatusServer``): the event loop, which carries the poses, is never monopolised by it.
-The socket file is created with mode 0660 (owner and group: the `companion` user and
-its operators) and removed on exit.
+Protocol: connect to the socket; the service writes one JSON object (UTF-8, one line) and closes.
+Nothing is read from the client. A flood of connections is rate-limited (see ``StatusServer``): the
+event loop, which carries the poses, is never monopolised by it. The socket file is created with
+mode 0660 (owner and group: the `companion` user and its operators) and removed on exit.
 
 Where: ``drivers.status.status_path`` (service.status_socket, else $RUNTIME_DIRECTORY/status.sock
 under systemd: ``/run/companion/status.sock``, else per user); clients find it with

@@ -72,7 +72,8 @@ class OperatorState:
     the autopilot's last HEARTBEAT (None: never heard); ``rangefinder_faults``: ids of serial
     rangefinders that cannot be read; ``dpose_armed`` / ``dpose_locked``: d-Pose's pattern is
     set / it corrects the pose now; ``armed``: the autopilot says it is armed (in flight);
-    ``link_rival``: another source speaking as the autopilot."""
+    ``link_rival``: another source speaking as the autopilot; ``frame``: the GPS frame's
+    state ([gps] align; None: off), its agreement and distance to its target [m]."""
 
     camera: str | None = None
     vo_state: str = "INITIALIZING"
@@ -89,6 +90,9 @@ class OperatorState:
     # ``host:port`` of a source other than the autopilot's that sends as the autopilot (its
     # system id) within the last 10 s, None: nobody (drivers/mavlink.py rival_address)
     link_rival: str | None = None
+    frame: str | None = None
+    frame_agree_m: float | None = None
+    frame_to_target_m: float | None = None
 
     @property
     def tracking(self) -> bool:

@@ -21,6 +21,8 @@ simulated camera on a TCP loopback stream (format in :mod:`drivers.camera`).
 - Streams: HEARTBEAT 1 Hz, ATTITUDE (truth + 0.1 deg noise) and DISTANCE_SENSOR for every
   sensor (cm, orientation 25, its id, the world's noise model), each at 10 Hz until the
   companion asks for another rate.
+- With ``gps``: GPS_RAW_INT (5 Hz) and GPS_GLOBAL_ORIGIN (1 Hz) from the truth in its GPS
+  frame, without a fix during a ``gps_loss`` fault (:mod:`companion.sitl.stub.gps`).
 - MAV_CMD_SET_MESSAGE_INTERVAL as PX4's receiver answers it (COMMAND_ACK): for a stream it
   has (TIMESYNC, ATTITUDE, DISTANCE_SENSOR) ACCEPTED, the interval in us setting the rate (0:
   its default rate, < 0: stopped); for HEARTBEAT or a message it does not stream FAILED.
@@ -57,6 +59,7 @@ from companion.drivers.timesync import ClockSync, reply_for
 from companion.errors import SitlError
 from companion.evaluation.trajectory import umeyama
 from companion.geometry import so3
+from companion.sitl.stub import gps
 from companion.sitl.stub.camera import camera_process
 from companion.sitl.stub.faults import active
 from companion.sitl.stub.options import AutopilotOptions
@@ -92,6 +95,7 @@ class SimAutopilot:
         if not 0.0 < self.opts.time_scale <= 1.0:
             raise SitlError(f"time_scale {self.opts.time_scale}: must be in (0, 1]")
         s = cfg.sitl
+        opts_gps = self.opts.gps
         self.world = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
         self.trajectory = Trajectory(
             s.trajectory, self.world, s.seconds, s.altitude_m, s.speed_m_s, s.takeoff_landing
@@ -109,7 +113,9 @@ class SimAutopilot:
         now = time.monotonic_ns()
         self.boot_ns = now - int(self.opts.boot_offset_s * 1e9)
         self.flight_start_ns = now + int(self.opts.warmup_s * 1e9)
-        self.rates_hz = dict(DEFAULT_RATES_HZ)  # 0: stopped
+        self.default_rates_hz = {**DEFAULT_RATES_HZ, **(gps.DEFAULT_RATES_HZ if opts_gps else {})}
+        self.rates_hz = dict(self.default_rates_hz)  # 0: stopped
+        self.gps_noise = gps.GpsNoise(self.opts.gps_noise_m, gps.NOISE_TAU_S, s.seed)
         self._transport: asyncio.DatagramTransport | None = None
         self._rng = np.random.default_rng([s.seed, 404])
         self.px4 = Px4Services(self)  # parameters, EV fusion, shell, ground-station endpoint
@@ -201,7 +207,7 @@ class SimAutopilot:
         elif interval_us < -1e-5:
             rate = 0.0
         else:
-            rate = DEFAULT_RATES_HZ[msg_id]
+            rate = self.default_rates_hz[msg_id]
         self.rates_hz[msg_id] = rate
         self.stats.rates_set[msg_id] = rate
         return True
@@ -314,6 +320,33 @@ class SimAutopilot:
                 )
             await asyncio.sleep(period or 0.1)  # stopped: look again later
 
+    async def _gps_loop(self) -> None:
+        """GPS_RAW_INT and GPS_GLOBAL_ORIGIN at their stream rates (sitl/stub/gps.py)."""
+        next_due = {m: 0.0 for m in gps.DEFAULT_RATES_HZ}
+        while True:
+            now = time.monotonic_ns()
+            for msg_id in next_due:
+                period = self._period_s(msg_id)
+                if period is None or now * 1e-9 < next_due[msg_id]:
+                    continue
+                next_due[msg_id] = now * 1e-9 + period
+                boot_us = self.clock_ns(now) // 1000
+                if msg_id == gps.MSG_GPS_GLOBAL_ORIGIN:
+                    self.send(gps.gps_global_origin(self.mav, boot_us))
+                    continue
+                t = float(np.clip(self.t_sim_of_mono(now), 0.0, self.cfg.sitl.seconds))
+                truth = self.trajectory.sample(np.array([t])).position_m[0]
+                self.send(
+                    gps.gps_raw_int(
+                        self.mav,
+                        boot_us,
+                        truth + np.asarray(self.opts.gps_offset_ned_m, np.float64),
+                        "gps_loss" in active(self.opts.faults, self.t_sim_of_mono(now)),
+                        self.gps_noise.at(t),  # by flight time: the same noise each run
+                    )
+                )
+            await asyncio.sleep(0.01)
+
     async def _distance_loop(self) -> None:
         """Every sensor's readings at their own times; decimated to the stream rate."""
         last_t = 0.0
@@ -384,7 +417,7 @@ class SimAutopilot:
             else:  # back from a reboot: a new boot clock, time sync and default rates
                 self.boot_ns = time.monotonic_ns()
                 self.sync = ClockSync()
-                self.rates_hz = dict(DEFAULT_RATES_HZ)
+                self.rates_hz = dict(self.default_rates_hz)
                 self.stats.reboots += 1
 
     async def _watch_camera(self, camera: Any) -> None:
@@ -443,6 +476,8 @@ class SimAutopilot:
                 ]
                 if self.opts.camera:
                     tasks.append(tg.create_task(self._watch_camera(camera)))
+                if self.opts.gps:
+                    tasks.append(tg.create_task(self._gps_loop()))
                 # the world is built (and, with prerender, every frame rendered)
                 while not ready.is_set():
                     await asyncio.sleep(0.05)

@@ -9,7 +9,9 @@ all-255 images, ``camera_unplug`` closes the stream and refuses connections (a U
 that drops off the bus and comes back). Link faults (in the autopilot): ``link_silence``
 sends and hears nothing (a cable out), ``link_port_change`` moves the autopilot to another UDP
 port at START (a restarted router), ``autopilot_reboot`` is silent for DURATION, then its boot
-clock restarts at zero, its time sync and message rates return to their defaults.
+clock restarts at zero, its time sync and message rates return to their defaults. GPS
+(``AutopilotOptions.gps``): ``gps_loss`` is a receiver without a fix for DURATION
+(sitl/stub/gps.py), ``gps_loss@12+10``.
 
 :func:`fault_metrics` says, per fault, what the autopilot saw: poses from frames taken during
 it, how long after the last good frame poses kept coming, when they resumed, the
@@ -34,6 +36,7 @@ KINDS = {
     "link_silence": "the autopilot neither sends nor hears anything",
     "link_port_change": "the autopilot moves to another UDP port (at START)",
     "autopilot_reboot": "silent for DURATION, then its clock restarts at 0",
+    "gps_loss": "the GPS receiver has no fix (GPS_RAW_INT fix type 1, no position)",
 }
 CAMERA_KINDS = frozenset(k for k in KINDS if k.startswith("camera_"))
 

@@ -41,4 +41,9 @@ class AutopilotOptions:
     camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
     # awaited once the camera is ready (prerendered), before the flight clock starts: a test
     # run on several workers flies one real-time flight at a time (tests/peers/)
+    # GPS_RAW_INT / GPS_GLOBAL_ORIGIN from the truth (sitl/stub/gps.py): the GPS frame is
+    # the truth moved by gps_offset_ned_m [m], with gps_noise_m [m] of correlated noise per axis
+    gps: bool = False
+    gps_offset_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gps_noise_m: float = 0.3
     flight_gate: Callable[[], Awaitable[None]] | None = None

@@ -41,3 +41,18 @@ def join_chunks(msgs: list[Any]) -> list[tuple[int, str]]:
         if len(m.text) < STATUSTEXT_CHARS:  # the NUL: the last chunk
             out.append((int(m.severity), "".join(parts.pop(int(m.id)))))
     return out
+
+
+class EncodingLink:
+    """A link that keeps what is sent (the messages, not bytes) and has an encoder: what the
+    service's GPS frame and its handover actions use of the link."""
+
+    def __init__(self) -> None:
+        from pymavlink.dialects.v20 import common as mavlink
+
+        self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+        self.sent: list[Any] = []
+
+    def send(self, msg: Any) -> bool:
+        self.sent.append(msg)
+        return True

@@ -255,3 +255,24 @@ def test_a_fifo_config_or_state_file_is_refused_at_once(
         timeout=60,
     )
     assert run.returncode == 2 and "service.state_dir:" in run.stderr, run.stderr
+
+
+@pytest.mark.parametrize(
+    ("table", "key"),
+    [
+        ("handover = 'gps'", "gps.handover"),
+        ("max_eph_m = 0", "gps.max_eph_m"),
+        ("min_window_s = 30", "gps.min_window_s"),
+        ("slew_rate_m_s = -0.1", "gps.slew_rate_m_s"),
+        ("align = 'yes'", "gps.align"),
+        ("handover = 'px4'", "gps.handover"),  # without align = true
+    ],
+)
+def test_a_bad_gps_option_names_its_key_and_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], table: str, key: str
+) -> None:
+    assert load_config().gps.align is False and load_config().gps.handover == "none"
+    bad = tmp_path / "gps.toml"
+    bad.write_text(f"[gps]\n{table}\n")
+    assert main(["config", "--config", str(bad)]) == 2
+    assert key in capsys.readouterr().err

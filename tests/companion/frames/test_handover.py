@@ -272,3 +272,24 @@ def test_slew_turns_about_the_vehicle_and_moves_its_output_at_the_rate(yaw_deg: 
     reached = slew(start, target, p, 1e3, 1.0, 1.0)
     assert reached.yaw_rad == pytest.approx(target.yaw_rad)
     np.testing.assert_allclose(reached.translation_ned_m, target.translation_ned_m, atol=1e-9)
+
+
+def test_a_reanchor_carries_every_alignment_onto_the_new_frame() -> None:
+    from companion.frames.handover import compose
+
+    h = Handover()
+    h.state = "held"
+    h.applied = FrameAlignment(0.3, np.array([1.0, 2.0, 3.0]))
+    h.target = FrameAlignment(0.35, np.array([1.5, 2.0, 3.0]))
+    h.pairs.append((0, np.zeros(3), np.zeros(3), 0.0, 0.0, 0))
+    new_to_old = FrameAlignment(-1.1, np.array([7.0, -4.0, 0.5]))
+    old_applied, old_target = h.applied, h.target
+    h.reanchor(new_to_old)
+    p_new = np.array([[3.0, -2.0, -5.0], [-40.0, 10.0, -2.0]])
+    p_old = new_to_old.apply_points(p_new)
+    assert np.allclose(h.applied.apply_points(p_new), old_applied.apply_points(p_old), atol=1e-12)
+    assert np.allclose(h.target.apply_points(p_new), old_target.apply_points(p_old), atol=1e-12)
+    assert h.state == "held" and not h.pairs and "carried over" in h.reason
+    # composing with the inverse gives the identity
+    back = compose(new_to_old, new_to_old.inverse())
+    assert abs(back.yaw_rad) < 1e-12 and np.allclose(back.translation_ned_m, 0.0, atol=1e-12)

@@ -108,3 +108,54 @@ def test_the_heartbeat_says_who_flies_and_other_systems_are_dropped(tmp_path) ->
     assert stats.autopilot_kind is AutopilotKind.OTHER and stats.foreign_messages == 1
     heartbeat(1, mavlink.MAV_AUTOPILOT_INVALID)  # a ground station's or a companion's
     assert stats.autopilot_kind is AutopilotKind.OTHER
+
+
+def test_gps_is_asked_for_and_read_only_with_gps_align(tmp_path) -> None:
+    """[gps] align off: GPS_RAW_INT is neither asked for nor parsed, nothing of the GPS frame
+    exists. On: asked for at 5 Hz (and its origin at 1 Hz), fed to the GPS frame; a fix out of
+    range is counted and dropped, another component's ignored, a NaN attitude gives no yaw;
+    the autopilot's yaw and its PARAM_VALUE reach the frame and its actions."""
+    import struct
+
+    from peers import service_config
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.service.app import Service
+    from companion.service.autopilot_requests import MSG_ID_GPS_RAW_INT
+
+    (tmp_path / "off").mkdir()
+    (tmp_path / "on").mkdir()
+    off = Service(service_config(tmp_path / "off"))
+    off.stats.autopilot_kind = AutopilotKind.PX4
+    assert off.gps is None and off.publisher.gps is None
+    assert MSG_ID_GPS_RAW_INT not in off.rates.wanted()
+    assert "GPS_RAW_INT" not in off.session._handlers
+
+    service = Service(service_config(tmp_path / "on", {"gps": {"align": True, "handover": "px4"}}))
+    service.stats.autopilot_kind = AutopilotKind.PX4
+    assert service.rates.wanted()[MSG_ID_GPS_RAW_INT] == 5.0
+    gps = service.gps
+    assert gps is not None and service.publisher.gps is gps
+    px4 = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    other = mavlink.MAVLink(None, srcSystem=1, srcComponent=154)  # a camera's component
+
+    def feed(peer: object, msg: object, rx_ns: int = 1_000_000) -> None:
+        service.session.on_message(decode(msg.pack(peer)), rx_ns)
+
+    feed(px4, px4.gps_global_origin_encode(473977420, 85455940, 488000, 0))
+    feed(px4, px4.gps_raw_int_encode(0, 3, 473977420, 85455940, 488000, 90, 0, 0, 0, 12))
+    feed(px4, px4.gps_raw_int_encode(0, 3, 950000000, 85455940, 488000, 90, 0, 0, 0, 12))
+    feed(other, other.gps_raw_int_encode(0, 3, 473977420, 85455940, 488000, 90, 0, 0, 0, 12))
+    feed(px4, px4.attitude_encode(10, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0))
+    st = gps.status()["gps"]
+    assert (st["fixes"], st["dropped"], st["origin"]) == (1, 1, True)
+    assert len(gps.pending) == 1 and len(gps.yaws) == 1 and gps.yaws[0][1] == 0.5
+    with_nan = mavlink.MAVLink_attitude_message(10, float("nan"), 0.0, 0.0, 0.0, 0.0, 0.0)
+    feed(px4, with_nan)  # refused by the attitude check: no yaw fed
+    assert len(gps.yaws) == 1
+    service.gps.actions.on_loss()
+    value = struct.unpack("<f", struct.pack("<i", 0))[0]
+    feed(px4, px4.param_value_encode(b"EKF2_GPS_CTRL", value, 6, 900, 12))
+    assert gps.status()["handover"] == [
+        {"what": "EKF2_GPS_CTRL 0", "tries": 1, "result": "acknowledged"}
+    ]

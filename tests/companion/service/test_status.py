@@ -225,3 +225,27 @@ def test_a_socket_of_another_user_in_a_world_writable_folder_is_not_trusted(tmp_
         stop.set()
         t.join(2)
         srv.close()
+
+
+def test_the_frame_line_says_state_agreement_alignment_and_gps() -> None:
+    assert "frame" not in SAMPLE or not SAMPLE["frame"].get("enabled")
+    (off,) = [x for x in format_status(SAMPLE).splitlines() if x.startswith("frame ")]
+    assert off.split(None, 1)[1] == "own (gps.align off)"
+    frame = {
+        "enabled": True,
+        "state": "held",
+        "agreement_m": None,
+        "to_target_m": 0.0,
+        "yaw_deg": 36.94,
+        "translation_ned_m": [5.01, -2.98, 0.0],
+        "age_s": 4.2,
+        "reason": "GPS lost",
+        "gps": {"good": False, "reasons": ["fix type 1 < 3", "3 satellites < 6"], "origin": True},
+        "handover": [],
+    }
+    (line,) = [
+        x for x in format_status({**SAMPLE, "frame": frame}).splitlines() if x.startswith("frame ")
+    ]
+    for text in ("held", "agree -", "yaw 36.94°", "(5.01, -2.98, 0.00) m", "fit age 4.2 s"):
+        assert text in line, line
+    assert "GPS bad: fix type 1 < 3; 3 satellites < 6" in line
