@@ -311,11 +311,12 @@ def add_sitl(sub: Any) -> None:
 
 
 def add_mission_and_seed(p: Any, mission_help: str) -> None:
-    """``--mission`` (square | lawnmower | hover) and ``--seed``, as both closed loops take them
+    """``--mission`` (square | lawnmower | hover, and the GPS missions gps-denied-zone |
+    gps-appears: sitl/loops/gps_missions.py) and ``--seed``, as both closed loops take them
     (sitl/loops/loop_flight.py, options_from_args)."""
     p.add_argument(
         "--mission",
-        choices=["square", "lawnmower", "hover"],
+        choices=["square", "lawnmower", "hover", "gps-denied-zone", "gps-appears"],
         default="square",
         help=mission_help,
     )

@@ -57,6 +57,9 @@ MAX_PAIR_GAP_US = 200_000  # a fix between two of our poses further apart makes 
 MAX_YAW_AGE_US = 100_000  # the autopilot's yaw this close to a fix's stamp, else none
 MAX_REANCHOR_GAP_US = 2_000_000  # our velocity carries the old frame over a gap this long
 PENDING_FIXES = 64  # fixes waiting for a pose after them (poses stopped: the oldest go)
+ORIGIN_ASK_US = 2_000_000  # GPS_GLOBAL_ORIGIN asked for this often until it arrives
+MAV_CMD_REQUEST_MESSAGE = 512
+NO_GPS_AT_START_US = 5_000_000  # ArduPilot: no good GPS this long after our first pose
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,7 +103,10 @@ class GpsFrame:
             )
         )
         self.handover = Handover(handover_options(g))
+        self.link = link
         self.actions = GpsActions(rt, link)
+        self._origin_asked_us = -ORIGIN_ASK_US
+        self.origin_requests = 0
         self.origin: GlobalOrigin | None = None
         self.pending: deque[tuple[int, F64]] = deque(maxlen=PENDING_FIXES)
         self.yaws: deque[tuple[int, float]] = deque(maxlen=256)  # autopilot's (time_us, yaw)
@@ -111,6 +117,8 @@ class GpsFrame:
         self.jumped = False  # the last pose aligned was the first of such a jump
         self.fixes = self.dropped = self.pairs = self.unpaired = self.reanchors = 0
         self._returning = False  # held -> slewing: the return's actions wait for "aligned"
+        self._first_pose_us: int | None = None
+        self.told_no_gps = False  # ArduPilot told to use ours: no good GPS since our start
 
     # ------------------------------------------------------------------ in
     def projection(self) -> Projection:
@@ -148,9 +156,21 @@ class GpsFrame:
             return
         self.fixes += 1
         self.verdict = self.monitor.update(fix)
+        if self.origin is None and time_us - self._origin_asked_us >= ORIGIN_ASK_US:
+            self._ask_origin(time_us)
         if self.verdict.sample_good and self.origin is not None:
             ned = to_local_ned(self.origin, fix.lat_deg, fix.lon_deg, fix.alt_m, self.projection())
             self.pending.append((time_us, ned))
+
+    def _ask_origin(self, time_us: int) -> None:
+        """MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN: PX4 sends it when its origin changes,
+        so one set before our rate request never comes by itself."""
+        self._origin_asked_us = time_us
+        self.origin_requests += 1
+        mav, sysid = self.link.mav, self.rt.stats.autopilot_system_id
+        self.link.send(
+            mav.command_long_encode(sysid, 1, MAV_CMD_REQUEST_MESSAGE, 0, 49, 0, 0, 0, 0, 0, 0)
+        )
 
     def on_attitude(self, time_us: int, yaw_rad: float) -> None:
         """The autopilot's heading [rad] at ``time_us`` (ATTITUDE, already checked)."""
@@ -197,6 +217,7 @@ class GpsFrame:
                 ned = np.array([ned[0], ned[1], ours[2]])
             self._step(t_fix, ours, yaw, verdict, cur.reset_counter, ned, self._yaw_at(t_fix))
         out = self._step(cur.time_us, cur.position_ned_m, cur.yaw_rad, verdict, cur.reset_counter)
+        self._without_gps_at_start(cur.time_us, out.state, verdict.good)
         self.last = cur
         self.jumped = self.jumps != jumps
         aligned = apply(out.applied, pose)
@@ -232,6 +253,24 @@ class GpsFrame:
             self._transition(before, out)
         return out
 
+    def _without_gps_at_start(self, time_us: int, state: str, gps_good: bool) -> None:
+        """No good GPS NO_GPS_AT_START_US after our first pose (indoors): ArduPilot, whose set 1
+        is GPS, is told to use ours (set 2) once, and set 1 follows the first alignment. PX4
+        needs nothing: it fuses ours beside a GNSS that is not there, and GNSS once it is."""
+        if self._first_pose_us is None:
+            self._first_pose_us = time_us
+        if (
+            self.told_no_gps
+            or state != "own"
+            or gps_good
+            or time_us - self._first_pose_us < NO_GPS_AT_START_US
+            or self.actions.target() != "ardupilot"
+        ):
+            return
+        self.told_no_gps = self._returning = True
+        log.info("GPS frame: no GPS since our start: the autopilot is told to use ours")
+        self.actions.on_loss()
+
     def _transition(self, before: str, out: HandoverOutput) -> None:
         """A new state: logged; the jump counted; the autopilot's actions started."""
         log.info("GPS frame: %s -> %s (%s)", before, out.state, out.reason)
@@ -242,7 +281,7 @@ class GpsFrame:
             self.actions.on_loss()
         elif before == "held" and out.state == "slewing":
             self._returning = True
-        elif before == "slewing" and out.state == "aligned" and self._returning:
+        elif before in ("slewing", "aligning") and out.state == "aligned" and self._returning:
             self._returning = False
             self.actions.on_return()
 
@@ -283,6 +322,7 @@ class GpsFrame:
                 "good": bool(v.good) if v is not None else False,
                 "reasons": list(v.reasons) if v is not None else ["no GPS sample yet"],
                 "origin": self.origin is not None,
+                "origin_requests": self.origin_requests,
                 "fixes": self.fixes,
                 "dropped": self.dropped,
                 "pairs": self.pairs,

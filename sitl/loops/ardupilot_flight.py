@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from companion.errors import SitlError
-from companion.sitl.loops import ground_station, loop_flight, processes
+from companion.sitl.loops import gps_missions, ground_station, loop_flight, processes
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
 
 HOME = (-35.363261, 149.165230, 584.0)  # the launcher's --home: the EKF origin we send
@@ -154,8 +154,10 @@ class Flight(loop_flight.LoopFlight):
         if self.o.heading not in HEADINGS:
             raise SitlError(f"heading {self.o.heading!r}: one of {', '.join(HEADINGS)}")
         params = dict(BOOT_PARAMS)
-        if self.o.heading == "compass":
+        gps = gps_missions.is_gps_mission(self.o.mission)
+        if self.o.heading == "compass" or gps:  # with GPS EKF3's heading is the compass's
             params.update(HEADING_COMPASS_PARAMS)
+        params.update(gps_missions.ardupilot_boot_params(self.o.mission))
         n = self.o.instance
         self.ap = ArduPilotSitl(work, "odom", {**params, **self.o.params}, n, self.o.ardupilot)
 
@@ -207,12 +209,16 @@ class Flight(loop_flight.LoopFlight):
         svc["status_socket"] = str(self.out / "status.sock")
         svc["report_path"] = str(self.out / "service-report.json")
         svc["state_dir"] = str(self.out / "state")
+        gps = gps_missions.is_gps_mission(self.o.mission)
+        if gps:
+            d["gps"] = gps_missions.service_gps_section("ardupilot")
         svc["ardupilot"] = {
-            "set_origin": True,
+            # with GPS at boot EKF3 takes its origin from it (docs/gps.md); indoors ours
+            "set_origin": self.o.mission != "gps-denied-zone",
             "origin_lat_deg": HOME[0],
             "origin_lon_deg": HOME[1],
             "origin_alt_m": HOME[2],
-            "set_declination": self.o.heading == "compass",
+            "set_declination": self.o.heading == "compass" or gps,
             "declination_deg": SITE_DECLINATION_DEG,
         }
         return self._write_service_config(d)
@@ -222,7 +228,8 @@ class Flight(loop_flight.LoopFlight):
             return
         url = f"tcp:127.0.0.1:{port(1, self.o.instance)}"
         argv = [*processes.companion_argv(), "autopilot", "configure", "--config", str(cfg_path)]
-        argv += ["--url", url, "--yes", "--no-gnss", "--timeout-s", "15"]
+        gnss = "--with-gps" if gps_missions.is_gps_mission(self.o.mission) else "--no-gnss"
+        argv += ["--url", url, "--yes", gnss, "--timeout-s", "15"]
         label, log_name = "companion autopilot configure", "autopilot-configure.log"
         code = self._run_configure(label, argv, log_name, 90)
         if code != 0:
@@ -257,6 +264,8 @@ class Flight(loop_flight.LoopFlight):
         self._start_service()
         self._wait_tracking("the service tracking with a scale", 120)
         self._wait_fused("EKF3 using our external navigation", 2.0)
+        if o.mission == "gps-denied-zone":  # our output in EKF3's GPS frame before arming
+            gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
         g.set_mode(MODE_GUIDED)
         self._until("GUIDED mode", lambda: self.tel.custom_mode == MODE_GUIDED, 10)
         self._arm()
@@ -282,6 +291,13 @@ class Flight(loop_flight.LoopFlight):
 
     def _ev_fused(self) -> bool:
         return self.gcs.ekf_uses_ours()
+
+    def _set_gps(self, on: bool) -> None:
+        """The simulated receiver on or off (SIM_GPS1_ENABLE; no SIM_GPS_DISABLE here)."""
+        for _ in range(3):
+            self.gcs.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", float(on), 9)
+            self.gcs.pump(0.2)
+        self.log(f"SIM_GPS1_ENABLE = {int(on)}")
 
 
 def cli_main(args: Any) -> int:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.sitl.loops import loop_results
+from companion.sitl.loops import gps_missions, gps_results, loop_results
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)
@@ -143,6 +143,8 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     s["ardupilot_clock_rate_vs_ours_ppm"] = float((clock[1] - 1.0) * 1e6)
     loop_results.path_and_landing(s, flight, ok, tr, air_t0, air_t1)
     loop_results.camera_and_latency(s, out)
+    if gps_missions.is_gps_mission(flight.o.mission):
+        gps_results.summarise_ardupilot(s, flight, t_lp, p_lp, t_tr, p_tr)
     rep = out / "service-report.json"
     if rep.exists():
         data = json.loads(rep.read_text())

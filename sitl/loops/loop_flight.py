@@ -29,6 +29,7 @@ import tomli_w
 
 from companion.config import load_config, to_dict
 from companion.errors import SitlError
+from companion.sitl.loops import gps_missions
 from companion.sitl.loops.ground_station import LoopTelemetry
 from companion.sitl.loops.mission import leg_setpoints, mission_path
 from companion.sitl.loops.processes import (
@@ -157,6 +158,10 @@ class LoopFlight:
         """Whether the autopilot's EKF fuses our position now (its latest status)."""
         raise NotImplementedError
 
+    def _set_gps(self, on: bool) -> None:
+        """The simulated GPS receiver's fix on or off (the GPS missions: gps_missions.py)."""
+        raise NotImplementedError
+
     def summarise(self, ok: bool) -> dict[str, Any]:
         raise NotImplementedError
 
@@ -273,7 +278,9 @@ class LoopFlight:
         "landing" (the caller lands)."""
         o = self.o
         self._phase(f"mission {o.mission}")
-        if o.mission == "hover":
+        if gps_missions.is_gps_mission(o.mission):
+            gps_missions.fly(self, start)
+        elif o.mission == "hover":
             self.gcs.pump(o.hover_s)
             self.gcs.pump(2.0)
         else:

@@ -45,6 +45,7 @@ import numpy as np
 
 from companion.drivers.px4_shell_text import parse_listener
 from companion.errors import SitlError
+from companion.sitl.loops import gps_missions
 from companion.sitl.loops.ground_station import GcsBase, LoopTelemetry
 from companion.sitl.loops.loop_flight import (
     LoopFlight,
@@ -296,7 +297,8 @@ class Flight(LoopFlight):
     def _start_and_fly(self) -> None:
         px4, work, n = self.px4, self.work, self.o.instance
         env = dict(os.environ)
-        env.update({f"PX4_PARAM_{k}": v for k, v in BOOT_PARAMS.items()})
+        boot = {**BOOT_PARAMS, **gps_missions.px4_boot_params(self.o.mission)}
+        env.update({f"PX4_PARAM_{k}": v for k, v in boot.items()})
         self.log(f"PX4 SITL {px4} instance {n}, work folder {work}")
         self.procs.start(
             "px4", [str(px4), str(n), str(work)], self.out / "px4-console.log", env=env
@@ -342,6 +344,8 @@ class Flight(LoopFlight):
         # sensor 0: SIH's flat ground, not our terrain)
         for k, rf in enumerate(d["rangefinders"]):
             rf["sensor_id"] = k + 1
+        if gps_missions.is_gps_mission(self.o.mission):
+            d["gps"] = gps_missions.service_gps_section("px4")
         return self._write_service_config(d)
 
     def _configure(self, cfg_path: Path) -> None:
@@ -357,7 +361,7 @@ class Flight(LoopFlight):
             "--url",
             url,
             "--yes",
-            "--no-gnss",
+            "--with-gps" if gps_missions.is_gps_mission(self.o.mission) else "--no-gnss",
             "--timeout-s",
             "10",
         ]
@@ -434,6 +438,8 @@ class Flight(LoopFlight):
         self._wait_fused("EKF2 fusing our position", 1.0)
         self._wait_timesync()
         self._hold_on_ground()
+        if self.o.mission == "gps-denied-zone":  # our output in PX4's GPS frame before arming
+            gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
         self._arm()
@@ -540,7 +546,14 @@ class Flight(LoopFlight):
         raise SitlError(f"PX4 did not confirm {name} = {value}")
 
     def _ev_fused(self) -> bool:
+        if gps_missions.is_gps_mission(self.o.mission):  # GNSS alone sets the flag
+            fields = parse_listener(self.gcs.shell("listener estimator_status_flags -n 1", 2.0))
+            return bool(fields and fields.get("cs_ev_pos"))
         return self.gcs.ev_fused()
+
+    def _set_gps(self, on: bool) -> None:
+        """SIH's GPS fix on or off (SIM_GPS_USED; PX4's `failure gps` does nothing here)."""
+        self._set_param_int("SIM_GPS_USED", gps_missions.PX4_GPS_SATELLITES if on else 0)
 
     # ------------------------------------------------------------------ results
     def summarise(self, ok: bool) -> dict[str, Any]:

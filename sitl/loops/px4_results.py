@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.sitl.loops.gps_missions import is_gps_mission
+from companion.sitl.loops.gps_results import summarise_px4
 from companion.sitl.loops.loop_results import (
     camera_and_latency,
     clock_line,
@@ -65,6 +67,7 @@ TOPICS = {
     "vehicle_attitude",
     "vehicle_attitude_groundtruth",
     "vehicle_local_position_groundtruth",
+    "vehicle_gps_position",
 }
 
 
@@ -127,6 +130,10 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     path_and_landing(s, flight, ok, tr, air_t0, air_t1)
     camera_and_latency(s, out)
     _px4_vision_age(s, ulog)
+    if is_gps_mission(flight.o.mission):
+        armed_s = tel.phases.get("armed")
+        t_armed_us = None if armed_s is None else (armed_s * 1e9 - clock[0]) / (clock[1] * 1e3)
+        summarise_px4(s, ulog, t_armed_us)
     try:
         _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
     except Exception as e:  # plots are a by-product: never lose the summary for them

@@ -67,6 +67,7 @@ def fly(
     gps: dict | None = None,
 ) -> tuple[GpsFrame, FakeLink, Flight]:
     cfg = load_config(None, {"gps": {"align": True, "handover": "px4", **(gps or {})}})
+    ardupilot = cfg.gps.handover == "ardupilot"
     rt = Runtime(cfg)
     now_ns = [0]
     rt.clock = lambda: now_ns[0]
@@ -102,6 +103,9 @@ def fly(
                 if m.get_type() == "PARAM_SET" and not getattr(m, "_echoed", False):
                     m._echoed = True
                     frame.actions.on_param_value("EKF2_GPS_CTRL", m.param_value)
+                if m.get_type() == "COMMAND_LONG" and not getattr(m, "_echoed", False):
+                    m._echoed = True
+                    frame.actions.on_command_ack(int(m.command), 0)  # ACCEPTED
         frame.actions.tick()
         flight.states.append(frame.out.state)
         flight.t_s.append(t)
@@ -111,6 +115,7 @@ def fly(
         flight.resets.append(pose.reset_counter)
         if frame.jumped:
             flight.jumped.append(k)
+    assert ardupilot == (frame.actions.target() == "ardupilot")
     return frame, link, flight
 
 
@@ -176,6 +181,24 @@ def test_without_align_height_the_height_stays_ours() -> None:
     assert horizontal.max() < 0.45, horizontal.max()
 
 
+@pytest.mark.parametrize("handover", ["ardupilot", "px4"])
+def test_gps_that_appears_mid_flight_hands_ardupilot_from_ours_to_gps(handover: str) -> None:
+    """Indoors (no fix for the first 25 s), then GPS: ArduPilot (set 1 = GPS) is told once to
+    use ours (set 2) 5 s after our first pose, and set 1 once the GPS frame is found; PX4 is
+    told nothing (it fuses GNSS beside ours once there is one)."""
+    frame, link, flight = fly(seconds=50.0, loss=(0.0, 25.0), gps={"handover": handover})
+    assert runs(flight.states)[:3] == ["own", "aligning", "aligned"]
+    sets = [int(m.param1) for m in link.sent if m.get_type() == "COMMAND_LONG"]
+    params = [m for m in link.sent if m.get_type() == "PARAM_SET"]
+    if handover == "ardupilot":
+        assert sets == [2, 1]
+        assert [a["result"] for a in frame.status()["handover"]] == ["acknowledged"] * 2
+        assert frame.told_no_gps
+    else:
+        assert sets == [] and params == []
+        assert not frame.told_no_gps
+
+
 def test_an_unanswered_action_is_retried_and_given_up() -> None:
     frame, link, _ = fly(seconds=40.0, echo=False)
     sets = [bytewise_int32(m.param_value) for m in link.sent if m.get_type() == "PARAM_SET"]
@@ -225,3 +248,20 @@ def test_a_silent_receiver_is_a_loss_the_status_names() -> None:
     gps = frame.status()["gps"]
     assert not gps["good"] and gps["reasons"][0].startswith("no GPS sample for 9.")
     assert frame.status()["state"] == "own"  # lost before an alignment
+
+
+def test_the_origin_is_asked_for_until_it_arrives() -> None:
+    """PX4 sends GPS_GLOBAL_ORIGIN only when its origin changes (one set at boot, before our
+    rate request, never comes): MAV_CMD_REQUEST_MESSAGE 49 every 2 s until one arrives."""
+    link = FakeLink()
+    frame = GpsFrame(Runtime(load_config(None, {"gps": {"align": True}})), link)
+    for k in range(int(7.0 * 5)):  # fixes at 5 Hz for 7 s, the origin at 5 s
+        t_us = int(k / 5 * 1e6)
+        if k == 25:
+            lat0, lon0, alt0 = stub_gps.GPS_ORIGIN
+            frame.on_origin(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1e3))
+        msg = stub_gps.gps_raw_int(link.mav, t_us, np.zeros(3), False, np.zeros(3))
+        frame.on_gps_raw(msg, t_us)
+    asks = [m for m in link.sent if m.get_type() == "COMMAND_LONG"]
+    assert [(int(m.command), int(m.param1)) for m in asks] == [(512, 49)] * 3  # 0, 2, 4 s
+    assert frame.status()["gps"]["origin_requests"] == 3 and frame.status()["gps"]["origin"]
