@@ -312,11 +312,11 @@ def add_sitl(sub: Any) -> None:
 
 def add_mission_and_seed(p: Any, mission_help: str) -> None:
     """``--mission`` (square | lawnmower | hover, and the GPS missions gps-denied-zone |
-    gps-appears: sitl/loops/gps_missions.py) and ``--seed``, as both closed loops take them
-    (sitl/loops/loop_flight.py, options_from_args)."""
+    gps-appears | gps-hover: sitl/loops/gps_missions.py) and ``--seed``, as both closed loops
+    take them (sitl/loops/loop_flight.py, options_from_args)."""
     p.add_argument(
         "--mission",
-        choices=["square", "lawnmower", "hover", "gps-denied-zone", "gps-appears"],
+        choices=["square", "lawnmower", "hover", "gps-denied-zone", "gps-appears", "gps-hover"],
         default="square",
         help=mission_help,
     )

@@ -214,7 +214,7 @@ class Flight(loop_flight.LoopFlight):
             d["gps"] = gps_missions.service_gps_section("ardupilot")
         svc["ardupilot"] = {
             # with GPS at boot EKF3 takes its origin from it (docs/gps.md); indoors ours
-            "set_origin": self.o.mission != "gps-denied-zone",
+            "set_origin": self.o.mission not in gps_missions.WITH_GPS_AT_START,
             "origin_lat_deg": HOME[0],
             "origin_lon_deg": HOME[1],
             "origin_alt_m": HOME[2],
@@ -264,7 +264,9 @@ class Flight(loop_flight.LoopFlight):
         self._start_service()
         self._wait_tracking("the service tracking with a scale", 120)
         self._wait_fused("EKF3 using our external navigation", 2.0)
-        if o.mission == "gps-denied-zone":  # our output in EKF3's GPS frame before arming
+        if (
+            o.mission in gps_missions.WITH_GPS_AT_START
+        ):  # our output in EKF3's GPS frame before arming
             gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
         g.set_mode(MODE_GUIDED)
         self._until("GUIDED mode", lambda: self.tel.custom_mode == MODE_GUIDED, 10)

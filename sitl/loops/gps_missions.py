@@ -5,7 +5,8 @@ and GPS that appears mid-flight, flown the same way on PX4 and ArduPilot.
 aligned to the autopilot's GPS frame before arming), flies a ZONE_LEG_M leg north into the zone,
 where the GPS fails for DENIAL_S while it flies ZONE_SQUARE_M squares; the GPS returns, the
 vehicle holds until the service has handed back (its frame ``aligned`` again, at most
-HANDBACK_TIMEOUT_S), flies back and lands. ``gps-appears``: the vehicle boots and takes off
+HANDBACK_TIMEOUT_S), flies back and lands. ``gps-hover``: the same in a hover, the GPS off for
+HOVER_DENIAL_S (short enough for `make test`). ``gps-appears``: the vehicle boots and takes off
 without a GPS fix (indoors), flies the leg and one square, the GPS appears, it holds until the
 service's frame is ``aligned`` (the GPS frame found and slewed onto), flies back and lands.
 
@@ -22,10 +23,13 @@ from typing import Any
 
 import numpy as np
 
-GPS_MISSIONS = ("gps-denied-zone", "gps-appears")
+GPS_MISSIONS = ("gps-denied-zone", "gps-appears", "gps-hover")
+# the missions that take off with GPS (the service aligned to it before arming)
+WITH_GPS_AT_START = ("gps-denied-zone", "gps-hover")
 ZONE_LEG_M = 20.0  # the leg from the take-off point into the zone (north)
 ZONE_SQUARE_M = 10.0  # the squares flown inside the zone
 DENIAL_S = 60.0  # how long the GPS is off in the zone
+HOVER_DENIAL_S = 15.0  # gps-hover: the GPS off this long in a hover (the test in make test)
 HANDBACK_TIMEOUT_S = 60.0  # the hold after the GPS returns, until the service is aligned
 ALIGN_BEFORE_ARMING_S = 120.0  # gps-denied-zone: the service aligned on the ground before this
 AFTER_ALIGNED_S = 5.0  # the hold after the service said aligned
@@ -50,7 +54,7 @@ def px4_boot_params(mission: str) -> dict[str, str]:
     """The PX4 boot parameters a mission adds ({} for a vision-only mission)."""
     if not is_gps_mission(mission):
         return {}
-    fix = "0" if mission == "gps-appears" else str(PX4_GPS_SATELLITES)
+    fix = str(PX4_GPS_SATELLITES) if mission in WITH_GPS_AT_START else "0"
     return {**PX4_GPS_BOOT_PARAMS, "SIM_GPS_USED": fix}
 
 
@@ -82,7 +86,7 @@ def ardupilot_boot_params(mission: str) -> dict[str, float]:
     """The ArduPilot boot parameters a mission adds ({} for a vision-only mission)."""
     if not is_gps_mission(mission):
         return {}
-    return {**ARDUPILOT_GPS_BOOT_PARAMS, "SIM_GPS1_ENABLE": int(mission != "gps-appears")}
+    return {**ARDUPILOT_GPS_BOOT_PARAMS, "SIM_GPS1_ENABLE": int(mission in WITH_GPS_AT_START)}
 
 
 def is_gps_mission(mission: str) -> bool:
@@ -133,6 +137,17 @@ def fly(flight: Any, start: np.ndarray) -> None:
     the phases "gps lost" / "gps back" are set where the GPS changes. Ends over ``start``
     (the caller lands)."""
     o = flight.o
+    if o.mission == "gps-hover":
+        _hold(flight, start, AFTER_ALIGNED_S)
+        flight._set_gps(False)
+        flight._phase("gps lost")
+        _hold(flight, start, HOVER_DENIAL_S)
+        flight._set_gps(True)
+        flight._phase("gps back")
+        if wait_aligned(flight, "service aligned to GPS again", HANDBACK_TIMEOUT_S):
+            _hold(flight, start, AFTER_ALIGNED_S)
+        flight._settle_over(start)
+        return
     zone = start + np.array([ZONE_LEG_M, 0.0, 0.0])
     flight._follow([start, zone], o.speed_m_s)
     if o.mission == "gps-denied-zone":

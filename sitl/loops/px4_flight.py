@@ -438,7 +438,9 @@ class Flight(LoopFlight):
         self._wait_fused("EKF2 fusing our position", 1.0)
         self._wait_timesync()
         self._hold_on_ground()
-        if self.o.mission == "gps-denied-zone":  # our output in PX4's GPS frame before arming
+        if (
+            self.o.mission in gps_missions.WITH_GPS_AT_START
+        ):  # our output in PX4's GPS frame before arming
             gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
