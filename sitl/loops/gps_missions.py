@@ -46,6 +46,10 @@ PX4_GPS_BOOT_PARAMS = {
     "EKF2_GPS_CTRL": "7",
     "EKF2_EV_CTRL": "7",
     "EKF2_HGT_REF": "3",
+    # the floor under our velocity variance back at PX4's default (the vision-only loop's 0.05
+    # let EKF2 refuse our velocity at the zone's corners right after the GNSS stopped: 0.17-0.2
+    # m/s innovations, EV fusion stopped and reset 3 times in the first zone flight)
+    "EKF2_EVV_NOISE": "0.1",
 }
 PX4_GPS_SATELLITES = 10  # SIM_GPS_USED with the fix on (SIH's default)
 

@@ -108,9 +108,12 @@ def summarise_gps(
         float(np.percentile(h[before], 95)) if np.any(before) else None
     )
     if ev_used is not None and len(ev_used[0]):
-        tf, flag = ev_used
-        inside = (tf >= t_lost) & (tf <= t_back)
-        s["ev_used_fraction_denied"] = float(np.mean(flag[inside])) if np.any(inside) else None
+        tf, flag = ev_used  # logged at its changes: held between samples, on a 10 ms grid
+        grid = np.arange(t_lost, t_back, 0.01)
+        idx = np.searchsorted(tf, grid, side="right") - 1
+        held = np.where(idx >= 0, flag[np.clip(idx, 0, len(flag) - 1)], False)
+        s["ev_used_fraction_denied"] = float(np.mean(held)) if len(grid) else None
+        s["ev_unused_s_denied"] = float(np.sum(~held) * 0.01)
 
 
 def summarise_px4(s: dict[str, Any], ulog: dict[str, np.ndarray], t_armed_us: float | None) -> None:
@@ -148,6 +151,14 @@ def summarise_px4(s: dict[str, Any], ulog: dict[str, np.ndarray], t_armed_us: fl
     back = backs[0] if backs else None
     t_armed = None if t_armed_us is None else t_armed_us * 1e-6
     summarise_gps(s, t_v, p_v, t_g[order], p_g, events, t_armed, (lost, back), ev_used)
+    if lost is not None and back is not None:  # EKF2's own resets while denied (ours refused)
+        rc = vlp["xy_reset_counter"].astype(np.int64)
+        step = np.flatnonzero(np.diff(rc)) + 1
+        inside = [i for i in step if lost + JUMP_WINDOW_S < t_v[i] <= back]
+        s["px4_xy_resets_denied"] = len(inside)
+        s["px4_xy_reset_max_m_denied"] = (
+            float(max(np.hypot(*vlp["delta_xy"][i][:2]) for i in inside)) if inside else 0.0
+        )
     if back is not None and ev_used is not None:
         started = [t for name, t in events if name == "EKF2 started GNSS" and t >= back]
         s["gnss_fused_again_after_s"] = (started[0] - back) if started else None
