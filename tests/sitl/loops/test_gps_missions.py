@@ -24,8 +24,11 @@ def _judged(rows: list, names: set[str]) -> dict[str, Status]:
 
 @pytest.mark.parametrize("mission", gps_missions.GPS_MISSIONS)
 def test_the_missions_boot_px4_as_check_with_gps_wants(mission: str) -> None:
-    boot = {k: int(v) for k, v in gps_missions.px4_boot_params(mission).items()}
-    params = {k: Param(k, v, True) for k, v in boot.items()}
+    boot = {
+        k: float(v) if "." in v else int(v)
+        for k, v in gps_missions.px4_boot_params(mission).items()
+    }
+    params = {k: Param(k, v, isinstance(v, int)) for k, v in boot.items()}
     rows = evaluate(params, LinkContext("odometry", gps_seen=True, with_gps=True))
     judged = _judged(rows, set(gps_missions.PX4_GPS_BOOT_PARAMS))
     assert set(judged) == set(gps_missions.PX4_GPS_BOOT_PARAMS) - {"SENS_EN_GPSSIM"}
