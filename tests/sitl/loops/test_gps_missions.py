@@ -92,3 +92,22 @@ def test_the_summary_of_a_denial() -> None:
 def test_transitions_of_a_flag() -> None:
     t = np.arange(6.0)
     assert gps_results.transitions(t, np.array([1, 1, 0, 0, 1, 1])) == [(2.0, False), (4.0, True)]
+
+
+def test_the_table_of_the_missions(tmp_path) -> None:
+    from companion.sitl.loops import gps_table
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    s = {"mission": "gps-denied-zone", "seed": 2, "landed": True, "failsafes": []}
+    s |= {"gps_lost_s": 18.9, "gps_back_s": 78.6, "max_jump_m": 0.214}
+    s |= {"gps_events": [{"event": "fix lost", "jump_m": 0.1}, {"event": "x", "jump_m": 0.214}]}
+    s |= {"horizontal_error_m_p95_denied": 0.21, "ev_used_fraction_denied": 1.0}
+    (a / "summary.json").write_text(__import__("json").dumps(s))
+    text = gps_table.table([b, a])
+    lines = text.splitlines()
+    assert lines[2].startswith("| PX4 | gps-denied-zone | 2 | yes | 18.9 / 78.6 | 0.214 (x) |")
+    assert "100.0 %" in lines[2] and "no summary.json" in lines[3]
+    assert lines[1].count("---") == lines[0].count(" | ") + 1
+    assert gps_table.main([]) == 2

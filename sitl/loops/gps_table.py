@@ -1,0 +1,77 @@
+"""The GPS missions' table for docs/RESULTS.md, from their ``summary.json`` files.
+
+``python -m companion.sitl.loops.gps_table OUT...``: one row per flight (``companion sitl
+px4|ardupilot --mission gps-denied-zone|gps-appears|gps-hover --out OUT``), sorted by
+autopilot, mission and seed; the columns say whether it landed without a failsafe, the GPS
+change times, ``max_jump_m`` and the event it was at, the horizontal p95 while denied (and
+before), and how much of the denial the autopilot used our estimate. A folder without a
+summary is a row that says so.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+HEADER = (
+    "| autopilot | mission | seed | landed, no failsafe | GPS lost / back [s after arming] "
+    "| max_jump_m (at) | horizontal p95 denied (before) | ours used while denied "
+    "| autopilot's resets while denied |"
+)
+
+
+def _m(v: Any, digits: int = 3) -> str:
+    return "-" if v is None else f"{float(v):.{digits}f}"
+
+
+def row(out: Path) -> tuple[tuple[str, str, int], str]:
+    """The sort key and the markdown row of one flight's folder."""
+    path = out / "summary.json"
+    if not path.is_file():
+        return ("~", out.name, 0), f"| {out.name} | no summary.json | | | | | | | |"
+    s = json.loads(path.read_text())
+    ap = "ArduPilot" if s.get("autopilot") == "ArduPilot" else "PX4"
+    mission, seed = str(s.get("mission")), int(s.get("seed") or 0)
+    ok = bool(s.get("landed")) and not s.get("failsafes")
+    events = [e for e in s.get("gps_events") or [] if e.get("jump_m") is not None]
+    worst = max(events, key=lambda e: e["jump_m"], default=None)
+    at = f" ({worst['event']})" if worst else ""
+    used = s.get("ev_used_fraction_denied")
+    before = s.get("horizontal_error_m_p95_before_denial")
+    resets = s.get("px4_xy_resets_denied")
+    reset_text = (
+        "-" if resets is None else f"{resets} ({_m(s.get('px4_xy_reset_max_m_denied'), 2)} m)"
+    )
+    cells = [
+        ap,
+        mission,
+        str(seed),
+        "yes" if ok else f"NO ({'; '.join(s.get('failsafes') or []) or 'not landed'})",
+        f"{_m(s.get('gps_lost_s'), 1)} / {_m(s.get('gps_back_s'), 1)}",
+        f"{_m(s.get('max_jump_m'))}{at}",
+        f"{_m(s.get('horizontal_error_m_p95_denied'))} ({_m(before)})",
+        "-" if used is None else f"{100.0 * used:.1f} %",
+        reset_text,
+    ]
+    return (ap, mission, seed), "| " + " | ".join(cells) + " |"
+
+
+def table(outs: list[Path]) -> str:
+    rows = sorted(row(o) for o in outs)
+    sep = "|" + "---|" * HEADER.count(" |")
+    return "\n".join([HEADER, sep, *(r for _, r in rows)]) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if not args:
+        print("usage: python -m companion.sitl.loops.gps_table OUT...", file=sys.stderr)
+        return 2
+    sys.stdout.write(table([Path(a) for a in args]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
