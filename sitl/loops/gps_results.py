@@ -20,11 +20,15 @@ about the same home).
 
 from __future__ import annotations
 
+import datetime
+import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 JUMP_WINDOW_S = 1.0
+EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80  # ArduPilot's EKF_STATUS_REPORT flags
 BEFORE_DENIAL_S = 30.0
 
 
@@ -189,5 +193,46 @@ def summarise_ardupilot(
             after_arming = t_armed is not None and t + t0_gcs > t_armed
             if after_arming and any(k in text.lower() for k in ARDUPILOT_GPS_TEXTS):
                 events.append((f"EKF3: {text}", t + t0_gcs))
+    wall_minus_mono = getattr(flight, "wall_minus_mono_s", None)
+    for what, t_wall in service_actions(flight.out / "service.log"):
+        if wall_minus_mono is not None and (t_armed is None or t_wall - wall_minus_mono > t_armed):
+            events.append((f"service: {what}", t_wall - wall_minus_mono))
     denied = (ph.get("gps lost"), ph.get("gps back"))
-    summarise_gps(s, t_est_ns * 1e-9, p_est, t_tr_ns * 1e-9, p_tr, events, t_armed, denied)
+    ekf = np.array(flight.tel.ekf, dtype=np.float64).reshape(-1, 2)
+    # EKF3 navigating (a relative horizontal position, not constant-position mode): while set
+    # 2 is active that position is ours
+    ok = (ekf[:, 1].astype(np.int64) & EKF_POS_HORIZ_REL != 0) & (
+        ekf[:, 1].astype(np.int64) & EKF_CONST_POS_MODE == 0
+    )
+    summarise_gps(
+        s,
+        t_est_ns * 1e-9,
+        p_est,
+        t_tr_ns * 1e-9,
+        p_tr,
+        events,
+        t_armed,
+        denied,
+        (ekf[:, 0] * 1e-9, ok),
+    )
+
+
+_ACTION = re.compile(r"GPS handover: (.+) acknowledged")
+
+
+def service_actions(log: Path) -> list[tuple[str, float]]:
+    """The service's acknowledged handover actions (EKF2_GPS_CTRL, the EKF source set) from its
+    log: (what, wall-clock time [s])."""
+    if not log.is_file():
+        return []
+    out = []
+    for line in log.read_text(errors="replace").splitlines():
+        m = _ACTION.search(line)
+        if m is None:
+            continue
+        try:
+            wall = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        except ValueError:
+            continue
+        out.append((m.group(1), wall))
+    return out
