@@ -145,6 +145,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
     loop_results.camera_and_latency(s, out)
     if gps_missions.is_gps_mission(flight.o.mission):
         gps_results.summarise_ardupilot(s, flight, t_lp, p_lp, t_tr, p_tr)
+        gps_results.add_service_frame(s, out)
     rep = out / "service-report.json"
     if rep.exists():
         data = json.loads(rep.read_text())

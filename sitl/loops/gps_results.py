@@ -21,6 +21,7 @@ about the same home).
 from __future__ import annotations
 
 import datetime
+import json
 import re
 from pathlib import Path
 from typing import Any
@@ -236,3 +237,19 @@ def service_actions(log: Path) -> list[tuple[str, float]]:
             continue
         out.append((m.group(1), wall))
     return out
+
+
+def add_service_frame(s: dict[str, Any], out: Path) -> None:
+    """The service's GPS frame at its exit (its report): state, the alignment it applied (yaw
+    [deg], translation NED [m]: how far our own frame lay from the GPS frame) and the agreement
+    [m] of its last fit; its handover actions."""
+    path = out / "service-report.json"
+    try:
+        frame = json.loads(path.read_text()).get("frame")
+    except (OSError, ValueError):
+        frame = None
+    if not isinstance(frame, dict):
+        s["service_frame"] = None
+        return
+    keys = ("state", "yaw_deg", "translation_ned_m", "agreement_m", "reanchors", "handover")
+    s["service_frame"] = {k: frame.get(k) for k in keys}

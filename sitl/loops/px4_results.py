@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from companion.sitl.loops.gps_missions import is_gps_mission
-from companion.sitl.loops.gps_results import summarise_px4
+from companion.sitl.loops.gps_results import add_service_frame, summarise_px4
 from companion.sitl.loops.loop_results import (
     camera_and_latency,
     clock_line,
@@ -134,6 +134,7 @@ def summarise(flight: Any, ok: bool) -> dict[str, Any]:
         armed_s = tel.phases.get("armed")
         t_armed_us = None if armed_s is None else (armed_s * 1e9 - clock[0]) / (clock[1] * 1e3)
         summarise_px4(s, ulog, t_armed_us)
+        add_service_frame(s, out)
     try:
         _plot(out, s, t_tr, p_tr, t_lp, p_lp, offset, ulog, ours, t_cmp, air_t0, air_t1)
     except Exception as e:  # plots are a by-product: never lose the summary for them
