@@ -5,12 +5,14 @@ px4|ardupilot --mission gps-denied-zone|gps-appears|gps-hover --out OUT``), sort
 autopilot, mission and seed; the columns say whether it landed without a failsafe, the GPS
 change times, ``max_jump_m`` and the event it was at, the horizontal p95 while denied (and
 before), and how much of the denial the autopilot used our estimate. A folder without a
-summary is a row that says so.
+summary is a row that says so. The last column is the alignment the service applied at its end:
+how far our own frame (our compass's north, the take-off point) lay from the GPS frame.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -18,7 +20,7 @@ from typing import Any
 HEADER = (
     "| autopilot | mission | seed | landed, no failsafe | GPS lost / back [s after arming] "
     "| max_jump_m (at) | horizontal p95 denied (before) | ours used while denied "
-    "| autopilot's resets while denied |"
+    "| autopilot's resets while denied | our frame to the GPS's (yaw, shift) |"
 )
 
 
@@ -26,11 +28,19 @@ def _m(v: Any, digits: int = 3) -> str:
     return "-" if v is None else f"{float(v):.{digits}f}"
 
 
+def _frame(frame: Any) -> str:
+    """The service's applied alignment at its exit: how far our own frame lay from the GPS's."""
+    if not isinstance(frame, dict) or frame.get("yaw_deg") is None:
+        return "-"
+    t = frame.get("translation_ned_m") or [0.0, 0.0, 0.0]
+    return f"{float(frame['yaw_deg']):.2f} deg, {math.hypot(t[0], t[1]):.2f} m"
+
+
 def row(out: Path) -> tuple[tuple[str, str, int], str]:
     """The sort key and the markdown row of one flight's folder."""
     path = out / "summary.json"
     if not path.is_file():
-        return ("~", out.name, 0), f"| {out.name} | no summary.json | | | | | | | |"
+        return ("~", out.name, 0), f"| {out.name} | no summary.json | | | | | | | | |"
     s = json.loads(path.read_text())
     ap = "ArduPilot" if s.get("autopilot") == "ArduPilot" else "PX4"
     mission, seed = str(s.get("mission")), int(s.get("seed") or 0)
@@ -54,6 +64,7 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
         f"{_m(s.get('horizontal_error_m_p95_denied'))} ({_m(before)})",
         "-" if used is None else f"{100.0 * used:.1f} %",
         reset_text,
+        _frame(s.get("service_frame")),
     ]
     return (ap, mission, seed), "| " + " | ".join(cells) + " |"
 
