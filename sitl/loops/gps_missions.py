@@ -86,11 +86,19 @@ ARDUPILOT_GPS_BOOT_PARAMS: dict[str, float] = {
 }
 
 
+# ARMING_CHECK: every check (bits 1-19) but the GPS lock (bit 3, 8): indoors with a receiver
+# configured ArduPilot refused to arm ("Arm: GPS 1: Bad fix") although set 2 (ours) was active
+ARMING_CHECK_BUT_GPS_LOCK = (1 << 20) - 2 - 8
+
+
 def ardupilot_boot_params(mission: str) -> dict[str, float]:
     """The ArduPilot boot parameters a mission adds ({} for a vision-only mission)."""
     if not is_gps_mission(mission):
         return {}
-    return {**ARDUPILOT_GPS_BOOT_PARAMS, "SIM_GPS1_ENABLE": int(mission in WITH_GPS_AT_START)}
+    if mission in WITH_GPS_AT_START:
+        return dict(ARDUPILOT_GPS_BOOT_PARAMS)
+    indoors = {"SIM_GPS1_ENABLE": 0, "ARMING_CHECK": ARMING_CHECK_BUT_GPS_LOCK}
+    return {**ARDUPILOT_GPS_BOOT_PARAMS, **indoors}
 
 
 def is_gps_mission(mission: str) -> bool:

@@ -41,11 +41,13 @@ def test_the_missions_boot_ardupilot_as_check_with_gps_wants(mission: str) -> No
     boot = gps_missions.ardupilot_boot_params(mission)
     params = {k: Param(k, float(v), isinstance(v, int)) for k, v in boot.items()}
     ctx = ArduPilotContext(output="odometry", gps_seen=True, origin_seen=True, with_gps=True)
-    names = set(boot) - {"SIM_GPS1_ENABLE"}
+    names = set(boot) - {"SIM_GPS1_ENABLE"}  # the simulator's; ARMING_CHECK is judged
     judged = _judged(evaluate_rows(params, ctx), names)
     assert set(judged) == names
     assert all(s in (Status.OK, Status.INFO) for s in judged.values()), judged
     assert boot["SIM_GPS1_ENABLE"] == (0 if mission == "gps-appears" else 1)
+    # indoors every pre-arm check stays on but the GPS lock
+    assert boot.get("ARMING_CHECK") == (0xFFFFE & ~8 if mission == "gps-appears" else None)
     assert gps_missions.ardupilot_boot_params("square") == {}
 
 
