@@ -117,7 +117,7 @@ class ArduPilotSitl:
         if rt is None:
             return None
         ours = self.work / "companion.parm"
-        ours.write_text("".join(f"{k} {v:g}\n" for k, v in self.params.items()))
+        ours.write_text("".join(f"{k} {v:.10g}\n" for k, v in self.params.items()))
         files = [rt / "copter.parm"]
         if self.profile != "gps":
             files.append(rt / f"extnav_{self.profile}.parm")
