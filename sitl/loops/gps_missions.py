@@ -151,11 +151,11 @@ def fly(flight: Any, start: np.ndarray) -> None:
     o = flight.o
     if o.mission == "gps-hover":
         _hold(flight, start, AFTER_ALIGNED_S)
+        flight._phase("gps lost")  # the switch's first PARAM_SET follows at once
         flight._set_gps(False)
-        flight._phase("gps lost")
         _hold(flight, start, HOVER_DENIAL_S)
-        flight._set_gps(True)
         flight._phase("gps back")
+        flight._set_gps(True)
         if wait_aligned(flight, "service aligned to GPS again", HANDBACK_TIMEOUT_S):
             _hold(flight, start, AFTER_ALIGNED_S)
         flight._settle_over(start)
@@ -163,16 +163,16 @@ def fly(flight: Any, start: np.ndarray) -> None:
     zone = start + np.array([ZONE_LEG_M, 0.0, 0.0])
     flight._follow([start, zone], o.speed_m_s)
     if o.mission == "gps-denied-zone":
-        flight._set_gps(False)
         flight._phase("gps lost")
+        flight._set_gps(False)
         t_lost = time.monotonic()
         while time.monotonic() - t_lost < DENIAL_S - 10.0:
             flight._follow(_square(zone, ZONE_SQUARE_M), o.speed_m_s)
         _hold(flight, zone, max(0.0, DENIAL_S - (time.monotonic() - t_lost)))
     else:
         flight._follow(_square(zone, ZONE_SQUARE_M), o.speed_m_s)
-    flight._set_gps(True)
     flight._phase("gps back")
+    flight._set_gps(True)
     flight.gcs.setpoint = (zone.copy(), np.zeros(3))
     if wait_aligned(flight, "service aligned to GPS again", HANDBACK_TIMEOUT_S):
         _hold(flight, zone, AFTER_ALIGNED_S)
