@@ -1,6 +1,7 @@
 # One entry for set-up, demo and tests on a fresh Debian machine (Python >= 3.11).
 # `make demo` and `make test` create .venv and install everything they need (the service, the
-# simulator, the evaluation and the development tools: `.[dev,eval,sim]`).
+# simulator, the evaluation, the development tools and Ray for the cluster test:
+# `.[dev,eval,sim,cluster]`).
 # A board: `sudo make install` (the service alone, under systemd; docs/install.md).
 PY      ?= python3
 VENV    := .venv
@@ -41,7 +42,7 @@ sysdeps:
 $(STAMP): pyproject.toml | sysdeps
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,eval,sim]'
+	$(BIN)/python -m pip install -q -e '.[dev,eval,sim,cluster]'
 	touch $(STAMP)
 
 # Debian's gi (GStreamer's bindings) made importable in the venv, nothing else of the system's
