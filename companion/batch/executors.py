@@ -62,13 +62,13 @@ class RayExecutor:
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None) -> None:
         try:
-            import ray
+            import ray as ray_module
         except ModuleNotFoundError:
             raise BatchError(
-                "--executor ray needs Ray, which is not installed: "
-                "pip install 'companion[cluster]'"
+                "--executor ray needs Ray, which is not installed: pip install 'companion[cluster]'"
             ) from None
-        self._ray: Any = ray
+        ray: Any = ray_module
+        self._ray = ray
         address = address or os.environ.get("RAY_ADDRESS") or None
         kwargs: dict[str, Any] = {"log_to_driver": False, "configure_logging": False}
         try:

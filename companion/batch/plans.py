@@ -55,8 +55,7 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
     for t in TERRAINS:
         for tr in TRAJECTORIES:
             tasks = tuple(
-                flight(scale_name(t, tr, s), t, tr, s, SECONDS, ("--methods", "all"))
-                for s in SEEDS
+                flight(scale_name(t, tr, s), t, tr, s, SECONDS, ("--methods", "all")) for s in SEEDS
             )
             out.append(TablePlan(f"scale-{t}-{tr}", f"Metric scale, {t} / {tr}", tasks, "scale"))
     study = flight(

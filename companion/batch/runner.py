@@ -36,7 +36,8 @@ SECTIONS_OF_REPLAY = ("vo", "scale", "attitude", "dpose")
 
 @dataclass(frozen=True)
 class Outcome:
-    """One task's end in a batch: where its result is (None when it failed)."""
+    """One task's end in a batch: ``folder``, its result (``out/NAME``, a link into the
+    cache; None when it failed)."""
 
     task: Task
     key: str
@@ -73,8 +74,10 @@ def config_text(task: Task) -> str | None:
     if task.kind == "replay" or (task.kind == "sweep" and task.argv[0] == "replay"):
         bad = sorted(set(data) - set(SECTIONS_OF_REPLAY))
         if bad:
-            raise BatchError(f"{task.name}: a replay's override holds [vo] [scale] [attitude] "
-                             f"[dpose] only, not {', '.join(bad)}")
+            raise BatchError(
+                f"{task.name}: a replay's override holds [vo] [scale] [attitude] "
+                f"[dpose] only, not {', '.join(bad)}"
+            )
     else:
         from_dict(Config, data)  # an unknown key or a bad value: ConfigError naming it
     return to_toml(data)
@@ -107,7 +110,9 @@ def run_batch(
         if (folder / "batch.json").is_file():
             _link(out, job.task.name, folder)
             _clear_failed(out, job.task.name)
-            report.outcomes[job.task.name] = Outcome(job.task, job.key, "cached", folder)
+            report.outcomes[job.task.name] = Outcome(
+                job.task, job.key, "cached", out / job.task.name
+            )
         else:
             todo.append(job)
     log(
@@ -151,7 +156,7 @@ def _store(job: Job, result: TaskResult, out: Path, cache: Path, code: str) -> O
         tmp.rename(folder)
         _link(out, job.task.name, folder)
         _clear_failed(out, job.task.name)
-        return Outcome(job.task, job.key, "ran", folder, result.seconds)
+        return Outcome(job.task, job.key, "ran", out / job.task.name, result.seconds)
     failed = out / "failed" / job.task.name
     failed.mkdir(parents=True, exist_ok=True)
     (failed / "error.txt").write_text(error + "\n")
@@ -166,7 +171,9 @@ def _link(out: Path, name: str, folder: Path) -> None:
     if link.is_symlink():
         link.unlink()
     elif link.exists():
-        raise BatchError(f"{link}: exists and is not a batch's link: move it or choose another --out")
+        raise BatchError(
+            f"{link}: exists and is not a batch's link: move it or choose another --out"
+        )
     link.symlink_to(os.path.relpath(folder, link.parent), target_is_directory=True)
 
 

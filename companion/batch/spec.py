@@ -57,7 +57,7 @@ def flight(
 ) -> Task:
     """A simulated flight through ``companion eval`` (``flags``: ``--methods all``,
     ``--attitude --spacing 0.5``, ``--dpose``, ...); ``seconds`` of flight."""
-    argv = ("eval", "--terrain", terrain, "--trajectory", trajectory)
+    argv: tuple[str, ...] = ("eval", "--terrain", terrain, "--trajectory", trajectory)
     argv += ("--seconds", f"{seconds:g}", "--seed", str(seed), *flags, "--no-progress")
     return Task("flight", name, (*argv, "--out", OUT), (), config, overrides)
 
@@ -81,7 +81,10 @@ def sequence(
 
 
 def replay(
-    name: str, recording: str | Path, config: str | None = None, overrides: tuple[Override, ...] = ()
+    name: str,
+    recording: str | Path,
+    config: str | None = None,
+    overrides: tuple[Override, ...] = (),
 ) -> Task:
     """A flight recording through ``companion replay`` (``config``: an override file)."""
     path = str(recording)
