@@ -181,10 +181,10 @@ def _clear_failed(out: Path, name: str) -> None:
     shutil.rmtree(out / "failed" / name, ignore_errors=True)
 
 
-def print_failures(report: BatchReport, out: Path, stream: TextIO = sys.stderr) -> None:
+def print_failures(report: BatchReport, out: Path, stream: TextIO | None = None) -> None:
     """One line per failed task, with where its traceback is."""
     for o in report.failed:
         print(
             f"FAILED {o.task.name}: {o.error} (traceback: {out / 'failed' / o.task.name})",
-            file=stream,
+            file=stream or sys.stderr,
         )
