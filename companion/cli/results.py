@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -286,8 +285,8 @@ def _batch_flags(p: argparse.ArgumentParser, out: Path) -> None:
     )
     p.add_argument(
         "--address",
-        default=os.environ.get("RAY_ADDRESS"),
-        help="a Ray cluster's address, HEAD:PORT (default $RAY_ADDRESS; none: a local Ray)",
+        help="--executor ray: a Ray cluster's address, HEAD:PORT (default $RAY_ADDRESS; "
+        "neither: a local Ray on this machine's cores)",
     )
     p.add_argument("--out", type=Path, default=out, help=f"result folders (default {out})")
     p.add_argument("--cache", type=Path, help="the cache of results by key (default OUT/cache)")
