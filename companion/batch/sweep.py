@@ -80,7 +80,7 @@ def sweep_tasks(
     seconds: float,
     config: str | None = None,
 ) -> list[Task]:
-    """One task per grid point and dataset or flight, named ``sweep/INPUT/POINT``."""
+    """One task per grid point and dataset or flight, named ``INPUT/POINT``."""
     bases = [sequence(d.name, d.resolve(), config=config) for d in datasets]
     bases += [flight_base(f, seconds) for f in flights]
     if not bases:
@@ -89,7 +89,7 @@ def sweep_tasks(
     if len(set(names)) != len(names):
         raise ConfigError(f"companion sweep: two inputs with one name ({', '.join(names)})")
     return [
-        b.with_overrides(p, f"sweep/{b.name}/{point_label(p)}")
+        b.with_overrides(p, f"{b.name}/{point_label(p)}")
         for b in bases
         for p in points(grids)
     ]

@@ -252,7 +252,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     rows = []
     for t in tasks:
         o = report.outcomes[t.name]
-        base = t.name.split("/")[1]
+        base = t.name.split("/")[0]
         point = t.overrides
         method = str(dict(point).get("scale.method", sweep.PUBLISHED))
         if o.folder is None:

@@ -41,10 +41,10 @@ def test_one_task_per_point_and_input(tmp_path: Path) -> None:
     grids = [sweep.parse_grid("vo.max_features=150,200")]
     tasks = sweep.sweep_tasks(grids, [ds], ["hills-lawnmower-2"], 10.0)
     assert [t.name for t in tasks] == [
-        "sweep/clip/vo.max_features=150",
-        "sweep/clip/vo.max_features=200",
-        "sweep/hills-lawnmower-2/vo.max_features=150",
-        "sweep/hills-lawnmower-2/vo.max_features=200",
+        "clip/vo.max_features=150",
+        "clip/vo.max_features=200",
+        "hills-lawnmower-2/vo.max_features=150",
+        "hills-lawnmower-2/vo.max_features=200",
     ]
     assert {t.kind for t in tasks} == {"sweep"}
     assert tasks[0].inputs == (str(ds.resolve()),) and tasks[0].argv[1] == str(ds.resolve())

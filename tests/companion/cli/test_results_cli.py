@@ -68,7 +68,7 @@ def test_a_sweep_over_a_broken_dataset_reports_it_and_exits_1(
     captured = capsys.readouterr()
     assert "| 1 | broken | 150 | failed: exit 2: companion: dataset error:" in captured.out
     assert "frames.csv" in captured.out
-    assert "FAILED sweep/broken/vo.max_features=150" in captured.err
-    assert (out / "failed" / "sweep" / "broken" / "vo.max_features=150" / "traceback.txt").exists()
+    assert "FAILED broken/vo.max_features=150" in captured.err
+    assert (out / "failed" / "broken" / "vo.max_features=150" / "traceback.txt").exists()
     # a bad key is a config error before anything runs: exit 2
     assert main(["sweep", "--grid", "vo.nope=1", "--datasets", str(broken)]) == 2
