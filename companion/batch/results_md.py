@@ -23,12 +23,14 @@ from companion.errors import BatchError
 BLOCK = re.compile(r"^<!-- results:([a-z0-9-]+) -->\n(.*?)^<!-- /results -->$", re.M | re.S)
 COMMAND = re.compile(r"`(companion|make) [^`]+`")
 HEADING = re.compile(r"^#{1,6} ", re.M)
+CODE_PATHS = ("companion", "drivers", "sitl", "config")  # edits here make a commit "+dirty"
 
 
 @dataclass(frozen=True)
 class Machine:
-    """Where a table was made: the commit (``+dirty`` with uncommitted edits), the CPU model
-    and its logical cores."""
+    """Where a table was made: the commit (``+dirty`` with uncommitted edits to the code or
+    the configs; not to the docs, which the tables are written into), the CPU model and its
+    logical cores."""
 
     commit: str
     cpu: str
@@ -71,7 +73,7 @@ def machine(repo: Path) -> Machine:
         if head.returncode == 0:
             commit = head.stdout.strip()
             dirty = subprocess.run(
-                ["git", "status", "--porcelain", "--untracked-files=no", "--", "."],
+                ["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS],
                 cwd=repo,
                 capture_output=True,
                 text=True,
