@@ -5,14 +5,18 @@ and exits 1."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from companion.batch import plans
 from companion.batch.results_md import blocks
+from companion.batch.runner import BatchReport, Outcome
 from companion.cli import main
+from companion.cli.results import RENDERERS
 
 REPO = Path(__file__).resolve().parents[3]
 CLIP = REPO / "tests" / "data" / "real" / "tum_fr1_rpy_clip"
@@ -72,3 +76,83 @@ def test_a_sweep_over_a_broken_dataset_reports_it_and_exits_1(
     assert (out / "failed" / "broken" / "vo.max_features=150" / "traceback.txt").exists()
     # a bad key is a config error before anything runs: exit 2
     assert main(["sweep", "--grid", "vo.nope=1", "--datasets", str(broken)]) == 2
+
+
+def _report(tmp_path: Path, plan: plans.TablePlan, files: dict[str, dict[str, str]]) -> Any:
+    """A batch report whose tasks' folders hold ``files`` (task name -> file -> text)."""
+    outcomes = {}
+    for t in plan.tasks:
+        folder = tmp_path / t.name
+        folder.mkdir(parents=True)
+        for name, text in files[t.name].items():
+            (folder / name).write_text(text)
+        outcomes[t.name] = Outcome(t, "k", "ran", folder)
+    return BatchReport(outcomes)
+
+
+def test_the_renderers_draw_the_pages_rows_from_the_commands_files(tmp_path: Path) -> None:
+    every = plans.plans(None)
+    estimates = ("vo", "ground", "gravity", "fused", "fused_ranges")
+    att = [
+        {
+            "estimate": e,
+            "roll_rmse_deg": 0.1 * i + 0.0456,
+            "pitch_rmse_deg": 0.05,
+            "available": 0.965,
+        }
+        for i, e in enumerate(estimates)
+    ]
+    plan = every["attitude"]
+    report = _report(
+        tmp_path, plan, {t.name: {"attitude_metrics.json": json.dumps(att)} for t in plan.tasks}
+    )
+    rows = RENDERERS["attitude"](plan, report).splitlines()
+    assert rows[2] == (
+        "| flat | 0.05 / 0.05° | 0.15 / 0.05° | 0.25 / 0.05° (96.5 %) | **0.346 / 0.050°** "
+        "| 0.45 / 0.05° |"
+    )
+    assert [r.split(" | ")[0] for r in rows[2:]] == ["| flat", "| hills", "| urban", "| slope"]
+    dp = [
+        {
+            "estimate": "d-Pose",
+            "heights": "all",
+            "frames": 1770,
+            "available": 0.972,
+            "t_mse_m2": 3.62e-4,
+            "t_rmse_m": 0.019,
+            "r_mse_deg2": 0.038,
+            "r_rmse_deg": 0.195,
+        }
+    ]
+    plan = every["dpose"]
+    report = _report(
+        tmp_path / "d", plan, {t.name: {"dpose_metrics.json": json.dumps(dp)} for t in plan.tasks}
+    )
+    rows = RENDERERS["dpose"](plan, report).splitlines()
+    assert rows[2] == (
+        "| flat | d-Pose | all | 1770 | 97.2 % | 3.62e-04 m² | 0.019 m | 0.038 deg² | 0.195 deg |"
+    )
+    study = [
+        {
+            "method": f"M-MSC k={k}",
+            "scale_mean_abs_rel_pct": 0.3 / k,
+            "scale_mse": 1e-4,
+            "ate_m": 0.06,
+        }
+        for k in (2, 1)
+    ] + [{"method": "MSC"}]
+    plan = every["sensor-study"]
+    report = _report(
+        tmp_path / "s", plan, {"study-hills": {"scale_metrics.json": json.dumps(study)}}
+    )
+    rows = RENDERERS["sensors"](plan, report).splitlines()
+    assert rows[2:] == [
+        "| 1 | 0.30 % (MSE 1.00e-04) | 0.060 m |",
+        "| 2 | 0.15 % (MSE 1.00e-04) | 0.060 m |",
+    ]
+    plan = every["dpose-random"]
+    out = "10000 random poses, 0 distractor dots: ...\nd-Pose cost\n10000 random poses, 2 ...\n"
+    report = _report(tmp_path / "r", plan, {"dpose-random": {"stdout.txt": out}})
+    assert RENDERERS["dpose-random"](plan, report) == (
+        "```\n10000 random poses, 0 distractor dots: ...\n10000 random poses, 2 ...\n```"
+    )
