@@ -88,11 +88,7 @@ def sweep_tasks(
     names = [b.name for b in bases]
     if len(set(names)) != len(names):
         raise ConfigError(f"companion sweep: two inputs with one name ({', '.join(names)})")
-    return [
-        b.with_overrides(p, f"{b.name}/{point_label(p)}")
-        for b in bases
-        for p in points(grids)
-    ]
+    return [b.with_overrides(p, f"{b.name}/{point_label(p)}") for b in bases for p in points(grids)]
 
 
 def metrics_of(folder: Path, method: str = PUBLISHED) -> dict[str, float | None]:
