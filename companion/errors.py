@@ -43,3 +43,8 @@ class CalibrationError(CompanionError):
 
 class NotEnoughViewsError(CalibrationError):
     """Too few usable board views for a trustworthy intrinsic calibration."""
+
+
+class BatchError(CompanionError):
+    """``companion results | sweep`` cannot run a batch as asked: an executor that is not
+    installed or not reachable, a task spec that cannot be run, a result from other code."""

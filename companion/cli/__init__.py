@@ -5,6 +5,9 @@ One module per group of commands; each parses its arguments and calls functions 
 - :mod:`.service`: ``run``, ``status``, ``config``
 - :mod:`.evaluate`: ``eval``, ``report``; :mod:`.evaluate_dpose` (``eval --dpose``) and
   :mod:`.flight` (``eval --phases``: the published poses by flight phase) beside it
+- :mod:`.results`: ``results`` (the tables of docs/RESULTS.md from one batch, serial or on
+  Ray) and ``sweep`` (a grid of config values over datasets or flights); the batch itself is
+  :mod:`companion.batch`
 - :mod:`.replay`: ``replay`` (flight recordings through this version) and ``compare`` (two
   replays side by side)
 - :mod:`.dataset`: ``dataset import | rebuild`` (real sequences into our format)
@@ -129,6 +132,18 @@ COMMANDS: tuple[Command, ...] = (
         "summarise scale evaluations over seeds",
         "companion.cli.evaluate",
         "add_report",
+    ),
+    Command(
+        "results",
+        "regenerate the tables of docs/RESULTS.md (a batch)",
+        "companion.cli.results",
+        "add_results",
+    ),
+    Command(
+        "sweep",
+        "a grid of config values over datasets or flights",
+        "companion.cli.results",
+        "add_sweep",
     ),
     Command(
         "replay",
@@ -349,6 +364,7 @@ _EXTRA_OF_MODULE = {
     "tomli_w": "sim",
     "matplotlib": "eval",
     "evo": "eval",
+    "ray": "cluster",
 }
 
 

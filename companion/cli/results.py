@@ -1,0 +1,335 @@
+"""``companion results`` (every table of docs/RESULTS.md from one batch, serial or on Ray)
+and ``companion sweep`` (a grid of config values over datasets or flights, sorted by a
+metric). The batch itself is ``companion.batch``; the tables are drawn here with
+``companion.reporting`` (imported inside the functions, as in ``evaluate``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from companion.batch import plans as plans_mod
+from companion.batch.executors import EXECUTORS, Executor, make_executor
+from companion.batch.plans import TablePlan
+from companion.batch.results_md import machine, replace_blocks, stamp
+from companion.batch.runner import BatchReport, print_failures, run_batch
+from companion.batch.spec import Task
+from companion.cli.common import EXIT_OK, EXIT_PROBLEMS, EXIT_USAGE
+from companion.errors import BatchError
+
+DEFAULT_OUT = Path("out") / "results"
+DEFAULT_SNAPSHOTS = Path("..") / ".mirror"  # the Makefile's SNAPSHOTS
+
+
+def _refused(message: str) -> int:
+    print(f"companion: usage: {message}", file=sys.stderr)
+    return EXIT_USAGE
+
+
+def _executor(args: argparse.Namespace) -> Executor | int:
+    """The executor of --executor / --address, or exit 2 with why."""
+    try:
+        return make_executor(args.executor, args.address)
+    except BatchError as e:
+        return _refused(str(e))
+
+
+# ------------------------------------------------------------------------------ results
+def real_data(out: Path, snapshots: Path) -> tuple[Path | None, str]:
+    """The rebuilt real sequences (``out/real/data``): rebuilt from ``snapshots`` when absent
+    (``companion dataset rebuild --all``); (None, why) when there is nothing to build from."""
+    data = out / "real" / "data"
+    if data.is_dir() and any(p.is_dir() for p in data.iterdir()):
+        return data, ""
+    if not snapshots.is_dir():
+        return None, f"no snapshots folder {snapshots} (--snapshots DIR: the git snapshots)"
+    print(f"results: rebuilding the real sequences from {snapshots} into {data}", file=sys.stderr)
+    cmd = [sys.executable, "-m", "companion.cli", "dataset", "rebuild", "--all"]
+    proc = subprocess.run([*cmd, "--snapshots", str(snapshots), "--out", str(data)], check=False)
+    if proc.returncode != 0:
+        return None, f"companion dataset rebuild failed (exit {proc.returncode})"
+    return data, ""
+
+
+def cmd_results(args: argparse.Namespace) -> int:
+    """Run the tasks of the chosen tables (all by default) through the cache, print each
+    table with its stamp, and with --write replace them between their markers."""
+    every = plans_mod.table_names()
+    unknown = sorted(set(args.only or ()) - set(every))
+    if unknown:
+        return _refused(f"--only {' '.join(unknown)}: no such table (tables: {', '.join(every)})")
+    chosen = list(args.only or every)
+    if args.list:
+        print("\n".join(chosen))
+        return EXIT_OK
+    if args.write is not None and not args.write.is_file():
+        return _refused(f"--write {args.write}: no such file")
+    out: Path = args.out
+    data, why = (None, "")
+    if any(n.startswith("real") for n in chosen):
+        data, why = real_data(out, args.snapshots)
+    tables = {n: p for n, p in plans_mod.plans(data, why).items() if n in chosen}
+    for p in tables.values():
+        if p.skipped:
+            print(f"results: {p.name}: skipped: {p.skipped}", file=sys.stderr)
+    tasks = [t for p in tables.values() if not p.skipped for t in p.tasks]
+    executor = _executor(args)
+    if isinstance(executor, int):
+        return executor
+    try:
+        report = run_batch(tasks, executor, out, args.cache)
+    finally:
+        executor.close()
+    where = machine(Path(__file__).resolve().parents[2])
+    bodies: dict[str, str] = {}
+    for p in tables.values():
+        if p.skipped or not p.tasks:
+            continue
+        if any(report.outcomes[t.name].status == "failed" for t in p.tasks):
+            print(f"results: {p.name}: not drawn, a task of it failed", file=sys.stderr)
+            continue
+        body = RENDERERS[p.render](p, report)
+        bodies[p.name] = stamp(p.name, where, args.executor) + "\n\n" + body
+        print(f"<!-- results:{p.name} -->\n{bodies[p.name]}\n<!-- /results -->\n")
+    if args.write is not None and bodies:
+        text = args.write.read_text()
+        args.write.write_text(replace_blocks(text, bodies))
+        print(f"results: {len(bodies)} table(s) written in {args.write}", file=sys.stderr)
+    print_failures(report, out)
+    return EXIT_PROBLEMS if report.failed else EXIT_OK
+
+
+def _linked(p: TablePlan, report: BatchReport) -> list[Path]:
+    """The tasks' result folders seen through their names (``out/NAME``): ``companion
+    report`` reads a folder's name (TERRAIN-TRAJECTORY-SEED, a sequence's name)."""
+    out = []
+    for t in p.tasks:
+        folder = report.outcomes[t.name].folder
+        if folder is None:
+            raise BatchError(f"{t.name}: no result")
+        out.append(folder)
+    return out
+
+
+def _json(path: Path) -> Any:
+    return json.loads(path.read_text())
+
+
+def render_vo(p: TablePlan, report: BatchReport) -> str:
+    """The VO table (issue 3): one row per flight."""
+    head = "| terrain / trajectory | seed | init after | tracking | resets | path | ATE Sim(3) "
+    lines = [head + "| ATE % of path |", "|---|---|---|---|---|---|---|---|"]
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        _, terrain, traj, seed = t.name.split("-")
+        m = _json(d / "metrics.json")
+        lines.append(
+            f"| {terrain} / {traj} | {seed} | {m['first_tracking_s']:.2f} s | "
+            f"{100 * m['tracking_ratio']:.0f} % | {m['resets']} | {m['path_m']:.1f} m | "
+            f"{m['ate_sim3_m']:.3f} m | {m['ate_sim3_pct']:.2f} % |"
+        )
+    return "\n".join(lines)
+
+
+def render_scale(p: TablePlan, report: BatchReport) -> str:
+    """One terrain / trajectory group of `companion report` (seed averages, who beats whom),
+    without its heading."""
+    from companion.reporting import summary
+
+    text = summary(_linked(p, report))
+    return "\n".join(ln for ln in text.splitlines() if not ln.startswith("### ")).strip()
+
+
+def render_real(p: TablePlan, report: BatchReport) -> str:
+    """The real sequences' table of `companion report`."""
+    from companion.reporting import summary
+
+    return summary(_linked(p, report)).strip()
+
+
+def render_sensors(p: TablePlan, report: BatchReport) -> str:
+    """M-MSC with the first k of six sensors."""
+    rows = _json(_linked(p, report)[0] / "scale_metrics.json")
+    study = sorted(
+        (r for r in rows if r["method"].startswith("M-MSC k=")),
+        key=lambda r: int(r["method"].split("=")[1]),
+    )
+    lines = ["| sensors | hills / lawnmower, seed 1: scale error | metric ATE |", "|---|---|---|"]
+    lines += [
+        f"| {r['method'].split('=')[1]} | {r['scale_mean_abs_rel_pct']:.2f} % "
+        f"(MSE {r['scale_mse']:.2e}) | {r['ate_m']:.3f} m |"
+        for r in study
+    ]
+    return "\n".join(lines)
+
+
+def render_attitude(p: TablePlan, report: BatchReport) -> str:
+    """Roll / pitch RMSE per terrain and estimate."""
+    head = "| terrain | VO alone | ranges, uncompensated | ranges, compensated (available) | "
+    lines = [head + "**published** | fused, range tilts only |", "|---|---|---|---|---|---|"]
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        rows = {r["estimate"]: r for r in _json(d / "attitude_metrics.json")}
+        rp = _roll_pitch(rows)
+        avail = f"{100 * rows['gravity']['available']:.1f} %"
+        lines.append(
+            f"| {t.name.split('-', 1)[1]} | {rp('vo')} | {rp('ground')} | {rp('gravity')} "
+            f"({avail}) | **{rp('fused', 3)}** | {rp('fused_ranges')} |"
+        )
+    return "\n".join(lines)
+
+
+def _roll_pitch(rows: dict[str, Any]) -> Callable[..., str]:
+    """``rp(estimate, digits)``: "roll / pitch°" of one estimate's row."""
+
+    def rp(name: str, digits: int = 2) -> str:
+        r = rows[name]
+        return f"{r['roll_rmse_deg']:.{digits}f} / {r['pitch_rmse_deg']:.{digits}f}°"
+
+    return rp
+
+
+def render_attitude_study(p: TablePlan, report: BatchReport) -> str:
+    """The spacing and noise studies as the command wrote them (attitude_study.md)."""
+    return (_linked(p, report)[0] / "attitude_study.md").read_text().strip()
+
+
+def render_dpose(p: TablePlan, report: BatchReport) -> str:
+    """d-Pose and the VO per terrain and height band."""
+    head = "| terrain | estimate | heights | frames | available | translation MSE | "
+    head += "translation RMSE | orientation MSE | orientation RMSE |"
+    lines = [head, "|---" * 9 + "|"]
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        for r in _json(d / "dpose_metrics.json"):
+            lines.append(
+                f"| {t.name.split('-', 1)[1]} | {r['estimate']} | {r['heights']} | "
+                f"{r['frames']} | {100 * r['available']:.1f} % | {r['t_mse_m2']:.2e} m² | "
+                f"{r['t_rmse_m']:.3f} m | {r['r_mse_deg2']:.3f} deg² | {r['r_rmse_deg']:.3f} deg |"
+            )
+    return "\n".join(lines)
+
+
+def render_dpose_random(p: TablePlan, report: BatchReport) -> str:
+    """The random-pose study's lines, as the command printed them."""
+    text = (_linked(p, report)[0] / "stdout.txt").read_text()
+    lines = [ln for ln in text.splitlines() if "random poses" in ln]
+    return "```\n" + "\n".join(lines) + "\n```"
+
+
+RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
+    "vo": render_vo,
+    "scale": render_scale,
+    "real": render_real,
+    "sensors": render_sensors,
+    "attitude": render_attitude,
+    "attitude-study": render_attitude_study,
+    "dpose": render_dpose,
+    "dpose-random": render_dpose_random,
+}
+
+
+# ------------------------------------------------------------------------------ sweep
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Every grid point on every dataset / flight, through the cache; the table sorted by
+    --metric on stdout (--json: the rows as JSON)."""
+    from companion.batch import sweep
+
+    grids = [sweep.parse_grid(g) for g in args.grid]
+    tasks: list[Task] = sweep.sweep_tasks(
+        grids, args.datasets, args.flights, args.seconds, args.config
+    )
+    executor = _executor(args)
+    if isinstance(executor, int):
+        return executor
+    try:
+        report = run_batch(tasks, executor, args.out, args.cache)
+    finally:
+        executor.close()
+    rows = []
+    for t in tasks:
+        o = report.outcomes[t.name]
+        base = t.name.split("/")[0]
+        point = t.overrides
+        method = str(dict(point).get("scale.method", sweep.PUBLISHED))
+        if o.folder is None:
+            rows.append(sweep.SweepRow(base, point, {}, o.error))
+            continue
+        try:
+            rows.append(sweep.SweepRow(base, point, sweep.metrics_of(o.folder, method)))
+        except BatchError as e:
+            rows.append(sweep.SweepRow(base, point, {}, str(e)))
+    if args.json:
+        ordered = sweep.sort_rows(rows, args.metric)
+        doc = [
+            {"input": r.input, "point": dict(r.point), "metrics": r.metrics, "error": r.error}
+            for r in ordered
+        ]
+        print(json.dumps({"metric": args.metric, "rows": doc}, indent=2))
+    else:
+        print(sweep.table(rows, grids, args.metric))
+    print_failures(report, args.out)
+    return EXIT_PROBLEMS if report.failed else EXIT_OK
+
+
+# ------------------------------------------------------------------------------ parsers
+def _batch_flags(p: argparse.ArgumentParser, out: Path) -> None:
+    p.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="serial",
+        help="serial: one task after another here; ray: Ray tasks (local, or --address)",
+    )
+    p.add_argument(
+        "--address",
+        help="--executor ray: a Ray cluster's address, HEAD:PORT (default $RAY_ADDRESS; "
+        "neither: a local Ray on this machine's cores)",
+    )
+    p.add_argument("--out", type=Path, default=out, help=f"result folders (default {out})")
+    p.add_argument("--cache", type=Path, help="the cache of results by key (default OUT/cache)")
+
+
+def add_results(sub: Any) -> None:
+    """``companion results``."""
+    p = sub.add_parser("results", help="regenerate the tables of docs/RESULTS.md (a batch)")
+    _batch_flags(p, DEFAULT_OUT)
+    p.add_argument("--only", nargs="+", metavar="NAME", help="these tables only (see --list)")
+    p.add_argument("--list", action="store_true", help="list the tables' names and stop")
+    p.add_argument(
+        "--write",
+        type=Path,
+        metavar="FILE",
+        help="replace the tables between their markers in FILE",
+    )
+    p.add_argument(
+        "--snapshots",
+        type=Path,
+        default=DEFAULT_SNAPSHOTS,
+        help=f"git snapshots of the real sequences (default {DEFAULT_SNAPSHOTS})",
+    )
+    p.set_defaults(func=cmd_results)
+
+
+def add_sweep(sub: Any) -> None:
+    """``companion sweep``."""
+    from companion.batch.sweep import METRICS
+
+    p = sub.add_parser("sweep", help="a grid of config values over datasets or flights")
+    p.add_argument(
+        "--grid",
+        action="append",
+        required=True,
+        metavar="KEY=V1,V2",
+        help="a config key and its values (repeat for a product: --grid vo.max_features=150,200)",
+    )
+    p.add_argument("--datasets", type=Path, nargs="+", default=[], help="dataset folders")
+    p.add_argument("--flights", nargs="+", default=[], metavar="T-TR-S", help="simulated flights")
+    p.add_argument("--seconds", type=float, default=60.0, help="--flights: their length [s]")
+    p.add_argument("--config", help="a TOML config the grid is laid over (default built-in)")
+    p.add_argument("--metric", choices=list(METRICS), default="metric_ate_m", help="sort by")
+    p.add_argument("--json", action="store_true", help="the rows as JSON on stdout")
+    _batch_flags(p, Path("out") / "sweep")
+    p.set_defaults(func=cmd_sweep)
