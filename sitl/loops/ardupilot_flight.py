@@ -267,7 +267,9 @@ class Flight(loop_flight.LoopFlight):
         if (
             o.mission in gps_missions.WITH_GPS_AT_START
         ):  # our output in EKF3's GPS frame before arming
-            gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
+            gps_missions.wait_aligned(
+                self, "service aligned to GPS", gps_missions.ALIGN_BEFORE_ARMING_S
+            )
         g.set_mode(MODE_GUIDED)
         self._until("GUIDED mode", lambda: self.tel.custom_mode == MODE_GUIDED, 10)
         self._arm()

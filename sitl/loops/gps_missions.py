@@ -31,7 +31,7 @@ ZONE_SQUARE_M = 10.0  # the squares flown inside the zone
 DENIAL_S = 60.0  # how long the GPS is off in the zone
 HOVER_DENIAL_S = 15.0  # gps-hover: the GPS off this long in a hover (the test in make test)
 HANDBACK_TIMEOUT_S = 60.0  # the hold after the GPS returns, until the service is aligned
-ALIGN_BEFORE_ARMING_S = 120.0  # gps-denied-zone: the service aligned on the ground before this
+ALIGN_BEFORE_ARMING_S = 120.0  # with GPS at start: the service aligned on the ground within this
 AFTER_ALIGNED_S = 5.0  # the hold after the service said aligned
 
 

@@ -441,7 +441,9 @@ class Flight(LoopFlight):
         if (
             self.o.mission in gps_missions.WITH_GPS_AT_START
         ):  # our output in PX4's GPS frame before arming
-            gps_missions.wait_aligned(self, "service aligned to GPS", 120.0)
+            gps_missions.wait_aligned(
+                self, "service aligned to GPS", gps_missions.ALIGN_BEFORE_ARMING_S
+            )
         g.set_mode(MODE_POSCTL)
         self._until("Position mode", lambda: g.main_mode() == MODE_POSCTL, 10)
         self._arm()
