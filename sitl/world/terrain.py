@@ -139,6 +139,9 @@ class World:
     Build it with :func:`make_world`. All public arrays are float64 NED metres.
     """
 
+    fields: F64  # (Ny, Nx, 4) the ground's mix weight, albedo and warp on a 0.5 m grid
+    layers: F64  # (4, 11) texture layers: ground A, ground B, roof, wall (_kernels.render)
+
     def __init__(
         self,
         name: str,

@@ -49,7 +49,9 @@ def gradient_energy(grey: np.ndarray) -> float:
     return float((gx * gx + gy * gy).mean())
 
 
-@pytest.mark.parametrize(("surface", "period_m"), [("checkerboard", 2 * CHECKER_M), ("tiles", TILE_M)])
+@pytest.mark.parametrize(
+    ("surface", "period_m"), [("checkerboard", 2 * CHECKER_M), ("tiles", TILE_M)]
+)
 def test_a_repeating_floor_shows_its_period_in_the_autocorrelation(
     surface: str, period_m: float
 ) -> None:
@@ -93,7 +95,7 @@ def test_every_surface_is_seeded_and_unknown_ones_are_refused() -> None:
         b = surface_ground(surface, 3, (9, 9), 0.5)
         assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0], strict=True))
         assert np.array_equal(a[2], b[2])
-        assert all(t.shape == (512, 512) and 0 <= t.min() and t.max() <= 1 for t in a[0])
+        assert all(t.shape == (512, 512) and t.min() >= 0 and t.max() <= 1 for t in a[0])
     with pytest.raises(SitlError, match="unknown surface 'marble'"):
         surface_ground("marble", 1, (9, 9), 0.5)
 
@@ -102,7 +104,7 @@ def test_specular_patches_cover_their_share_with_soft_edges() -> None:
     patches = SpecularPatches(2, 60.0, 0.2)
     share = float((patches.grid >= 0.5).mean())
     assert 0.18 < share < 0.26
-    x, y, r = patches.discs[0]
+    x, y, _r = patches.discs[0]
     assert patches.weight(x, y)[0] > 0.99
     # far outside every disc: nothing
     d = np.hypot(patches.discs[:, 0] - 29.0, patches.discs[:, 1] - 29.0) - patches.discs[:, 2]
