@@ -10,7 +10,8 @@ Terrains (issue 2):
 Frames: local NED; heights ``h`` are positive up, the ground surface is z = -h(x, y) and
 h(0, 0) = 0. Textures are the CC0 photographs shipped in scikit-image (grass, gravel, brick),
 mip-mapped, mixed by low-frequency seeded fields and domain-warped so that no tile repeats
-visibly.
+visibly. Any terrain may instead be covered by a hard ground (``GroundOptions.surface``:
+repeating or low-texture, surfaces.py) and carry water-like specular patches.
 """
 
 from __future__ import annotations
