@@ -37,6 +37,7 @@ from companion.options import opt
 from companion.redact import redact_url
 from companion.scale.options import ScaleOptions
 from companion.service_options import GpsOptions, ServiceOptions, WebOptions, check_link_number
+from companion.sitl_options import GroundOptions, RangeEffects
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -247,6 +248,8 @@ class SitlConfig:
     world_size_m: float = opt(160.0, "side of the square world [m]", ge=20, le=2000)
     height_resolution_m: float = opt(0.05, "height-map cell size [m]", gt=0, le=0.05)
     render: RenderConfig = opt(RenderConfig(), "camera rendering")
+    ground: GroundOptions = opt(GroundOptions(), "the ground's surface and what moves on it")
+    rangefinder: RangeEffects = opt(RangeEffects(), "the distance sensors' real-world faults")
 
 
 RecordImageFormat = Literal["png", "jpg"]

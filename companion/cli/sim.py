@@ -68,7 +68,7 @@ def recorded_world(ds: Dataset) -> World:
 
     assert ds.sitl is not None
     s = ds.sitl
-    return make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
+    return make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m, s.ground)
 
 
 def range_simulator(
@@ -77,7 +77,7 @@ def range_simulator(
     """Other distance sensors over the same flight (``valid_at(time_us)``: their readings)."""
     from companion.sitl.world.sensors import RangeSimulator
 
-    return RangeSimulator(sc.world, sc.trajectory, rangefinders, seed)
+    return RangeSimulator(sc.world, sc.trajectory, rangefinders, seed, sc.cfg.sitl.rangefinder)
 
 
 def soak(minutes: float, out: Path, config: str) -> dict[str, Any]:

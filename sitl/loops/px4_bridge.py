@@ -90,7 +90,7 @@ def clipped_world(cfg: Config) -> World:
     home (PAD_FLAT_M, eased over PAD_EASE_M) and no buildings: SIH's own ground is flat at the
     home altitude (see the module docstring)."""
     s = cfg.sitl
-    w = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
+    w = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m, s.ground)
     if w.h_max <= 0.0 and w.h_min >= 0.0 and len(w.boxes) == 0:
         return w
     rows, cols = w.heights.shape  # rows along east (y), columns along north (x)
@@ -100,7 +100,9 @@ def clipped_world(cfg: Config) -> World:
     u = np.clip((r - PAD_FLAT_M) / PAD_EASE_M, 0.0, 1.0)
     ease = u * u * (3.0 - 2.0 * u)  # 0 on the pad, 1 beyond its ease (smoothstep)
     heights = (np.minimum(w.heights, 0.0) * ease).astype(np.float32)
-    return World(w.name, w.seed, w.size_m, heights, w.res_m, np.zeros((0, 6)), w.default_altitude_m)
+    return World(
+        w.name, w.seed, w.size_m, heights, w.res_m, np.zeros((0, 6)), w.default_altitude_m, w.ground
+    )
 
 
 @dataclass

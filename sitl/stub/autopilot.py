@@ -96,11 +96,13 @@ class SimAutopilot:
             raise SitlError(f"time_scale {self.opts.time_scale}: must be in (0, 1]")
         s = cfg.sitl
         opts_gps = self.opts.gps
-        self.world = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
+        self.world = make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m, s.ground)
         self.trajectory = Trajectory(
             s.trajectory, self.world, s.seconds, s.altitude_m, s.speed_m_s, s.takeoff_landing
         )
-        self.ranges = RangeSimulator(self.world, self.trajectory, cfg.rangefinders, s.seed)
+        self.ranges = RangeSimulator(
+            self.world, self.trajectory, cfg.rangefinders, s.seed, s.rangefinder
+        )
         self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
         self.parser = Parser()
         self.signing: Signing | None = None

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from companion.config import CameraConfig, RangefinderConfig, RenderConfig
 from companion.geometry import se3
-from companion.sitl.world import _kernels
+from companion.sitl.world import _kernels, ground_effects
 from companion.sitl.world.sensors import laser_hits
 from companion.sitl.world.terrain import World
 from companion.sitl.world.trajectory import Trajectory
@@ -200,4 +200,6 @@ class Renderer:
             ts = time_s + self.cfg.exposure_s * (np.arange(n) / (n - 1) - 0.5)
             s = trajectory.sample(ts)
             blur = [s.T_world_body(i) @ self.T_body_cam for i in range(n)]
-        return self.render_pose(T_world_cam, seq, self.marks_at(trajectory, time_s), blur)
+        frame = self.render_pose(T_world_cam, seq, self.marks_at(trajectory, time_s), blur)
+        ground_effects.apply(self, frame, trajectory.T_world_body(time_s), time_s)  # [sitl.ground]
+        return frame

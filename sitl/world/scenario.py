@@ -47,12 +47,16 @@ class Scenario:
     def __init__(self, cfg: Config, world: World | None = None) -> None:
         s = cfg.sitl
         self.cfg = cfg
-        self.world = world or make_world(s.terrain, s.seed, s.world_size_m, s.height_resolution_m)
+        self.world = world or make_world(
+            s.terrain, s.seed, s.world_size_m, s.height_resolution_m, s.ground
+        )
         self.trajectory = Trajectory(
             s.trajectory, self.world, s.seconds, s.altitude_m, s.speed_m_s, s.takeoff_landing
         )
         self.renderer = Renderer(self.world, cfg.camera, s.render, cfg.rangefinders, s.seed)
-        self.ranges = RangeSimulator(self.world, self.trajectory, cfg.rangefinders, s.seed)
+        self.ranges = RangeSimulator(
+            self.world, self.trajectory, cfg.rangefinders, s.seed, s.rangefinder
+        )
         self.attitude = AttitudeSimulator(self.trajectory, s.seed)
         self.frame_period_s = 1.0 / cfg.camera.rate_hz
         self.n_frames = int(np.floor(s.seconds * cfg.camera.rate_hz + 1e-9))

@@ -10,7 +10,8 @@ Terrains (issue 2):
 Frames: local NED; heights ``h`` are positive up, the ground surface is z = -h(x, y) and
 h(0, 0) = 0. Textures are the CC0 photographs shipped in scikit-image (grass, gravel, brick),
 mip-mapped, mixed by low-frequency seeded fields and domain-warped so that no tile repeats
-visibly.
+visibly. Any terrain may instead be covered by a hard ground (``GroundOptions.surface``:
+repeating or low-texture, surfaces.py) and carry water-like specular patches.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from scipy import ndimage
 
 from companion.errors import SitlError
 from companion.sitl.world import _kernels
+from companion.sitl.world.surfaces import SpecularPatches, surface_ground
+from companion.sitl_options import GroundOptions
 from companion.types import F64
 
 F32 = NDArray[np.float32]
@@ -137,6 +140,9 @@ class World:
     Build it with :func:`make_world`. All public arrays are float64 NED metres.
     """
 
+    fields: F64  # (Ny, Nx, 4) the ground's mix weight, albedo and warp on a 0.5 m grid
+    layers: F64  # (4, 11) texture layers: ground A, ground B, roof, wall (_kernels.render)
+
     def __init__(
         self,
         name: str,
@@ -146,8 +152,10 @@ class World:
         res_m: float,
         boxes: F64,
         default_altitude_m: float,
+        ground: GroundOptions | None = None,
     ) -> None:
         self.name = name
+        self.ground = ground or GroundOptions()
         self.seed = seed
         self.size_m = float(size_m)
         self.half_m = self.size_m / 2.0
@@ -178,6 +186,18 @@ class World:
             1.4,
         )
         self._build_fields(rng)
+        self.surface_textures: list[F32] = []
+        if self.ground.surface != "photo":
+            shape = self.fields.shape[:2]
+            self.surface_textures, rows, fields = surface_ground(
+                self.ground.surface, seed, (shape[0], shape[1]), _FIELD_RES_M
+            )
+            self.fields = np.ascontiguousarray(fields)
+            self.layers[:2, :9] = rows
+            self.layers[:2, 9] = _TEXTURE_SIZE / rows[:, 1]
+            self.layers[:2, 10] = np.log2(self.layers[:2, 9])
+        share = self.ground.specular_patches
+        self.specular = SpecularPatches(seed, self.size_m, share) if share > 0 else None
 
     # ------------------------------------------------------------------ construction
     def _build_blocks(self) -> None:
@@ -277,8 +297,10 @@ class World:
 
     @cached_property
     def textures(self) -> tuple[F32, I64, I64]:
-        """Mip-mapped texture atlas (data, offsets, sizes) of grass, gravel and brick."""
-        return _pyramid_atlas([_photo("grass"), _photo("gravel"), _photo("brick")])
+        """Mip-mapped texture atlas (data, offsets, sizes) of grass, gravel and brick, then the
+        surface's two (surfaces.py)."""
+        photos = [_photo("grass"), _photo("gravel"), _photo("brick")]
+        return _pyramid_atlas(photos + self.surface_textures)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -418,18 +440,26 @@ def _urban_boxes(rng: np.random.Generator, size_m: float) -> F64:
     return arr[keep]
 
 
-def make_world(name: str, seed: int = 1, size_m: float = 160.0, res_m: float = 0.05) -> World:
-    """Build a seeded terrain by name (flat, hills, urban, slope)."""
+def make_world(
+    name: str,
+    seed: int = 1,
+    size_m: float = 160.0,
+    res_m: float = 0.05,
+    ground: GroundOptions | None = None,
+) -> World:
+    """Build a seeded terrain by name (flat, hills, urban, slope), its ground covered as
+    ``ground`` says (surfaces.py; default: the photos, no patches)."""
     if name not in TERRAINS:
         raise SitlError(f"unknown terrain {name!r}; choose one of {', '.join(TERRAINS)}")
     rng = np.random.default_rng([seed, TERRAINS.index(name)])
     flat = np.zeros((2, 2), dtype=np.float32)
     no_boxes = np.zeros((0, 6))
     if name == "flat":
-        return World(name, seed, size_m, flat, size_m, no_boxes, 6.0)
+        return World(name, seed, size_m, flat, size_m, no_boxes, 6.0, ground)
     if name == "hills":
-        return World(name, seed, size_m, _hills(rng, size_m, res_m), res_m, no_boxes, 6.0)
+        h = _hills(rng, size_m, res_m)
+        return World(name, seed, size_m, h, res_m, no_boxes, 6.0, ground)
     if name == "slope":
         h, cell = _slope(rng, size_m)
-        return World(name, seed, size_m, h, cell, no_boxes, 6.0)
-    return World(name, seed, size_m, flat, size_m, _urban_boxes(rng, size_m), 12.0)
+        return World(name, seed, size_m, h, cell, no_boxes, 6.0, ground)
+    return World(name, seed, size_m, flat, size_m, _urban_boxes(rng, size_m), 12.0, ground)
