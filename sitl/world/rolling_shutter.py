@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.geometry import se3
-from companion.geometry.camera import CameraModel
+from companion.geometry.camera import B, CameraModel
 from companion.sitl.world.trajectory import Trajectory
 from companion.types import F64
 
@@ -41,7 +41,7 @@ def row_poses(trajectory: Trajectory, time_s: float, offsets_s: F64, T_body_cam:
 
 def project_rows(
     model: CameraModel, T_rows: F64, points_world: F64, iterations: int = 4
-) -> tuple[F64, F64, F64]:
+) -> tuple[F64, B, F64]:
     """Project world points (K, 3) through a rolling-shutter camera of row poses T_rows
     (H, 4, 4): uv (K, 2) [px], in_front (K,) bool, and the origin (K, 3) of the camera (row
     pose) each point was seen from. Starts from the middle row's pose and moves each point to
