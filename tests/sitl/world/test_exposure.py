@@ -110,3 +110,24 @@ def test_the_image_is_the_linear_image_times_the_gain_clipped(
             saturated += 1
     assert saturated >= 1
     assert r.render_pose(T, 2).image_bgr.mean() < 255  # no time: no frame gain
+
+
+def test_every_effect_renders_ahead_on_threads_as_on_one() -> None:
+    """Threads that render ahead (Scenario.steps(workers=N)) each hold their own exposure
+    model; the frames are those one thread renders, with every effect but blur on."""
+    from companion.config import load_config
+    from companion.sitl.world.scenario import Scenario
+
+    render = {
+        "readout_ms": 20.0,
+        "exposure": {"steps_per_s": 20.0, "drift": 0.2, "drift_period_s": 1.0, "vignetting": 0.5},
+        "lens_error": {"focal": 0.01, "principal_px": [3.0, -2.0], "mount_deg": [0.6, -0.6, 0.5]},
+    }
+    cfg = load_config("config/sitl.toml", {"sitl": {"seconds": 0.2, "render": render}})
+    one = Scenario(cfg)
+    expected = [s.frame.image_bgr for s in one.steps()]
+    got = [s.frame.image_bgr for s in Scenario(cfg, world=one.world).steps(workers=2)]
+    assert len(expected) == 6 and len(got) == 6
+    assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
+    means = [float(e.mean()) for e in expected]
+    assert max(means) - min(means) > 1.0  # the gain changes within these 6 frames
