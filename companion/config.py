@@ -35,6 +35,7 @@ from companion.geometry.camera import CameraModel
 from companion.geometry.lens_check import lens_problem
 from companion.options import opt
 from companion.redact import redact_url
+from companion.render_options import RenderConfig as RenderConfig
 from companion.scale.options import ScaleOptions
 from companion.service_options import GpsOptions, ServiceOptions, WebOptions, check_link_number
 from companion.sitl_options import GroundOptions, RangeEffects
@@ -212,22 +213,6 @@ def dpose_rangefinders(sigma_m: float = 0.01) -> tuple[RangefinderConfig, ...]:
 
 TerrainName = Literal["flat", "hills", "urban", "slope"]
 TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad"]
-LaserMarkMode = Literal["off", "live", "painted"]
-
-
-@dataclass(frozen=True, slots=True)
-class RenderConfig:
-    """How the SITL camera image is made."""
-
-    noise_sigma_dn: float = opt(2.0, "Gaussian pixel noise sigma [8-bit levels]", ge=0, le=50)
-    motion_blur: bool = opt(False, "average sub-frames over the exposure time")
-    exposure_s: float = opt(0.008, "exposure time for motion blur [s]", gt=0, le=0.1)
-    blur_samples: int = opt(4, "sub-frames averaged for motion blur", ge=2, le=32)
-    laser_marks: LaserMarkMode = opt("live", "laser dots: off, live (move) or painted (stay)")
-    painted_time_s: float = opt(0.0, "time at which the painted marks are left [s]", ge=0)
-    spot_diameter_m: float = opt(0.03, "laser spot diameter on the surface [m]", gt=0, le=1)
-    sun_elevation_deg: float = opt(55.0, "sun elevation for shading [deg]", gt=0, le=90)
-    sun_azimuth_deg: float = opt(140.0, "sun azimuth from north [deg]", ge=-360, le=360)
 
 
 @dataclass(frozen=True, slots=True)
@@ -319,6 +304,9 @@ class Config:
             raise ConfigError(
                 f"attitude.sensor_ids: 3 different sensors needed, got {list(chosen)}"
             )
+        lens = self.sitl.render.lens_error.problem(self.camera.model())
+        if lens is not None:
+            raise ConfigError(f"sitl.render.lens_error: the rendered lens {lens}")
 
     def oldest_stamp_ms(self) -> float:
         """How old our samples' stamps can be when they leave [ms]: a pose is dropped past

@@ -378,8 +378,8 @@ def _quantise(value, noise):
 
 @nb.njit(**_JIT)
 def render(
-    R_world_cam,
-    p_world_cam,
+    R_rows,
+    p_rows,
     rays_cam,
     width,
     focal_px,
@@ -408,12 +408,15 @@ def render(
     blur and laser marks); otherwise noise from the bank (from ``noise_start``) is added and the
     8-bit image written to out_u8 (H*W, 3) directly.
 
+    R_rows (H, 3, 3), p_rows (H, 3): the camera pose T_world_cam of each image row (all equal
+    for a global shutter; a rolling shutter's rows each at their own time: rolling_shutter.py).
+    z-depth is in the camera frame of the pixel's own row.
+
     rays_cam: (H*W, 3) unit rays in the camera frame. layers: (4, 11) texture layers (ground A,
     ground B, roof, wall): tex, tile_m, cos, sin, off_u, off_v, tint b g r, texels per metre,
     log2(texels per metre) -- see terrain.py.
     """
     n = rays_cam.shape[0]
-    ox, oy, oz = p_world_cam[0], p_world_cam[1], p_world_cam[2]
     sun_norm = -sun_ned[2]
     final = out_u8.shape[0] > 0
     nb_len = noise_bank.shape[0]
@@ -429,9 +432,11 @@ def render(
         r_b = rows[(row - 2) % 3, col] if row >= 2 else 0.0
         r_c = rows[(row - 3) % 3, col] if row >= 3 else 0.0
         rx, ry, rz = rays_cam[i, 0], rays_cam[i, 1], rays_cam[i, 2]
-        dx = R_world_cam[0, 0] * rx + R_world_cam[0, 1] * ry + R_world_cam[0, 2] * rz
-        dy = R_world_cam[1, 0] * rx + R_world_cam[1, 1] * ry + R_world_cam[1, 2] * rz
-        dz = R_world_cam[2, 0] * rx + R_world_cam[2, 1] * ry + R_world_cam[2, 2] * rz
+        ox, oy, oz = p_rows[row, 0], p_rows[row, 1], p_rows[row, 2]
+        R = R_rows[row]
+        dx = R[0, 0] * rx + R[0, 1] * ry + R[0, 2] * rz
+        dy = R[1, 0] * rx + R[1, 1] * ry + R[1, 2] * rz
+        dz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2] * rz
         if r_c > 0.0 and r_b > 0.0 and r_a > 0.0:
             t_guess = 3.0 * (r_a - r_b) + r_c
         elif r_b > 0.0 and r_a > 0.0:
