@@ -122,7 +122,7 @@ def test_runtime_dependencies_leave_the_extras_out() -> None:
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     runtime = {re.split(r"[<>=!~ ;\[]", d)[0].lower() for d in project["dependencies"]}
     extras = project["optional-dependencies"]
-    heavy_ones = ("numba", "scikit-image", "matplotlib", "evo", "pandas", "mypy", "pytest")
+    heavy_ones = ("numba", "scikit-image", "matplotlib", "evo", "pandas", "mypy", "pytest", "ray")
     for heavy in (*heavy_ones, "filterpy"):
         assert heavy not in runtime, heavy
     for needed in (
@@ -135,11 +135,13 @@ def test_runtime_dependencies_leave_the_extras_out() -> None:
         "aiohttp",  # the live page
     ):
         assert needed in runtime, needed
-    assert {"sim", "eval", "dev"} <= set(extras)
+    assert {"sim", "eval", "dev", "cluster"} <= set(extras)
+    assert any(d.startswith("ray") for d in extras["cluster"])  # the batch runner, not a board
     assert any(d.startswith("numba") for d in extras["sim"])
     assert any(d.startswith("scikit-image") for d in extras["sim"])
-    # make venv / test / demo install every extra (CI and the demo need the simulator)
-    assert "pip install -q -e '.[dev,eval,sim]'" in (REPO / "Makefile").read_text()
+    # make venv / test / demo install every extra (CI and the demo need the simulator, the
+    # cluster test Ray)
+    assert "pip install -q -e '.[dev,eval,sim,cluster]'" in (REPO / "Makefile").read_text()
 
 
 def test_wheel_and_sdist_hold_what_a_board_needs(tmp_path: Path) -> None:
