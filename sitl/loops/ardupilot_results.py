@@ -17,7 +17,6 @@ they apply (sitl/loops/loop_results.py: the path, landing, camera and latency pa
 
 from __future__ import annotations
 
-import datetime
 import json
 import re
 from pathlib import Path
@@ -26,27 +25,19 @@ from typing import Any
 import numpy as np
 
 from companion.sitl.loops import gps_missions, gps_results, loop_results
+from companion.sitl.loops.ardupilot_flight import EKF_CONST_POS_MODE, EKF_POS_HORIZ_REL
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)
-EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
 
 
 def _service_resets_ns(out: Path, wall_minus_mono_s: float | None) -> np.ndarray:
     """The times [ns, our monotonic clock] of the service's "VO re-initialised" lines (its log
     stamps wall-clock time: moved by the flight's wall-minus-monotonic offset), sorted."""
-    log = out / "service.log"
-    if wall_minus_mono_s is None or not log.exists():
+    if wall_minus_mono_s is None:
         return np.zeros(0)
-    times = []
-    for line in log.read_text(errors="replace").splitlines():
-        if "VO re-initialised" in line:
-            try:
-                wall = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-            except ValueError:
-                continue
-            times.append((wall - wall_minus_mono_s) * 1e9)
-    return np.array(sorted(times))
+    lines = loop_results.service_log_lines(out / "service.log", "VO re-initialised")
+    return np.array(sorted((wall - wall_minus_mono_s) * 1e9 for _, wall in lines))
 
 
 def _heading_offset(tr: np.ndarray, yaw: np.ndarray, phases: dict[str, float]) -> float:

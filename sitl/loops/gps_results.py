@@ -20,7 +20,6 @@ about the same home).
 
 from __future__ import annotations
 
-import datetime
 import json
 import re
 from pathlib import Path
@@ -28,8 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.sitl.loops.ardupilot_flight import EKF_CONST_POS_MODE, EKF_POS_HORIZ_REL
+from companion.sitl.loops.loop_results import service_log_lines
+
 JUMP_WINDOW_S = 1.0
-EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80  # ArduPilot's EKF_STATUS_REPORT flags
 BEFORE_DENIAL_S = 30.0
 
 
@@ -224,19 +225,8 @@ _ACTION = re.compile(r"GPS handover: (.+) acknowledged")
 def service_actions(log: Path) -> list[tuple[str, float]]:
     """The service's acknowledged handover actions (EKF2_GPS_CTRL, the EKF source set) from its
     log: (what, wall-clock time [s])."""
-    if not log.is_file():
-        return []
-    out = []
-    for line in log.read_text(errors="replace").splitlines():
-        m = _ACTION.search(line)
-        if m is None:
-            continue
-        try:
-            wall = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-        except ValueError:
-            continue
-        out.append((m.group(1), wall))
-    return out
+    found = [(_ACTION.search(line), wall) for line, wall in service_log_lines(log, "GPS handover")]
+    return [(m.group(1), wall) for m, wall in found if m is not None]
 
 
 def add_service_frame(s: dict[str, Any], out: Path) -> None:

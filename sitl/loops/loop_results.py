@@ -8,6 +8,7 @@ Times are [ns] of our monotonic clock, positions NED [m]; ``s`` is the summary b
 
 from __future__ import annotations
 
+import datetime
 import json
 from pathlib import Path
 from typing import Any
@@ -203,3 +204,21 @@ def plot_side(
     a.set_ylabel(axis_labels[1])
     a.legend(fontsize=8)
     a.set_title("side")
+
+
+def service_log_lines(log: Path, needle: str) -> list[tuple[str, float]]:
+    """The lines of the service's log holding ``needle``, each with its wall-clock stamp [s]
+    (the log's "%Y-%m-%d %H:%M:%S,%f" prefix); none when the log is absent, a line without a
+    readable stamp skipped."""
+    if not log.is_file():
+        return []
+    out = []
+    for line in log.read_text(errors="replace").splitlines():
+        if needle not in line:
+            continue
+        try:
+            wall = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        except ValueError:
+            continue
+        out.append((line, wall))
+    return out
