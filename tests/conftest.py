@@ -64,6 +64,7 @@ def default_config() -> Config:
 _AUTOPILOTS = "autopilots"
 _GROUP_OF_MODULE = {
     "test_px4_loop.py": _AUTOPILOTS,
+    "test_px4_gps_hover.py": _AUTOPILOTS,
     "test_px4_real.py": _AUTOPILOTS,
     "test_ardupilot_check.py": _AUTOPILOTS,
     "test_ardupilot_loop.py": _AUTOPILOTS,
@@ -73,7 +74,7 @@ _GROUP_OF_MODULE = {
     "test_evaluation.py": "test_evaluation.py",
     "test_frame_check.py": "test_frame_check.py",
 }
-_MACHINE_EXCLUSIVE = {"test_px4_loop.py", "test_ardupilot_loop.py"}
+_MACHINE_EXCLUSIVE = {"test_px4_loop.py", "test_px4_gps_hover.py", "test_ardupilot_loop.py"}
 _GROUP_OF_TEST = {
     "test_statustext_delivery.py::"
     "test_real_px4_forwards_our_statustext_to_its_ground_station_port": _AUTOPILOTS,
