@@ -49,6 +49,13 @@ PX4_MAX_RTT_SAMPLE_NS = 10_000_000  # MAX_RTT_SAMPLE: an answer whose round trip
 # below it is discarded (neither fused nor an outlier: it cannot reset the filter)
 PX4_MAX_DEVIATION_NS = 100_000_000  # MAX_DEVIATION_SAMPLE: this far off is an outlier
 PX4_MAX_CONSECUTIVE_DEVIATIONS = 5  # MAX_CONSECUTIVE_HIGH_DEVIATION: one more in a row resets
+# Our estimate of PX4's reception time of an answer may come out before the request's ts1:
+# PX4 SIH's lockstep clock ticks in 4 ms steps (its requests leave on a step, its stamps of our
+# requests read the step it is in) and a link is not symmetric. Measured on loopback against a
+# real PX4 SIH (2026-11-29): estimates -4.3 .. +2.9 ms (1st .. 99th percentile) while PX4's own
+# round trip was 0 for every answer. An answer cannot arrive before its request: an estimate
+# down to this far below 0 is PX4's 0, not a reason to discard it.
+RTT_ESTIMATE_SLACK_NS = 5_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -260,6 +267,8 @@ class RequesterModel:
         rtt_ns = None
         for offset_ns in offsets_ns:  # offset: ours - PX4's
             rtt_ns = int(round(tc1_ns - offset_ns - ts1_ns)) + clock.fast_rtt_ns
+            if -RTT_ESTIMATE_SLACK_NS <= rtt_ns < 0:
+                rtt_ns = 0  # before its request: our estimate's error (RTT_ESTIMATE_SLACK_NS)
             if 0 <= rtt_ns < PX4_MAX_RTT_SAMPLE_NS:
                 break
         return rtt_ns
