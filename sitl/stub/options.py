@@ -26,6 +26,9 @@ class AutopilotOptions:
     time_scale: float = 1.0  # flight seconds per wall-clock second (< 1: slow motion)
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
+    # > 0: the flight ends at this flight time [s], before the scenario's end (its trajectory,
+    # made for cfg.sitl.seconds, unchanged): a test that needs only a flight's first part
+    end_s: float = 0.0
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
     faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/stub/faults.py)
     loop_from_frame: int = 0  # with loop_frames: where the repeated stretch of frames starts
