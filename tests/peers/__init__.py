@@ -233,7 +233,12 @@ def sitl_flight(
         companion_port=udp_us,
         camera_port=tcp_cam,
         gcs_listen_port=0,
-        warmup_s=4.0,
+        # the flight starts this long after the gate, which opens once every frame is
+        # rendered: by then the service has been up for the whole prerendering (its time sync
+        # converged, its rates asked for). All it still needs is the camera's stream, which
+        # listens from the gate and which it retries every 0.5 s (SitlStream.retry_s): the 4 s
+        # this was before were idle seconds with the machine held alone
+        warmup_s=1.5,
         prerender=True,
         flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone
         **autopilot,  # type: ignore[arg-type]
