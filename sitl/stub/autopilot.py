@@ -511,6 +511,8 @@ class SimAutopilot:
                 camera.join(timeout=5)
             if camera.is_alive():
                 camera.terminate()
+        if self.opts.flight_done is not None:
+            await self.opts.flight_done()
         report = self.report(int(counters[0]), int(counters[1]))
         if out is not None:
             self.write(out, report)

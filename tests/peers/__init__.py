@@ -104,6 +104,13 @@ async def realtime_gate() -> None:
     await hold_machine_async(exclusive=True)
 
 
+async def realtime_done() -> None:
+    """The SITL autopilot's end of flight (AutopilotOptions.flight_done): the machine shared
+    again, so that the other worker's tests run beside what the test does after its flight (the
+    autopilot's report and plot, the service's stop, a replay of its recording, its checks)."""
+    await hold_machine_async(exclusive=False)
+
+
 def release_machine() -> None:
     """Let the other worker run (after each test, tests/conftest.py)."""
     while _machine:
@@ -240,7 +247,8 @@ def sitl_flight(
         # this was before were idle seconds with the machine held alone
         warmup_s=1.5,
         prerender=True,
-        flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone
+        flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone,
+        flight_done=realtime_done,  # then the rest of the test beside other tests again
         **autopilot,  # type: ignore[arg-type]
     )
     svc = {
