@@ -246,6 +246,10 @@ def sitl_flight(
         # listens from the gate and which it retries every 0.5 s (SitlStream.retry_s): the 4 s
         # this was before were idle seconds with the machine held alone
         warmup_s=1.5,
+        # and ends this long after its last frame: a pose is sent within service.stale_frame_ms
+        # (100 ms) of its frame or never, and the autopilot's defaults' 2 s were idle seconds
+        # with the machine held alone
+        linger_s=0.5,
         prerender=True,
         flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone,
         flight_done=realtime_done,  # then the rest of the test beside other tests again
