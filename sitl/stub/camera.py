@@ -51,9 +51,7 @@ def camera_process(
     scenario = Scenario(cfg)
     scenario.step(0)  # compile the kernels before the flight
     first, n_loop = loop
-    n_frames = scenario.n_frames
-    if end_s > 0:
-        n_frames = min(n_frames, int(end_s * cfg.camera.rate_hz + 1e-9) + 1)
+    n_frames = flight_frames(scenario.n_frames, cfg.camera.rate_hz, end_s)
 
     images: list[Any] = []
     if prerender:
@@ -81,6 +79,15 @@ def camera_process(
         faults,
         time_scale,
     )
+
+
+def flight_frames(n_frames: int, rate_hz: float, end_s: float) -> int:
+    """How many frames a flight sends: the scenario's ``n_frames`` (frame k exposed at
+    k / ``rate_hz`` s), or, when it ends at ``end_s`` > 0 [s of flight time] before the
+    scenario's end, the frames exposed up to that time (the one at ``end_s`` included)."""
+    if end_s <= 0:
+        return n_frames
+    return min(n_frames, int(end_s * rate_hz + 1e-9) + 1)
 
 
 def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:
