@@ -25,8 +25,9 @@ MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 # and over its p95 bound after VO re-initialisations from late frames, ArduPilot's EKF
 # failsafe, the faults' and the flood's output rates, the recorder's replay). So every test
 # holds the machine shared while it runs, and a flight holds it alone: a SITL flight from the
-# end of its prerendering (which runs beside the other worker's tests) to the end of its test,
-# a real autopilot's closed loop for its whole test. tests/conftest.py names the lock
+# end of its prerendering (which runs beside the other worker's tests) to the end of its
+# flight (its report, plot and checks run beside them again: realtime_done), a real
+# autopilot's closed loop for its whole test. tests/conftest.py names the lock
 # (MACHINE_LOCK_ENV: one file per machine, in the system's temp folder; unset: no lock), takes
 # it before each test and releases it after. A turnstile (a second lock) lets a waiting flight
 # in before the other worker's next test.
