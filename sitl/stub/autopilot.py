@@ -135,6 +135,12 @@ class SimAutopilot:
         """Flight time [s] at a monotonic instant [ns] (scaled by ``time_scale``)."""
         return (mono_ns - self.flight_start_ns) * 1e-9 * self.opts.time_scale
 
+    @property
+    def end_s(self) -> float:
+        """The flight's end [s of flight time]: the scenario's, or ``opts.end_s`` before it."""
+        s = self.cfg.sitl.seconds
+        return min(s, self.opts.end_s) if self.opts.end_s > 0 else s
+
     def mono_of_t_sim(self, t_sim_s: float) -> int:
         """The monotonic instant [ns] of a flight time [s] (the exact inverse)."""
         return self.flight_start_ns + int(round(t_sim_s * 1e9 / self.opts.time_scale))
@@ -228,7 +234,7 @@ class SimAutopilot:
         local_us = self.sync.remote_to_local_us(t_usec, here_ns)
         exact_us = self.clock_ns(t_usec * 1000) / 1000.0
         t_sim = self.t_sim_of_mono(self.mono_of_clock_ns(local_us * 1000.0))
-        if not 0.0 <= t_sim <= self.cfg.sitl.seconds:
+        if not 0.0 <= t_sim <= self.end_s:
             return
         if kind == "VISION_POSITION_ESTIMATE":
             rpy = (float(msg.roll), float(msg.pitch), float(msg.yaw))
@@ -304,7 +310,7 @@ class SimAutopilot:
             now = time.monotonic_ns()
             t = self.t_sim_of_mono(now)
             period = self._period_s(MSG_ATTITUDE)
-            if period is not None and 0.0 <= t <= self.cfg.sitl.seconds:
+            if period is not None and 0.0 <= t <= self.end_s:
                 s = self.trajectory.sample(np.array([t]))
                 R = s.R_world_body[0] @ so3.exp(noise * self._rng.standard_normal(3))
                 r, p, y = so3.matrix_to_rpy(R)
@@ -358,7 +364,7 @@ class SimAutopilot:
             period = self._period_s(MSG_DISTANCE_SENSOR)
             if period is None:  # stopped: the readings meanwhile are not sent later
                 last_t = max(last_t, t)
-            elif 0.0 <= t <= self.cfg.sitl.seconds and t > last_t:
+            elif 0.0 <= t <= self.end_s and t > last_t:
                 for r in self.ranges.between(last_t, t):
                     smp = r.sample
                     if smp is None:
@@ -455,6 +461,7 @@ class SimAutopilot:
                 self.opts.faults,
                 (self.opts.loop_from_frame, self.opts.loop_frames),
                 self.opts.time_scale,
+                self.end_s,
             ),
             daemon=True,
             name="sitl-camera",
@@ -487,7 +494,7 @@ class SimAutopilot:
                     await self.opts.flight_gate()
                 self.flight_start_ns = time.monotonic_ns() + int(self.opts.warmup_s * 1e9)
                 counters[2] = self.flight_start_ns
-                end_ns = self.mono_of_t_sim(self.cfg.sitl.seconds) + int(self.opts.linger_s * 1e9)
+                end_ns = self.mono_of_t_sim(self.end_s) + int(self.opts.linger_s * 1e9)
                 await asyncio.sleep(max(0.0, (end_ns - time.monotonic_ns()) * 1e-9))
                 for t in tasks:
                     t.cancel()
@@ -504,6 +511,8 @@ class SimAutopilot:
                 camera.join(timeout=5)
             if camera.is_alive():
                 camera.terminate()
+        if self.opts.flight_done is not None:
+            await self.opts.flight_done()
         report = self.report(int(counters[0]), int(counters[1]))
         if out is not None:
             self.write(out, report)

@@ -35,23 +35,27 @@ def camera_process(
     faults: tuple[Fault, ...] = (),
     loop: tuple[int, int] = (0, 0),
     time_scale: float = 1.0,
+    end_s: float = 0.0,
 ) -> None:
     """Child process: render the flight (ahead of time, or all of it before the flight with
     ``prerender``) and stream each frame at exposure + readout; camera faults applied.
     ``time_scale``: flight seconds per wall-clock second (frame k is exposed k / (rate x
     time_scale) wall-clock seconds after the flight start).
     ``loop = (first, n)``, n > 0: frame k >= first + n shows frame first + (k - first) % n
-    (only valid for a flight that is periodic there: it renders first + n frames at most)."""
+    (only valid for a flight that is periodic there: it renders first + n frames at most).
+    ``end_s`` > 0: the flight ends then [s of flight time], before the scenario's end (the
+    frames after it are neither rendered nor sent)."""
     from companion.sitl.world.scenario import Scenario
 
     cfg = from_dict(Config, cfg_dict)
     scenario = Scenario(cfg)
     scenario.step(0)  # compile the kernels before the flight
     first, n_loop = loop
+    n_frames = flight_frames(scenario.n_frames, cfg.camera.rate_hz, end_s)
 
     images: list[Any] = []
     if prerender:
-        n_distinct = min(scenario.n_frames, first + n_loop) if n_loop > 0 else scenario.n_frames
+        n_distinct = min(n_frames, first + n_loop) if n_loop > 0 else n_frames
         images = prerender_frames(scenario, n_distinct)
     if ready is not None:
         ready.set()
@@ -65,7 +69,7 @@ def camera_process(
         return images[src] if prerender else scenario.step(src).frame.image_bgr
 
     _stream_frames(
-        scenario.n_frames,
+        n_frames,
         cfg.camera.rate_hz,
         render,
         port,
@@ -75,6 +79,15 @@ def camera_process(
         faults,
         time_scale,
     )
+
+
+def flight_frames(n_frames: int, rate_hz: float, end_s: float) -> int:
+    """How many frames a flight sends: the scenario's ``n_frames`` (frame k exposed at
+    k / ``rate_hz`` s), or, when it ends at ``end_s`` > 0 [s of flight time] before the
+    scenario's end, the frames exposed up to that time (the one at ``end_s`` included)."""
+    if end_s <= 0:
+        return n_frames
+    return min(n_frames, int(end_s * rate_hz + 1e-9) + 1)
 
 
 def prerender_frames(scenario: Any, n_frames: int, workers: int = 0) -> list[Any]:

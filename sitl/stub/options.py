@@ -26,6 +26,9 @@ class AutopilotOptions:
     time_scale: float = 1.0  # flight seconds per wall-clock second (< 1: slow motion)
     warmup_s: float = 3.0  # the flight starts this long after the stub
     linger_s: float = 2.0  # keep listening this long after the flight
+    # > 0: the flight ends at this flight time [s], before the scenario's end (its trajectory,
+    # made for cfg.sitl.seconds, unchanged): a test that needs only a flight's first part
+    end_s: float = 0.0
     prerender: bool = False  # render every frame before the flight (frees the CPU during it)
     faults: tuple[Fault, ...] = ()  # injected during the flight (sitl/stub/faults.py)
     loop_from_frame: int = 0  # with loop_frames: where the repeated stretch of frames starts
@@ -39,11 +42,14 @@ class AutopilotOptions:
     armed: bool = False  # report the vehicle armed in HEARTBEAT
     has_mag: bool = True  # a magnetometer gives EKF2 a north-aligned heading
     camera: bool = True  # serve the camera stream (False: MAVLink only, no render process)
-    # awaited once the camera is ready (prerendered), before the flight clock starts: a test
-    # run on several workers flies one real-time flight at a time (tests/peers/)
     # GPS_RAW_INT / GPS_GLOBAL_ORIGIN from the truth (sitl/stub/gps.py): the GPS frame is
     # the truth moved by gps_offset_ned_m [m], with gps_noise_m [m] of correlated noise per axis
     gps: bool = False
     gps_offset_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gps_noise_m: float = 0.3
+    # awaited once the camera is ready (prerendered), before the flight clock starts: a test
+    # run on several workers flies one real-time flight at a time (tests/peers/)
     flight_gate: Callable[[], Awaitable[None]] | None = None
+    # awaited once the flight and its linger are over (the camera stopped), before the report
+    # is made and written: a test run lets the other worker's tests in again (tests/peers/)
+    flight_done: Callable[[], Awaitable[None]] | None = None

@@ -25,8 +25,9 @@ MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 # and over its p95 bound after VO re-initialisations from late frames, ArduPilot's EKF
 # failsafe, the faults' and the flood's output rates, the recorder's replay). So every test
 # holds the machine shared while it runs, and a flight holds it alone: a SITL flight from the
-# end of its prerendering (which runs beside the other worker's tests) to the end of its test,
-# a real autopilot's closed loop for its whole test. tests/conftest.py names the lock
+# end of its prerendering (which runs beside the other worker's tests) to the end of its
+# flight (its report, plot and checks run beside them again: realtime_done), a real
+# autopilot's closed loop for its whole test. tests/conftest.py names the lock
 # (MACHINE_LOCK_ENV: one file per machine, in the system's temp folder; unset: no lock), takes
 # it before each test and releases it after. A turnstile (a second lock) lets a waiting flight
 # in before the other worker's next test.
@@ -102,6 +103,13 @@ def hold_machine(exclusive: bool) -> None:
 async def realtime_gate() -> None:
     """The SITL autopilot's flight gate (AutopilotOptions.flight_gate): the machine alone."""
     await hold_machine_async(exclusive=True)
+
+
+async def realtime_done() -> None:
+    """The SITL autopilot's end of flight (AutopilotOptions.flight_done): the machine shared
+    again, so that the other worker's tests run beside what the test does after its flight (the
+    autopilot's report and plot, the service's stop, a replay of its recording, its checks)."""
+    await hold_machine_async(exclusive=False)
 
 
 def release_machine() -> None:
@@ -233,9 +241,19 @@ def sitl_flight(
         companion_port=udp_us,
         camera_port=tcp_cam,
         gcs_listen_port=0,
-        warmup_s=4.0,
+        # the flight starts this long after the gate, which opens once every frame is
+        # rendered: by then the service has been up for the whole prerendering (its time sync
+        # converged, its rates asked for). All it still needs is the camera's stream, which
+        # listens from the gate and which it retries every 0.5 s (SitlStream.retry_s): the 4 s
+        # this was before were idle seconds with the machine held alone
+        warmup_s=1.5,
+        # and ends this long after its last frame: a pose is sent within service.stale_frame_ms
+        # (100 ms) of its frame or never, and the autopilot's defaults' 2 s were idle seconds
+        # with the machine held alone
+        linger_s=0.5,
         prerender=True,
-        flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone
+        flight_gate=realtime_gate,  # prerendered beside other tests, then flown alone,
+        flight_done=realtime_done,  # then the rest of the test beside other tests again
         **autopilot,  # type: ignore[arg-type]
     )
     svc = {
