@@ -34,6 +34,16 @@ ARDUPILOT_INPUTS = frozenset({MSG_ID_GLOBAL_POSITION_INT})
 ORIGIN_RESEND_S = 1.0  # SET_GPS_GLOBAL_ORIGIN again this often until the EKF holds it
 ORIGIN_HOLD_S = 2.0  # GLOBAL_POSITION_INT with a position this long without a break: held
 
+# EKF_STATUS_REPORT.flags: a relative horizontal position, and constant-position mode (no aiding)
+EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
+
+
+def ekf_navigates(flags: Any) -> Any:
+    """Whether EKF3 has a horizontal position (relative, not constant-position mode) by its
+    EKF_STATUS_REPORT ``flags``: an int, or an integer array (elementwise)."""
+    return (flags & EKF_POS_HORIZ_REL != 0) & (flags & EKF_CONST_POS_MODE == 0)
+
+
 AUTOPILOT_NAMES = {
     MAV_AUTOPILOT_PX4: "PX4",
     MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot",

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.drivers.ardupilot import ekf_navigates
 from companion.errors import SitlError
 from companion.sitl.loops import gps_missions, ground_station, loop_flight, processes
 from companion.sitl.loops.ardupilot_sitl import ArduPilotSitl, find_ardupilot, port
@@ -74,7 +75,6 @@ HEADING_COMPASS_PARAMS: dict[str, float] = {
 }
 HEADINGS = ("compass", "extnav")
 MODE_GUIDED, MODE_LAND = 4, 9
-EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
 CAMERA_PORT = 15700  # + instance
 
 
@@ -136,7 +136,7 @@ class Gcs(ground_station.GcsBase):
             return False
         t, flags = self.tel.ekf[-1]
         fresh = time.monotonic_ns() - t < within_s * 1e9
-        return fresh and bool(flags & EKF_POS_HORIZ_REL) and not flags & EKF_CONST_POS_MODE
+        return fresh and bool(ekf_navigates(flags))
 
 
 class Flight(loop_flight.LoopFlight):

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.drivers.ardupilot import ekf_navigates
 from companion.sitl.loops import gps_missions, gps_results, loop_results
-from companion.sitl.loops.ardupilot_flight import EKF_CONST_POS_MODE, EKF_POS_HORIZ_REL
 
 SETTLE_NS = 2e9
 FAILSAFE = re.compile(r"fail.?safe|ekf.*(variance|failure)|lost (gps|rc|radio)", re.I)
@@ -62,7 +62,7 @@ def _ekf_fused(s: dict[str, Any], ekf_rows: list[Any], air_t0: float, air_t1: fl
     air = (ekf[:, 0] >= air_t0) & (ekf[:, 0] <= air_t1)
     if air.any():
         flags = ekf[air, 1].astype(np.int64)
-        fused = (flags & EKF_POS_HORIZ_REL != 0) & (flags & EKF_CONST_POS_MODE == 0)
+        fused = ekf_navigates(flags)
         s["ev_pos_fused_pct"] = float(100.0 * fused.mean())
 
 

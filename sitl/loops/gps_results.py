@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.sitl.loops.ardupilot_flight import EKF_CONST_POS_MODE, EKF_POS_HORIZ_REL
+from companion.drivers.ardupilot import ekf_navigates
 from companion.sitl.loops.loop_results import service_log_lines
 
 JUMP_WINDOW_S = 1.0
@@ -203,9 +203,7 @@ def summarise_ardupilot(
     ekf = np.array(flight.tel.ekf, dtype=np.float64).reshape(-1, 2)
     # EKF3 navigating (a relative horizontal position, not constant-position mode): while set
     # 2 is active that position is ours
-    ok = (ekf[:, 1].astype(np.int64) & EKF_POS_HORIZ_REL != 0) & (
-        ekf[:, 1].astype(np.int64) & EKF_CONST_POS_MODE == 0
-    )
+    ok = ekf_navigates(ekf[:, 1].astype(np.int64))
     summarise_gps(
         s,
         t_est_ns * 1e-9,

@@ -22,8 +22,8 @@ from companion.autopilot.ardupilot.link import CompanionSeen, Watched
 from companion.autopilot.ardupilot.rules import EXTNAV, GPS, SOURCES, ArduPilotContext, value_of
 from companion.autopilot.params import Param
 from companion.autopilot.verdict import Verdict
+from companion.drivers.ardupilot import ekf_navigates
 
-EKF_POS_HORIZ_REL, EKF_CONST_POS_MODE = 0x08, 0x80
 MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
 FRAMES = {1: "LOCAL_NED", 8: "BODY_NED", 12: "BODY_FRD", 20: "LOCAL_FRD", 21: "LOCAL_FLU"}
 MIN_RATE_HZ = 5.0  # below this EKF3 times our samples out between them
@@ -75,7 +75,7 @@ def diagnose(
     if svc is not None:
         out = svc.get("output", {}) if isinstance(svc.get("output"), Mapping) else {}
         evidence.append(f"the service sends {out.get('message')} at {out.get('rate_hz', 0):.1f} Hz")
-    rel = flags is not None and bool(flags & EKF_POS_HORIZ_REL) and not flags & EKF_CONST_POS_MODE
+    rel = flags is not None and bool(ekf_navigates(flags))
     fused = rel and value_of(params, "EK3_SRC1_POSXY") == EXTNAV and bool(ours) and origin
     reasons = _mixed(params, ctx) if fused else _why_not(obs, params, ctx, origin, ours)
     warnings = _warnings(ours, params, ctx)
