@@ -6,7 +6,10 @@ task's name is not in it: the same work under two names is done once.
 
 ``code_version`` = SHA-256 over every ``.py`` file of the ``companion`` package as imported,
 ``drivers/`` and ``sitl/`` with it (the package's links to them are followed), path and bytes:
-uncommitted edits count, ``__pycache__`` and the tests do not.
+uncommitted edits count, ``__pycache__`` and the tests do not. Left out: the modules that only
+choose the tasks and draw the tables from their results (``TABLE_ONLY``): a task runs
+``python -m companion.cli eval|replay`` in a process of its own and none of them is on its
+path, so a new table or a reworded column re-runs nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from companion.batch.spec import Task
 from companion.errors import BatchError
 
 CHUNK = 1 << 20  # bytes read at a time when hashing a file
+# relative to the package: which tables and tasks exist, and how they are drawn
+TABLE_ONLY = frozenset({"batch/plans.py", "batch/results_md.py", "cli/results.py"})
 
 
 def package_root() -> Path:
@@ -32,11 +37,19 @@ def package_root() -> Path:
 @functools.cache
 def code_version() -> str:
     """SHA-256 (hex) of the imported package's Python sources, ``drivers/`` and ``sitl/``
-    included; computed once per process."""
-    root = package_root()
+    included, ``TABLE_ONLY`` not; computed once per process."""
+    return sources_sha256(package_root())
+
+
+def sources_sha256(root: Path) -> str:
+    """SHA-256 (hex) of the ``.py`` files under ``root`` (relative path and bytes, sorted;
+    links followed), ``TABLE_ONLY`` left out."""
     h = hashlib.sha256()
     for path in sorted(_py_files(root)):
-        h.update(path.relative_to(root).as_posix().encode() + b"\0")
+        rel = path.relative_to(root).as_posix()
+        if rel in TABLE_ONLY:
+            continue
+        h.update(rel.encode() + b"\0")
         h.update(path.read_bytes() + b"\0")
     return h.hexdigest()
 

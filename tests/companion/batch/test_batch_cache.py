@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.batch.cache import KeyMaker, code_version, content_hash
+from companion.batch.cache import KeyMaker, code_version, content_hash, sources_sha256
 from companion.batch.executors import Job, SerialExecutor
 from companion.batch.run import TaskResult
 from companion.batch.runner import run_batch
@@ -123,3 +123,21 @@ def test_the_key_follows_the_code_the_inputs_and_the_spec_not_the_name(tmp_path:
     with pytest.raises(BatchError, match="no such file"):
         content_hash(tmp_path / "absent")
     assert len(code_version()) == 64
+
+
+def test_the_code_version_follows_what_a_task_runs_not_how_its_table_is_drawn(
+    tmp_path: Path,
+) -> None:
+    for rel in ("vo/odometry.py", "batch/plans.py", "batch/runner.py", "cli/results.py"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x = 1\n")
+    before = sources_sha256(tmp_path)
+    (tmp_path / "batch" / "plans.py").write_text("x = 2  # a new table\n")
+    (tmp_path / "cli" / "results.py").write_text("x = 2  # a reworded column\n")
+    (tmp_path / "vo" / "notes.txt").write_text("not code")
+    assert sources_sha256(tmp_path) == before
+    for rel in ("vo/odometry.py", "batch/runner.py"):  # what computes, or runs, a result
+        (tmp_path / rel).write_text("x = 3\n")
+        changed = sources_sha256(tmp_path)
+        assert changed != before
+        before = changed
