@@ -22,6 +22,48 @@ ATTITUDE_TERRAINS = ("flat", "hills", "urban", "slope")
 DPOSE_TERRAINS = ("flat", "hills", "slope")
 REAL_FB_SEQUENCES = ("rislab_downward", "tum_fr1_rpy")
 REAL_FB_CONFIG = "config/real_camera.toml"
+PAD_CONFIG = "config/pad.toml"
+PAD_SEEDS = (1, 2, 3, 4, 5)
+TAKEOFF = ("--phases", "--takeoff-landing")
+# From the ground up (issue 18): (row label, terrain, trajectory, seeds, flags, config)
+GROUND_FLIGHTS: tuple[tuple[str, str, str, tuple[int, ...], tuple[str, ...], str | None], ...] = (
+    ("hills lawnmower, take-off & landing", "hills", "lawnmower", SEEDS, TAKEOFF, None),
+    ("hills lawnmower, harsh sensors", "hills", "lawnmower", SEEDS, TAKEOFF, "config/harsh.toml"),
+    ("urban figure8, take-off & landing", "urban", "figure8", SEEDS, TAKEOFF, None),
+    ("urban figure8, harsh sensors", "urban", "figure8", SEEDS, TAKEOFF, "config/harsh.toml"),
+    (
+        "urban lawnmower at 3.5 m (from the air)",
+        "urban",
+        "lawnmower",
+        SEEDS,
+        ("--phases", "--altitude", "3.5"),
+        None,
+    ),
+    (
+        "hills lawnmower at 12 m/s, take-off & landing",
+        "hills",
+        "lawnmower",
+        SEEDS,
+        (*TAKEOFF, "--speed", "12"),
+        None,
+    ),
+    (
+        "urban figure8 at 12 m/s, take-off & landing",
+        "urban",
+        "figure8",
+        (1,),
+        (*TAKEOFF, "--speed", "12"),
+        None,
+    ),
+    (
+        "urban lawnmower at 12 m/s, 4 m (from the air)",
+        "urban",
+        "lawnmower",
+        (1,),
+        ("--phases", "--altitude", "4", "--speed", "12"),
+        None,
+    ),
+)
 
 
 @dataclass(frozen=True)
@@ -87,7 +129,21 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
     out.append(TablePlan("dpose", "d-Pose (issue 6)", dpose, "dpose"))
     rnd = sim_eval("dpose-random", ("--dpose", "--random", "10000"))
     out.append(TablePlan("dpose-random", "d-Pose, random poses", (rnd,), "dpose-random"))
+    out.append(TablePlan("ground", "From the ground up (issue 18)", ground_tasks(), "ground"))
+    pad = tuple(
+        sim_eval(f"pad-{s}", ("--phases", "--seed", str(s)), config=PAD_CONFIG) for s in PAD_SEEDS
+    )
+    out.append(TablePlan("pad", "Return over the pad (issue 18)", pad, "pad"))
     return {p.name: p for p in out}
+
+
+def ground_tasks() -> tuple[Task, ...]:
+    """The flights of GROUND_FLIGHTS, named ``ground-<row>-<seed>`` (row: its index)."""
+    return tuple(
+        flight(f"ground-{i}-{s}", t, tr, s, SECONDS, flags, config)
+        for i, (_, t, tr, seeds, flags, config) in enumerate(GROUND_FLIGHTS)
+        for s in seeds
+    )
 
 
 def table_names() -> list[str]:

@@ -220,6 +220,52 @@ def render_dpose_random(p: TablePlan, report: BatchReport) -> str:
     return "```\n" + "\n".join(lines) + "\n```"
 
 
+PHASES = ("ground", "climb", "cruise", "descent", "landed")
+
+
+def render_ground(p: TablePlan, report: BatchReport) -> str:
+    """From the ground up: one row per flight (phases.json); a phase's RMS / max in cm, "-"
+    for a phase the flight has not (a flight started in the air)."""
+    head = "| flight | seed | first pose | VO resets | metric ATE | % of path | "
+    lines = [head + " | ".join(PHASES) + " | end error |", "|---" * 12 + "|"]
+    shown = set()
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        _, row, seed = t.name.split("-")
+        label = "" if row in shown else plans_mod.GROUND_FLIGHTS[int(row)][0]
+        shown.add(row)
+        m = _json(d / "phases.json")
+        cells = []
+        for phase in PHASES:
+            ph = m["phases"].get(phase, {"frames": 0})
+            cells.append(
+                f"{100 * ph['rmse_m']:.1f} / {100 * ph['max_m']:.1f}" if ph["frames"] else "-"
+            )
+        lines.append(
+            f"| {label} | {seed} | {m['first_pose_s']:.2f} s | {m['vo_resets']} | "
+            f"{m['ate_m']:.3f} m | {m['ate_pct_of_path']:.3f} % | {' | '.join(cells)} | "
+            f"{100 * m['end_error_m']:.1f} cm |"
+        )
+    return "\n".join(lines)
+
+
+def render_pad(p: TablePlan, report: BatchReport) -> str:
+    """Return over the pad: d-Pose's error from the arming pose while back over the marks."""
+    head = "| seed | d-Pose armed at | poses back over the marks | RMS [cm] | max [cm] | "
+    lines = [head + "the VO alone, RMS [cm] |", "|---" * 6 + "|"]
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        m = _json(d / "phases.json")
+        dp = m.get("dpose")
+        if dp is None or dp["published_rmse_m"] is None:
+            lines.append(f"| {t.name.split('-')[1]} | not armed | 0 | - | - | - |")
+            continue
+        lines.append(
+            f"| {t.name.split('-')[1]} | {dp['armed_s']:.2f} s | {dp['poses_in_view']} | "
+            f"{100 * dp['published_rmse_m']:.2f} | {100 * dp['published_max_m']:.2f} | "
+            f"{100 * dp['vo_rmse_m']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
 RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "vo": render_vo,
     "scale": render_scale,
@@ -229,6 +275,8 @@ RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "attitude-study": render_attitude_study,
     "dpose": render_dpose,
     "dpose-random": render_dpose_random,
+    "ground": render_ground,
+    "pad": render_pad,
 }
 
 

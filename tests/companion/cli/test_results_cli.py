@@ -156,3 +156,60 @@ def test_the_renderers_draw_the_pages_rows_from_the_commands_files(tmp_path: Pat
     assert RENDERERS["dpose-random"](plan, report) == (
         "```\n10000 random poses, 0 distractor dots: ...\n10000 random poses, 2 ...\n```"
     )
+
+
+def _phases(air: bool, armed: bool = False) -> str:
+    """A phases.json as `companion eval --phases` writes it (a flight from the air has no
+    ground or landed poses)."""
+    phases = {
+        p: {
+            "frames": 0 if air and p in ("ground", "landed") else 10,
+            "rmse_m": 0.0123,
+            "max_m": 0.05,
+        }
+        for p in ("ground", "climb", "cruise", "descent", "landed")
+    }
+    doc: dict[str, Any] = {
+        "first_pose_s": 0.0667,
+        "vo_resets": 0,
+        "ate_m": 0.0321,
+        "ate_pct_of_path": 0.0264,
+        "end_error_m": 0.122,
+        "phases": phases,
+    }
+    if armed:
+        doc["dpose"] = {
+            "armed_s": 8.43,
+            "poses_in_view": 918,
+            "published_rmse_m": 0.0079,
+            "published_max_m": 0.0196,
+            "vo_rmse_m": 0.1006,
+        }
+    return json.dumps(doc)
+
+
+def test_the_ground_and_pad_tables_come_from_phases_json(tmp_path: Path) -> None:
+    every = plans.plans(None)
+    plan = every["ground"]
+    assert len({t.name for t in plan.tasks}) == len(plan.tasks) == 20
+    assert all("--phases" in t.argv for t in plan.tasks)
+    harsh = [t for t in plan.tasks if t.config == "config/harsh.toml"]
+    assert len(harsh) == 6 and (REPO / "config" / "harsh.toml").is_file()
+    air = {t.name for t in plan.tasks if "--takeoff-landing" not in t.argv}
+    assert len(air) == 4  # the low urban flights start in the air
+    files = {t.name: {"phases.json": _phases(t.name in air)} for t in plan.tasks}
+    rows = RENDERERS["ground"](plan, _report(tmp_path, plan, files)).splitlines()
+    assert len(rows) == 22 and rows[1].count("|") == rows[0].count("|") == 13
+    assert rows[2] == (
+        "| hills lawnmower, take-off & landing | 1 | 0.07 s | 0 | 0.032 m | 0.026 % | "
+        "1.2 / 5.0 | 1.2 / 5.0 | 1.2 / 5.0 | 1.2 / 5.0 | 1.2 / 5.0 | 12.2 cm |"
+    )
+    assert rows[3].startswith("|  | 2 | ")  # the label once per group
+    low = next(r for r in rows if r.startswith("| urban lawnmower at 3.5 m"))
+    assert low.split(" | ")[6] == "-" and low.split(" | ")[10] == "-"
+    plan = every["pad"]
+    assert [t.config for t in plan.tasks] == ["config/pad.toml"] * 5
+    files = {t.name: {"phases.json": _phases(False, t.name != "pad-2")} for t in plan.tasks}
+    rows = RENDERERS["pad"](plan, _report(tmp_path / "p", plan, files)).splitlines()
+    assert rows[2] == "| 1 | 8.43 s | 918 | 0.79 | 1.96 | 10.06 |"
+    assert rows[3] == "| 2 | not armed | 0 | - | - | - |"
