@@ -10,7 +10,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out
 
 .PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude results-real \
-	results-dpose dist install uninstall check-arm64 clean
+	results-dpose results-ground dist install uninstall check-arm64 clean
 
 all: test
 
@@ -107,14 +107,15 @@ results: venv
 results-real: venv
 	$(RESULTS_RUN) --only real real-fb
 
-# roll/pitch (issue 5) and d-Pose (issue 6); the 10-minute circle is not a table (yet)
+# roll/pitch (issue 5), d-Pose (issue 6), from the ground up (issue 18)
 results-attitude: venv
-	$(RESULTS_RUN) --only attitude attitude-study
-	$(BIN)/companion eval --attitude --terrain hills --trajectory circle --seconds 600 \
-	  --spacing 0.5 --no-progress --out $(RESULTS)/attitude-hills-circle-600
+	$(RESULTS_RUN) --only attitude attitude-study attitude-circle
 
 results-dpose: venv
 	$(RESULTS_RUN) --only dpose dpose-random
+
+results-ground: venv
+	$(RESULTS_RUN) --only ground pad
 
 # the wheel (companion, drivers, sitl; runtime dependencies, extras sim/eval/dev) and the sdist
 # (also the Makefile, configs, unit, docs and tests) in dist/

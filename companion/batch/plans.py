@@ -22,6 +22,7 @@ ATTITUDE_TERRAINS = ("flat", "hills", "urban", "slope")
 DPOSE_TERRAINS = ("flat", "hills", "slope")
 REAL_FB_SEQUENCES = ("rislab_downward", "tum_fr1_rpy")
 REAL_FB_CONFIG = "config/real_camera.toml"
+CIRCLE_SECONDS = 600.0  # the roll/pitch drift flight
 PAD_CONFIG = "config/pad.toml"
 PAD_SEEDS = (1, 2, 3, 4, 5)
 TAKEOFF = ("--phases", "--takeoff-landing")
@@ -122,6 +123,10 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
     study_flags = ("--attitude", "--spacing", "0.5", "--study")
     a_study = flight("attitude-study", "flat", "lawnmower", 1, SECONDS, study_flags)
     out.append(TablePlan("attitude-study", "Roll/pitch studies", (a_study,), "attitude-study"))
+    circle = flight(
+        "attitude-circle", "hills", "circle", 1, CIRCLE_SECONDS, ("--attitude", "--spacing", "0.5")
+    )
+    out.append(TablePlan("attitude-circle", "Roll/pitch, 10 minutes", (circle,), "attitude-long"))
     dpose = tuple(
         sim_eval(f"dpose-{t}", ("--dpose", "--terrain", t, "--seconds", f"{SECONDS:g}"))
         for t in DPOSE_TERRAINS

@@ -220,6 +220,20 @@ def render_dpose_random(p: TablePlan, report: BatchReport) -> str:
     return "```\n" + "\n".join(lines) + "\n```"
 
 
+def render_attitude_long(p: TablePlan, report: BatchReport) -> str:
+    """A long roll/pitch flight: every estimate's RMSE, and the RMSE of its first and last
+    minute (does it drift?)."""
+    head = "| estimate | roll / pitch RMSE | available | first minute | last minute |"
+    lines = [head, "|---" * 5 + "|"]
+    for r in _json(_linked(p, report)[0] / "attitude_metrics.json"):
+        lines.append(
+            f"| {r['label']} | {r['roll_rmse_deg']:.3f} / {r['pitch_rmse_deg']:.3f}° | "
+            f"{100 * r['available']:.1f} % | {r['first_min_rmse_deg']:.3f}° | "
+            f"{r['last_min_rmse_deg']:.3f}° |"
+        )
+    return "\n".join(lines)
+
+
 PHASES = ("ground", "climb", "cruise", "descent", "landed")
 
 
@@ -275,6 +289,7 @@ RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "attitude-study": render_attitude_study,
     "dpose": render_dpose,
     "dpose-random": render_dpose_random,
+    "attitude-long": render_attitude_long,
     "ground": render_ground,
     "pad": render_pad,
 }

@@ -213,3 +213,21 @@ def test_the_ground_and_pad_tables_come_from_phases_json(tmp_path: Path) -> None
     rows = RENDERERS["pad"](plan, _report(tmp_path / "p", plan, files)).splitlines()
     assert rows[2] == "| 1 | 8.43 s | 918 | 0.79 | 1.96 | 10.06 |"
     assert rows[3] == "| 2 | not armed | 0 | - | - | - |"
+
+
+def test_the_long_attitude_table_shows_the_first_and_last_minute(tmp_path: Path) -> None:
+    plan = plans.plans(None)["attitude-circle"]
+    assert plan.tasks[0].argv[:9] == (
+        "eval", "--terrain", "hills", "--trajectory", "circle", "--seconds", "600", "--seed", "1"
+    )  # fmt: skip
+    row = {
+        "label": "published",
+        "roll_rmse_deg": 0.0456,
+        "pitch_rmse_deg": 0.0501,
+        "available": 1.0,
+        "first_min_rmse_deg": 0.052,
+        "last_min_rmse_deg": 0.0384,
+    }
+    files = {"attitude-circle": {"attitude_metrics.json": json.dumps([row])}}
+    rows = RENDERERS["attitude-long"](plan, _report(tmp_path, plan, files)).splitlines()
+    assert rows[2] == "| published | 0.046 / 0.050° | 100.0 % | 0.052° | 0.038° |"
