@@ -115,6 +115,7 @@ def run_batch(
             )
         else:
             todo.append(job)
+    todo.sort(key=lambda j: -length_s(j.task))  # the longest first: no long tail on a pool
     log(
         f"batch: {len(jobs)} task(s), {len(jobs) - len(todo)} from the cache, "
         f"{len(todo)} to run on {executor.description}"
@@ -127,6 +128,23 @@ def run_batch(
         log(f"[{i}/{len(todo)}] {job.task.name}: {what} ({result.seconds:.1f} s)")
     ordered = {t.name: report.outcomes[t.name] for t in unique.values()}
     return BatchReport(ordered)
+
+
+def length_s(task: Task, frame_rate_hz: float = 30.0) -> float:
+    """How much flight a task replays [s], its cost's proxy for ordering a batch: a simulated
+    flight's ``--seconds`` (60 unless given), a dataset's frames at ``frame_rate_hz``
+    (0 when it cannot be read: such a task goes last)."""
+    argv = task.argv
+    if task.kind == "flight" or (task.kind == "sweep" and not task.inputs):
+        i = argv.index("--seconds") if "--seconds" in argv else -1
+        return float(argv[i + 1]) if 0 <= i < len(argv) - 1 else 60.0
+    if not task.inputs:
+        return 0.0
+    try:
+        with (Path(task.inputs[0]) / "frames.csv").open("rb") as fh:
+            return max(sum(1 for _ in fh) - 1, 0) / frame_rate_hz
+    except OSError:
+        return 0.0
 
 
 def _store(job: Job, result: TaskResult, out: Path, cache: Path, code: str) -> Outcome:

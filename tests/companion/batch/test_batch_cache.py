@@ -47,7 +47,7 @@ def test_a_rerun_computes_nothing_and_a_change_reruns_that_task_alone(tmp_path: 
     out = tmp_path / "out"
     first = Counting()
     report = run_batch(tasks, first, out, log=lambda _: None)
-    assert first.ran == ["a", "b", "c"]
+    assert first.ran == ["c", "a", "b"]  # the longest first: c replays one frame
     assert [o.status for o in report.outcomes.values()] == ["ran"] * 3
     assert "max_features = 160" in _stdout(out, "b")  # the override reached the run
     again = Counting()
@@ -141,3 +141,37 @@ def test_the_code_version_follows_what_a_task_runs_not_how_its_table_is_drawn(
         changed = sources_sha256(tmp_path)
         assert changed != before
         before = changed
+
+
+def test_the_longest_tasks_go_first(tmp_path: Path) -> None:
+    from companion.batch.runner import length_s
+    from companion.batch.spec import flight, sequence
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    (seq / "frames.csv").write_text("time_us,seq,filename\n" + "0,0,a.png\n" * 90)
+    assert length_s(sequence("s", seq)) == 3.0  # 90 frames at 30 Hz
+    assert length_s(sequence("gone", tmp_path / "absent")) == 0.0
+    assert length_s(flight("f", "hills", "circle", 1, 600.0)) == 600.0
+
+    class NotRun(SerialExecutor):
+        """Records the order it is given the jobs in and runs none of them."""
+
+        def __init__(self) -> None:
+            self.order: list[str] = []
+
+        def run(self, jobs: Sequence[Job]) -> Iterator[TaskResult]:
+            for j in jobs:
+                self.order.append(j.task.name)
+                yield TaskResult(j.task.name, j.key, False, 0.0, "", error="not run")
+
+    tasks = [
+        _config_task("none", 150),
+        flight("short", "flat", "hover", 1, 5.0),
+        sequence("seq", seq),
+        flight("long", "hills", "circle", 1, 600.0),
+    ]
+    executor = NotRun()
+    report = run_batch(tasks, executor, tmp_path / "out", log=lambda _: None)
+    assert executor.order == ["long", "short", "seq", "none"]
+    assert list(report.outcomes) == ["none", "short", "seq", "long"]  # reported as given
