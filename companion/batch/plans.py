@@ -101,10 +101,11 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
                 flight(scale_name(t, tr, s), t, tr, s, SECONDS, ("--methods", "all")) for s in SEEDS
             )
             out.append(TablePlan(f"scale-{t}-{tr}", f"Metric scale, {t} / {tr}", tasks, "scale"))
-    study = flight(
-        "study-hills", "hills", "lawnmower", 1, SECONDS, ("--methods", "all", "--sensor-study")
+    study = tuple(
+        flight(f"study-{t}", t, tr, 1, SECONDS, ("--methods", "all", "--sensor-study"))
+        for t, tr in VO_GROUPS
     )
-    out.append(TablePlan("sensor-study", "Number of sensors", (study,), "sensors"))
+    out.append(TablePlan("sensor-study", "Number of sensors", study, "sensors"))
     names = sorted(p.name for p in real_data.iterdir() if p.is_dir()) if real_data else []
     real = tuple(sequence(f"real/{n}", (real_data / n).resolve()) for n in names if real_data)
     fb = tuple(

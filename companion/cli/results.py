@@ -117,6 +117,11 @@ def _linked(p: TablePlan, report: BatchReport) -> list[Path]:
     return out
 
 
+def _arg(task: Task, flag: str) -> str:
+    """The value of ``flag`` in a task's command line."""
+    return task.argv[task.argv.index(flag) + 1]
+
+
 def _json(path: Path) -> Any:
     return json.loads(path.read_text())
 
@@ -153,18 +158,20 @@ def render_real(p: TablePlan, report: BatchReport) -> str:
 
 
 def render_sensors(p: TablePlan, report: BatchReport) -> str:
-    """M-MSC with the first k of six sensors."""
-    rows = _json(_linked(p, report)[0] / "scale_metrics.json")
-    study = sorted(
-        (r for r in rows if r["method"].startswith("M-MSC k=")),
-        key=lambda r: int(r["method"].split("=")[1]),
-    )
-    lines = ["| sensors | hills / lawnmower, seed 1: scale error | metric ATE |", "|---|---|---|"]
-    lines += [
-        f"| {r['method'].split('=')[1]} | {r['scale_mean_abs_rel_pct']:.2f} % "
-        f"(MSE {r['scale_mse']:.2e}) | {r['ate_m']:.3f} m |"
-        for r in study
-    ]
+    """M-MSC with the first k of six sensors: per flight, its scale error and metric ATE."""
+    head, rule = "| sensors |", "|---|"
+    by_k: dict[int, list[str]] = {}
+    for t, d in zip(p.tasks, _linked(p, report), strict=True):
+        flight = f"{_arg(t, '--terrain')} / {_arg(t, '--trajectory')}, seed {_arg(t, '--seed')}"
+        head += f" {flight}: scale error | metric ATE |"
+        rule += "---|---|"
+        for r in _json(d / "scale_metrics.json"):
+            if r["method"].startswith("M-MSC k="):
+                by_k.setdefault(int(r["method"].split("=")[1]), []).append(
+                    f" {r['scale_mean_abs_rel_pct']:.2f} % (MSE {r['scale_mse']:.2e}) | "
+                    f"{r['ate_m']:.3f} m |"
+                )
+    lines = [head, rule] + [f"| {k} |" + "".join(cells) for k, cells in sorted(by_k.items())]
     return "\n".join(lines)
 
 

@@ -142,13 +142,15 @@ def test_the_renderers_draw_the_pages_rows_from_the_commands_files(tmp_path: Pat
         for k in (2, 1)
     ] + [{"method": "MSC"}]
     plan = every["sensor-study"]
-    report = _report(
-        tmp_path / "s", plan, {"study-hills": {"scale_metrics.json": json.dumps(study)}}
+    files = {t.name: {"scale_metrics.json": json.dumps(study)} for t in plan.tasks}
+    rows = RENDERERS["sensors"](plan, _report(tmp_path / "s", plan, files)).splitlines()
+    assert rows[0] == (
+        "| sensors | hills / lawnmower, seed 1: scale error | metric ATE | "
+        "urban / figure8, seed 1: scale error | metric ATE |"
     )
-    rows = RENDERERS["sensors"](plan, report).splitlines()
     assert rows[2:] == [
-        "| 1 | 0.30 % (MSE 1.00e-04) | 0.060 m |",
-        "| 2 | 0.15 % (MSE 1.00e-04) | 0.060 m |",
+        "| 1 | 0.30 % (MSE 1.00e-04) | 0.060 m | 0.30 % (MSE 1.00e-04) | 0.060 m |",
+        "| 2 | 0.15 % (MSE 1.00e-04) | 0.060 m | 0.15 % (MSE 1.00e-04) | 0.060 m |",
     ]
     plan = every["dpose-random"]
     out = "10000 random poses, 0 distractor dots: ...\nd-Pose cost\n10000 random poses, 2 ...\n"
