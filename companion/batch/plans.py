@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 from companion.batch.spec import Task, flight, sequence, sim_eval
 
@@ -26,43 +27,50 @@ CIRCLE_SECONDS = 600.0  # the roll/pitch drift flight
 PAD_CONFIG = "config/pad.toml"
 PAD_SEEDS = (1, 2, 3, 4, 5)
 TAKEOFF = ("--phases", "--takeoff-landing")
-# From the ground up (issue 18): (row label, terrain, trajectory, seeds, flags, config)
-GROUND_FLIGHTS: tuple[tuple[str, str, str, tuple[int, ...], tuple[str, ...], str | None], ...] = (
-    ("hills lawnmower, take-off & landing", "hills", "lawnmower", SEEDS, TAKEOFF, None),
-    ("hills lawnmower, harsh sensors", "hills", "lawnmower", SEEDS, TAKEOFF, "config/harsh.toml"),
-    ("urban figure8, take-off & landing", "urban", "figure8", SEEDS, TAKEOFF, None),
-    ("urban figure8, harsh sensors", "urban", "figure8", SEEDS, TAKEOFF, "config/harsh.toml"),
-    (
-        "urban lawnmower at 3.5 m (from the air)",
-        "urban",
-        "lawnmower",
-        SEEDS,
-        ("--phases", "--altitude", "3.5"),
-        None,
+HARSH = "config/harsh.toml"
+
+
+class GroundRow(NamedTuple):
+    """A row group of the from-the-ground-up table (issue 18): its label, the flight and the
+    seeds it is flown with; ``flags`` after ``--seed``, ``config`` a TOML file or None."""
+
+    label: str
+    terrain: str
+    trajectory: str
+    seeds: tuple[int, ...]
+    flags: tuple[str, ...]
+    config: str | None = None
+
+
+AIR = ("--phases", "--altitude")  # from the air: no take-off, at this height [m]
+GROUND_FLIGHTS = (
+    GroundRow("hills lawnmower, take-off & landing", "hills", "lawnmower", SEEDS, TAKEOFF),
+    GroundRow("hills lawnmower, harsh sensors", "hills", "lawnmower", SEEDS, TAKEOFF, HARSH),
+    GroundRow("urban figure8, take-off & landing", "urban", "figure8", SEEDS, TAKEOFF),
+    GroundRow("urban figure8, harsh sensors", "urban", "figure8", SEEDS, TAKEOFF, HARSH),
+    GroundRow(
+        "urban lawnmower at 3.5 m (from the air)", "urban", "lawnmower", SEEDS, (*AIR, "3.5")
     ),
-    (
+    GroundRow(
         "hills lawnmower at 12 m/s, take-off & landing",
         "hills",
         "lawnmower",
         SEEDS,
         (*TAKEOFF, "--speed", "12"),
-        None,
     ),
-    (
+    GroundRow(
         "urban figure8 at 12 m/s, take-off & landing",
         "urban",
         "figure8",
         (1,),
         (*TAKEOFF, "--speed", "12"),
-        None,
     ),
-    (
+    GroundRow(
         "urban lawnmower at 12 m/s, 4 m (from the air)",
         "urban",
         "lawnmower",
         (1,),
-        ("--phases", "--altitude", "4", "--speed", "12"),
-        None,
+        (*AIR, "4", "--speed", "12"),
     ),
 )
 
@@ -146,9 +154,9 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
 def ground_tasks() -> tuple[Task, ...]:
     """The flights of GROUND_FLIGHTS, named ``ground-<row>-<seed>`` (row: its index)."""
     return tuple(
-        flight(f"ground-{i}-{s}", t, tr, s, SECONDS, flags, config)
-        for i, (_, t, tr, seeds, flags, config) in enumerate(GROUND_FLIGHTS)
-        for s in seeds
+        flight(f"ground-{i}-{s}", g.terrain, g.trajectory, s, SECONDS, g.flags, g.config)
+        for i, g in enumerate(GROUND_FLIGHTS)
+        for s in g.seeds
     )
 
 

@@ -252,7 +252,7 @@ def render_ground(p: TablePlan, report: BatchReport) -> str:
     shown = set()
     for t, d in zip(p.tasks, _linked(p, report), strict=True):
         _, row, seed = t.name.split("-")
-        label = "" if row in shown else plans_mod.GROUND_FLIGHTS[int(row)][0]
+        label = "" if row in shown else plans_mod.GROUND_FLIGHTS[int(row)].label
         shown.add(row)
         m = _json(d / "phases.json")
         cells = []
