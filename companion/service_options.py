@@ -272,6 +272,13 @@ class GpsOptions:
         "reference: EKF2_HGT_REF 3 is ours, ArduPilot's EK3_SRCn_POSZ the baro)",
     )
     px4_gps_ctrl: int = opt(7, "EKF2_GPS_CTRL written back after the return", ge=1, le=15)
+    px4_loss_carry: bool = opt(
+        True,
+        "at a GPS loss (handover px4): our output takes on EKF2's lag behind it (its "
+        "LOCAL_POSITION_NED against ours over the last 0.5 s), EKF2_GPS_CTRL 0 follows 0.3 s "
+        "later so that EKF2's reset onto ours lands where it was, and the slew takes the lag "
+        "out at slew_rate_m_s (off: EKF2_GPS_CTRL 0 at once, EKF2 steps by its lag)",
+    )
     max_eph_m: float = opt(3.0, "a fix is good with eph <= this [m]", gt=0, le=100)
     min_satellites: int = opt(6, "... and at least this many satellites", ge=4, le=64)
     good_after_s: float = opt(3.0, "GPS good again after this long of good fixes [s]", ge=0, le=60)

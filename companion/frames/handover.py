@@ -15,7 +15,8 @@ States (``HandoverOutput.state``):
   says so), kept through the denial. When the GPS is good again, pairs are collected afresh;
   once ``min_window_s`` of them agree (and the new alignment lies within
   ``max_return_offset_m`` of the held one at the vehicle: a far-off first fix is refused), it
-  becomes the target: ``slewing``, then ``aligned``.
+  becomes the target: ``slewing``, then ``aligned``. At the loss the caller may carry the
+  autopilot's own lag into the output (:meth:`Handover.carry`): the slew takes it out again.
 
 The rate limit (research: PX4 pulls ~0.1 m/s onto GPS by itself; ArduPilot resets at the
 switch unless the frames agree): each step the applied alignment's yaw moves at most
@@ -196,6 +197,16 @@ class Handover:
         self.last_fit_us = None
         if self.state in ("aligned", "slewing", "held"):
             self.reason = f"our frame reset: the {self.state} alignment carried over onto it"
+
+    def carry(self, offset_ned_m: F64, position_ned_m: F64) -> float:
+        """Our output moved by ``offset_ned_m`` (3,) [m] now (the autopilot's lag at a GPS loss:
+        :mod:`companion.frames.carry`); each later :meth:`step` takes it out again at
+        ``slew_rate_m_s`` on the way to the target. Returns how far the output at
+        ``position_ned_m`` now has to move [m]."""
+        offset = np.asarray(offset_ned_m, np.float64)
+        self.applied = FrameAlignment(self.applied.yaw_rad, self.applied.translation_ned_m + offset)
+        self.reason += f"; carrying the autopilot's {float(np.linalg.norm(offset)):.2f} m lag"
+        return self._to_target(position_ned_m)[0]
 
     def _to_target(self, position_ned_m: F64) -> tuple[float, float]:
         d = self.target.apply_points(position_ned_m) - self.applied.apply_points(position_ned_m)

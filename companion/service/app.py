@@ -181,11 +181,13 @@ class Service:
 
     def _on_message(self, msg: Any, rx_ns: int) -> None:
         """The link's callback (the session is made after the link); the autopilot's
-        LOCAL_POSITION_NED (asked for only with the live page) to the page."""
+        LOCAL_POSITION_NED (asked for with the live page, or [gps] px4_loss_carry) to the
+        page, and with [gps] align to the session too."""
         if self.web is not None and msg.get_msgId() == LOCAL_POSITION_NED:
             if msg.get_srcSystem() == self.config.service.system_id:
                 self.web.on_local_position(msg)
-            return
+            if self.gps is None:
+                return
         self.session.on_message(msg, rx_ns)
 
     def _tfmini(self, rf: Any) -> Any:

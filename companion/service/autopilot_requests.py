@@ -18,8 +18,12 @@ from companion.service.runtime import AutopilotKind, Runtime
 AUTOPILOT_SILENT_NS = 3_000_000_000  # no HEARTBEAT this long: it may be rebooting
 ORIGIN_UNHELD_SAY_NS = 20_000_000_000  # no EKF origin this long (not set by us): said once
 MSG_ID_GPS_RAW_INT, MSG_ID_GPS_GLOBAL_ORIGIN, MSG_ID_PARAM_VALUE = 24, 49, 22
+MSG_ID_LOCAL_POSITION_NED = 32
 GPS_RATE_HZ, GPS_ORIGIN_RATE_HZ = 5.0, 1.0  # [gps] align: GPS_RAW_INT, GPS_GLOBAL_ORIGIN
-GPS_INPUTS = frozenset({MSG_ID_GPS_RAW_INT, MSG_ID_GPS_GLOBAL_ORIGIN, MSG_ID_PARAM_VALUE})
+LOCAL_POSITION_RATE_HZ = 20.0  # [gps] px4_loss_carry: EKF2's lag behind us before a loss
+GPS_INPUTS = frozenset(
+    {MSG_ID_GPS_RAW_INT, MSG_ID_GPS_GLOBAL_ORIGIN, MSG_ID_PARAM_VALUE, MSG_ID_LOCAL_POSITION_NED}
+)
 
 
 class MessageRates:
@@ -82,9 +86,12 @@ class MessageRates:
             wanted[messages.MSG_ID_SCALED_IMU] = o.imu_rate_hz
         if kind is AutopilotKind.ARDUPILOT:  # whether it holds our EKF origin
             wanted[ardupilot.MSG_ID_GLOBAL_POSITION_INT] = ardupilot.POSITION_RATE_HZ
-        if self.rt.config.gps.align:  # the fixes and the origin they are about
+        g = self.rt.config.gps
+        if g.align:  # the fixes and the origin they are about
             wanted[MSG_ID_GPS_RAW_INT] = GPS_RATE_HZ
             wanted[MSG_ID_GPS_GLOBAL_ORIGIN] = GPS_ORIGIN_RATE_HZ
+        if g.align and g.px4_loss_carry and kind is AutopilotKind.PX4:
+            wanted[MSG_ID_LOCAL_POSITION_NED] = LOCAL_POSITION_RATE_HZ
         return wanted
 
     async def loop(self) -> None:

@@ -83,6 +83,7 @@ class AutopilotSession:
             self._handlers["GPS_RAW_INT"] = self._on_gps_raw
             self._handlers["GPS_GLOBAL_ORIGIN"] = self._on_gps_origin
             self._handlers["PARAM_VALUE"] = self._on_param_value
+            self._handlers["LOCAL_POSITION_NED"] = self._on_local_position
 
     # ------------------------------------------------------------------ messages in
     def on_message(self, msg: Any, rx_ns: int) -> None:
@@ -169,6 +170,10 @@ class AutopilotSession:
     def _on_gps_origin(self, msg: Any, rx_ns: int) -> None:
         if self.gps is not None and self._from_autopilot(msg):
             self.gps.on_origin(int(msg.latitude), int(msg.longitude), int(msg.altitude))
+
+    def _on_local_position(self, msg: Any, rx_ns: int) -> None:
+        if self.gps is not None and self._from_autopilot(msg):
+            self.gps.on_local_position(self.fc_to_us(msg), np.array([msg.x, msg.y, msg.z]))
 
     def _on_param_value(self, msg: Any, rx_ns: int) -> None:
         if self.gps is not None and self._from_autopilot(msg):

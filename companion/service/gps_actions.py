@@ -1,10 +1,11 @@
 """The autopilot's side of a GPS handover ([gps] handover): what it is told at a GPS loss and
-after the return (docs/gps.md, research: /tmp/gps43 section 2-3).
+after the return (docs/gps.md: what the probes of both SITLs showed).
 
 - PX4: PARAM_SET EKF2_GPS_CTRL 0 at the loss (EKF2 stops fusing GNSS at once: a 0.095 m step
-  against 0.29 m at its own 7 s time-out), back to ``gps.px4_gps_ctrl`` after the slew onto
-  GPS ended. Acknowledged by PARAM_VALUE echoing the value (PX4 answers nothing to a refused
-  one: the retries run out). The INT32 travels byte-wise, as PX4 copies it.
+  against 0.29 m at its own 7 s time-out; 0.3 s after the loss when EKF2's lag is carried into
+  our output: ``gps_frame``), back to ``gps.px4_gps_ctrl`` after the slew onto GPS ended.
+  Acknowledged by PARAM_VALUE echoing the value (PX4 answers nothing to a refused one: the
+  retries run out). The INT32 travels byte-wise, as PX4 copies it.
 - ArduPilot: MAV_CMD_SET_EKF_SOURCE_SET (42007) param1 = 2 (ExternalNav) at the loss, 1 after
   the slew; acknowledged by COMMAND_ACK ACCEPTED, refused by any other result but IN_PROGRESS.
 
@@ -58,6 +59,7 @@ class Action:
     tries: int = 0
     sent_ns: int = 0
     result: str = "pending"
+    due_ns: int = 0  # not sent before this (our clock [ns]): 0, at once
 
 
 class GpsActions:
@@ -82,15 +84,16 @@ class GpsActions:
                 return "ardupilot"
         return None
 
-    def on_loss(self) -> None:
-        """Our GPS verdict turned bad: the autopilot stops using its GPS."""
-        self._start(lost=True)
+    def on_loss(self, delay_s: float = 0.0) -> None:
+        """Our GPS verdict turned bad: the autopilot stops using its GPS, ``delay_s`` from now
+        (PX4 with the lag carried over: the carried poses must reach EKF2's buffer first)."""
+        self._start(lost=True, delay_s=delay_s)
 
     def on_return(self) -> None:
         """The slew onto the returned GPS ended: the autopilot uses its GPS again."""
         self._start(lost=False)
 
-    def _start(self, lost: bool) -> None:
+    def _start(self, lost: bool, delay_s: float = 0.0) -> None:
         target = self.target()
         if target is None:
             return
@@ -104,6 +107,10 @@ class GpsActions:
             self.current.result = "replaced"
         self.current = action
         self.recent.append(action)
+        if delay_s > 0.0:
+            action.due_ns = self.rt.clock() + int(delay_s * 1e9)
+            log.info("GPS handover: %s in %.2f s", action.what, delay_s)
+            return
         self._send(action)
 
     def _send(self, a: Action) -> None:
@@ -123,9 +130,16 @@ class GpsActions:
         log.info("GPS handover: %s sent (try %d)", a.what, a.tries)
 
     def tick(self) -> None:
-        """The pending action again after RETRY_S, until MAX_TRIES."""
+        """A delayed action once due; the pending action again after RETRY_S, until MAX_TRIES."""
         a = self.current
-        if a is None or a.result != "pending" or self.rt.clock() - a.sent_ns < RETRY_S * 1e9:
+        if a is None or a.result != "pending":
+            return
+        now = self.rt.clock()
+        if a.tries == 0:
+            if now >= a.due_ns:
+                self._send(a)
+            return
+        if now - a.sent_ns < RETRY_S * 1e9:
             return
         if a.tries >= MAX_TRIES:
             a.result = "no answer"

@@ -20,8 +20,11 @@ A reset of our own frame (the pipeline's counter changed) re-anchors the alignme
 (``Handover.reanchor``) so that the output goes on where it was: the new frame's heading
 against the old one from the autopilot's yaw at the two poses, its origin where the old frame's
 last pose and velocity put the vehicle. The GPS loss and the end of the slew after a return
-start the autopilot's actions (``gps_actions``). ``status()``: the status's ``frame``
-section.
+start the autopilot's actions (``gps_actions``). At a loss with PX4 told, EKF2's lag behind our
+output (its LOCAL_POSITION_NED, ``on_local_position``, against our outputs over the last 0.5 s)
+is carried into the output and EKF2_GPS_CTRL 0 waits 0.3 s for the carried poses to reach
+EKF2, whose reset onto our position then lands where it was (:mod:`companion.frames.carry`).
+``status()``: the status's ``frame`` section.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from companion.frames.alignment import FrameAlignment, apply, wrap_rad
+from companion.frames.carry import autopilot_offset
 from companion.frames.gnss import (
     GlobalOrigin,
     GnssMonitor,
@@ -60,6 +64,11 @@ PENDING_FIXES = 64  # fixes waiting for a pose after them (poses stopped: the ol
 ORIGIN_ASK_US = 2_000_000  # GPS_GLOBAL_ORIGIN asked for this often until it arrives
 MAV_CMD_REQUEST_MESSAGE = 512
 NO_GPS_AT_START_US = 5_000_000  # ArduPilot: no good GPS this long after our first pose
+CARRY_WINDOW_US = 500_000  # EKF2's lag behind our output: averaged over this long before a loss
+# EKF2_GPS_CTRL 0 this long after the lag is carried: EKF2 resets onto the EV sample at its
+# delayed horizon, which must already be a carried pose (3-frame centred ODOMETRY: ~70 ms)
+CARRY_SWITCH_DELAY_S = 0.3
+KEPT_SAMPLES = 128  # the autopilot's positions and our outputs kept (~2 s of each)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,6 +128,10 @@ class GpsFrame:
         self._returning = False  # held -> slewing: the return's actions wait for "aligned"
         self._first_pose_us: int | None = None
         self.told_no_gps = False  # ArduPilot told to use ours: no good GPS since our start
+        # the autopilot's LOCAL_POSITION_NED and our output, (time_us, NED (3,) [m]) each
+        self.ap_positions: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
+        self.outputs: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
+        self.carried_m: float | None = None  # the autopilot's lag carried at the latest loss
 
     # ------------------------------------------------------------------ in
     def projection(self) -> Projection:
@@ -176,6 +189,15 @@ class GpsFrame:
         """The autopilot's heading [rad] at ``time_us`` (ATTITUDE, already checked)."""
         self.yaws.append((time_us, yaw_rad))
 
+    def on_local_position(self, time_us: int, position_ned_m: F64) -> None:
+        """The autopilot's own position (LOCAL_POSITION_NED, its time_boot_ms on our clock
+        [us]); a non-finite one dropped."""
+        p = np.asarray(position_ned_m, np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            self.dropped += 1
+            return
+        self.ap_positions.append((time_us, p))
+
     def _yaw_at(self, time_us: int) -> float:
         """The autopilot's heading nearest ``time_us`` (NaN: none within MAX_YAW_AGE_US)."""
         best, best_dt = math.nan, MAX_YAW_AGE_US + 1
@@ -221,6 +243,8 @@ class GpsFrame:
         self.last = cur
         self.jumped = self.jumps != jumps
         aligned = apply(out.applied, pose)
+        self.outputs.append((cur.time_us, np.asarray(aligned.position_ned_m, np.float64)))
+        self.actions.tick()  # a delayed action goes with the pose after it is due
         return dataclasses.replace(aligned, reset_counter=pose.reset_counter + self.jumps)
 
     def _step(
@@ -250,8 +274,43 @@ class GpsFrame:
         )
         self.out = out
         if out.state != before:
-            self._transition(before, out)
-        return out
+            self._transition(before, out, time_us, ours)
+        return self.out
+
+    def _carry_lag(self, time_us: int, ours: F64) -> float:
+        """At a loss with PX4 told ([gps] px4_loss_carry): EKF2's lag behind our output carried
+        into it (:mod:`companion.frames.carry`); returns how long EKF2_GPS_CTRL 0 waits [s]
+        (0: at once, nothing carried)."""
+        self.carried_m = None
+        if not self.rt.config.gps.px4_loss_carry or self.actions.target() != "px4":
+            return 0.0
+        ap, outs = list(self.ap_positions), list(self.outputs)
+        offset = autopilot_offset(
+            np.array([a[0] for a in ap], dtype=np.int64),
+            np.array([a[1] for a in ap]).reshape(-1, 3),
+            np.array([o[0] for o in outs], dtype=np.int64),
+            np.array([o[1] for o in outs]).reshape(-1, 3),
+            time_us,
+            CARRY_WINDOW_US,
+        )
+        if offset is None:
+            log.info("GPS frame: no LOCAL_POSITION_NED before the loss: no lag carried")
+            return 0.0
+        to_target_m = self.handover.carry(offset, ours)
+        self.carried_m = float(np.linalg.norm(offset))
+        if self.out is not None:
+            self.out = dataclasses.replace(
+                self.out,
+                applied=self.handover.applied,
+                to_target_m=to_target_m,
+                reason=self.handover.reason,
+            )
+        log.info(
+            "GPS frame: EKF2's lag %.3f m N %.3f m E carried into our output",
+            offset[0],
+            offset[1],
+        )
+        return CARRY_SWITCH_DELAY_S
 
     def _without_gps_at_start(self, time_us: int, state: str, gps_good: bool) -> None:
         """No good GPS NO_GPS_AT_START_US after our first pose (indoors): ArduPilot, whose set 1
@@ -271,14 +330,14 @@ class GpsFrame:
         log.info("GPS frame: no GPS since our start: the autopilot is told to use ours")
         self.actions.on_loss()
 
-    def _transition(self, before: str, out: HandoverOutput) -> None:
+    def _transition(self, before: str, out: HandoverOutput, time_us: int, ours: F64) -> None:
         """A new state: logged; the jump counted; the autopilot's actions started."""
         log.info("GPS frame: %s -> %s (%s)", before, out.state, out.reason)
         if before == "aligning" and out.state == "aligned":
             self.jumps += 1
         if out.state == "held":
             self._returning = False
-            self.actions.on_loss()
+            self.actions.on_loss(delay_s=self._carry_lag(time_us, ours))
         elif before == "held" and out.state == "slewing":
             self._returning = True
         elif before in ("slewing", "aligning") and out.state == "aligned" and self._returning:
@@ -328,6 +387,7 @@ class GpsFrame:
                 "pairs": self.pairs,
             },
             "reanchors": self.reanchors,
+            "carried_m": self.carried_m,
             "handover": self.actions.status(),
         }
 

@@ -293,3 +293,28 @@ def test_a_reanchor_carries_every_alignment_onto_the_new_frame() -> None:
     # composing with the inverse gives the identity
     back = compose(new_to_old, new_to_old.inverse())
     assert abs(back.yaw_rad) < 1e-12 and np.allclose(back.translation_ned_m, 0.0, atol=1e-12)
+
+
+def test_a_carried_lag_moves_the_output_at_once_and_slews_out_at_the_rate() -> None:
+    """At a loss the output takes on the autopilot's lag (0.4 m here) in one step; the held
+    target is unchanged, so every later step returns towards it at the slew rate, and after
+    |lag| / rate the output is where it would have been without the carry."""
+    h = Handover()
+    h.state = "held"
+    h.applied = h.target = FrameAlignment(0.7, np.array([2.0, -1.0, 0.0]))
+    p = np.array([10.0, 5.0, -5.0])
+    lag = np.array([-0.32, 0.24, 0.0])
+    h.step(HandoverInput(0, p, 0.0, gps_good=False, gps_bad_since_us=0))  # the loss's step
+    before = h.applied.apply_points(p)
+    assert h.carry(lag, p) == pytest.approx(0.4)
+    assert np.allclose(h.applied.apply_points(p) - before, lag, atol=1e-12)
+    assert "0.40 m lag" in h.reason
+    out = [h.applied.apply_points(p)]
+    for k in range(1, 6 * 30):
+        s = h.step(HandoverInput(k * 33_333, p, 0.0, gps_good=False, gps_bad_since_us=0))
+        out.append(s.applied.apply_points(p))
+    steps = np.linalg.norm(np.diff(out, axis=0), axis=1)
+    assert steps.max() <= RATE_M_S * 0.033334 + 1e-12
+    arrived = int(np.argmax(steps < 1e-12))  # 0.4 m at 0.1 m/s: 4 s
+    assert arrived / 30 == pytest.approx(4.0, abs=0.1)
+    assert np.allclose(out[-1], before, atol=1e-9)

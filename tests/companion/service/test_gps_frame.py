@@ -57,6 +57,8 @@ class Flight:
     ref: list[np.ndarray] = field(default_factory=list)  # the truth in the autopilot's frame
     resets: list[int] = field(default_factory=list)
     jumped: list[int] = field(default_factory=list)  # the poses that were the first of a jump
+    sets: list[tuple[float, int]] = field(default_factory=list)  # (t [s], EKF2_GPS_CTRL) sent
+    ap: list[np.ndarray] = field(default_factory=list)  # the autopilot's estimate (ap_lag_s)
 
 
 def fly(
@@ -65,7 +67,10 @@ def fly(
     reset_at_s: float | None = None,
     echo: bool = True,
     gps: dict | None = None,
+    ap_lag_s: float | None = None,
 ) -> tuple[GpsFrame, FakeLink, Flight]:
+    """``ap_lag_s``: the autopilot's own estimate (LOCAL_POSITION_NED at 30 Hz) is the truth in
+    its frame this late, as EKF2's was while it fused GNSS."""
     cfg = load_config(None, {"gps": {"align": True, "handover": "px4", **(gps or {})}})
     ardupilot = cfg.gps.handover == "ardupilot"
     rt = Runtime(cfg)
@@ -97,11 +102,16 @@ def fly(
         if reset_at_s is not None and reset == 0 and t >= reset_at_s:
             reset, jump = 1, np.array([-7.0, 4.0, 0.0])  # a new frame: another origin
         ours = truth + drift + jump + rng.normal(0, 0.01, 3)
+        if ap_lag_s is not None:
+            ap = so3.rot_z(YAW) @ vehicle(t - ap_lag_s)[0] + OFFSET
+            frame.on_local_position(t_us, ap)
+            flight.ap.append(ap)
         pose = frame.align(pose_at(t_us, ours, heading, reset))
         if echo:
             for m in link.sent:
                 if m.get_type() == "PARAM_SET" and not getattr(m, "_echoed", False):
                     m._echoed = True
+                    flight.sets.append((t, bytewise_int32(m.param_value)))
                     frame.actions.on_param_value("EKF2_GPS_CTRL", m.param_value)
                 if m.get_type() == "COMMAND_LONG" and not getattr(m, "_echoed", False):
                     m._echoed = True
@@ -265,3 +275,33 @@ def test_the_origin_is_asked_for_until_it_arrives() -> None:
     asks = [m for m in link.sent if m.get_type() == "COMMAND_LONG"]
     assert [(int(m.command), int(m.param1)) for m in asks] == [(512, 49)] * 3  # 0, 2, 4 s
     assert frame.status()["gps"]["origin_requests"] == 3 and frame.status()["gps"]["origin"]
+
+
+@pytest.mark.parametrize("carry", [True, False])
+def test_px4_s_lag_is_carried_into_the_output_before_ekf2_stops_gnss(carry: bool) -> None:
+    """EKF2 0.3 s behind (0.3 m at 1 m/s): at the loss the output lands on the autopilot's own
+    estimate (EKF2, reset onto it 0.3 s later, stays where it was), EKF2_GPS_CTRL 0 waits
+    0.3 s for those poses, and the lag goes out at the slew rate. Without the carry: the
+    parameter at once, the output unmoved (EKF2 steps by its whole lag)."""
+    frame, _, f = fly(ap_lag_s=0.3, gps={"px4_loss_carry": carry})
+    assert runs(f.states) == ["own", "aligning", "aligned", "held", "slewing", "aligned"]
+    out, ours, ap, t = np.array(f.out), np.array(f.ours), np.array(f.ap), np.array(f.t_s)
+    k = f.states.index("held")
+    lag = np.linalg.norm(ap[k - 1, :2] - out[k - 1, :2])
+    assert 0.1 < lag < 0.8, lag  # the lag and the alignment's own error
+    step = np.linalg.norm(out[k, :2] - out[k - 1, :2])
+    own = np.linalg.norm(ours[k, :2] - ours[k - 1, :2])
+    sets = [(when, value) for when, value in f.sets]
+    assert [v for _, v in sets] == [0, 7]
+    if carry:
+        assert frame.carried_m == pytest.approx(lag, abs=0.05)
+        assert np.linalg.norm(ap[k, :2] - out[k, :2]) < 0.05  # EKF2's reset lands where it is
+        assert sets[0][0] - t[k] == pytest.approx(0.3, abs=1.5 / RATE_HZ)
+        assert frame.status()["carried_m"] == frame.carried_m
+    else:
+        assert frame.carried_m is None and step <= own + 0.1 / RATE_HZ + 1e-9
+        assert sets[0][0] == t[k]
+    # after the loss's step the output moves at most the slew rate beyond our own motion
+    d_out = np.linalg.norm(np.diff(out[k:], axis=0), axis=1)
+    d_ours = np.linalg.norm(np.diff(ours[k:], axis=0), axis=1)
+    assert np.all(d_out <= d_ours + 0.1 / RATE_HZ + 1e-9)
