@@ -4,7 +4,9 @@
 px4|ardupilot --mission gps-denied-zone|gps-appears|gps-hover --out OUT``), sorted by
 autopilot, mission and seed; the columns say whether it landed without a failsafe, the GPS
 change times, ``max_jump_m`` and the event it was at, the horizontal p95 while denied (and
-before), and how much of the denial the autopilot used our estimate. A folder without a
+before), how far EKF2's own estimate lay from our output when the service carried that lag into
+it at the loss (PX4: ``[gps] px4_loss_carry``), and how much of the denial the autopilot used
+our estimate. A folder without a
 summary is a row that says so. The last column is the alignment the service applied at its end:
 how far our own frame (our compass's north, the take-off point) lay from the GPS frame.
 """
@@ -19,7 +21,8 @@ from typing import Any
 
 HEADER = (
     "| autopilot | mission | seed | landed, no failsafe | GPS lost / back [s after arming] "
-    "| max_jump_m (at) | horizontal p95 denied (before) | ours used while denied "
+    "| max_jump_m (at) | EKF2's lag carried at the loss [m] | horizontal p95 denied (before) "
+    "| ours used while denied "
     "| autopilot's resets while denied | our frame to the GPS's (yaw, shift) |"
 )
 
@@ -40,7 +43,7 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
     """The sort key and the markdown row of one flight's folder."""
     path = out / "summary.json"
     if not path.is_file():
-        return ("~", out.name, 0), f"| {out.name} | no summary.json | | | | | | | | |"
+        return ("~", out.name, 0), f"| {out.name} | no summary.json | | | | | | | | | |"
     s = json.loads(path.read_text())
     ap = "ArduPilot" if s.get("autopilot") == "ArduPilot" else "PX4"
     mission, seed = str(s.get("mission")), int(s.get("seed") or 0)
@@ -61,6 +64,7 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
         "yes" if ok else f"NO ({'; '.join(s.get('failsafes') or []) or 'not landed'})",
         f"{_m(s.get('gps_lost_s'), 1)} / {_m(s.get('gps_back_s'), 1)}",
         f"{_m(s.get('max_jump_m'))}{at}",
+        _m((s.get("service_frame") or {}).get("carried_m")),
         f"{_m(s.get('horizontal_error_m_p95_denied'))} ({_m(before)})",
         "-" if used is None else f"{100.0 * used:.1f} %",
         reset_text,

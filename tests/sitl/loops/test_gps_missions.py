@@ -107,10 +107,13 @@ def test_the_table_of_the_missions(tmp_path) -> None:
     s |= {"gps_events": [{"event": "fix lost", "jump_m": 0.1}, {"event": "x", "jump_m": 0.214}]}
     s |= {"horizontal_error_m_p95_denied": 0.21, "ev_used_fraction_denied": 1.0}
     s |= {"service_frame": {"yaw_deg": 1.0249, "translation_ned_m": [0.3, -0.4, 0.0]}}
+    s["service_frame"] |= {"carried_m": 0.2408}
     (a / "summary.json").write_text(__import__("json").dumps(s))
     text = gps_table.table([b, a])
     lines = text.splitlines()
-    assert lines[2].startswith("| PX4 | gps-denied-zone | 2 | yes | 18.9 / 78.6 | 0.214 (x) |")
+    assert lines[2].startswith(
+        "| PX4 | gps-denied-zone | 2 | yes | 18.9 / 78.6 | 0.214 (x) | 0.241 | 0.210 (-) |"
+    )
     assert "100.0 %" in lines[2] and "no summary.json" in lines[3]
     assert lines[2].endswith("| 1.02 deg, 0.50 m |")
     assert lines[1].count("---") == lines[0].count(" | ") + 1

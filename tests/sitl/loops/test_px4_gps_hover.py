@@ -4,11 +4,12 @@
 PX4 boots with its simulated GPS on, EKF2 fusing GNSS beside our position and velocity (no EV
 yaw, our height the reference: what `companion px4 configure --with-gps` writes); the service
 runs with ``[gps] align`` and the PX4 handover. It aligns its output to PX4's GPS frame on the
-ground, holds that alignment while SIM_GPS_USED = 0 (EKF2_GPS_CTRL 0 sent at the first bad
-fix), slews back onto the returned GPS and restores EKF2_GPS_CTRL. Nothing is mocked. PX4
-instance 2 (a `make demo-px4` on instance 0 and the vision-only hover on 1 can run beside it);
-the ground hold is cut to 20 s (the vision-only hover keeps 45 s: the GNSS anchors the
-position here). About 130 s of wall time.
+ground, holds that alignment while SIM_GPS_USED = 0 (at the first bad fix EKF2's lag behind
+our output carried into it, EKF2_GPS_CTRL 0 sent 0.3 s later), slews back onto the returned
+GPS and restores EKF2_GPS_CTRL. Nothing is mocked. PX4 instance 2 (a `make demo-px4` on
+instance 0 and the vision-only hover on 1 can run beside it); the ground hold is cut to 20 s
+(the vision-only hover keeps 45 s: the GNSS anchors the position here). About 130 s of wall
+time.
 """
 
 from __future__ import annotations
@@ -87,3 +88,6 @@ def test_px4_hovers_through_a_gps_loss_and_return(tmp_path: Path) -> None:
     for line in ("aligned -> held", "held -> slewing", "slewing -> aligned"):
         assert f"GPS frame: {line}" in log, line
     assert "EKF2_GPS_CTRL 0 acknowledged" in log and "EKF2_GPS_CTRL 7 acknowledged" in log
+    # EKF2's lag behind us carried into our output before EKF2_GPS_CTRL 0 ([gps]
+    # px4_loss_carry): PX4 streamed its LOCAL_POSITION_NED at our request
+    assert "carried into our output" in log and "EKF2_GPS_CTRL 0 in 0.30 s" in log
