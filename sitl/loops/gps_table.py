@@ -27,7 +27,8 @@ HEADER = (
 )
 
 
-def _m(v: Any, digits: int = 3) -> str:
+def fmt(v: Any, digits: int = 3) -> str:
+    """A number with ``digits`` decimals; None: "-"."""
     return "-" if v is None else f"{float(v):.{digits}f}"
 
 
@@ -55,17 +56,17 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
     before = s.get("horizontal_error_m_p95_before_denial")
     resets = s.get("px4_xy_resets_denied")
     reset_text = (
-        "-" if resets is None else f"{resets} ({_m(s.get('px4_xy_reset_max_m_denied'), 2)} m)"
+        "-" if resets is None else f"{resets} ({fmt(s.get('px4_xy_reset_max_m_denied'), 2)} m)"
     )
     cells = [
         ap,
         mission,
         str(seed),
         "yes" if ok else f"NO ({'; '.join(s.get('failsafes') or []) or 'not landed'})",
-        f"{_m(s.get('gps_lost_s'), 1)} / {_m(s.get('gps_back_s'), 1)}",
-        f"{_m(s.get('max_jump_m'))}{at}",
-        _m((s.get("service_frame") or {}).get("carried_m")),
-        f"{_m(s.get('horizontal_error_m_p95_denied'))} ({_m(before)})",
+        f"{fmt(s.get('gps_lost_s'), 1)} / {fmt(s.get('gps_back_s'), 1)}",
+        f"{fmt(s.get('max_jump_m'))}{at}",
+        fmt((s.get("service_frame") or {}).get("carried_m")),
+        f"{fmt(s.get('horizontal_error_m_p95_denied'))} ({fmt(before)})",
         "-" if used is None else f"{100.0 * used:.1f} %",
         reset_text,
         _frame(s.get("service_frame")),
