@@ -131,6 +131,7 @@ class GpsFrame:
         # the autopilot's LOCAL_POSITION_NED and our output, (time_us, NED (3,) [m]) each
         self.ap_positions: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
         self.outputs: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
+        self.ap_positions_dropped = 0
         self.carried_m: float | None = None  # the autopilot's lag carried at the latest loss
 
     # ------------------------------------------------------------------ in
@@ -194,7 +195,7 @@ class GpsFrame:
         [us]); a non-finite one dropped."""
         p = np.asarray(position_ned_m, np.float64)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
-            self.dropped += 1
+            self.ap_positions_dropped += 1
             return
         self.ap_positions.append((time_us, p))
 
@@ -388,6 +389,7 @@ class GpsFrame:
             },
             "reanchors": self.reanchors,
             "carried_m": self.carried_m,
+            "autopilot_positions_dropped": self.ap_positions_dropped,
             "handover": self.actions.status(),
         }
 

@@ -236,8 +236,11 @@ def test_malformed_fixes_and_origins_are_counted_and_dropped() -> None:
 
     frame.on_gps_raw(Nan(), 5)
     frame.on_origin(95 * 10**7, 0, 0)
+    frame.on_local_position(6, np.array([1.0, np.inf, 0.0]))  # the autopilot's estimate too
+    frame.on_local_position(7, np.array([1.0, 2.0]))
     s = frame.status()
     assert s["gps"]["dropped"] == 5 and s["gps"]["fixes"] == 0 and not s["gps"]["origin"]
+    assert s["autopilot_positions_dropped"] == 2 and not frame.ap_positions
     assert s["state"] == "own" and not s["gps"]["good"]
 
 
