@@ -230,7 +230,8 @@ def service_actions(log: Path) -> list[tuple[str, float]]:
 def add_service_frame(s: dict[str, Any], out: Path) -> None:
     """The service's GPS frame at its exit (its report): state, the alignment it applied (yaw
     [deg], translation NED [m]: how far our own frame lay from the GPS frame) and the agreement
-    [m] of its last fit; its handover actions."""
+    [m] of its last fit; EKF2's lag carried into our output at the last loss [m]; its handover
+    actions."""
     path = out / "service-report.json"
     try:
         frame = json.loads(path.read_text()).get("frame")
@@ -239,5 +240,13 @@ def add_service_frame(s: dict[str, Any], out: Path) -> None:
     if not isinstance(frame, dict):
         s["service_frame"] = None
         return
-    keys = ("state", "yaw_deg", "translation_ned_m", "agreement_m", "reanchors", "handover")
+    keys = (
+        "state",
+        "yaw_deg",
+        "translation_ned_m",
+        "agreement_m",
+        "reanchors",
+        "carried_m",
+        "handover",
+    )
     s["service_frame"] = {k: frame.get(k) for k in keys}

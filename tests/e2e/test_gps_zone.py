@@ -10,10 +10,11 @@ GPS frame are shortened so that the flight stays short: 1 s of good fixes to tru
 4 s of pairs to fit, a 10 s window.
 
 Asserted: the status's frame goes aligned -> held -> slewing -> aligned and STATUSTEXT says
-so; the autopilot is told (EKF2_GPS_CTRL 0 at the loss, back to 7 after the slew, both echoed);
-between two poses the autopilot received (same reset counter) the output never moves more
-than 0.1 m/s x dt plus the vehicle's own motion plus VO_NOISE_M; while held, it stays within
-0.5 m of the truth in the GPS frame horizontally. The height is not aligned ([gps]
+so, and so does the status a fleet reads from the MQTT broker (Mosquitto); the autopilot is
+told (EKF2_GPS_CTRL 0 at the loss, back to 7 after the slew, both echoed); between two poses
+the autopilot received (same reset counter) the output never moves more than 0.1 m/s x dt plus
+the vehicle's own motion plus VO_NOISE_M; while held, it stays within 0.5 m of the truth in
+the GPS frame horizontally. The height is not aligned ([gps]
 align_height off, the default: z stays ours, the autopilot's height reference), so the
 alignment's z is 0 and the GPS frame's 1.5 m of height offset is not in the output.
 """
@@ -21,11 +22,15 @@ alignment's z is 0 and the GPS frame's 1.5 m of height offset is not in the outp
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
+import os
 import time
 
+import aiomqtt
 import numpy as np
 import pytest
-from peers import sitl_flight
+from peers import MOSQUITTO, Broker, sitl_flight
 
 from companion.service.app import Service
 from companion.sitl.stub.autopilot import SimAutopilot
@@ -56,15 +61,30 @@ def is_subsequence(wanted: list[str], seen: list[str]) -> bool:
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_gps_denied_zone_is_flown_through_without_a_jump(tmp_path) -> None:
+    if not os.path.exists(MOSQUITTO):
+        pytest.fail("mosquitto is not installed (make test installs it with apt-get)")
+    broker = Broker(tmp_path)
+    broker.start()
     cfg, opts = sitl_flight(
         tmp_path,
         SECONDS,
         small=True,
+        service={"mqtt": {"enabled": True, "port": broker.port, "status_hz": 2.0}},
         overrides={"gps": GPS},
         gps=True,
         gps_offset_ned_m=GPS_OFFSET_M,
         faults=(Fault("gps_loss", LOSS_S, LOSS_LEN_S),),
     )
+
+    mqtt_states: list[str] = []  # the frame's state in each status the broker passed on
+
+    async def from_the_broker() -> None:
+        async with aiomqtt.Client("127.0.0.1", broker.port) as sub:
+            await sub.subscribe(f"companion/{cfg.service.system_id}/status")
+            async for msg in sub.messages:
+                frame = json.loads(msg.payload).get("frame")
+                if isinstance(frame, dict):
+                    mqtt_states.append(str(frame.get("state")))
 
     async def fly() -> tuple[SimAutopilot, dict, list[tuple[float, str]], dict]:
         stub = SimAutopilot(cfg, opts)
@@ -72,6 +92,7 @@ def test_a_gps_denied_zone_is_flown_through_without_a_jump(tmp_path) -> None:
         timeline: list[tuple[float, str]] = []
         async with Service(cfg) as service:
             stub_task.add_done_callback(lambda _: service.stop())
+            subscriber = asyncio.create_task(from_the_broker())
 
             async def watch() -> None:
                 while not service.stopped:
@@ -90,10 +111,16 @@ def test_a_gps_denied_zone_is_flown_through_without_a_jump(tmp_path) -> None:
             await service.run()
             await watcher
             status = service.status()
+            subscriber.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await subscriber
         report = await stub_task
         return stub, report, timeline, status
 
-    stub, report, timeline, status = asyncio.run(fly())
+    try:
+        stub, report, timeline, status = asyncio.run(fly())
+    finally:
+        broker.stop()
     frame = status["frame"]
     print(runs([s for _, s in timeline]), frame, report.get("position_error_m_rms"))
     assert "error" not in report, report
@@ -109,6 +136,8 @@ def test_a_gps_denied_zone_is_flown_through_without_a_jump(tmp_path) -> None:
     texts = " | ".join(t for _, _, t, _, _ in stub.stats.statustexts)
     for said in ("frame aligned to GPS, agree", "GPS lost, frame held", "GPS back, slewing"):
         assert said in texts, texts
+    # a fleet sees it too: the status over MQTT carries the frame section through the denial
+    assert is_subsequence(["aligned", "held", "aligned"], runs(mqtt_states)), runs(mqtt_states)
     # the output, as the autopilot received it, in flight-time order
     rec = sorted(
         (r for r in stub.stats.received if r.kind == report["message"]), key=lambda r: r.t_sim_s
