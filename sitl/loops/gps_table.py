@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
+
+from companion.sitl.loops import flight_tables
+from companion.sitl.loops.flight_tables import Row, fmt, render
 
 HEADER = (
     "| autopilot | mission | seed | landed, no failsafe | GPS lost / back [s after arming] "
@@ -25,11 +27,6 @@ HEADER = (
     "| ours used while denied "
     "| autopilot's resets while denied | our frame to the GPS's (yaw, shift) |"
 )
-
-
-def fmt(v: Any, digits: int = 3) -> str:
-    """A number with ``digits`` decimals; None: "-"."""
-    return "-" if v is None else f"{float(v):.{digits}f}"
 
 
 def _frame(frame: Any) -> str:
@@ -40,7 +37,7 @@ def _frame(frame: Any) -> str:
     return f"{float(frame['yaw_deg']):.2f} deg, {math.hypot(t[0], t[1]):.2f} m"
 
 
-def row(out: Path) -> tuple[tuple[str, str, int], str]:
+def row(out: Path) -> Row:
     """The sort key and the markdown row of one flight's folder."""
     path = out / "summary.json"
     if not path.is_file():
@@ -75,18 +72,11 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
 
 
 def table(outs: list[Path]) -> str:
-    rows = sorted(row(o) for o in outs)
-    sep = "|" + "---|" * HEADER.count(" |")
-    return "\n".join([HEADER, sep, *(r for _, r in rows)]) + "\n"
+    return render(HEADER, row, outs)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if not args:
-        print("usage: python -m companion.sitl.loops.gps_table OUT...", file=sys.stderr)
-        return 2
-    sys.stdout.write(table([Path(a) for a in args]))
-    return 0
+    return flight_tables.main("companion.sitl.loops.gps_table", table, argv)
 
 
 if __name__ == "__main__":

@@ -13,11 +13,11 @@ latency. A folder without a summary is a row that says so.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
-from companion.sitl.loops.gps_table import fmt
+from companion.sitl.loops import flight_tables
+from companion.sitl.loops.flight_tables import Row, fmt, render
 
 HEADER = (
     "| autopilot | mission | seed | path [m] | ours fused [% of airborne] "
@@ -26,7 +26,7 @@ HEADER = (
 )
 
 
-def row(out: Path) -> tuple[tuple[str, str, int], str]:
+def row(out: Path) -> Row:
     """The sort key and the markdown row of one flight's folder."""
     path = out / "summary.json"
     if not path.is_file():
@@ -54,18 +54,11 @@ def row(out: Path) -> tuple[tuple[str, str, int], str]:
 
 
 def table(outs: list[Path]) -> str:
-    rows = sorted(row(o) for o in outs)
-    sep = "|" + "---|" * HEADER.count(" |")
-    return "\n".join([HEADER, sep, *(r for _, r in rows)]) + "\n"
+    return render(HEADER, row, outs)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if not args:
-        print("usage: python -m companion.sitl.loops.loop_table OUT...", file=sys.stderr)
-        return 2
-    sys.stdout.write(table([Path(a) for a in args]))
-    return 0
+    return flight_tables.main("companion.sitl.loops.loop_table", table, argv)
 
 
 if __name__ == "__main__":
