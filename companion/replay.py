@@ -35,21 +35,14 @@ import numpy as np
 
 from companion import __version__
 from companion.bounded import read_regular_file
-from companion.config import (
-    MAX_CONFIG_BYTES,
-    Config,
-    decode_utf8,
-    from_dict,
-    merge,
-    parse_toml,
-    to_dict,
-)
+from companion.config import Config, from_dict, to_dict
 from companion.drivers.dataset import Dataset, PublishedPose, open_dataset
 from companion.drivers.dataset.format import ALGORITHM_SECTIONS
 from companion.errors import CompanionError, ConfigError, DatasetError
 from companion.geometry import so3
 from companion.offline import VoRun, run_vo
 from companion.pipeline import Event, Pipeline
+from companion.toml_files import MAX_CONFIG_BYTES, decode_utf8, merge, parse_toml
 from companion.types import CameraFrame, PoseEstimate, VoState
 
 REPLAY_FORMAT = "companion-replay"

@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from companion.bounded import read_regular_file
-from companion.config import decode_utf8
 from companion.errors import ConfigError
+from companion.toml_files import decode_utf8
 
 Direction = Literal["lower", "higher", "none"]
 MAX_REPLAY_BYTES = 64 << 20  # a replay file holds a few kB per recording

@@ -10,7 +10,7 @@ row and the field.
   refused at once (``companion.config.read_regular_file``, which the config file goes
   through too).
 - Sizes: every file has a byte limit (a CSV field: the csv module's 128 kB); TOML nesting is
-  bounded before it is parsed (``companion.config.parse_toml``).
+  bounded before it is parsed (``companion.toml_files.parse_toml``).
 - Numbers: integers of at most 19 digits within int64, floats as decimal text of at most 40
   characters (no ``inf``, no 5,000 digits, ``nan`` only where the caller allows an unknown),
   each within the bounds its caller gives.
@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from companion.bounded import file_kind, read_regular_file
-from companion.config import decode_utf8, parse_toml
 from companion.errors import DatasetError
+from companion.toml_files import decode_utf8, parse_toml
 
 MAX_TOML_BYTES = 1 << 20  # meta.toml, calibration.toml, config.toml: a few kB
 MAX_TEXT_BYTES = 1 << 20  # EuRoC's sensor.yaml and the like

@@ -27,8 +27,9 @@ from companion.batch.cache import KeyMaker
 from companion.batch.executors import Executor, Job
 from companion.batch.run import TaskResult, write_tree
 from companion.batch.spec import Task, nested, to_toml
-from companion.config import Config, from_dict, merge, read_toml
+from companion.config import Config, from_dict
 from companion.errors import BatchError
+from companion.toml_files import merge, read_toml
 
 Status = Literal["ran", "cached", "failed"]
 SECTIONS_OF_REPLAY = ("vo", "scale", "attitude", "dpose")

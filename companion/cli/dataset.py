@@ -25,7 +25,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from companion.config import Config, RangefinderConfig, from_dict, read_toml
+from companion.config import Config, RangefinderConfig, from_dict
 from companion.drivers.dataset.import_manifest import IMPORTERS, read_manifest, rebuild
 from companion.drivers.dataset.import_sources import TUM_CAMERAS, read_source
 from companion.drivers.dataset.import_write import (
@@ -37,6 +37,7 @@ from companion.drivers.dataset.import_write import (
 )
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import DatasetError
+from companion.toml_files import read_toml
 
 DEFAULT_MANIFEST = Path("config/real_sequences.toml")
 

@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 
 from companion.cli.common import EXIT_OK, out_dir, progress
-from companion.config import Config, load_config, read_toml, to_dict
+from companion.config import Config, load_config, to_dict
 from companion.drivers.dataset import Dataset, PublishedPose, dataset_steps, write_tum
 from companion.drivers.dataset.format import ALGORITHM_SECTIONS
 from companion.errors import CompanionError, ConfigError
 from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
+from companion.toml_files import read_toml
 from companion.types import PoseEstimate
 from companion.vo.focal_check import focal_summary
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.config import RangefinderConfig, read_toml
+from companion.config import RangefinderConfig
 from companion.drivers.dataset.import_sources import FORMATS, read_source
 from companion.drivers.dataset.import_write import (
     DEFAULT_BEAMS,
@@ -35,6 +35,7 @@ from companion.drivers.dataset.import_write import (
 )
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import ConfigError, DatasetError
+from companion.toml_files import read_toml
 
 # every importer a manifest entry (or `companion dataset import`) may name
 IMPORTERS = (*FORMATS, "rislab")

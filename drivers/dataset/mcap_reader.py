@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from companion.config import decode_utf8, parse_toml
 from companion.drivers.dataset import mcap_schemas as ms
 from companion.drivers.dataset.format import (
     FORMAT_NAME,
@@ -58,6 +57,7 @@ from companion.drivers.dataset.model import Dataset, check_lens
 from companion.drivers.dataset.ours import config_from_tables
 from companion.drivers.safe_files import MAX_IMAGE_BYTES, MAX_TOML_BYTES
 from companion.errors import DatasetError
+from companion.toml_files import decode_utf8, parse_toml
 from companion.types import F64, AttitudeSample, ImuSample, RangeSample
 
 MAX_JSON_BYTES = 64 << 10  # one sample or frame record (ours: about 200 bytes)

@@ -231,8 +231,9 @@ def sitl_flight(
     ``config``: the scenario's config file; ``small``: the 320x240 camera (small_camera());
     ``overrides``: more config tables; ``autopilot``: more AutopilotOptions fields (a
     ``time_scale`` < 1 flies in slow motion: slow_motion_overrides() for the durations)."""
-    from companion.config import load_config, merge
+    from companion.config import load_config
     from companion.sitl.stub.options import AutopilotOptions
+    from companion.toml_files import merge
 
     udp_stub, udp_us, tcp_cam = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM), 0
     tcp_cam = free_port()

@@ -224,7 +224,7 @@ def test_toml_nested_30000_deep_is_refused_before_parsing(
 def test_toml_nesting_ignores_strings_and_comments() -> None:
     """Brackets and dots inside strings and comments are not nesting: a real config of
     depth 3 reads as such, whatever its strings hold."""
-    from companion.config import toml_nesting
+    from companion.toml_files import toml_nesting
 
     text = (
         'a = "[[[[.]]]]"\nb = \'{{{{\'\n# [[[[[[[[[[\nc = """\n[[[[\n"""\n[t.u]\nv = [[1], [2]]\n'
