@@ -88,6 +88,11 @@ def apply(T: FrameAlignment, pose: PoseEstimate) -> PoseEstimate:
     )
 
 
+def pose_yaw(pose: PoseEstimate) -> float:
+    """The heading [rad] of a pose's attitude (ZYX yaw of R_world_body)."""
+    return float(so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))[2])
+
+
 def _turn_covariance(R: F64, cov: F64) -> F64:
     """M cov M^T with M = blockdiag(R, I3); entries whose inputs hold a NaN are NaN."""
     M = np.eye(6)

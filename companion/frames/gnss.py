@@ -103,6 +103,17 @@ def to_local_ned(
     return np.array([north * PX4_EARTH_RADIUS_M, east * PX4_EARTH_RADIUS_M, down])
 
 
+def plausible_position(lat_deg: float, lon_deg: float, alt_m: float) -> bool:
+    """A fix or origin on the Earth: finite, |latitude| <= 90 deg, |longitude| <= 180 deg,
+    altitude -1 km .. 100 km AMSL."""
+    return (
+        math.isfinite(lat_deg + lon_deg + alt_m)
+        and abs(lat_deg) <= 90.0
+        and abs(lon_deg) <= 180.0
+        and -1000.0 <= alt_m <= 100_000.0
+    )
+
+
 def _wrap_deg(d: float) -> float:
     return (d + 180.0) % 360.0 - 180.0
 

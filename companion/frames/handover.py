@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -71,6 +71,18 @@ class HandoverOptions:
     slew_rate_rad_s: float = math.radians(0.5)
     max_return_offset_m: float = 30.0
     fit: FitOptions = field(default_factory=FitOptions)
+
+    @staticmethod
+    def from_gps_options(g: Any) -> HandoverOptions:
+        """[gps]'s tunable thresholds (companion.service_options.GpsOptions) as taken here."""
+        return HandoverOptions(
+            window_s=g.window_s,
+            min_window_s=g.min_window_s,
+            max_rms_m=g.max_rms_m,
+            slew_rate_m_s=g.slew_rate_m_s,
+            slew_rate_rad_s=math.radians(g.slew_rate_deg_s),
+            max_return_offset_m=g.max_return_offset_m,
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,6 +218,10 @@ class Handover:
         offset = np.asarray(offset_ned_m, np.float64)
         self.applied = FrameAlignment(self.applied.yaw_rad, self.applied.translation_ned_m + offset)
         self.reason += f"; carrying the autopilot's {float(np.linalg.norm(offset)):.2f} m lag"
+        return self._to_target(position_ned_m)[0]
+
+    def to_target_m(self, position_ned_m: F64) -> float:
+        """How far the output at ``position_ned_m`` still has to move to the target [m]."""
         return self._to_target(position_ned_m)[0]
 
     def _to_target(self, position_ned_m: F64) -> tuple[float, float]:

@@ -173,7 +173,7 @@ class AutopilotSession:
 
     def _on_local_position(self, msg: Any, rx_ns: int) -> None:
         if self.gps is not None and self._from_autopilot(msg):
-            self.gps.on_local_position(self.fc_to_us(msg), np.array([msg.x, msg.y, msg.z]))
+            self.gps.lag.on_local_position(self.fc_to_us(msg), np.array([msg.x, msg.y, msg.z]))
 
     def _on_param_value(self, msg: Any, rx_ns: int) -> None:
         if self.gps is not None and self._from_autopilot(msg):

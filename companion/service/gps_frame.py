@@ -21,9 +21,7 @@ A reset of our own frame (the pipeline's counter changed) re-anchors the alignme
 against the old one from the autopilot's yaw at the two poses, its origin where the old frame's
 last pose and velocity put the vehicle. The GPS loss and the end of the slew after a return
 start the autopilot's actions (``gps_actions``). At a loss with PX4 told, EKF2's lag behind our
-output (its LOCAL_POSITION_NED, ``on_local_position``, against our outputs over the last 0.5 s)
-is carried into the output and EKF2_GPS_CTRL 0 waits 0.3 s for the carried poses to reach
-EKF2, whose reset onto our position then lands where it was (:mod:`companion.frames.carry`).
+output is carried into the output first (``gps_lag``).
 ``status()``: the status's ``frame`` section.
 """
 
@@ -38,8 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames.alignment import FrameAlignment, apply, wrap_rad
-from companion.frames.carry import autopilot_offset
+from companion.frames.alignment import FrameAlignment, apply, pose_yaw, wrap_rad
 from companion.frames.gnss import (
     GlobalOrigin,
     GnssMonitor,
@@ -47,11 +44,13 @@ from companion.frames.gnss import (
     GnssVerdict,
     GpsFix,
     Projection,
+    plausible_position,
     to_local_ned,
 )
 from companion.frames.handover import Handover, HandoverInput, HandoverOptions, HandoverOutput
 from companion.geometry import so3
 from companion.service.gps_actions import GpsActions
+from companion.service.gps_lag import LagCarry
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.types import F64, PoseEstimate
 
@@ -64,11 +63,6 @@ PENDING_FIXES = 64  # fixes waiting for a pose after them (poses stopped: the ol
 ORIGIN_ASK_US = 2_000_000  # GPS_GLOBAL_ORIGIN asked for this often until it arrives
 MAV_CMD_REQUEST_MESSAGE = 512
 NO_GPS_AT_START_US = 5_000_000  # ArduPilot: no good GPS this long after our first pose
-CARRY_WINDOW_US = 500_000  # EKF2's lag behind our output: averaged over this long before a loss
-# EKF2_GPS_CTRL 0 this long after the lag is carried: EKF2 resets onto the EV sample at its
-# delayed horizon, which must already be a carried pose (3-frame centred ODOMETRY: ~70 ms)
-CARRY_SWITCH_DELAY_S = 0.3
-KEPT_SAMPLES = 128  # the autopilot's positions and our outputs kept (~2 s of each)
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,23 +77,6 @@ class OurSample:
     reset_counter: int
 
 
-def pose_yaw(pose: PoseEstimate) -> float:
-    """The heading [rad] of a pose's attitude (ZYX yaw of R_world_body)."""
-    return float(so3.matrix_to_rpy(so3.quat_to_matrix(pose.quat_wxyz_ned_frd))[2])
-
-
-def handover_options(g: Any) -> HandoverOptions:
-    """[gps]'s tunable thresholds as the handover takes them."""
-    return HandoverOptions(
-        window_s=g.window_s,
-        min_window_s=g.min_window_s,
-        max_rms_m=g.max_rms_m,
-        slew_rate_m_s=g.slew_rate_m_s,
-        slew_rate_rad_s=math.radians(g.slew_rate_deg_s),
-        max_return_offset_m=g.max_return_offset_m,
-    )
-
-
 class GpsFrame:
     """GPS in, our pose in the autopilot's frame out (module docstring)."""
 
@@ -111,7 +88,7 @@ class GpsFrame:
                 max_eph_m=g.max_eph_m, min_satellites=g.min_satellites, good_after_s=g.good_after_s
             )
         )
-        self.handover = Handover(handover_options(g))
+        self.handover = Handover(HandoverOptions.from_gps_options(g))
         self.link = link
         self.actions = GpsActions(rt, link)
         self._origin_asked_us = -ORIGIN_ASK_US
@@ -128,11 +105,7 @@ class GpsFrame:
         self._returning = False  # held -> slewing: the return's actions wait for "aligned"
         self._first_pose_us: int | None = None
         self.told_no_gps = False  # ArduPilot told to use ours: no good GPS since our start
-        # the autopilot's LOCAL_POSITION_NED and our output, (time_us, NED (3,) [m]) each
-        self.ap_positions: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
-        self.outputs: deque[tuple[int, F64]] = deque(maxlen=KEPT_SAMPLES)
-        self.ap_positions_dropped = 0
-        self.carried_m: float | None = None  # the autopilot's lag carried at the latest loss
+        self.lag = LagCarry(g.px4_loss_carry)  # EKF2's lag, carried at a loss (PX4)
 
     # ------------------------------------------------------------------ in
     def projection(self) -> Projection:
@@ -142,7 +115,7 @@ class GpsFrame:
     def on_origin(self, latitude: int, longitude: int, altitude: int) -> None:
         """GPS_GLOBAL_ORIGIN (degE7, degE7, mm AMSL); out of range: dropped."""
         o = GlobalOrigin.from_message(latitude, longitude, altitude)
-        if not _plausible(o.lat_deg, o.lon_deg, o.alt_m):
+        if not plausible_position(o.lat_deg, o.lon_deg, o.alt_m):
             self.dropped += 1
             return
         if self.origin is not None and o != self.origin:
@@ -165,7 +138,7 @@ class GpsFrame:
         except (TypeError, ValueError, OverflowError):
             self.dropped += 1
             return
-        if not (0 <= fix.fix_type <= 8 and _plausible(fix.lat_deg, fix.lon_deg, fix.alt_m)):
+        if not (0 <= fix.fix_type <= 8 and plausible_position(fix.lat_deg, fix.lon_deg, fix.alt_m)):
             self.dropped += 1
             return
         self.fixes += 1
@@ -189,15 +162,6 @@ class GpsFrame:
     def on_attitude(self, time_us: int, yaw_rad: float) -> None:
         """The autopilot's heading [rad] at ``time_us`` (ATTITUDE, already checked)."""
         self.yaws.append((time_us, yaw_rad))
-
-    def on_local_position(self, time_us: int, position_ned_m: F64) -> None:
-        """The autopilot's own position (LOCAL_POSITION_NED, its time_boot_ms on our clock
-        [us]); a non-finite one dropped."""
-        p = np.asarray(position_ned_m, np.float64)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            self.ap_positions_dropped += 1
-            return
-        self.ap_positions.append((time_us, p))
 
     def _yaw_at(self, time_us: int) -> float:
         """The autopilot's heading nearest ``time_us`` (NaN: none within MAX_YAW_AGE_US)."""
@@ -244,7 +208,7 @@ class GpsFrame:
         self.last = cur
         self.jumped = self.jumps != jumps
         aligned = apply(out.applied, pose)
-        self.outputs.append((cur.time_us, np.asarray(aligned.position_ned_m, np.float64)))
+        self.lag.on_output(cur.time_us, aligned.position_ned_m)
         self.actions.tick()  # a delayed action goes with the pose after it is due
         return dataclasses.replace(aligned, reset_counter=pose.reset_counter + self.jumps)
 
@@ -279,39 +243,20 @@ class GpsFrame:
         return self.out
 
     def _carry_lag(self, time_us: int, ours: F64) -> float:
-        """At a loss with PX4 told ([gps] px4_loss_carry): EKF2's lag behind our output carried
-        into it (:mod:`companion.frames.carry`); returns how long EKF2_GPS_CTRL 0 waits [s]
-        (0: at once, nothing carried)."""
-        self.carried_m = None
-        if not self.rt.config.gps.px4_loss_carry or self.actions.target() != "px4":
+        """At a loss: EKF2's lag carried into our output when PX4 is told (``gps_lag``);
+        returns how long EKF2_GPS_CTRL 0 waits [s]."""
+        if self.actions.target() != "px4":
+            self.lag.carried_m = None
             return 0.0
-        ap, outs = list(self.ap_positions), list(self.outputs)
-        offset = autopilot_offset(
-            np.array([a[0] for a in ap], dtype=np.int64),
-            np.array([a[1] for a in ap]).reshape(-1, 3),
-            np.array([o[0] for o in outs], dtype=np.int64),
-            np.array([o[1] for o in outs]).reshape(-1, 3),
-            time_us,
-            CARRY_WINDOW_US,
-        )
-        if offset is None:
-            log.info("GPS frame: no LOCAL_POSITION_NED before the loss: no lag carried")
-            return 0.0
-        to_target_m = self.handover.carry(offset, ours)
-        self.carried_m = float(np.linalg.norm(offset))
-        if self.out is not None:
+        delay_s = self.lag.at_loss(self.handover, time_us, ours)
+        if delay_s > 0.0 and self.out is not None:
             self.out = dataclasses.replace(
                 self.out,
                 applied=self.handover.applied,
-                to_target_m=to_target_m,
+                to_target_m=self.handover.to_target_m(ours),
                 reason=self.handover.reason,
             )
-        log.info(
-            "GPS frame: EKF2's lag %.3f m N %.3f m E carried into our output",
-            offset[0],
-            offset[1],
-        )
-        return CARRY_SWITCH_DELAY_S
+        return delay_s
 
     def _without_gps_at_start(self, time_us: int, state: str, gps_good: bool) -> None:
         """No good GPS NO_GPS_AT_START_US after our first pose (indoors): ArduPilot, whose set 1
@@ -388,19 +333,10 @@ class GpsFrame:
                 "pairs": self.pairs,
             },
             "reanchors": self.reanchors,
-            "carried_m": self.carried_m,
-            "autopilot_positions_dropped": self.ap_positions_dropped,
+            "carried_m": self.lag.carried_m,
+            "autopilot_positions_dropped": self.lag.dropped,
             "handover": self.actions.status(),
         }
-
-
-def _plausible(lat_deg: float, lon_deg: float, alt_m: float) -> bool:
-    return (
-        math.isfinite(lat_deg + lon_deg + alt_m)
-        and abs(lat_deg) <= 90.0
-        and abs(lon_deg) <= 180.0
-        and -1000.0 <= alt_m <= 100_000.0
-    )
 
 
 def _finite(x: float) -> float | None:

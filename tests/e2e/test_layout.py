@@ -108,6 +108,11 @@ COVERED_ELSEWHERE = {
         "from companion.service_options import",
     ),
     "companion.types": ("tests/companion/pipeline/test_pipeline.py", "from companion.types import"),
+    # the TOML reader through the config loader's tests (size, bytes, nesting, syntax)
+    "companion.toml_files": (
+        "tests/companion/config/test_config.py",
+        "from companion.toml_files import",
+    ),
     # the laser and board maths through `companion calibrate` and its files
     "companion.calibration_maths": (
         "tests/companion/calibration/test_calibration.py",

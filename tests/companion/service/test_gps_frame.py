@@ -104,7 +104,7 @@ def fly(
         ours = truth + drift + jump + rng.normal(0, 0.01, 3)
         if ap_lag_s is not None:
             ap = so3.rot_z(YAW) @ vehicle(t - ap_lag_s)[0] + OFFSET
-            frame.on_local_position(t_us, ap)
+            frame.lag.on_local_position(t_us, ap)
             flight.ap.append(ap)
         pose = frame.align(pose_at(t_us, ours, heading, reset))
         if echo:
@@ -236,11 +236,11 @@ def test_malformed_fixes_and_origins_are_counted_and_dropped() -> None:
 
     frame.on_gps_raw(Nan(), 5)
     frame.on_origin(95 * 10**7, 0, 0)
-    frame.on_local_position(6, np.array([1.0, np.inf, 0.0]))  # the autopilot's estimate too
-    frame.on_local_position(7, np.array([1.0, 2.0]))
+    frame.lag.on_local_position(6, np.array([1.0, np.inf, 0.0]))  # the autopilot's estimate too
+    frame.lag.on_local_position(7, np.array([1.0, 2.0]))
     s = frame.status()
     assert s["gps"]["dropped"] == 5 and s["gps"]["fixes"] == 0 and not s["gps"]["origin"]
-    assert s["autopilot_positions_dropped"] == 2 and not frame.ap_positions
+    assert s["autopilot_positions_dropped"] == 2 and not frame.lag.ap_positions
     assert s["state"] == "own" and not s["gps"]["good"]
 
 
@@ -297,12 +297,12 @@ def test_px4_s_lag_is_carried_into_the_output_before_ekf2_stops_gnss(carry: bool
     sets = [(when, value) for when, value in f.sets]
     assert [v for _, v in sets] == [0, 7]
     if carry:
-        assert frame.carried_m == pytest.approx(lag, abs=0.05)
+        assert frame.lag.carried_m == pytest.approx(lag, abs=0.05)
         assert np.linalg.norm(ap[k, :2] - out[k, :2]) < 0.05  # EKF2's reset lands where it is
         assert sets[0][0] - t[k] == pytest.approx(0.3, abs=1.5 / RATE_HZ)
-        assert frame.status()["carried_m"] == frame.carried_m
+        assert frame.status()["carried_m"] == frame.lag.carried_m
     else:
-        assert frame.carried_m is None and step <= own + 0.1 / RATE_HZ + 1e-9
+        assert frame.lag.carried_m is None and step <= own + 0.1 / RATE_HZ + 1e-9
         assert sets[0][0] == t[k]
     # after the loss's step the output moves at most the slew rate beyond our own motion
     d_out = np.linalg.norm(np.diff(out[k:], axis=0), axis=1)
