@@ -262,11 +262,9 @@ def _runtime_bin(px4: Path) -> Path | None:
     tarball = px4.parent / "px4-sitl-runtime.tar.gz"
     if not tarball.is_file():
         return None
-    key = (
-        subprocess.run(["cksum"], stdin=tarball.open("rb"), capture_output=True, check=True)
-        .stdout.split()[0]
-        .decode()
-    )
+    with tarball.open("rb") as fh:
+        cksum = subprocess.run(["cksum"], stdin=fh, capture_output=True, check=True).stdout
+    key = cksum.split()[0].decode()
     cache = os.environ.get("PX4_SITL_CACHE") or (
         Path(os.environ["XDG_CACHE_HOME"]) / "px4-sitl"
         if os.environ.get("XDG_CACHE_HOME")
