@@ -220,10 +220,6 @@ class Handover:
         self.reason += f"; carrying the autopilot's {float(np.linalg.norm(offset)):.2f} m lag"
         return self._to_target(position_ned_m)[0]
 
-    def to_target_m(self, position_ned_m: F64) -> float:
-        """How far the output at ``position_ned_m`` still has to move to the target [m]."""
-        return self._to_target(position_ned_m)[0]
-
     def _to_target(self, position_ned_m: F64) -> tuple[float, float]:
         d = self.target.apply_points(position_ned_m) - self.applied.apply_points(position_ned_m)
         return float(np.linalg.norm(d)), wrap_rad(self.target.yaw_rad - self.applied.yaw_rad)

@@ -50,7 +50,7 @@ from companion.frames.gnss import (
 from companion.frames.handover import Handover, HandoverInput, HandoverOptions, HandoverOutput
 from companion.geometry import so3
 from companion.service.gps_actions import GpsActions
-from companion.service.gps_lag import LagCarry
+from companion.service.gps_lag import CARRY_SWITCH_DELAY_S, LagCarry
 from companion.service.runtime import AutopilotKind, Runtime
 from companion.types import F64, PoseEstimate
 
@@ -248,15 +248,18 @@ class GpsFrame:
         if self.actions.target() != "px4":
             self.lag.carried_m = None
             return 0.0
-        delay_s = self.lag.at_loss(self.handover, time_us, ours)
-        if delay_s > 0.0 and self.out is not None:
+        offset = self.lag.at_loss(time_us)
+        if offset is None:
+            return 0.0
+        to_target_m = self.handover.carry(offset, ours)
+        if self.out is not None:
             self.out = dataclasses.replace(
                 self.out,
                 applied=self.handover.applied,
-                to_target_m=self.handover.to_target_m(ours),
+                to_target_m=to_target_m,
                 reason=self.handover.reason,
             )
-        return delay_s
+        return CARRY_SWITCH_DELAY_S
 
     def _without_gps_at_start(self, time_us: int, state: str, gps_good: bool) -> None:
         """No good GPS NO_GPS_AT_START_US after our first pose (indoors): ArduPilot, whose set 1

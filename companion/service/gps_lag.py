@@ -4,10 +4,11 @@ docs/gps.md, "EKF2's lag carried at the loss"; the maths: :mod:`companion.frames
 Inputs: the autopilot's LOCAL_POSITION_NED (``on_local_position``: its time_boot_ms on our clock
 [us], NED [m]) and every output we send (``on_output``), each kept for ~2 s. At the loss
 (``at_loss``, the GPS frame's held transition with PX4 told): the mean (EKF2 - ours) over the
-last CARRY_WINDOW_US is added to the handover's applied alignment (``Handover.carry``: the slew
-takes it out again), and EKF2_GPS_CTRL 0 is to wait CARRY_SWITCH_DELAY_S, so that EKF2's reset
-onto our position lands on a carried pose. Nothing follows EKF2 afterwards: the difference is
-measured while EKF2 fuses GNSS and frozen at the loss.
+last CARRY_WINDOW_US, which the GPS frame adds to the handover's applied alignment
+(``Handover.carry``: the slew takes it out again); EKF2_GPS_CTRL 0 is then to wait
+CARRY_SWITCH_DELAY_S, so that EKF2's reset onto our position lands on a carried pose. Nothing
+follows EKF2 afterwards: the difference is measured while EKF2 fuses GNSS and frozen at the
+loss.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from collections import deque
 import numpy as np
 
 from companion.frames.carry import autopilot_offset
-from companion.frames.handover import Handover
 from companion.types import F64
 
 log = logging.getLogger("companion.service")
@@ -41,7 +41,9 @@ class LagCarry:
         self.carried_m: float | None = None  # the lag carried at the latest loss [m]
 
     def on_local_position(self, time_us: int, position_ned_m: F64) -> None:
-        """The autopilot's own position; a non-finite one dropped."""
+        """The autopilot's own position (kept only when enabled); a non-finite one dropped."""
+        if not self.enabled:
+            return
         p = np.asarray(position_ned_m, np.float64)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             self.dropped += 1
@@ -49,16 +51,17 @@ class LagCarry:
         self.ap_positions.append((time_us, p))
 
     def on_output(self, time_us: int, position_ned_m: F64) -> None:
-        """A pose we send, in the frame the autopilot receives it."""
-        self.outputs.append((time_us, np.asarray(position_ned_m, np.float64)))
+        """A pose we send, in the frame the autopilot receives it (kept only when enabled)."""
+        if self.enabled:
+            self.outputs.append((time_us, np.asarray(position_ned_m, np.float64)))
 
-    def at_loss(self, handover: Handover, time_us: int, ours: F64) -> float:
-        """At a loss with PX4 told: the lag carried into ``handover``'s output (our position
-        ``ours`` at ``time_us``); returns how long EKF2_GPS_CTRL 0 waits [s] (0: at once,
-        nothing carried: off, or no LOCAL_POSITION_NED in the window)."""
+    def at_loss(self, time_us: int) -> F64 | None:
+        """At a loss with PX4 told: EKF2's lag behind our output (3,) NED [m], z 0, to carry
+        into it, EKF2_GPS_CTRL 0 then waiting CARRY_SWITCH_DELAY_S; None: nothing to carry
+        (off, or no LOCAL_POSITION_NED in the window before ``time_us``)."""
         self.carried_m = None
         if not self.enabled:
-            return 0.0
+            return None
         ap, outs = list(self.ap_positions), list(self.outputs)
         offset = autopilot_offset(
             np.array([a[0] for a in ap], dtype=np.int64),
@@ -70,12 +73,11 @@ class LagCarry:
         )
         if offset is None:
             log.info("GPS frame: no LOCAL_POSITION_NED before the loss: no lag carried")
-            return 0.0
-        handover.carry(offset, ours)
+            return None
         self.carried_m = float(np.linalg.norm(offset))
         log.info(
             "GPS frame: EKF2's lag %.3f m N %.3f m E carried into our output",
             offset[0],
             offset[1],
         )
-        return CARRY_SWITCH_DELAY_S
+        return offset

@@ -281,7 +281,7 @@ def test_the_origin_is_asked_for_until_it_arrives() -> None:
 
 
 @pytest.mark.parametrize("carry", [True, False])
-def test_px4_s_lag_is_carried_into_the_output_before_ekf2_stops_gnss(carry: bool) -> None:
+def test_ekf2s_lag_is_carried_into_the_output_before_ekf2_stops_gnss(carry: bool) -> None:
     """EKF2 0.3 s behind (0.3 m at 1 m/s): at the loss the output lands on the autopilot's own
     estimate (EKF2, reset onto it 0.3 s later, stays where it was), EKF2_GPS_CTRL 0 waits
     0.3 s for those poses, and the lag goes out at the slew rate. Without the carry: the
