@@ -9,7 +9,10 @@ and line, before a reviewer has to find it.
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCE_ROOTS = ("companion", "drivers", "sitl", "tests")
@@ -45,6 +48,25 @@ def test_the_links_lead_to_the_top_level_folders() -> None:
         link = REPO / "companion" / name
         assert link.is_symlink(), f"companion/{name} must be a link to ../{name}"
         assert link.resolve() == (REPO / name).resolve()
+
+
+TOP_LEVEL = {
+    ".ci", ".gitignore", "LICENSE", "MANIFEST.in", "Makefile", "README.md", "companion",
+    "config", "docs", "drivers", "pyproject.toml", "sitl", "systemd", "tests",
+}
+
+
+def test_the_top_level_holds_the_product_only() -> None:
+    """What git tracks at the repository's top level is the product's layout (README.md,
+    "Layout"); a run's output saved in the working folder and committed by mistake (an
+    array of poses, a log) fails here."""
+    if not (REPO / ".git").exists():
+        pytest.skip("not a git checkout: nothing says which files are tracked")
+    listed = subprocess.run(
+        ["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    extra = sorted({name.split("/")[0] for name in listed} - TOP_LEVEL)
+    assert extra == [], f"tracked at the top level, not part of the layout: {extra}"
 
 
 def test_no_history_notes_in_place_of_dates() -> None:
