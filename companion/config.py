@@ -78,6 +78,13 @@ class CameraConfig:
     exposure_us: float = opt(
         0.0, "fixed exposure time [us] (V4L2, picamera2); 0 = the camera's automatic", ge=0, le=1e6
     )
+    readout_ms: float = opt(
+        0.0,
+        "rolling shutter: the time to read the rows out, top to bottom [ms] (CSI/UVC sensors "
+        "10-30 ms, the sensor's datasheet); 0 = a global shutter",
+        ge=0,
+        le=200,
+    )
     mount: MountConfig = opt(
         MountConfig(xyz_m=(0.05, 0.0, 0.08), rpy_deg=(0.0, 0.0, 90.0)),
         "T_body_cam: camera frame in the body frame",
@@ -105,6 +112,11 @@ class CameraConfig:
     def T_body_cam(self) -> F64:
         """(4, 4) camera -> body."""
         return self.mount.T_body_sensor()
+
+    @property
+    def readout_s(self) -> float:
+        """The rolling shutter's readout time [s] (0: a global shutter)."""
+        return self.readout_ms * 1e-3
 
 
 @dataclass(frozen=True, slots=True)

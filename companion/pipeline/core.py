@@ -64,7 +64,7 @@ class Pipeline:
         self.camera = camera or config.camera.model()
         self.T_body_cam = config.camera.T_body_cam() if T_body_cam is None else T_body_cam
         self.T_cam_body = se3.inverse(self.T_body_cam)
-        self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo)
+        self.vo = VisualOdometry(self.camera, self.T_body_cam, config.vo, config.camera.readout_s)
         self.frame_check = FrameCheck(config.vo)  # the one check of every delivered frame
         self.frame_problem: FrameProblem | None = None  # of the last frame fed
         # re-times the usable frames when their stamps jitter (None: vo.steady_clock off)

@@ -7,7 +7,6 @@ camera coordinates (2,).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -211,12 +210,11 @@ class VoMap:
         refined: F64 = window[-1].T_cam_vo.copy()
         return refined
 
-    def bound(
-        self, tracks: Tracks, max_keyframes: int, normalized: Callable[[NDArray[np.floating]], F64]
-    ) -> None:
+    def bound(self, tracks: Tracks, max_keyframes: int, xy: F64) -> None:
         """Keep at most ``max_keyframes`` keyframes and the points they or the tracks see;
         tracked points no keyframe sees any more become candidates again (anchored at the
-        newest keyframe, ``normalized`` giving their coordinates; ``tracks`` changed)."""
+        newest keyframe at their normalised coordinates ``xy`` (N, 2) there; ``tracks``
+        changed)."""
         while len(self.keyframes) > max_keyframes:
             self.keyframes.pop(0)
         seen: set[int] = set()
@@ -229,7 +227,6 @@ class VoMap:
                 del self.point_sigma[p]
         lost = np.array([p >= 0 and int(p) not in seen for p in tracks.pid], dtype=bool)
         if lost.any():
-            xy = normalized(tracks.px[lost])
             tracks.pid[lost] = -1
             tracks.anchor[lost] = self.keyframes[-1].kf_id
-            tracks.anchor_xy[lost] = xy
+            tracks.anchor_xy[lost] = xy[lost]

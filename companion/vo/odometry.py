@@ -48,6 +48,7 @@ from companion.vo.keyframes import Down, Gravity, PendingKeyframe
 from companion.vo.map import VoMap
 from companion.vo.options import VoOptions
 from companion.vo.pose import estimate_pose
+from companion.vo.rolling_shutter import ShutterCorrection
 from companion.vo.rotation import fit_rotation
 from companion.vo.stage_times import Laps
 from companion.vo.states import (
@@ -66,9 +67,17 @@ class VisualOdometry:
     """Monocular VO for one camera. Feed frames in time order with :meth:`process`."""
 
     def __init__(
-        self, camera: CameraModel, T_body_cam: F64, options: VoOptions | None = None
+        self,
+        camera: CameraModel,
+        T_body_cam: F64,
+        options: VoOptions | None = None,
+        readout_s: float = 0.0,
     ) -> None:
+        """``readout_s``: the camera's rolling-shutter readout time [s] (0: a global shutter);
+        the tracks' pixels are then moved to the frame's stamp for the geometry
+        (companion/vo/rolling_shutter.py)."""
         self.camera = camera
+        self.shutter = ShutterCorrection(readout_s, camera.height) if readout_s > 0 else None
         self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
         self.opts = scaled_to_image(options or VoOptions(), camera.width, camera.height)
         self.focal_px = 0.5 * (camera.fx + camera.fy)
@@ -110,6 +119,16 @@ class VisualOdometry:
     def normalized(self, px: NDArray[np.floating]) -> F64:
         """(N, 2) normalised camera coordinates of pixels (N, 2)."""
         return self.camera.pixels_to_normalized(np.asarray(px, dtype=np.float64))
+
+    def frame_xy(self, tr: Tracks, sel: NDArray[np.bool_] | None = None) -> F64:
+        """(N, 2) normalised coordinates of the tracks (those of ``sel``) at the frame's stamp:
+        their pixels, moved along their image motion to the middle of the readout under a
+        rolling shutter (companion/vo/rolling_shutter.py)."""
+        px = tr.px if sel is None else tr.px[sel]
+        if self.shutter is None:
+            return self.normalized(px)
+        prev = tr.prev_px if tr.prev_px is None or sel is None else tr.prev_px[sel]
+        return self.normalized(self.shutter.at_frame_time(px, prev))
 
     def _output(self, time_us: int, is_kf: bool) -> VoOutput:
         tr = self.tracks
@@ -191,7 +210,7 @@ class VisualOdometry:
         if has.sum() < self.opts.min_tracked_points:
             return False
         X = self.map.points_of(tr.pid[has])
-        xy = self.normalized(tr.px[has])
+        xy = self.frame_xy(tr, has)
         # constant-velocity prediction (over this frame's interval when frames were skipped)
         T_pred = self._T_pred
         if T_pred is None:
@@ -252,7 +271,7 @@ class VisualOdometry:
         cand = np.flatnonzero(tr.pid < 0)
         if len(cand) == 0:
             return
-        xy = self.normalized(tr.px[cand])
+        xy = self.frame_xy(tr, tr.pid < 0)
         keep = np.ones(len(tr), dtype=bool)
         for a in np.unique(tr.anchor[cand]):
             kf_a = self.map.keyframe(int(a))
@@ -293,7 +312,7 @@ class VisualOdometry:
         )
         kf = self.map.new_keyframe(time_us, self.T_cam_vo.copy(), g_cam, g_sigma)
         tr = self.tracks
-        xy = self.normalized(tr.px)
+        xy = self.frame_xy(tr)
         for i in np.flatnonzero(tr.pid >= 0):
             kf.obs[int(tr.pid[i])] = xy[i]
         self.tracks = self.map.triangulate_candidates(tr, kf, xy, self.focal_px, o)
@@ -301,14 +320,14 @@ class VisualOdometry:
         new_features(self, gray)
         if held and o.rotation_depth_prior > 0:
             depth = self.map.scene_depth(self.T_cam_vo)
-            xy = self.normalized(self.tracks.px)
+            xy = self.frame_xy(self.tracks)
             self.tracks = self.map.seed_candidates(
                 self.tracks, kf, xy, depth, o.rotation_depth_prior
             )
         T_refined = self.map.local_ba(o, self.focal_px)
         if T_refined is not None:
             self.T_cam_vo = T_refined
-        self.map.bound(self.tracks, o.max_keyframes, self.normalized)
+        self.map.bound(self.tracks, o.max_keyframes, self.frame_xy(self.tracks))
         self.frames_since_kf = 0
         self.last_keyframe_time_us = time_us
 
@@ -343,6 +362,10 @@ class VisualOdometry:
         self._T_pred, guess_px = self._interval_prediction(frame.time_us)
         laps.lap("predict")
         self.tracks = track(self._prev_gray, gray, self.tracks, self.camera, self.opts, guess_px)
+        if self.shutter is not None:
+            prev_us = self._prev_time_us
+            interval_s = 0.0 if prev_us is None else (frame.time_us - prev_us) * 1e-6
+            self.shutter.update(self.tracks.px, self.tracks.prev_px, interval_s)
         laps.lap("track")
         if self.state != VoState.TRACKING:
             if step_not_tracking(self, gray, frame.time_us, R_world_body, ground):

@@ -57,7 +57,8 @@ def new_features(vo: VisualOdometry, gray: U8) -> None:
     """Fill the tracks up to ``max_features`` with new corners anchored at the newest
     keyframe."""
     px = detect(gray, vo.tracks.px, vo.opts.max_features - len(vo.tracks), vo.opts.min_distance_px)
-    vo.tracks = vo.tracks.extend(px, vo.map.keyframes[-1].kf_id, vo.normalized(px))
+    xy = vo.normalized(px) if vo.shutter is None else vo.normalized(vo.shutter.at_frame_time(px))
+    vo.tracks = vo.tracks.extend(px, vo.map.keyframes[-1].kf_id, xy)
 
 
 def restart_reference(vo: VisualOdometry, gray: U8, time_us: int, R_world_body: F64 | None) -> None:
