@@ -36,7 +36,7 @@ from companion.render_options import RenderConfig as RenderConfig
 from companion.scale.options import ScaleOptions
 from companion.service_options import GpsOptions, ServiceOptions, WebOptions, check_link_number
 from companion.sitl_options import GroundOptions, RangeEffects
-from companion.toml_files import merge, read_toml
+from companion.toml_files import merge, read_config_toml
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
 
@@ -454,7 +454,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)
-        data = read_toml(p)
+        data = read_config_toml(p)
     if overrides:
         data = merge(data, overrides)
     return from_dict(Config, data)

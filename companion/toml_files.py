@@ -1,6 +1,7 @@
 """Reading TOML files and text safely (configs, calibrations, dataset metadata, manifests):
 strict UTF-8, bounded size and nesting checked before the parser recurses, every failure an
-error of the caller's kind naming the file; and the recursive merge of two tables."""
+error of the caller's kind naming the file; a config file's ``extends``; and the recursive merge
+of two tables."""
 
 from __future__ import annotations
 
@@ -103,6 +104,32 @@ def read_toml(path: Path) -> dict[str, Any]:
     bad bytes, nested too deep)."""
     raw = read_regular_file(path, MAX_CONFIG_BYTES, ConfigError)
     return parse_toml(decode_utf8(raw, str(path)), str(path))
+
+
+MAX_EXTENDS = 8  # config files extending one another: more than this is a mistake
+
+
+def read_config_toml(path: Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A config file's table with what it ``extends`` laid under it: a top-level
+    ``extends = "realistic.toml"`` (a path relative to the file) names a config file whose
+    table this file's is merged over (:func:`merge`), recursively. ConfigError naming the file
+    for a non-string, a missing base, or a chain that loops or is longer than MAX_EXTENDS."""
+    data = read_toml(path)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{path}: extends: the path of a config file, got {base!r}")
+    chain = (*_chain, path.resolve())
+    base_path = path.parent / base
+    if base_path.resolve() in chain or len(chain) > MAX_EXTENDS:
+        names = " -> ".join(str(p.name) for p in (*chain, base_path))
+        raise ConfigError(f"{path}: extends: a loop or a chain over {MAX_EXTENDS}: {names}")
+    try:
+        under = read_config_toml(base_path, chain)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: extends: {e}") from None
+    return merge(under, data)
 
 
 def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

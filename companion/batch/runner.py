@@ -29,7 +29,7 @@ from companion.batch.run import TaskResult, write_tree
 from companion.batch.spec import Task, nested, to_toml
 from companion.config import Config, from_dict
 from companion.errors import BatchError
-from companion.toml_files import merge, read_toml
+from companion.toml_files import merge, read_config_toml
 
 Status = Literal["ran", "cached", "failed"]
 SECTIONS_OF_REPLAY = ("vo", "scale", "attitude", "dpose")
@@ -70,7 +70,7 @@ def config_text(task: Task) -> str | None:
     key), before anything runs; a replay's override holds algorithm sections only."""
     if task.config is None and not task.overrides:
         return None
-    data = read_toml(Path(task.config)) if task.config is not None else {}
+    data = read_config_toml(Path(task.config)) if task.config is not None else {}
     data = merge(data, nested(task.overrides))
     if task.kind == "replay" or (task.kind == "sweep" and task.argv[0] == "replay"):
         bad = sorted(set(data) - set(SECTIONS_OF_REPLAY))

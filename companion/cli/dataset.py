@@ -37,7 +37,7 @@ from companion.drivers.dataset.import_write import (
 )
 from companion.drivers.safe_files import SafeFolder
 from companion.errors import DatasetError
-from companion.toml_files import read_toml
+from companion.toml_files import read_config_toml
 
 DEFAULT_MANIFEST = Path("config/real_sequences.toml")
 
@@ -47,7 +47,7 @@ def rangefinders_of(config_path: Path | None) -> tuple[RangefinderConfig, ...]:
     default beams when there is no file or it declares none."""
     if config_path is None:
         return DEFAULT_BEAMS
-    data = read_toml(config_path)
+    data = read_config_toml(config_path)
     if "rangefinders" not in data:
         return DEFAULT_BEAMS
     return from_dict(Config, data).rangefinders

@@ -25,7 +25,7 @@ from companion.drivers.dataset.format import ALGORITHM_SECTIONS
 from companion.errors import CompanionError, ConfigError
 from companion.evaluation.tables import markdown_table
 from companion.geometry import so3
-from companion.toml_files import read_toml
+from companion.toml_files import read_config_toml
 from companion.types import PoseEstimate
 from companion.vo.focal_check import focal_summary
 
@@ -48,7 +48,7 @@ def dataset_config(ds: Dataset, config_path: Path | None) -> Config:
             return ds.config
         return _without_sensors(Config())
     cfg = load_config(config_path)
-    for line in calibration_conflicts(ds, read_toml(Path(config_path)), cfg):
+    for line in calibration_conflicts(ds, read_config_toml(Path(config_path)), cfg):
         print(f"companion: warning: {config_path}: {line}", file=sys.stderr)
     if ds.config is None:
         return _without_sensors(cfg)
