@@ -237,7 +237,7 @@ def eval_scale(args: argparse.Namespace) -> int:
         run = run_scale(cfg, steps, world, ticks, sensor_study=study)
     table = write_tables(run.metrics(), out, f"Metric scale on {name}")
     frames = frames_report(None, total, run.dropped, gaps=run.gaps, clock=run.clock)
-    write_honest(out, source, frames, _tracks(run), cfg.scale.method)
+    write_honest(out, source, frames, _tracks(run), cfg.scale.method, run.resets)
     write_trajectories(run, out)
     plots = write_plots(run, world, out)
     print(table)

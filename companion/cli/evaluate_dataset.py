@@ -256,15 +256,19 @@ def write_honest(
     frames: dict[str, Any],
     tracks: dict[str, Any],
     detail: str | None,
+    vo_resets: int | None = None,
 ) -> None:
-    """eval.json (where the algorithm options came from, the frames not given to the VO, and
-    by track the whole-flight and segment ATE against a constant position) and the same as
-    sections at the end of report.md (after the evaluation's own report, if any)."""
-    doc = {
+    """eval.json (where the algorithm options came from, the frames not given to the VO, by
+    track the whole-flight and segment ATE against a constant position, and the VO's resets
+    when given) and the same as sections at the end of report.md (after the evaluation's own
+    report, if any)."""
+    doc: dict[str, Any] = {
         "config": config,
         "frames": frames,
         "tracks": {n: track_json(t) for n, t in tracks.items()},
     }
+    if vo_resets is not None:
+        doc["vo_resets"] = vo_resets
     (out / "eval.json").write_text(json.dumps(doc, indent=2) + "\n")
     lines = [f"Algorithm options from {config}.", "", *frames_markdown(frames)]
     if tracks:

@@ -116,6 +116,7 @@ def test_eval_all_methods_on_a_recording(evaluated: Path) -> None:
         "B9 plane",
     }
     assert rows["M-MSCwK"]["scale_mean_abs_rel_pct"] < 1.0 and rows["M-MSCwK"]["ate_pct"] < 1.0
+    assert json.loads((out / "eval.json").read_text())["vo_resets"] == 0
     for name in (
         "scale.png",
         "scale_error.png",
