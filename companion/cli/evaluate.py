@@ -347,9 +347,17 @@ def _attitude_study(
 
 # ------------------------------------------------------------------------------ report
 def cmd_report(args: argparse.Namespace) -> int:
-    """Summarise `eval --methods all` folders (TERRAIN-TRAJECTORY-SEED) in Markdown."""
+    """Summarise `eval --methods all` folders (TERRAIN-TRAJECTORY-SEED) in Markdown; with
+    ``--rows``, one line per flight NAME over its NAME-SEED folders."""
     from companion.reporting import summary
+    from companion.reporting.rows import read_rows, rows_table
 
+    if args.rows:
+        rows = read_rows([Path(d) for d in args.dirs])
+        if not rows:
+            raise CompanionError("no NAME-SEED folder of a simulated flight's evaluation")
+        print(rows_table(rows))
+        return EXIT_OK
     text = summary([Path(d) for d in args.dirs])
     if not text:
         raise CompanionError(
@@ -365,6 +373,12 @@ def add_report(sub: Any) -> None:
     p_rep = sub.add_parser("report", help="summarise scale evaluations over seeds")
     p_rep.add_argument(
         "dirs", nargs="+", type=Path, help="`eval --methods all` folders (TERRAIN-TRAJECTORY-SEED)"
+    )
+    p_rep.add_argument(
+        "--rows",
+        action="store_true",
+        help="one line per flight over its seeds, folders named NAME-SEED (the published "
+        "method's ATE by seed, VO resets, the baselines)",
     )
     p_rep.set_defaults(func=cmd_report)
 

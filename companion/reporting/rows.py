@@ -1,0 +1,96 @@
+"""One row per simulated flight over its seeds, from `companion eval --methods all` folders
+named NAME-SEED: the simulator's effects one at a time (docs/RESULTS.md, "A simulator as hard
+as reality"), or any other set of flights compared on the published method.
+
+A row: the published method's (M-MSCwK) metric ATE as % of the path per seed and their mean,
+the VO's resets per seed (eval.json ``vo_resets``; "?" for a folder written before it was
+kept), the baselines' mean ATE % of the path, and whether the mean beats each baseline's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+PUBLISHED = "M-MSCwK"
+BASELINES = ("B7 window-ML", "B8 per-frame", "B9 plane")
+
+
+@dataclass
+class FlightRow:
+    """One flight over its seeds: ``ate_pct`` [% of path] and ``resets`` by seed (None: not
+    recorded), ``baseline_pct``: each baseline's ATE [% of path] by seed."""
+
+    name: str
+    seeds: list[int] = field(default_factory=list)
+    ate_pct: list[float] = field(default_factory=list)
+    resets: list[int | None] = field(default_factory=list)
+    baseline_pct: dict[str, list[float]] = field(default_factory=dict)
+
+    @property
+    def mean_pct(self) -> float:
+        return float(np.mean(self.ate_pct))
+
+    def beats(self, baseline: str) -> bool:
+        """Whether the published method's mean ATE is below the baseline's mean."""
+        return self.mean_pct < float(np.mean(self.baseline_pct[baseline]))
+
+
+def name_and_seed(folder: Path) -> tuple[str, int] | None:
+    """(NAME, SEED) of a folder named NAME-SEED (SEED an integer), else None."""
+    name, _, seed = folder.name.rpartition("-")
+    return (name, int(seed)) if name and seed.isdigit() else None
+
+
+def read_rows(dirs: list[Path]) -> list[FlightRow]:
+    """The rows of the NAME-SEED folders among ``dirs`` that hold a simulated flight's
+    scale_metrics.json (a list of methods), in the order of their names' first appearance,
+    seeds ascending."""
+    rows: dict[str, FlightRow] = {}
+    found = []
+    for d in dirs:
+        key = name_and_seed(d)
+        f = d / "scale_metrics.json"
+        if key is None or not f.exists():
+            continue
+        doc = json.loads(f.read_text())
+        if not isinstance(doc, list):
+            continue  # a real sequence's: no world, another table
+        found.append((key, d, {r["method"]: r for r in doc}))
+    for (name, seed), d, methods in sorted(found, key=lambda x: x[0][1]):
+        row = rows.setdefault(name, FlightRow(name))
+        row.seeds.append(seed)
+        row.ate_pct.append(float(methods[PUBLISHED]["ate_pct"]))
+        honest = d / "eval.json"
+        resets = json.loads(honest.read_text()).get("vo_resets") if honest.exists() else None
+        row.resets.append(None if resets is None else int(resets))
+        for b in BASELINES:
+            row.baseline_pct.setdefault(b, []).append(float(methods[b]["ate_pct"]))
+    order = [name_and_seed(d) for d in dirs]
+    names = list(dict.fromkeys(k[0] for k in order if k is not None and k[0] in rows))
+    return [rows[n] for n in names]
+
+
+def rows_table(rows: list[FlightRow], labels: dict[str, str] | None = None) -> str:
+    """Markdown: one line per row, ``labels`` naming a row instead of its folder name."""
+    labels = labels or {}
+    head = (
+        f"| flight | seeds | {PUBLISHED} metric ATE, % of path, by seed | mean | VO resets "
+        "| B7 / B8 / B9 mean ATE % | better than B7, B8, B9 |"
+    )
+    out = [head, "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        per_seed = " / ".join(f"{v:.3f}" for v in r.ate_pct)
+        resets = " / ".join("?" if n is None else str(n) for n in r.resets)
+        base = " / ".join(f"{np.mean(r.baseline_pct[b]):.3f}" for b in BASELINES)
+        beats = ", ".join("yes" if r.beats(b) else "NO" for b in BASELINES)
+        seeds = ", ".join(str(s) for s in r.seeds)
+        label = labels.get(r.name, r.name)
+        out.append(
+            f"| {label} | {seeds} | {per_seed} | {r.mean_pct:.3f} % | {resets} | {base} "
+            f"| {beats} |"
+        )
+    return "\n".join(out)
