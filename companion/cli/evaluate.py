@@ -49,7 +49,7 @@ from companion.drivers.dataset import (
     write_poses_csv,
     write_tum,
 )
-from companion.errors import CompanionError, DatasetError
+from companion.errors import CompanionError, ConfigError, DatasetError
 from companion.evaluation.attitude import SIGMA_STUDY_M, SPACING_STUDY_M, range_tilt_rmse
 from companion.vo.focal_check import focal_summary
 
@@ -352,6 +352,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     from companion.reporting import summary
     from companion.reporting.rows import read_rows, rows_table
 
+    if args.sim_vs_real:
+        return _sim_vs_real([str(d) for d in args.dirs], args.plot)
     if args.rows:
         rows = read_rows([Path(d) for d in args.dirs])
         if not rows:
@@ -364,6 +366,34 @@ def cmd_report(args: argparse.Namespace) -> int:
             "no TERRAIN-TRAJECTORY-SEED folders or real-sequence folders with scale_metrics.json"
         )
     print(text)
+    return EXIT_OK
+
+
+def _sim_vs_real(pairs: list[str], plot: Path | None) -> int:
+    """``companion report --sim-vs-real REAL=SIM ...``: each real sequence's folder beside its
+    simulated look-alike's SIM-SEED folders."""
+    from companion.reporting.sim_vs_real import (
+        comparison_plot,
+        comparison_table,
+        real_errors,
+        seed_folders,
+        sim_errors,
+    )
+
+    rows = []
+    for pair in pairs:
+        real, sep, sim = pair.partition("=")
+        sims = seed_folders(Path(sim))
+        if not sep or not sims:
+            raise ConfigError(f"{pair}: REAL_FOLDER=SIM_PREFIX, with SIM_PREFIX-SEED folders")
+        try:
+            errors = (sim_errors(sims), real_errors(Path(real)))
+        except (ValueError, OSError, KeyError) as e:
+            raise ConfigError(f"{pair}: {e}") from None
+        rows.append((f"{Path(real).name} / {Path(sim).name}", *errors))
+    print(comparison_table(rows))
+    if plot is not None:
+        print(f"plot: {comparison_plot(rows, plot)}")
     return EXIT_OK
 
 
@@ -380,6 +410,13 @@ def add_report(sub: Any) -> None:
         help="one line per flight over its seeds, folders named NAME-SEED (the published "
         "method's ATE by seed, VO resets, the baselines)",
     )
+    p_rep.add_argument(
+        "--sim-vs-real",
+        action="store_true",
+        help="the folders are REAL=SIM pairs: a real sequence's evaluation beside its "
+        "simulated look-alike's SIM-SEED folders (docs/RESULTS.md)",
+    )
+    p_rep.add_argument("--plot", type=Path, help="with --sim-vs-real: a PNG of the pairs")
     p_rep.set_defaults(func=cmd_report)
 
 

@@ -90,7 +90,6 @@ def rows_table(rows: list[FlightRow], labels: dict[str, str] | None = None) -> s
         seeds = ", ".join(str(s) for s in r.seeds)
         label = labels.get(r.name, r.name)
         out.append(
-            f"| {label} | {seeds} | {per_seed} | {r.mean_pct:.3f} % | {resets} | {base} "
-            f"| {beats} |"
+            f"| {label} | {seeds} | {per_seed} | {r.mean_pct:.3f} % | {resets} | {base} | {beats} |"
         )
     return "\n".join(out)
