@@ -46,6 +46,16 @@ def _ground(n: int, seed: int) -> np.ndarray:
     return np.column_stack([xy, rng.uniform(0.0, 1.5, n)])  # bumps up to 1.5 m
 
 
+def _two_frames(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rolling-shutter pixels (N, 2) of seeded ground points in two frames 1/30 s apart, and
+    where a global shutter at the second frame's stamp sees them."""
+    X = _ground(60, seed)
+    t1 = 1.0 / RATE_HZ
+    R, c = _pose(t1)
+    truth, _ = CAMERA.project((X - c) @ R.T)
+    return _rolling_pixels(X, 0.0, READOUT_S), _rolling_pixels(X, t1, READOUT_S), truth
+
+
 def test_row_offsets_span_the_readout_about_the_stamp() -> None:
     dt = row_offsets_s(np.array([-0.5, 239.5, 479.5]), 480, READOUT_S)
     assert np.allclose(dt, [-0.010, 0.0, 0.010])
@@ -63,14 +73,9 @@ def test_the_field_fit_recovers_an_affine_motion_despite_outliers() -> None:
 
 
 def test_corrected_pixels_are_the_global_shutter_ones_at_the_stamp() -> None:
-    X = _ground(60, 1)
-    t1 = 1.0 / RATE_HZ
-    prev_px = _rolling_pixels(X, 0.0, READOUT_S)
-    px = _rolling_pixels(X, t1, READOUT_S)
-    R, c = _pose(t1)
-    truth, _ = CAMERA.project((X - c) @ R.T)
+    prev_px, px, truth = _two_frames(1)
     shutter = ShutterCorrection(READOUT_S, 480)
-    shutter.update(px, prev_px, t1)
+    shutter.update(px, prev_px, 1.0 / RATE_HZ)
     corrected = shutter.at_frame_time(px, prev_px)
     before = np.linalg.norm(px - truth, axis=1)
     after = np.linalg.norm(corrected - truth, axis=1)
@@ -79,12 +84,8 @@ def test_corrected_pixels_are_the_global_shutter_ones_at_the_stamp() -> None:
 
 
 def test_new_corners_take_the_field_and_a_global_shutter_is_untouched() -> None:
-    X = _ground(60, 2)
+    prev_px, px, truth = _two_frames(2)
     t1 = 1.0 / RATE_HZ
-    prev_px = _rolling_pixels(X, 0.0, READOUT_S)
-    px = _rolling_pixels(X, t1, READOUT_S)
-    R, c = _pose(t1)
-    truth, _ = CAMERA.project((X - c) @ R.T)
     shutter = ShutterCorrection(READOUT_S, 480)
     shutter.update(px[:40], prev_px[:40], t1)
     new = px[40:]
