@@ -7,6 +7,7 @@ camera coordinates (2,).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -210,11 +211,15 @@ class VoMap:
         refined: F64 = window[-1].T_cam_vo.copy()
         return refined
 
-    def bound(self, tracks: Tracks, max_keyframes: int, xy: F64) -> None:
+    def bound(
+        self, tracks: Tracks, max_keyframes: int, xy_of: Callable[[NDArray[np.bool_]], F64]
+    ) -> None:
         """Keep at most ``max_keyframes`` keyframes and the points they or the tracks see;
         tracked points no keyframe sees any more become candidates again (anchored at the
-        newest keyframe at their normalised coordinates ``xy`` (N, 2) there; ``tracks``
-        changed)."""
+        newest keyframe, ``xy_of(mask)`` giving the normalised coordinates of the tracks of a
+        mask there; ``tracks`` changed). Only those tracks are undistorted: the Newton
+        undistortion stops on the batch's largest step, so another batch would change the
+        last bits, and through the map every later pose."""
         while len(self.keyframes) > max_keyframes:
             self.keyframes.pop(0)
         seen: set[int] = set()
@@ -229,4 +234,4 @@ class VoMap:
         if lost.any():
             tracks.pid[lost] = -1
             tracks.anchor[lost] = self.keyframes[-1].kf_id
-            tracks.anchor_xy[lost] = xy[lost]
+            tracks.anchor_xy[lost] = xy_of(lost)

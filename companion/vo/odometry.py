@@ -327,7 +327,8 @@ class VisualOdometry:
         T_refined = self.map.local_ba(o, self.focal_px)
         if T_refined is not None:
             self.T_cam_vo = T_refined
-        self.map.bound(self.tracks, o.max_keyframes, self.frame_xy(self.tracks))
+        tracks = self.tracks
+        self.map.bound(tracks, o.max_keyframes, lambda lost: self.frame_xy(tracks, lost))
         self.frames_since_kf = 0
         self.last_keyframe_time_us = time_us
 
