@@ -29,14 +29,16 @@ WITHIN = 2.0  # the simulated error within this factor of the real one
 @dataclass(frozen=True)
 class Errors:
     """One side of a pair: ``runs`` folders (seeds) behind it, the published method's ATE [m]
-    and [% of path], its ratio to the best constant position (None: not recorded), and the
-    VO's resets (mean over the runs; None: not recorded)."""
+    and [% of path] and its ratio to the best constant position (None: not recorded), over the
+    runs that have an estimate (``no_estimate`` runs have none: the VO never gave a pose), and
+    the VO's resets (mean over all the runs; None: not recorded)."""
 
     runs: int
     ate_m: float
     ate_pct: float
     ratio_to_constant: float | None
     resets: float | None
+    no_estimate: int = 0  # runs (seeds) in which the published method never had a pose
 
 
 def _json(path: Path) -> Any:
@@ -72,14 +74,18 @@ def sim_errors(folders: list[Path]) -> Errors:
     resets: list[float | None] = []
     for d in folders:
         methods = {m["method"]: m for m in _json(d / "scale_metrics.json")}
+        honest = _json(d / "eval.json") if (d / "eval.json").exists() else {}
+        resets.append(honest.get("vo_resets"))
+        if PUBLISHED not in methods:
+            continue  # no pose in the whole flight: no error to average
         ate_m.append(float(methods[PUBLISHED]["ate_m"]))
         ate_pct.append(float(methods[PUBLISHED]["ate_pct"]))
-        honest = _json(d / "eval.json") if (d / "eval.json").exists() else {}
         ratios.append(((honest.get("tracks") or {}).get(PUBLISHED) or {}).get("ratio_to_mean"))
-        resets.append(honest.get("vo_resets"))
-    return Errors(
-        len(folders), float(np.mean(ate_m)), float(np.mean(ate_pct)), _mean(ratios), _mean(resets)
-    )
+    missing = len(folders) - len(ate_m)
+    if not ate_m:
+        raise ValueError(f"{PUBLISHED} has no estimate in any of {len(folders)} flights")
+    mean_m, mean_pct = float(np.mean(ate_m)), float(np.mean(ate_pct))
+    return Errors(len(folders), mean_m, mean_pct, _mean(ratios), _mean(resets), missing)
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -114,12 +120,19 @@ def comparison_table(pairs: list[tuple[str, Errors, Errors]]) -> str:
         ratio = sim.ate_pct / real.ate_pct if real.ate_pct > 0 else float("inf")
         within = "yes" if 1 / WITHIN <= ratio <= WITHIN else "NO"
         out.append(
-            f"| {label} | {sim.ate_m:.3f} m = {sim.ate_pct:.3f} % ({sim.runs}) "
+            f"| {label} | {sim.ate_m:.3f} m = {sim.ate_pct:.3f} % ({_runs(sim)}) "
             f"| {real.ate_m:.3f} m = {real.ate_pct:.3f} % | {ratio:.3g} | {within} "
             f"| {_opt(sim.ratio_to_constant, '.3f')} / {_opt(real.ratio_to_constant, '.3f')} "
             f"| {_opt(sim.resets, '.1f')} / {_opt(real.resets, '.0f')} |"
         )
     return "\n".join(out)
+
+
+def _runs(side: Errors) -> str:
+    """How many runs an error is the mean of: "3", or "2 of 3; 1 without a pose"."""
+    if not side.no_estimate:
+        return str(side.runs)
+    return f"{side.runs - side.no_estimate} of {side.runs}; {side.no_estimate} without a pose"
 
 
 def comparison_plot(pairs: list[tuple[str, Errors, Errors]], path: Path) -> Path:

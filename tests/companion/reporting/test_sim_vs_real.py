@@ -47,6 +47,12 @@ def test_the_sides_are_read_and_averaged(tmp_path: Path) -> None:
     assert sim.runs == 2 and sim.ate_pct == pytest.approx(2.0) and sim.resets == pytest.approx(2)
     _sim(tmp_path / "old-1", 0.1, 1.0, None)
     assert sim_errors([tmp_path / "old-1"]).resets is None  # not recorded: not a zero
+    lost = _sim(tmp_path / "lost-1", 0.0, 0.0, 49)
+    (lost / "scale_metrics.json").write_text("[]")  # the VO never gave a pose
+    both = sim_errors([tmp_path / "like-1", lost])
+    assert (both.runs, both.no_estimate, both.ate_pct, both.resets) == (2, 1, 1.0, 24.5)
+    with pytest.raises(ValueError, match="no estimate in any of 1"):
+        sim_errors([lost])
     with pytest.raises(ValueError, match="simulated flight's folder"):
         real_errors(tmp_path / "like-1")
 
