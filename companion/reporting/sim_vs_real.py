@@ -159,4 +159,5 @@ def comparison_plot(pairs: list[tuple[str, Errors, Errors]], path: Path) -> Path
     ax_ate.legend(fontsize=8)
     fig.suptitle("The simulator against reality: each real sequence beside its look-alike")
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     return save(plt, fig, path)

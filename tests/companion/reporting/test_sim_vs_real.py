@@ -64,7 +64,7 @@ def test_the_cli_compares_the_pairs_and_draws_them(
     far = _real(tmp_path / "real_far", 0.4, 2.0, 24)
     _sim(tmp_path / "near-1", 0.3, 1.5, 3)  # 0.75 of the real: within 2x
     _sim(tmp_path / "far-1", 0.01, 0.05, 0)  # 40 times better than reality: not within
-    plot = tmp_path / "sim_vs_real.png"
+    plot = tmp_path / "img" / "sim_vs_real.png"  # its folder made
     pairs = [f"{near}={tmp_path / 'near'}", f"{far}={tmp_path / 'far'}"]
     assert main(["report", "--sim-vs-real", *pairs, "--plot", str(plot)]) == 0
     text = capsys.readouterr().out
