@@ -24,9 +24,14 @@ REPO = Path(__file__).resolve().parents[3]
 CLIP = REPO / "tests/data/real/tum_fr1_rpy_clip"
 MANIFEST = REPO / "config/real_sequences.toml"
 SNAPSHOTS = Path("/work/.mirror")
+MISSING_SNAPSHOTS = sorted(
+    {e.repository for e in read_manifest(MANIFEST)}
+    - {p.name.replace("+", "/", 1) for p in SNAPSHOTS.glob("*+*") if p.is_dir()}
+)
 needs_snapshots = pytest.mark.skipif(
-    not (SNAPSHOTS.is_dir() and shutil.which("git")),
-    reason="the git snapshots of the real sequences (/work/.mirror) are only on the lab machine",
+    not shutil.which("git") or bool(MISSING_SNAPSHOTS),
+    reason="the git snapshots of the real sequences are only on the lab machine: "
+    f"{', '.join(MISSING_SNAPSHOTS) or 'git'} not in {SNAPSHOTS}",
 )
 
 
