@@ -218,8 +218,8 @@ class VoMap:
         tracked points no keyframe sees any more become candidates again (anchored at the
         newest keyframe, ``xy_of(mask)`` giving the normalised coordinates of the tracks of a
         mask there; ``tracks`` changed). Only those tracks are undistorted: the Newton
-        undistortion stops on the batch's largest step, so another batch would change the
-        last bits, and through the map every later pose."""
+        undistortion stops on its batch's largest step, so a batch with other tracks in it
+        could change their last bits."""
         while len(self.keyframes) > max_keyframes:
             self.keyframes.pop(0)
         seen: set[int] = set()
