@@ -4,7 +4,8 @@ as reality"), or any other set of flights compared on the published method.
 
 A row: the published method's (M-MSCwK) metric ATE as % of the path per seed and their mean,
 the VO's resets per seed (eval.json ``vo_resets``; "?" for a folder written before it was
-kept), the baselines' mean ATE % of the path, and whether the mean beats each baseline's.
+kept), the baselines' mean ATE % of the path, and whether the mean beats each baseline's; a
+seed whose VO never gave a pose shows "no pose" and is left out of the means.
 """
 
 from __future__ import annotations
@@ -32,11 +33,22 @@ class FlightRow:
 
     @property
     def mean_pct(self) -> float:
-        return float(np.mean(self.ate_pct))
+        """The mean over the seeds with an estimate (NaN: none has one)."""
+        return _mean(self.ate_pct)
 
     def beats(self, baseline: str) -> bool:
         """Whether the published method's mean ATE is below the baseline's mean."""
-        return self.mean_pct < float(np.mean(self.baseline_pct[baseline]))
+        return self.mean_pct < _mean(self.baseline_pct[baseline])
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def _pct(value: float) -> str:
+    """A percentage of the path, or "no pose" for a flight the VO never tracked."""
+    return f"{value:.3f}" if np.isfinite(value) else "no pose"
 
 
 def name_and_seed(folder: Path) -> tuple[str, int] | None:
@@ -63,12 +75,13 @@ def read_rows(dirs: list[Path]) -> list[FlightRow]:
     for (name, seed), d, methods in sorted(found, key=lambda x: x[0][1]):
         row = rows.setdefault(name, FlightRow(name))
         row.seeds.append(seed)
-        row.ate_pct.append(float(methods[PUBLISHED]["ate_pct"]))
+        row.ate_pct.append(float(methods[PUBLISHED]["ate_pct"]) if methods else float("nan"))
         honest = d / "eval.json"
         resets = json.loads(honest.read_text()).get("vo_resets") if honest.exists() else None
         row.resets.append(None if resets is None else int(resets))
         for b in BASELINES:
-            row.baseline_pct.setdefault(b, []).append(float(methods[b]["ate_pct"]))
+            pct = float(methods[b]["ate_pct"]) if b in methods else float("nan")
+            row.baseline_pct.setdefault(b, []).append(pct)
     order = [name_and_seed(d) for d in dirs]
     names = list(dict.fromkeys(k[0] for k in order if k is not None and k[0] in rows))
     return [rows[n] for n in names]
@@ -83,9 +96,9 @@ def rows_table(rows: list[FlightRow], labels: dict[str, str] | None = None) -> s
     )
     out = [head, "|---|---|---|---|---|---|---|"]
     for r in rows:
-        per_seed = " / ".join(f"{v:.3f}" for v in r.ate_pct)
+        per_seed = " / ".join(_pct(v) for v in r.ate_pct)
         resets = " / ".join("?" if n is None else str(n) for n in r.resets)
-        base = " / ".join(f"{np.mean(r.baseline_pct[b]):.3f}" for b in BASELINES)
+        base = " / ".join(_pct(_mean(r.baseline_pct[b])) for b in BASELINES)
         beats = ", ".join("yes" if r.beats(b) else "NO" for b in BASELINES)
         seeds = ", ".join(str(s) for s in r.seeds)
         label = labels.get(r.name, r.name)

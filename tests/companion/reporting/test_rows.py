@@ -43,6 +43,11 @@ def test_folders_group_by_name_with_seeds_in_order(tmp_path: Path) -> None:
     assert rs.mean_pct == pytest.approx(0.20)
     assert not rs.beats("B8 per-frame") and rs.beats("B7 window-ML")  # 0.20 vs 0.20: not below
     assert lens.resets == [None] and not lens.beats("B9 plane")
+    lost = _flight(tmp_path, "lens-2", {}, 49)
+    (lost / "scale_metrics.json").write_text("[]")  # the VO never gave a pose
+    lens = read_rows([dirs[2], lost])[0]
+    assert lens.seeds == [1, 2] and lens.mean_pct == pytest.approx(0.45)
+    assert "| lens | 1, 2 | 0.450 / no pose | 0.450 % | ? / 49 |" in rows_table([lens])
     text = rows_table(rows, {"rs": "rolling shutter"})
     assert "| rolling shutter | 1, 3 | 0.100 / 0.300 | 0.200 % | 0 / 2 |" in text
     assert "| lens | 1 | 0.450 | 0.450 % | ? |" in text and text.count("\n") == 3
