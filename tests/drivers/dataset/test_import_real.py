@@ -42,7 +42,10 @@ def test_eval_on_the_committed_clip_tracks_through_its_rotation(tmp_path: Path) 
     of the path; M-MSCwK over 87 frames after the 5 s settling: SE(3) ATE 0.049 m. Its
     Sim(3) scale (7.7) is not asserted: the camera turns about a point that moves a few
     centimetres, so the metric scale of the clip's translation is not observable (before the
-    rotation hold: 74 % tracked, 13 resets)."""
+    rotation hold: 74 % tracked, 13 resets). On an AMD EPYC the same commit (04e5b3e) gives
+    a raw VO ATE of 11.0 %: OpenCV's SIMD path differs by CPU and a VO amplifies the last
+    bits (docs/RESULTS.md). 0.73 m of path makes that centimetres; the bound is set to catch a
+    VO that loses the rotation (tens of % and resets), not one draw against another."""
     out = tmp_path / "eval"
     argv = ["eval", str(CLIP), "--methods", "all", "--out", str(out), "--no-progress"]
     assert main(argv) == 0
@@ -50,7 +53,7 @@ def test_eval_on_the_committed_clip_tracks_through_its_rotation(tmp_path: Path) 
     assert report["ground_truth"] is True and report["distance_sensors"] == [0, 1, 2, 3]
     vo = report["vo"]
     assert vo["frames"] == 240 and vo["tracking_ratio"] >= 0.95 and vo["resets"] <= 2
-    assert np.isfinite(vo["ate_sim3_pct"]) and vo["ate_sim3_pct"] < 10.0
+    assert np.isfinite(vo["ate_sim3_pct"]) and vo["ate_sim3_pct"] < 15.0
     methods = {m["method"]: m for m in report["methods"]}
     mmscwk = methods["M-MSCwK"]
     assert mmscwk["frames"] >= 60
