@@ -248,7 +248,7 @@ def _camera_text(cam: dict[str, Any]) -> str:
 
 
 def _camera_check(vo: dict[str, Any]) -> str:
-    """The camera's clock and focal length as the pipeline checks them in flight."""
+    """The camera's clock and lens (focal length, k1) as the pipeline checks them in flight."""
     clock = "stamps steady"
     if vo.get("frames_retimed"):
         clock = (
@@ -256,7 +256,8 @@ def _camera_check(vo: dict[str, Any]) -> str:
             f"{vo['frames_retimed']} frames re-timed"
         )
     pairs = vo.get("focal_pairs") or 0
-    focal = f"focal x{vo['focal_ratio']:.3f} over {pairs} pairs" if pairs else "focal unchecked"
+    k1 = f", k1 {vo['k1_delta']:+.3f}" if vo.get("k1_delta") is not None else ""
+    focal = f"focal x{vo['focal_ratio']:.3f}{k1} over {pairs} pairs" if pairs else "lens unchecked"
     return f"{clock}  {focal}" + (f"  {vo['lens_warning']}" if vo.get("lens_warning") else "")
 
 

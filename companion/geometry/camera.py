@@ -54,12 +54,14 @@ class CameraModel:
         """True when any distortion coefficient is non-zero."""
         return bool(np.any(self.dist_coeffs != 0.0))
 
-    def distort(self, xy_norm: ArrayLike) -> F64:
-        """Undistorted normalised coordinates (N, 2) -> distorted normalised (N, 2)."""
+    def distort(self, xy_norm: ArrayLike, k1: F64 | None = None) -> F64:
+        """Undistorted normalised coordinates (N, 2) -> distorted normalised (N, 2); ``k1``
+        (N,), when given, replaces the model's k1 point by point."""
         p = np.asarray(xy_norm, dtype=np.float64).reshape(-1, 2)
         x, y = p[:, 0], p[:, 1]
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        k1_ = self.k1 if k1 is None else k1
+        radial = 1.0 + r2 * (k1_ + r2 * (self.k2 + r2 * self.k3))
         xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return np.stack([xd, yd], axis=1)
@@ -93,24 +95,29 @@ class CameraModel:
                 dtype=np.bool_,
             )
 
-    def undistort_normalized(self, xy_dist: ArrayLike, iterations: int = 20) -> F64:
-        """Distorted normalised (N, 2) -> undistorted normalised (N, 2) by Newton's method.
+    def undistort_normalized(
+        self, xy_dist: ArrayLike, iterations: int = 20, k1: F64 | None = None
+    ) -> F64:
+        """Distorted normalised (N, 2) -> undistorted normalised (N, 2) by Newton's method;
+        ``k1`` (N,), when given, replaces the model's k1 point by point (the lens check's
+        candidate lenses, companion/vo/focal_check.py).
 
         Converges to ~1e-14 for the distortion of real lenses within their image; raises
         GeometryError when it does not converge (distortion model not invertible there).
         """
         d = np.asarray(xy_dist, dtype=np.float64).reshape(-1, 2)
-        if not self.has_distortion:
+        if not self.has_distortion and k1 is None:
             return d.copy()
         # x and y as their own contiguous arrays (a tenth less time than columns of (N, 2));
         # the arithmetic is the same, term by term
         d_x, d_y = d[:, 0].copy(), d[:, 1].copy()
         x, y = d_x.copy(), d_y.copy()
-        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+        k1_: float | F64 = self.k1 if k1 is None else k1
+        k2, k3, p1, p2 = self.k2, self.k3, self.p1, self.p2
         for _ in range(iterations if len(d) else 0):
             r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+            radial = 1.0 + r2 * (k1_ + r2 * (k2 + r2 * k3))
+            dradial = k1_ + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
             fx_ = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - d_x
             fy_ = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - d_y
             j11 = radial + x * dradial * 2 * x + 2 * p1 * y + p2 * 6 * x
@@ -126,7 +133,7 @@ class CameraModel:
             if float(np.maximum(np.abs(step_x).max(), np.abs(step_y).max())) < 1e-15:
                 break
         p = np.column_stack([x, y])
-        residual = self.distort(p) - d
+        residual = self.distort(p, k1) - d
         if not np.all(np.isfinite(residual)) or float(np.max(np.abs(residual), initial=0)) > 1e-9:
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return p

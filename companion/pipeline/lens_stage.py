@@ -1,6 +1,7 @@
-"""The in-flight check of the camera's focal length (companion/vo/focal_check.py): each VO
-keyframe's tracked pixels with the autopilot's attitude at its time, the ratio
-f_true / f_file over a window of keyframe pairs, and one warning once it is confidently off."""
+"""The in-flight check of the camera's lens (companion/vo/focal_check.py): each VO keyframe's
+tracked pixels with the autopilot's attitude at its time, the focal ratio f_true / f_file and
+the k1 error k1_true - k1_file over a window of keyframe pairs, and one warning (with the
+values that fit) once either is confidently off."""
 
 from __future__ import annotations
 
@@ -49,7 +50,7 @@ class LensStage:
         self._waiting.clear()
         est = self.check.estimate()
         if self.warning is None and est is not None:
-            self.warning = focal_warning(est)
+            self.warning = focal_warning(est, camera=self.check.camera)
             if self.warning is not None:
                 log.warning("%s", self.warning)
         return True

@@ -152,11 +152,12 @@ class Report:
                 "held_for_attitude": p.held_for_attitude,
                 "heading_restarts": p.heading_restarts,
                 # the camera's clock (frames re-timed when its stamps jitter) and its lens: the
-                # focal length checked in flight against the autopilot's rotation
+                # focal length and k1 checked in flight against the autopilot's rotation
                 "frames_retimed": p.clock.retimed if p.clock is not None else 0,
                 "stamp_jitter_ms": p.clock.jitter_rms_ms if p.clock is not None else None,
                 "focal_ratio": p.lens_focal_ratio,
                 "focal_pairs": p.lens_focal_samples,
+                "k1_delta": p.lens_k1_delta,
                 "lens_warning": p.lens_warning,
             },
             "scale": {

@@ -1,5 +1,5 @@
-"""Is the camera's focal length the one its file says? Tracked pixels against the autopilot's
-rotation, in flight (issue "Real sequences: ... the faults that real cameras bring").
+"""Are the camera's focal length and k1 the ones its file says? Tracked pixels against the
+autopilot's rotation, in flight (issue "Real sequences: ... the faults that real cameras bring").
 
 The idea: a rotation of the camera by theta moves the image by f_true * theta pixels, so with a
 wrong focal f_assumed the rotation seen in the image is (f_true / f_assumed) * theta, and the
@@ -30,17 +30,29 @@ scales with the focal, a translation's does not. The candidate focal divides the
 before the undistortion, as a camera with that focal and the file's distortion would: that
 second-order signal is of the order of the distortion's, and scaling the file's undistorted
 rays by 1/q instead found only a third of the error (0.990 and 1.036 for 0.909 and 1.111
-on the figure8). The estimate of one pair is the q of least
-cost (a log grid, refined by a parabola); the flight's is the median over pairs with enough
-rotation across the optical axis (``min_tilt_deg``), with the spread 1.4826 * MAD.
+on the figure8).
 
-q estimates f_true / f_assumed: the factor to multiply [camera] fx fy by. Measured
-2026-11-28 through the whole pipeline (``Pipeline.status().lens_focal_ratio``, the camera
-file's fx fy = 1.1, 0.9 and 1.0 x the renderer's): a 15 s figure8 over hills 0.920, 1.118,
-1.008 (true 0.909, 1.111, 1.000; 130-161 pairs, spread 0.06-0.075); a 30 s lawnmower over
-the urban terrain 0.919, 1.109, 1.005 (103-121 pairs). A rotation about the optical axis
-carries nothing, so the check needs roll and pitch (a multirotor's accelerations); a hover
-gives few pairs and no verdict.
+Because the signal is of the order of the distortion's, an error in k1 reads as one in the
+focal when the focal is searched alone: a lens rendered with k1 0.02 above the file's read
+f_true / f_file = 1.137 over a 40 s lawnmower over hills (2026-11-29), and warned "39 % too
+small" after 28 pairs. So each candidate is a lens (q, k1_delta): the focal ratio and the
+error of k1 (k1_true - k1_file; the file's k2, k3, p1, p2 kept), searched together. A
+coarse grid (15 log-spaced ratios in 0.7..1.4 by 9 k1 errors in -0.1..0.1), a parabola
+along each axis through its least, a 3 x 3 grid at a third of its steps around that, and a
+parabola again. The estimate of one pair is that lens; the flight's is the medians over
+pairs with enough rotation across the optical axis (``min_tilt_deg``; per keyframe the two
+most turned earlier ones), with the spreads 1.4826 * MAD.
+
+q estimates f_true / f_assumed: the factor to multiply [camera] fx fy by; k1_delta what to
+add to the file's k1. Measured 2026-11-29 on the keyframes of 40 s hills lawnmower flights
+(seed 1, the renderer's lens off the file's): k1 +0.02 -> 1.007 and +0.0207 (85 pairs);
+focal +10 % -> 1.100 and -0.0002 (97); the file's own lens -> 1.001 and -0.0013 (89); about
+5 ms a keyframe on an AMD EPYC core. Before the joint search (the focal alone, 2026-11-28,
+``Pipeline.status().lens_focal_ratio``, the camera file's fx fy = 1.1, 0.9 and 1.0 x the
+renderer's): a 15 s figure8 over hills 0.920, 1.118, 1.008 (true 0.909, 1.111, 1.000); a
+30 s lawnmower over the urban terrain 0.919, 1.109, 1.005. A rotation about the optical
+axis carries nothing, so the check needs roll and pitch (a multirotor's accelerations); a
+hover gives few pairs and no verdict.
 """
 
 from __future__ import annotations
@@ -58,23 +70,30 @@ from companion.types import F64
 I64 = NDArray[np.int64]
 
 Q_MIN, Q_MAX = 0.7, 1.4  # the focal ratios searched
-Q_STEPS = 29  # log grid, 2.5 % apart, then a parabola through the least cost and neighbours
-MAX_POINTS = 120  # points of a pair used (the cost is a mean: more only costs time)
+Q_STEPS = 15  # the coarse log grid over them, 5 % apart
+K1_MAX = 0.1  # the k1 errors searched: -K1_MAX..K1_MAX
+K1_STEPS = 9  # the coarse grid over them, 0.025 apart
+FINE_STEPS = 3  # the fine grid: 3 x 3 at 1 / FINE_STEPS of the coarse steps, then a parabola
+MAX_POINTS = 60  # points of a pair used (the cost is a mean: more only costs time)
 
 
 @dataclass(frozen=True, slots=True)
 class FocalRatio:
-    """The flight's estimate of f_true / f_assumed: the median ``ratio`` over ``samples``
-    keyframe pairs, ``spread`` = 1.4826 * their median absolute deviation, ``sigma`` the
-    median's standard error (1.2533 * spread / sqrt(samples)); ``at_edge``: the pairs whose
-    best focal lay at an end of the search (Q_MIN or Q_MAX): no focal in the range fits them,
-    so the lens model or the mount is wrong rather than the focal length alone."""
+    """The flight's estimate of the lens: the median focal ``ratio`` f_true / f_assumed and
+    the median ``k1_delta`` = k1_true - k1_assumed over ``samples`` keyframe pairs;
+    ``spread``, ``k1_spread`` = 1.4826 * their median absolute deviations, ``sigma``,
+    ``k1_sigma`` the medians' standard errors (1.2533 * spread / sqrt(samples));
+    ``at_edge``: the pairs whose best lens lay at an end of the search (Q_MIN, Q_MAX or
+    +-K1_MAX): no lens in the range fits them, so the lens model or the mount is wrong."""
 
     ratio: float
     spread: float
     sigma: float
     samples: int
     at_edge: int = 0
+    k1_delta: float = 0.0
+    k1_spread: float = 0.0
+    k1_sigma: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,6 +107,16 @@ class KeyframeView:
     R_world_cam: F64
     point_ids: I64
     pixels: F64
+
+
+@dataclass(frozen=True, slots=True)
+class PairLens:
+    """One keyframe pair's best lens: focal ratio ``q`` = f_true / f_assumed, ``k1_delta`` =
+    k1_true - k1_assumed, ``at_edge`` when either lies at an end of its search."""
+
+    q: float
+    k1_delta: float
+    at_edge: bool
 
 
 def epipolar_costs(x1: F64, x2: F64, R_c2_c1: F64) -> F64:
@@ -111,31 +140,68 @@ def epipolar_costs(x1: F64, x2: F64, R_c2_c1: F64) -> F64:
     return costs
 
 
-def pair_ratio(camera: CameraModel, px1: F64, px2: F64, R_c2_c1: F64) -> float | None:
-    """f_true / f_assumed from the pixels (N, 2) of N points in two views and the rotation
-    R_c2_c1 (3, 3) between them; None when a candidate's rays cannot be computed. At most
-    MAX_POINTS points (evenly spaced in the list) are used; every candidate's rays come from
-    one undistortion call."""
+def lens_costs(camera: CameraModel, centred: F64, R_c2_c1: F64, qs: F64, k1_deltas: F64) -> F64:
+    """The pixel cost (C,) [px^2] of C candidate lenses, focal ratio ``qs`` (C,) and k1 error
+    ``k1_deltas`` (C,), for the centred normalised pixels (2 M, 2) of M points in two views
+    (the first M, then the second M). Every candidate's rays come from one undistortion call:
+    the candidate divides the pixels before its distortion is undone, as a camera with that
+    focal and that k1 would. Raises GeometryError when a candidate's rays cannot be found."""
+    n, m = len(qs), len(centred) // 2
+    distorted = (centred[None, :, :] / qs[:, None, None]).reshape(-1, 2)  # (C 2 M, 2)
+    k1 = np.repeat(camera.k1 + k1_deltas, 2 * m)
+    rays = camera.undistort_normalized(distorted, k1=k1).reshape(n, 2, m, 2)
+    homogeneous = np.concatenate([rays, np.ones((n, 2, m, 1))], axis=3)
+    pixel_area = camera.fx * camera.fy * qs * qs  # normalised units^2 -> px^2 per candidate
+    costs: F64 = epipolar_costs(homogeneous[:, 0], homogeneous[:, 1], R_c2_c1) * pixel_area
+    return costs
+
+
+def _interior_step(costs: F64, k: int) -> float:
+    """Where a parabola through ``costs[k - 1 : k + 2]`` (equally spaced) has its least, in
+    steps from ``k`` (within +-0.5; 0 at an end of ``costs`` or when it is not convex)."""
+    if not 0 < k < len(costs) - 1:
+        return 0.0
+    c0, c1, c2 = float(costs[k - 1]), float(costs[k]), float(costs[k + 1])
+    curvature = c0 - 2.0 * c1 + c2
+    return float(np.clip(0.5 * (c0 - c2) / curvature, -0.5, 0.5)) if curvature > 0 else 0.0
+
+
+def pair_lens(camera: CameraModel, px1: F64, px2: F64, R_c2_c1: F64) -> PairLens | None:
+    """The focal ratio and k1 error that best explain the pixels (N, 2) of N points in two
+    views with the rotation R_c2_c1 (3, 3) between them; None when a candidate's rays cannot
+    be computed. A coarse grid (Q_STEPS log-spaced ratios by K1_STEPS k1 errors), a finer
+    one around its least (FINE_STEPS a side, half the coarse steps), then a parabola along
+    each axis. At most MAX_POINTS points (evenly spaced in the list) are used."""
     take = np.unique(np.linspace(0, len(px1) - 1, min(len(px1), MAX_POINTS)).astype(np.int64))
     px = np.concatenate([px1[take], px2[take]])  # (2 M, 2)
-    qs = np.exp(np.linspace(np.log(Q_MIN), np.log(Q_MAX), Q_STEPS))
     centred = (px - np.array([camera.cx, camera.cy])) / np.array([camera.fx, camera.fy])
-    distorted = (centred[None, :, :] / qs[:, None, None]).reshape(-1, 2)  # (Q 2 M, 2)
+    log_q = np.linspace(np.log(Q_MIN), np.log(Q_MAX), Q_STEPS)
+    k1s = np.linspace(-K1_MAX, K1_MAX, K1_STEPS)
     try:
-        rays = camera.undistort_normalized(distorted).reshape(Q_STEPS, 2, len(take), 2)
+        grid_q, grid_k = np.meshgrid(log_q, k1s, indexing="ij")
+        costs = lens_costs(camera, centred, R_c2_c1, np.exp(grid_q.ravel()), grid_k.ravel())
+        coarse = costs.reshape(grid_q.shape)
+        i, j = np.unravel_index(int(np.argmin(coarse)), coarse.shape)
+        at_edge = i in (0, Q_STEPS - 1) or j in (0, K1_STEPS - 1)
+        step_q, step_k = log_q[1] - log_q[0], k1s[1] - k1s[0]
+        centre_q = log_q[i] + _interior_step(coarse[:, j], int(i)) * step_q
+        centre_k = k1s[j] + _interior_step(coarse[i, :], int(j)) * step_k
+        step_q, step_k = step_q / FINE_STEPS, step_k / FINE_STEPS
+        offsets = np.arange(-1.0, 2.0)
+        fine_q, fine_k = np.meshgrid(
+            centre_q + offsets * step_q, centre_k + offsets * step_k, indexing="ij"
+        )
+        fine = lens_costs(camera, centred, R_c2_c1, np.exp(fine_q.ravel()), fine_k.ravel())
     except GeometryError:
         return None
-    homogeneous = np.concatenate([rays, np.ones((Q_STEPS, 2, len(take), 1))], axis=3)
-    pixel_area = camera.fx * camera.fy * qs * qs  # normalised units^2 -> px^2 per candidate
-    costs = epipolar_costs(homogeneous[:, 0], homogeneous[:, 1], R_c2_c1) * pixel_area
-    i = int(np.argmin(costs))
-    if i == 0 or i == Q_STEPS - 1:
-        return float(qs[i])
-    c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
-    curvature = c0 - 2.0 * c1 + c2
-    step = 0.5 * (c0 - c2) / curvature if curvature > 0 else 0.0
-    log_step = np.log(qs[1] / qs[0])
-    return float(np.exp(np.log(qs[i]) + float(np.clip(step, -0.5, 0.5)) * log_step))
+    fine = fine.reshape(fine_q.shape)
+    a, b = np.unravel_index(int(np.argmin(fine)), fine.shape)
+    log_best = fine_q[a, b] + _interior_step(fine[:, b], int(a)) * step_q
+    q = float(np.exp(np.clip(log_best, np.log(Q_MIN), np.log(Q_MAX))))
+    k1_delta = float(
+        np.clip(fine_k[a, b] + _interior_step(fine[a, :], int(b)) * step_k, -K1_MAX, K1_MAX)
+    )
+    return PairLens(q, k1_delta, bool(at_edge))
 
 
 def tilt_angle_rad(R_c2_c1: F64) -> float:
@@ -159,10 +225,11 @@ def tilt_angle_rad(R_c2_c1: F64) -> float:
 
 
 class FocalCheck:
-    """The focal ratio over a window of keyframe pairs. Feed keyframes with :meth:`add`; each
-    is paired with up to ``pairs_per_keyframe`` earlier keyframes of its map between
+    """The lens over a window of keyframe pairs. Feed keyframes with :meth:`add`; each is
+    paired with up to ``pairs_per_keyframe`` earlier keyframes of its map between
     ``min_age_s`` and ``max_age_s`` older that share at least ``min_points`` points and are
-    turned at least ``min_tilt_deg`` across the optical axis from it (by the autopilot)."""
+    turned at least ``min_tilt_deg`` across the optical axis from it (by the autopilot), the
+    most turned first (the rotation is the signal)."""
 
     def __init__(
         self,
@@ -172,10 +239,10 @@ class FocalCheck:
         min_points: int = 30,
         min_age_s: float = 0.4,
         max_age_s: float = 2.0,
-        pairs_per_keyframe: int = 3,
+        pairs_per_keyframe: int = 2,
     ) -> None:
         self.camera = camera
-        self.ratios: deque[float] = deque(maxlen=window)
+        self.pairs: deque[PairLens] = deque(maxlen=window)
         self.min_tilt_rad = float(np.radians(min_tilt_deg))
         self.min_points = min_points
         self.min_age_us = int(min_age_s * 1e6)
@@ -185,61 +252,102 @@ class FocalCheck:
 
     def add(self, view: KeyframeView) -> int:
         """Pair a new keyframe with earlier ones; returns the pairs it gave."""
-        given = 0
-        for old in reversed(self._kept):
-            if given >= self.pairs_per_keyframe:
-                break
+        candidates: list[tuple[float, KeyframeView, F64]] = []
+        for old in self._kept:
             age_us = view.time_us - old.time_us
-            if old.segment != view.segment or age_us > self.max_age_us:
-                continue
-            if age_us < self.min_age_us:
+            if old.segment != view.segment or not self.min_age_us <= age_us <= self.max_age_us:
                 continue
             R_c2_c1 = view.R_world_cam.T @ old.R_world_cam
-            if tilt_angle_rad(R_c2_c1) < self.min_tilt_rad:
-                continue
+            tilt_rad = tilt_angle_rad(R_c2_c1)
+            if tilt_rad >= self.min_tilt_rad:
+                candidates.append((tilt_rad, old, R_c2_c1))
+        candidates.sort(key=lambda c: -c[0])
+        given = 0
+        for _, old, R_c2_c1 in candidates:
+            if given >= self.pairs_per_keyframe:
+                break
             common, i1, i2 = np.intersect1d(old.point_ids, view.point_ids, return_indices=True)
             if len(common) < self.min_points:
                 continue
-            q = pair_ratio(self.camera, old.pixels[i1], view.pixels[i2], R_c2_c1)
-            if q is not None:
-                self.ratios.append(q)
+            pair = pair_lens(self.camera, old.pixels[i1], view.pixels[i2], R_c2_c1)
+            if pair is not None:
+                self.pairs.append(pair)
                 given += 1
         self._kept.append(view)
         return given
 
     def estimate(self) -> FocalRatio | None:
-        """The median ratio, its spread and standard error over the window; None before any."""
-        if not self.ratios:
+        """The median ratio and k1 error, their spreads and standard errors over the window;
+        None before any pair."""
+        if not self.pairs:
             return None
-        q = np.asarray(self.ratios, dtype=np.float64)
-        median = float(np.median(q))
-        spread = 1.4826 * float(np.median(np.abs(q - median)))
-        sigma = 1.2533 * spread / float(np.sqrt(len(q)))
-        edge = int(np.sum((q <= Q_MIN * (1 + 1e-9)) | (q >= Q_MAX * (1 - 1e-9))))
-        return FocalRatio(median, spread, sigma, len(q), edge)
+        q = np.array([p.q for p in self.pairs])
+        k1 = np.array([p.k1_delta for p in self.pairs])
+        edge = sum(p.at_edge for p in self.pairs)
+        (ratio, spread, sigma), (k1_delta, k1_spread, k1_sigma) = (
+            _median_stats(q),
+            _median_stats(k1),
+        )
+        return FocalRatio(ratio, spread, sigma, len(q), edge, k1_delta, k1_spread, k1_sigma)
 
 
-def focal_warning(est: FocalRatio, threshold: float = 0.05, min_samples: int = 20) -> str | None:
-    """The operator's warning once the ratio is confidently off by more than ``threshold``
-    (|ratio - 1| - 2 sigma > threshold over at least ``min_samples`` pairs), else None."""
+def _median_stats(values: F64) -> tuple[float, float, float]:
+    """The median of ``values`` (N,), 1.4826 * their median absolute deviation, and the
+    median's standard error 1.2533 * that / sqrt(N)."""
+    median = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - median)))
+    return median, spread, 1.2533 * spread / float(np.sqrt(len(values)))
+
+
+K1_THRESHOLD = 0.01  # a k1 error warned of (about 3 px at the corner of a 640 x 480 image)
+
+
+def focal_warning(
+    est: FocalRatio,
+    threshold: float = 0.05,
+    min_samples: int = 20,
+    k1_threshold: float = K1_THRESHOLD,
+    camera: CameraModel | None = None,
+) -> str | None:
+    """The operator's warning once the focal ratio is confidently off by more than
+    ``threshold`` (|ratio - 1| - 2 sigma > threshold) or k1 by more than ``k1_threshold``
+    (|k1_delta| - 2 k1_sigma > k1_threshold), over at least ``min_samples`` pairs; else None.
+    With the file's ``camera``, the values that fit the flight are named."""
     if est.samples < min_samples:
         return None
     if 2 * est.at_edge > est.samples:
         return (
-            f"the autopilot's rotation fits the tracked pixels at no focal length within "
-            f"x{Q_MIN:.2f}..x{Q_MAX:.2f} of the file's in {est.at_edge} of {est.samples} keyframe "
-            f"pairs: check [camera] fx fy and dist (a lens model that is wrong) and the camera "
-            f"mount"
+            f"the autopilot's rotation fits the tracked pixels with no lens within "
+            f"x{Q_MIN:.2f}..x{Q_MAX:.2f} of the file's focal length and +-{K1_MAX:.2f} of its "
+            f"k1 in {est.at_edge} of {est.samples} keyframe pairs: check [camera] fx fy and "
+            f"dist (a lens model that is wrong) and the camera mount"
         )
-    if abs(est.ratio - 1.0) - 2.0 * est.sigma <= threshold:
-        return None
-    way = "too small" if est.ratio > 1.0 else "too large"
-    pct = abs(est.ratio - 1.0) * 100.0
-    return (
-        f"camera focal length looks {pct:.1f} % {way} (autopilot rotation against the tracked "
-        f"pixels: f_true / f_file = {est.ratio:.3f} +- {est.spread:.3f} over {est.samples} "
-        f"keyframe pairs); check [camera] fx fy"
-    )
+    said = []
+    if abs(est.ratio - 1.0) - 2.0 * est.sigma > threshold:
+        way = "too small" if est.ratio > 1.0 else "too large"
+        said.append(
+            f"camera focal length looks {abs(est.ratio - 1.0) * 100.0:.1f} % {way} (autopilot "
+            f"rotation against the tracked pixels: f_true / f_file = {est.ratio:.3f} +- "
+            f"{est.spread:.3f} over {est.samples} keyframe pairs); check [camera] fx fy"
+            + (
+                f" (the flight fits fx {camera.fx * est.ratio:.1f}, fy {camera.fy * est.ratio:.1f})"
+                if camera is not None
+                else ""
+            )
+        )
+    if abs(est.k1_delta) - 2.0 * est.k1_sigma > k1_threshold:
+        way = "too small" if est.k1_delta > 0.0 else "too large"
+        said.append(
+            f"camera distortion k1 looks {abs(est.k1_delta):.3f} {way} (autopilot rotation "
+            f"against the tracked pixels: k1_true - k1_file = {est.k1_delta:+.3f} +- "
+            f"{est.k1_spread:.3f} over {est.samples} keyframe pairs); check [camera] dist"
+            + (
+                f" (the flight fits k1 {camera.k1 + est.k1_delta:.3f})"
+                if camera is not None
+                else ""
+            )
+        )
+    return "; ".join(said) if said else None
 
 
 def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:
@@ -249,7 +357,8 @@ def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:
     if est is not None:
         line = (
             f"lens focal ratio (f_true / f_file): {est.ratio:.3f} (spread {est.spread:.3f}, "
-            f"+- {est.sigma:.3f}) over {est.samples} keyframe pairs"
+            f"+- {est.sigma:.3f}), k1 error (k1_true - k1_file): {est.k1_delta:+.4f} (spread "
+            f"{est.k1_spread:.4f}, +- {est.k1_sigma:.4f}) over {est.samples} keyframe pairs"
             + (f", {est.at_edge} at an end of the search" if est.at_edge else "")
         )
     return line if warning is None else f"{line}\nwarning: {warning}"

@@ -41,6 +41,7 @@ SAMPLE: dict[str, Any] = {
         "stamp_jitter_ms": 15.7,
         "focal_ratio": 0.914,
         "focal_pairs": 134,
+        "k1_delta": -0.004,
         "lens_warning": "camera focal length looks 8.5 % too large",
     },
     "scale": {

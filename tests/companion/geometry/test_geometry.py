@@ -138,6 +138,26 @@ def test_undistortion_matches_opencv_and_inverts_projection(cam: CameraModel) ->
     assert np.allclose(np.linalg.norm(rays, axis=1), 1.0)
 
 
+@pytest.mark.parametrize("cam", CAMERAS)
+def test_a_k1_per_point_is_the_lens_with_that_k1(cam: CameraModel) -> None:
+    """The lens check's candidates (companion/vo/focal_check.py): undistorting and distorting
+    with k1 given point by point is, for each point, what the model with that k1 gives; the
+    lens without distortion is not short-cut when a k1 is given."""
+    from dataclasses import replace
+
+    xy = np.column_stack([RNG.uniform(-0.6, 0.6, 300), RNG.uniform(-0.45, 0.45, 300)])
+    k1 = np.repeat(cam.k1 + np.array([-0.05, 0.0, 0.04]), 100)
+    ours = cam.undistort_normalized(xy, k1=k1)
+    distorted = cam.distort(ours, k1)
+    assert np.abs(distorted - xy).max() < 1e-12
+    for k, value in enumerate(cam.k1 + np.array([-0.05, 0.0, 0.04])):
+        alone = replace(cam, k1=float(value))
+        rows = slice(100 * k, 100 * (k + 1))
+        assert np.abs(alone.undistort_normalized(xy[rows]) - ours[rows]).max() < 1e-12
+        assert np.abs(alone.distort(ours[rows]) - distorted[rows]).max() < 1e-12
+    assert not np.allclose(ours[:100], xy[:100])  # k1 -0.05 moved them, distortion or not
+
+
 def test_undistortion_of_no_point_and_of_a_nan_pixel() -> None:
     """An empty set is an empty answer (no iteration); a set with a NaN pixel raises instead
     of returning coordinates (a folding lens: companion/geometry/lens_check.py)."""

@@ -82,7 +82,7 @@ def test_cli_status_table_and_json(tmp_path, capsys) -> None:
         "disabled",
         "PX4 stamps on arrival: poses sent as of sending (12)",
         "stamps jitter 15.7 ms rms: 412 frames re-timed",
-        "focal x0.914 over 134 pairs  camera focal length looks 8.5 % too large",
+        "focal x0.914, k1 -0.004 over 134 pairs  camera focal length looks 8.5 % too large",
     ):
         assert text in table, text
 

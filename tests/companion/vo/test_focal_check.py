@@ -1,5 +1,6 @@
-"""The focal length against the autopilot's rotation (companion/vo/focal_check.py), on seeded
-synthetic views: the pair estimate recovers f_true / f_file, a rotation about the optical axis
+"""The focal length and k1 against the autopilot's rotation (companion/vo/focal_check.py), on
+seeded synthetic views: the pair estimate recovers f_true / f_file and k1_true - k1_file
+apart (an error in k1 is not read as one in the focal), a rotation about the optical axis
 counts for nothing, and the warning needs a confident estimate."""
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from companion.vo.focal_check import (
     KeyframeView,
     focal_summary,
     focal_warning,
-    pair_ratio,
+    pair_lens,
     tilt_angle_rad,
 )
 
@@ -42,12 +43,27 @@ def _views(seed: int, tilt_deg: float = 3.0) -> tuple[np.ndarray, np.ndarray, np
     return uv1[keep] + noise[0], uv2[keep] + noise[1], R_c2_c1
 
 
-@pytest.mark.parametrize("file_over_true", [1.1, 1.0, 0.9])
-def test_a_pair_recovers_the_focal_ratio(file_over_true: float) -> None:
-    file_model = replace(TRUE, fx=TRUE.fx * file_over_true, fy=TRUE.fy * file_over_true)
-    estimates = [pair_ratio(file_model, *_views(seed)) for seed in range(8)]
-    assert all(q is not None for q in estimates)
-    assert np.median(np.asarray(estimates)) == pytest.approx(1.0 / file_over_true, rel=0.02)
+@pytest.mark.parametrize(
+    ("file_over_true", "k1_file_minus_true"),
+    [(1.1, 0.0), (1.0, 0.0), (0.9, 0.0), (1.0, 0.02), (1.0, -0.02), (1.1, 0.02)],
+)
+def test_a_pair_recovers_the_focal_ratio_and_the_k1_error(
+    file_over_true: float, k1_file_minus_true: float
+) -> None:
+    """Each lens error apart and both together; before the joint search a k1 0.02 off moved
+    the focal ratio alone (13.7 % in a simulated flight)."""
+    file_model = replace(
+        TRUE,
+        fx=TRUE.fx * file_over_true,
+        fy=TRUE.fy * file_over_true,
+        k1=TRUE.k1 + k1_file_minus_true,
+    )
+    estimates = [pair_lens(file_model, *_views(seed)) for seed in range(8)]
+    assert all(e is not None and not e.at_edge for e in estimates)
+    q = np.median([e.q for e in estimates if e is not None])
+    k1_delta = np.median([e.k1_delta for e in estimates if e is not None])
+    assert q == pytest.approx(1.0 / file_over_true, rel=0.02)
+    assert k1_delta == pytest.approx(-k1_file_minus_true, abs=0.005)
 
 
 def test_rotation_about_the_optical_axis_is_no_tilt() -> None:
@@ -82,15 +98,26 @@ def test_the_warning_needs_a_confident_estimate() -> None:
     assert focal_warning(FocalRatio(1.103, 0.05, 0.007, 10)) is None  # too few pairs
     assert focal_warning(FocalRatio(1.06, 0.05, 0.007, 84)) is None  # 6 % - 2 sigma < 5 %
     assert focal_warning(FocalRatio(1.01, 0.05, 0.007, 84)) is None
+    k1_off = focal_warning(FocalRatio(1.01, 0.05, 0.007, 84, 0, 0.021, 0.006, 0.0008)) or ""
+    assert "k1 looks 0.021 too small" in k1_off and "check [camera] dist" in k1_off
+    assert "focal length" not in k1_off and "fits" not in k1_off
+    named = focal_warning(FocalRatio(0.9, 0.05, 0.007, 84, 0, 0.021, 0.006, 0.0008), camera=TRUE)
+    assert "(the flight fits fx 414.0, fy 414.0)" in (named or "")  # 460 x 0.9
+    assert "(the flight fits k1 -0.099)" in (named or "")  # -0.12 + 0.021
+    both = focal_warning(FocalRatio(0.9, 0.05, 0.007, 84, 0, -0.03, 0.006, 0.0008)) or ""
+    assert "focal length looks 10.0 % too large" in both and "k1 looks 0.030 too large" in both
+    # within the threshold once its uncertainty is counted: no warning
+    assert focal_warning(FocalRatio(1.0, 0.05, 0.007, 84, 0, 0.012, 0.01, 0.002)) is None
     assert "no keyframe pairs" in focal_summary(None)
     assert "1.103 (spread 0.050" in focal_summary(FocalRatio(1.103, 0.05, 0.007, 84))
 
 
 def test_pairs_that_no_focal_fits_say_the_lens_or_mount_is_wrong() -> None:
-    """When most pairs' best focal is an end of the search, the median is not a measurement:
-    the warning says that no focal in the range fits, not a percentage."""
+    """When most pairs' best lens is at an end of the search, the median is not a
+    measurement: the warning says that no lens in the range fits, not a percentage."""
     est = FocalRatio(0.7, 0.0, 0.0, 200, at_edge=180)
     text = focal_warning(est) or ""
-    assert "no focal length within x0.70..x1.40" in text and "180 of 200" in text
+    assert "no lens within x0.70..x1.40" in text and "+-0.10 of its k1" in text
+    assert "180 of 200" in text
     assert "% too" not in text
     assert "180 at an end of the search" in focal_summary(est)
