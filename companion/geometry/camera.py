@@ -96,14 +96,19 @@ class CameraModel:
             )
 
     def undistort_normalized(
-        self, xy_dist: ArrayLike, iterations: int = 20, k1: F64 | None = None
+        self,
+        xy_dist: ArrayLike,
+        iterations: int = 20,
+        k1: F64 | None = None,
+        nan_where_unconverged: bool = False,
     ) -> F64:
         """Distorted normalised (N, 2) -> undistorted normalised (N, 2) by Newton's method;
         ``k1`` (N,), when given, replaces the model's k1 point by point (the lens check's
         candidate lenses, companion/vo/focal_check.py).
 
         Converges to ~1e-14 for the distortion of real lenses within their image; raises
-        GeometryError when it does not converge (distortion model not invertible there).
+        GeometryError when it does not converge (distortion model not invertible there), or
+        with ``nan_where_unconverged`` gives NaN rows for those points.
         """
         d = np.asarray(xy_dist, dtype=np.float64).reshape(-1, 2)
         if not self.has_distortion and k1 is None:
@@ -134,6 +139,10 @@ class CameraModel:
                 break
         p = np.column_stack([x, y])
         residual = self.distort(p, k1) - d
+        if nan_where_unconverged:
+            with np.errstate(invalid="ignore"):
+                p[~(np.abs(residual) <= 1e-9).all(axis=1)] = np.nan
+            return p
         if not np.all(np.isfinite(residual)) or float(np.max(np.abs(residual), initial=0)) > 1e-9:
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return p

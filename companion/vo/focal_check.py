@@ -63,7 +63,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import GeometryError
 from companion.geometry.camera import CameraModel
 from companion.types import F64
 
@@ -72,7 +71,8 @@ I64 = NDArray[np.int64]
 Q_MIN, Q_MAX = 0.7, 1.4  # the focal ratios searched
 Q_STEPS = 15  # the coarse log grid over them, 5 % apart
 K1_MAX = 0.1  # the k1 errors searched: -K1_MAX..K1_MAX
-K1_STEPS = 9  # the coarse grid over them, 0.025 apart
+K1_STEPS = 9  # the coarse grid over them, 0.025 apart (0.05 apart missed the valley that
+# f and k1 trade along: a k1 +0.02 lens read 1.161 and +0.018)
 FINE_STEPS = 3  # the fine grid: 3 x 3 at 1 / FINE_STEPS of the coarse steps, then a parabola
 MAX_POINTS = 60  # points of a pair used (the cost is a mean: more only costs time)
 
@@ -145,21 +145,26 @@ def lens_costs(camera: CameraModel, centred: F64, R_c2_c1: F64, qs: F64, k1_delt
     ``k1_deltas`` (C,), for the centred normalised pixels (2 M, 2) of M points in two views
     (the first M, then the second M). Every candidate's rays come from one undistortion call:
     the candidate divides the pixels before its distortion is undone, as a camera with that
-    focal and that k1 would. Raises GeometryError when a candidate's rays cannot be found."""
+    focal and that k1 would. A candidate whose lens cannot be undone at one of the pixels (it
+    folds there) costs +inf."""
     n, m = len(qs), len(centred) // 2
     distorted = (centred[None, :, :] / qs[:, None, None]).reshape(-1, 2)  # (C 2 M, 2)
     k1 = np.repeat(camera.k1 + k1_deltas, 2 * m)
-    rays = camera.undistort_normalized(distorted, k1=k1).reshape(n, 2, m, 2)
+    rays = camera.undistort_normalized(distorted, k1=k1, nan_where_unconverged=True)
+    rays = rays.reshape(n, 2, m, 2)
+    folds = np.isnan(rays).any(axis=(1, 2, 3))
+    rays[folds] = 0.0  # rays through the principal point: any finite value, costed +inf below
     homogeneous = np.concatenate([rays, np.ones((n, 2, m, 1))], axis=3)
     pixel_area = camera.fx * camera.fy * qs * qs  # normalised units^2 -> px^2 per candidate
     costs: F64 = epipolar_costs(homogeneous[:, 0], homogeneous[:, 1], R_c2_c1) * pixel_area
+    costs[folds] = np.inf
     return costs
 
 
 def _interior_step(costs: F64, k: int) -> float:
     """Where a parabola through ``costs[k - 1 : k + 2]`` (equally spaced) has its least, in
     steps from ``k`` (within +-0.5; 0 at an end of ``costs`` or when it is not convex)."""
-    if not 0 < k < len(costs) - 1:
+    if not 0 < k < len(costs) - 1 or not np.all(np.isfinite(costs[k - 1 : k + 2])):
         return 0.0
     c0, c1, c2 = float(costs[k - 1]), float(costs[k]), float(costs[k + 1])
     curvature = c0 - 2.0 * c1 + c2
@@ -168,34 +173,36 @@ def _interior_step(costs: F64, k: int) -> float:
 
 def pair_lens(camera: CameraModel, px1: F64, px2: F64, R_c2_c1: F64) -> PairLens | None:
     """The focal ratio and k1 error that best explain the pixels (N, 2) of N points in two
-    views with the rotation R_c2_c1 (3, 3) between them; None when a candidate's rays cannot
-    be computed. A coarse grid (Q_STEPS log-spaced ratios by K1_STEPS k1 errors), a finer
-    one around its least (FINE_STEPS a side, half the coarse steps), then a parabola along
-    each axis. At most MAX_POINTS points (evenly spaced in the list) are used."""
+    views with the rotation R_c2_c1 (3, 3) between them; None when no candidate lens can be
+    undone at every pixel (lens_costs). A coarse grid (Q_STEPS log-spaced ratios by
+    K1_STEPS k1 errors), a parabola along each axis through its least, a 3 x 3 grid at
+    1 / FINE_STEPS of its steps around that, and a parabola again. At most MAX_POINTS points
+    (evenly spaced in the list) are used."""
     take = np.unique(np.linspace(0, len(px1) - 1, min(len(px1), MAX_POINTS)).astype(np.int64))
     px = np.concatenate([px1[take], px2[take]])  # (2 M, 2)
     centred = (px - np.array([camera.cx, camera.cy])) / np.array([camera.fx, camera.fy])
     log_q = np.linspace(np.log(Q_MIN), np.log(Q_MAX), Q_STEPS)
     k1s = np.linspace(-K1_MAX, K1_MAX, K1_STEPS)
-    try:
-        grid_q, grid_k = np.meshgrid(log_q, k1s, indexing="ij")
-        costs = lens_costs(camera, centred, R_c2_c1, np.exp(grid_q.ravel()), grid_k.ravel())
-        coarse = costs.reshape(grid_q.shape)
-        i, j = np.unravel_index(int(np.argmin(coarse)), coarse.shape)
-        at_edge = i in (0, Q_STEPS - 1) or j in (0, K1_STEPS - 1)
-        step_q, step_k = log_q[1] - log_q[0], k1s[1] - k1s[0]
-        centre_q = log_q[i] + _interior_step(coarse[:, j], int(i)) * step_q
-        centre_k = k1s[j] + _interior_step(coarse[i, :], int(j)) * step_k
-        step_q, step_k = step_q / FINE_STEPS, step_k / FINE_STEPS
-        offsets = np.arange(-1.0, 2.0)
-        fine_q, fine_k = np.meshgrid(
-            centre_q + offsets * step_q, centre_k + offsets * step_k, indexing="ij"
-        )
-        fine = lens_costs(camera, centred, R_c2_c1, np.exp(fine_q.ravel()), fine_k.ravel())
-    except GeometryError:
+    grid_q, grid_k = np.meshgrid(log_q, k1s, indexing="ij")
+    costs = lens_costs(camera, centred, R_c2_c1, np.exp(grid_q.ravel()), grid_k.ravel())
+    coarse = costs.reshape(grid_q.shape)
+    i, j = np.unravel_index(int(np.argmin(coarse)), coarse.shape)
+    if not np.isfinite(coarse[i, j]):
         return None
+    at_edge = i in (0, Q_STEPS - 1) or j in (0, K1_STEPS - 1)
+    step_q, step_k = log_q[1] - log_q[0], k1s[1] - k1s[0]
+    centre_q = log_q[i] + _interior_step(coarse[:, j], int(i)) * step_q
+    centre_k = k1s[j] + _interior_step(coarse[i, :], int(j)) * step_k
+    step_q, step_k = step_q / FINE_STEPS, step_k / FINE_STEPS
+    offsets = np.arange(-1.0, 2.0)
+    fine_q, fine_k = np.meshgrid(
+        centre_q + offsets * step_q, centre_k + offsets * step_k, indexing="ij"
+    )
+    fine = lens_costs(camera, centred, R_c2_c1, np.exp(fine_q.ravel()), fine_k.ravel())
     fine = fine.reshape(fine_q.shape)
     a, b = np.unravel_index(int(np.argmin(fine)), fine.shape)
+    if not np.isfinite(fine[a, b]):
+        return None
     log_best = fine_q[a, b] + _interior_step(fine[:, b], int(a)) * step_q
     q = float(np.exp(np.clip(log_best, np.log(Q_MIN), np.log(Q_MAX))))
     k1_delta = float(
