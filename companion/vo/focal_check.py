@@ -41,13 +41,14 @@ coarse grid (15 log-spaced ratios in 0.7..1.4 by 9 k1 errors in -0.1..0.1), a pa
 along each axis through its least, a 3 x 3 grid at a third of its steps around that, and a
 parabola again. The estimate of one pair is that lens; the flight's is the medians over
 pairs with enough rotation across the optical axis (``min_tilt_deg``; per keyframe the two
-most turned earlier ones), with the spreads 1.4826 * MAD.
+most turned earlier ones, one once 50 pairs are in), with the spreads 1.4826 * MAD.
 
 q estimates f_true / f_assumed: the factor to multiply [camera] fx fy by; k1_delta what to
 add to the file's k1. Measured 2026-11-29 on the keyframes of 40 s hills lawnmower flights
-(seed 1, the renderer's lens off the file's): k1 +0.02 -> 1.007 and +0.0207 (85 pairs);
-focal +10 % -> 1.100 and -0.0002 (97); the file's own lens -> 1.001 and -0.0013 (89); about
-5 ms a keyframe on an AMD EPYC core. Before the joint search (the focal alone, 2026-11-28,
+(seed 1, the renderer's lens off the file's): k1 +0.02 -> 1.009 and +0.0207 (109 pairs; the
+focal alone read 1.137); focal +10 % -> 1.111 and -0.0002 (121); the file's own lens -> 0.995
+and -0.0006 (113); 6.9 ms a keyframe against the focal alone's 4.8 ms, on the same keyframes
+in the same run (an AMD EPYC core). Before the joint search (the focal alone, 2026-11-28,
 ``Pipeline.status().lens_focal_ratio``, the camera file's fx fy = 1.1, 0.9 and 1.0 x the
 renderer's): a 15 s figure8 over hills 0.920, 1.118, 1.008 (true 0.909, 1.111, 1.000); a
 30 s lawnmower over the urban terrain 0.919, 1.109, 1.005. A rotation about the optical
@@ -236,7 +237,9 @@ class FocalCheck:
     paired with up to ``pairs_per_keyframe`` earlier keyframes of its map between
     ``min_age_s`` and ``max_age_s`` older that share at least ``min_points`` points and are
     turned at least ``min_tilt_deg`` across the optical axis from it (by the autopilot), the
-    most turned first (the rotation is the signal)."""
+    most turned first (the rotation is the signal); one pair per keyframe once the window
+    holds ``settled_after`` pairs (the lens does not change: the cost of a long flight is
+    that of one pair a keyframe)."""
 
     def __init__(
         self,
@@ -247,6 +250,7 @@ class FocalCheck:
         min_age_s: float = 0.4,
         max_age_s: float = 2.0,
         pairs_per_keyframe: int = 2,
+        settled_after: int = 50,
     ) -> None:
         self.camera = camera
         self.pairs: deque[PairLens] = deque(maxlen=window)
@@ -255,6 +259,7 @@ class FocalCheck:
         self.min_age_us = int(min_age_s * 1e6)
         self.max_age_us = int(max_age_s * 1e6)
         self.pairs_per_keyframe = pairs_per_keyframe
+        self.settled_after = settled_after  # pairs in the window, then one per keyframe
         self._kept: deque[KeyframeView] = deque(maxlen=64)
 
     def add(self, view: KeyframeView) -> int:
@@ -270,8 +275,9 @@ class FocalCheck:
                 candidates.append((tilt_rad, old, R_c2_c1))
         candidates.sort(key=lambda c: -c[0])
         given = 0
+        wanted = self.pairs_per_keyframe if len(self.pairs) < self.settled_after else 1
         for _, old, R_c2_c1 in candidates:
-            if given >= self.pairs_per_keyframe:
+            if given >= wanted:
                 break
             common, i1, i2 = np.intersect1d(old.point_ids, view.point_ids, return_indices=True)
             if len(common) < self.min_points:
