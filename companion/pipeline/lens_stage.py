@@ -9,7 +9,7 @@ import logging
 
 from companion.geometry.camera import CameraModel
 from companion.types import F64, VoOutput, VoState
-from companion.vo.focal_check import FocalCheck, FocalRatio, KeyframeView, focal_warning
+from companion.vo.focal_check import FocalCheck, FocalRatio, KeyframeView, lens_findings
 
 log = logging.getLogger("companion.pipeline")
 MAX_WAITING = 8  # keyframes kept for the next work() before observe() pairs them itself
@@ -24,6 +24,7 @@ class LensStage:
         self.R_body_cam = T_body_cam[:3, :3].copy()
         self._waiting: list[KeyframeView] = []
         self.warning: str | None = None  # the warning, once given (it is given once)
+        self.brief: str | None = None  # its short form ("k1 +0.021"), for the ground station
 
     def observe(self, out: VoOutput, R_world_body: F64 | None, segment: int) -> None:
         """Keep a tracked keyframe that has the autopilot's attitude at its time."""
@@ -50,8 +51,10 @@ class LensStage:
         self._waiting.clear()
         est = self.check.estimate()
         if self.warning is None and est is not None:
-            self.warning = focal_warning(est, camera=self.check.camera)
-            if self.warning is not None:
+            found = lens_findings(est, camera=self.check.camera)
+            if found:
+                self.warning = "; ".join(text for _, text in found)
+                self.brief = ", ".join(brief for brief, _ in found)
                 log.warning("%s", self.warning)
         return True
 

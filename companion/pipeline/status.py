@@ -62,6 +62,7 @@ class PipelineStatus:
     lens_focal_spread: float | None = None
     lens_focal_samples: int = 0
     lens_k1_delta: float | None = None  # k1_true - k1_file, checked in flight
+    lens_brief: str | None = None  # the warning's short form: "k1 +0.021", "focal x1.100"
     lens_warning: str | None = None
 
 
@@ -110,5 +111,6 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         lens_focal_spread=focal.spread if focal is not None else None,
         lens_focal_samples=focal.samples if focal is not None else 0,
         lens_k1_delta=focal.k1_delta if focal is not None else None,
+        lens_brief=pipe.lens.brief,
         lens_warning=pipe.lens.warning,
     )

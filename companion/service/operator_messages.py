@@ -128,6 +128,7 @@ class OperatorMessages:
             frame=(frame.state if frame else "own") if self.gps is not None else None,
             frame_agree_m=_finite(frame.agreement_m) if frame else None,
             frame_to_target_m=_finite(frame.to_target_m) if frame else None,
+            lens=p.lens_brief,
         )
 
     def offer_start(self, version: str, preflight_warnings: Sequence[str]) -> None:

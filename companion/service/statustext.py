@@ -93,6 +93,8 @@ class OperatorState:
     frame: str | None = None
     frame_agree_m: float | None = None
     frame_to_target_m: float | None = None
+    # the in-flight lens check's finding, short ("k1 +0.021"); None: nothing found (yet)
+    lens: str | None = None
 
     @property
     def tracking(self) -> bool:
@@ -119,7 +121,8 @@ def transitions(prev: OperatorState, cur: OperatorState) -> list[Event]:
     link is one-way, replaced by "back" if it could not be sent) / back after N s (NOTICE).
     Serial rangefinders: fault (WARNING) / back (INFO). d-Pose: armed, lock (INFO), lock
     lost (NOTICE). A second source speaking as the autopilot: named when it appears or
-    changes (CRITICAL while armed, else WARNING), sent to the autopilot the link follows."""
+    changes (CRITICAL while armed, else WARNING), sent to the autopilot the link follows. The
+    lens check's finding (WARNING), once: "camera calibration off: k1 +0.021"."""
     out: list[Event] = []
     if cur.link_rival is not None and cur.link_rival != prev.link_rival:
         sev = Severity.CRITICAL if cur.armed else Severity.WARNING
@@ -173,6 +176,8 @@ def transitions(prev: OperatorState, cur: OperatorState) -> list[Event]:
         out.append(Event("dpose", Severity.INFO, "d-Pose lock"))
     elif prev.dpose_locked and not cur.dpose_locked:
         out.append(Event("dpose", Severity.NOTICE, "d-Pose lock lost"))
+    if cur.lens is not None and cur.lens != prev.lens:
+        out.append(Event("lens", Severity.WARNING, f"camera calibration off: {cur.lens}"))
     out.sort(key=lambda e: e.severity)
     return out
 

@@ -315,6 +315,55 @@ def _median_stats(values: F64) -> tuple[float, float, float]:
 K1_THRESHOLD = 0.01  # a k1 error warned of (about 3 px at the corner of a 640 x 480 image)
 
 
+def lens_findings(
+    est: FocalRatio,
+    threshold: float = 0.05,
+    min_samples: int = 20,
+    k1_threshold: float = K1_THRESHOLD,
+    camera: CameraModel | None = None,
+) -> list[tuple[str, str]]:
+    """What is confidently wrong with the lens, as (brief, text) pairs: the focal ratio off by
+    more than ``threshold`` (|ratio - 1| - 2 sigma > threshold), k1 by more than
+    ``k1_threshold`` (|k1_delta| - 2 k1_sigma > k1_threshold), or no lens in the search that
+    fits most pairs; nothing before ``min_samples`` pairs. The brief ("k1 +0.021") is for the
+    ground station's STATUSTEXT; the text for the log and the status, with the values that
+    fit the flight when the file's ``camera`` is given."""
+    if est.samples < min_samples:
+        return []
+    if 2 * est.at_edge > est.samples:
+        text = (
+            f"the autopilot's rotation fits the tracked pixels with no lens within "
+            f"x{Q_MIN:.2f}..x{Q_MAX:.2f} of the file's focal length and +-{K1_MAX:.2f} of its "
+            f"k1 in {est.at_edge} of {est.samples} keyframe pairs: check [camera] fx fy and "
+            f"dist (a lens model that is wrong) and the camera mount"
+        )
+        return [("fits no lens model", text)]
+    found = []
+    if abs(est.ratio - 1.0) - 2.0 * est.sigma > threshold:
+        way = "too small" if est.ratio > 1.0 else "too large"
+        text = (
+            f"camera focal length looks {abs(est.ratio - 1.0) * 100.0:.1f} % {way} (autopilot "
+            f"rotation against the tracked pixels: f_true / f_file = {est.ratio:.3f} +- "
+            f"{est.spread:.3f} over {est.samples} keyframe pairs); check [camera] fx fy"
+        )
+        if camera is not None:
+            text += (
+                f" (the flight fits fx {camera.fx * est.ratio:.1f}, fy {camera.fy * est.ratio:.1f})"
+            )
+        found.append((f"focal x{est.ratio:.3f}", text))
+    if abs(est.k1_delta) - 2.0 * est.k1_sigma > k1_threshold:
+        way = "too small" if est.k1_delta > 0.0 else "too large"
+        text = (
+            f"camera distortion k1 looks {abs(est.k1_delta):.3f} {way} (autopilot rotation "
+            f"against the tracked pixels: k1_true - k1_file = {est.k1_delta:+.3f} +- "
+            f"{est.k1_spread:.3f} over {est.samples} keyframe pairs); check [camera] dist"
+        )
+        if camera is not None:
+            text += f" (the flight fits k1 {camera.k1 + est.k1_delta:.3f})"
+        found.append((f"k1 {est.k1_delta:+.3f}", text))
+    return found
+
+
 def focal_warning(
     est: FocalRatio,
     threshold: float = 0.05,
@@ -322,45 +371,9 @@ def focal_warning(
     k1_threshold: float = K1_THRESHOLD,
     camera: CameraModel | None = None,
 ) -> str | None:
-    """The operator's warning once the focal ratio is confidently off by more than
-    ``threshold`` (|ratio - 1| - 2 sigma > threshold) or k1 by more than ``k1_threshold``
-    (|k1_delta| - 2 k1_sigma > k1_threshold), over at least ``min_samples`` pairs; else None.
-    With the file's ``camera``, the values that fit the flight are named."""
-    if est.samples < min_samples:
-        return None
-    if 2 * est.at_edge > est.samples:
-        return (
-            f"the autopilot's rotation fits the tracked pixels with no lens within "
-            f"x{Q_MIN:.2f}..x{Q_MAX:.2f} of the file's focal length and +-{K1_MAX:.2f} of its "
-            f"k1 in {est.at_edge} of {est.samples} keyframe pairs: check [camera] fx fy and "
-            f"dist (a lens model that is wrong) and the camera mount"
-        )
-    said = []
-    if abs(est.ratio - 1.0) - 2.0 * est.sigma > threshold:
-        way = "too small" if est.ratio > 1.0 else "too large"
-        said.append(
-            f"camera focal length looks {abs(est.ratio - 1.0) * 100.0:.1f} % {way} (autopilot "
-            f"rotation against the tracked pixels: f_true / f_file = {est.ratio:.3f} +- "
-            f"{est.spread:.3f} over {est.samples} keyframe pairs); check [camera] fx fy"
-            + (
-                f" (the flight fits fx {camera.fx * est.ratio:.1f}, fy {camera.fy * est.ratio:.1f})"
-                if camera is not None
-                else ""
-            )
-        )
-    if abs(est.k1_delta) - 2.0 * est.k1_sigma > k1_threshold:
-        way = "too small" if est.k1_delta > 0.0 else "too large"
-        said.append(
-            f"camera distortion k1 looks {abs(est.k1_delta):.3f} {way} (autopilot rotation "
-            f"against the tracked pixels: k1_true - k1_file = {est.k1_delta:+.3f} +- "
-            f"{est.k1_spread:.3f} over {est.samples} keyframe pairs); check [camera] dist"
-            + (
-                f" (the flight fits k1 {camera.k1 + est.k1_delta:.3f})"
-                if camera is not None
-                else ""
-            )
-        )
-    return "; ".join(said) if said else None
+    """The operator's warning (:func:`lens_findings`' texts), or None when nothing is found."""
+    found = lens_findings(est, threshold, min_samples, k1_threshold, camera)
+    return "; ".join(text for _, text in found) if found else None
 
 
 def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:

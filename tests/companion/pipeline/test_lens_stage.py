@@ -70,3 +70,4 @@ def test_a_wrong_k1_is_seen_in_flight_and_not_taken_for_the_focal(
     warning = status.lens_warning or ""
     assert "k1 looks" in warning and "too small" in warning and "check [camera] dist" in warning
     assert "focal length" not in warning
+    assert status.lens_brief is not None and status.lens_brief.startswith("k1 +0.0")

@@ -114,6 +114,16 @@ TRACKING = OperatorState(vo_state="TRACKING", scale_ready=True, scale_sensors=4)
             [("rf3", 4, "rangefinder 3: serial fault"), ("rf1", 6, "rangefinder 1: serial ok")],
         ),
         (
+            TRACKING,
+            dataclasses.replace(TRACKING, lens="k1 +0.021"),
+            [("lens", 4, "camera calibration off: k1 +0.021")],
+        ),
+        (
+            dataclasses.replace(TRACKING, lens="k1 +0.021"),
+            dataclasses.replace(TRACKING, lens="k1 +0.021"),
+            [],
+        ),
+        (
             INITIAL,
             OperatorState(dpose_armed=True, dpose_locked=True),
             [("dpose-armed", 6, "d-Pose armed: laser marks set"), ("dpose", 6, "d-Pose lock")],

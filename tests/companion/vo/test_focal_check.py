@@ -18,6 +18,7 @@ from companion.vo.focal_check import (
     KeyframeView,
     focal_summary,
     focal_warning,
+    lens_findings,
     pair_lens,
     tilt_angle_rad,
 )
@@ -104,6 +105,8 @@ def test_the_warning_needs_a_confident_estimate() -> None:
     named = focal_warning(FocalRatio(0.9, 0.05, 0.007, 84, 0, 0.021, 0.006, 0.0008), camera=TRUE)
     assert "(the flight fits fx 414.0, fy 414.0)" in (named or "")  # 460 x 0.9
     assert "(the flight fits k1 -0.099)" in (named or "")  # -0.12 + 0.021
+    briefs = lens_findings(FocalRatio(0.9, 0.05, 0.007, 84, 0, 0.021, 0.006, 0.0008))
+    assert [brief for brief, _ in briefs] == ["focal x0.900", "k1 +0.021"]
     both = focal_warning(FocalRatio(0.9, 0.05, 0.007, 84, 0, -0.03, 0.006, 0.0008)) or ""
     assert "focal length looks 10.0 % too large" in both and "k1 looks 0.030 too large" in both
     # within the threshold once its uncertainty is counted: no warning
@@ -121,3 +124,4 @@ def test_pairs_that_no_focal_fits_say_the_lens_or_mount_is_wrong() -> None:
     assert "180 of 200" in text
     assert "% too" not in text
     assert "180 at an end of the search" in focal_summary(est)
+    assert [brief for brief, _ in lens_findings(est)] == ["fits no lens model"]
