@@ -23,7 +23,7 @@ from companion.pipeline.gravity import MotionGravity, MotionSample, Segment
 from companion.pipeline.ground import PadGravity, RangeGround
 from companion.pipeline.heading import CompassHeading
 from companion.pipeline.inputs import AttitudeHistory, Sample
-from companion.pipeline.lens_stage import LensStage
+from companion.pipeline.lens_stage import LensStage, take_lens
 from companion.pipeline.output import PoseOutput
 from companion.pipeline.scale_stage import TiltInput, ground_prior, laser_readings, scaled_cloud
 from companion.pipeline.status import PipelineStatus, status_of
@@ -107,7 +107,7 @@ class Pipeline:
         self.laps = Laps()
         self.background_laps = Laps()
         self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
-        self.lens = LensStage(self.camera, self.T_body_cam)  # the focal length, in flight
+        self.lens = LensStage(self.camera, self.T_body_cam, config.camera.learn_lens)
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""
@@ -204,8 +204,8 @@ class Pipeline:
         laps.lap("clock")
         out = self._vo_step(frame, R_world_body)
         self.vo_output = out
-        if out is not None:
-            self.lens.observe(out, R_world_body, self.vo.resets)
+        if out is not None and self.lens.observe(out, R_world_body, self.vo.resets):
+            self.camera = take_lens(self.lens, self.vo, self.methods, self.dpose_stage.dpose)
         laps.lap("vo")
         if out is None or out.state != VoState.TRACKING:
             return None
