@@ -258,6 +258,9 @@ def _camera_check(vo: dict[str, Any]) -> str:
     pairs = vo.get("focal_pairs") or 0
     k1 = f", k1 {vo['k1_delta']:+.3f}" if vo.get("k1_delta") is not None else ""
     focal = f"focal x{vo['focal_ratio']:.3f}{k1} over {pairs} pairs" if pairs else "lens unchecked"
+    if vo.get("lens_learned"):
+        fx, fy, k1_now = vo["lens_learned"]
+        focal += f" (learned fx {fx:.1f}, fy {fy:.1f}, k1 {k1_now:.3f})"
     return f"{clock}  {focal}" + (f"  {vo['lens_warning']}" if vo.get("lens_warning") else "")
 
 

@@ -85,6 +85,10 @@ class LensStage:
             self.check = FocalCheck(camera)
             self._waiting.clear()
             self.taken += 1
+            self.warning = (
+                f"{self.warning}; learned in flight: fx {camera.fx:.1f}, fy {camera.fy:.1f}, "
+                f"k1 {camera.k1:.4f} (the VO restarted with them; the check goes on from them)"
+            )
             log.warning(
                 "lens learned in flight: fx %.1f, fy %.1f, k1 %.4f; the VO restarts with it",
                 camera.fx,

@@ -63,6 +63,8 @@ class PipelineStatus:
     lens_focal_samples: int = 0
     lens_k1_delta: float | None = None  # k1_true - k1_file, checked in flight
     lens_brief: str | None = None  # the warning's short form: "k1 +0.021", "focal x1.100"
+    # [camera] learn_lens: the (fx, fy, k1) taken in flight, None while the file's are in use
+    lens_learned: tuple[float, float, float] | None = None
     lens_warning: str | None = None
 
 
@@ -112,5 +114,6 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         lens_focal_samples=focal.samples if focal is not None else 0,
         lens_k1_delta=focal.k1_delta if focal is not None else None,
         lens_brief=pipe.lens.brief,
+        lens_learned=(pipe.camera.fx, pipe.camera.fy, pipe.camera.k1) if pipe.lens.taken else None,
         lens_warning=pipe.lens.warning,
     )

@@ -158,6 +158,7 @@ class Report:
                 "focal_ratio": p.lens_focal_ratio,
                 "focal_pairs": p.lens_focal_samples,
                 "k1_delta": p.lens_k1_delta,
+                "lens_learned": list(p.lens_learned) if p.lens_learned is not None else None,
                 "lens_warning": p.lens_warning,
             },
             "scale": {

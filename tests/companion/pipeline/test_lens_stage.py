@@ -1,7 +1,7 @@
 """The focal length checked in flight (companion/pipeline/lens_stage.py): a seeded simulated
 figure8 (rolls, pitches and turns) rendered once, fed to pipelines whose camera file says
 fx fy 10 % larger, 10 % smaller than the renderer's, and right, and one whose k1 is 0.02 too
-small."""
+small, measured and (with [camera] learn_lens) taken in flight."""
 
 from __future__ import annotations
 
@@ -13,6 +13,9 @@ import pytest
 from companion.config import Config, load_config
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
+from companion.pipeline.lens_stage import fitted_lens
+from companion.types import VoState
+from companion.vo.focal_check import FocalRatio
 
 # a 320 x 240 camera with the default's field of view keeps the flight short to render
 SMALL_CAMERA = {"width": 320, "height": 240, "fx": 230.0, "fy": 230.0, "cx": 159.5, "cy": 119.5}
@@ -71,3 +74,43 @@ def test_a_wrong_k1_is_seen_in_flight_and_not_taken_for_the_focal(
     assert "k1 looks" in warning and "too small" in warning and "check [camera] dist" in warning
     assert "focal length" not in warning
     assert status.lens_brief is not None and status.lens_brief.startswith("k1 +0.0")
+
+
+def test_a_learned_lens_is_taken_once_and_the_vo_goes_on_with_it(
+    flight: tuple[Config, list[Any]],
+) -> None:
+    """[camera] learn_lens: the k1 the check finds replaces the file's in every stage that
+    projects or undoes the lens (the VO restarts, once), and the flight goes on tracking."""
+    cfg, steps = flight
+    true = cfg.camera.model()
+    learning = replace(cfg, camera=replace(cfg.camera, learn_lens=True))
+    pipe = Pipeline(learning, camera=replace(true, k1=true.k1 - 0.02))
+    resets_at_take = None
+    for step in steps:
+        feed_step(pipe, step)
+        pipe.background_work()
+        if resets_at_take is None and pipe.lens.taken:
+            resets_at_take = pipe.vo.resets
+    status = pipe.status()
+    assert pipe.lens.taken == 1 and resets_at_take is not None
+    assert pipe.camera.k1 == pytest.approx(true.k1, abs=0.006)
+    assert pipe.camera.fx == true.fx and pipe.camera.fy == true.fy  # the focal was right
+    assert pipe.vo.camera is pipe.camera and pipe.lens.check.camera is pipe.camera
+    assert all(m.camera is pipe.camera for m in pipe.methods.values())
+    assert status.lens_learned == (true.fx, true.fy, pipe.camera.k1)
+    assert "learned in flight" in (status.lens_warning or "")
+    assert status.vo_state == VoState.TRACKING.name and pipe.vo.resets == resets_at_take + 1
+
+
+def test_the_fitted_lens_takes_what_was_found_and_nothing_else() -> None:
+    camera = load_config().camera.model()
+    est = FocalRatio(1.1, 0.05, 0.005, 80, 0, 0.021, 0.005, 0.0006)
+    focal = fitted_lens(camera, est, ["focal x1.100"])
+    assert focal is not None and focal.fx == pytest.approx(camera.fx * 1.1)
+    assert focal.k1 == camera.k1 and focal.cx == camera.cx
+    k1 = fitted_lens(camera, est, ["k1 +0.021"])
+    assert k1 is not None and k1.fx == camera.fx and k1.k1 == pytest.approx(camera.k1 + 0.021)
+    both = fitted_lens(camera, est, ["focal x1.100", "k1 +0.021"])
+    assert both is not None and both.fy == pytest.approx(camera.fy * 1.1)
+    assert both.k1 == pytest.approx(camera.k1 + 0.021)
+    assert fitted_lens(camera, est, ["fits no lens model"]) is None
