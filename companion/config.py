@@ -85,11 +85,6 @@ class CameraConfig:
         ge=0,
         le=200,
     )
-    learn_lens: bool = opt(
-        False,
-        "take the focal length and k1 that the in-flight lens check finds (once, when it warns; "
-        "the VO restarts with them) instead of only warning",
-    )
     mount: MountConfig = opt(
         MountConfig(xyz_m=(0.05, 0.0, 0.08), rpy_deg=(0.0, 0.0, 90.0)),
         "T_body_cam: camera frame in the body frame",

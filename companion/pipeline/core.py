@@ -107,7 +107,7 @@ class Pipeline:
         self.laps = Laps()
         self.background_laps = Laps()
         self.dpose_stage = DposeStage(config, self.camera, self.T_body_cam, self.specs)
-        self.lens = LensStage(self.camera, self.T_body_cam, config.camera.learn_lens)
+        self.lens = LensStage(self.camera, self.T_body_cam, config.vo.learn_lens)
 
     def feed_attitude(self, sample: AttitudeSample) -> None:
         """Buffer an attitude sample (ignored unless finite and newer than the last)."""

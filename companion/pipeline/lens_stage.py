@@ -3,7 +3,7 @@ tracked pixels with the autopilot's attitude at its time, the focal ratio f_true
 the k1 error k1_true - k1_file over a window of keyframe pairs, and one warning (with the
 values that fit) once either is confidently off.
 
-With ``[camera] learn_lens`` the lens that fits is also taken (once): the stage offers the
+With ``[vo] learn_lens`` the lens that fits is also taken (once): the stage offers the
 corrected camera model (:attr:`LensStage.learned`), and the pipeline gives it to every stage
 that projects or undoes the lens and restarts the VO with it (a map's keyframes keep rays
 of the old lens; the metric frame is carried across the restart)."""

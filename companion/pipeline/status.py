@@ -63,7 +63,7 @@ class PipelineStatus:
     lens_focal_samples: int = 0
     lens_k1_delta: float | None = None  # k1_true - k1_file, checked in flight
     lens_brief: str | None = None  # the warning's short form: "k1 +0.021", "focal x1.100"
-    # [camera] learn_lens: the (fx, fy, k1) taken in flight, None while the file's are in use
+    # [vo] learn_lens: the (fx, fy, k1) taken in flight, None while the file's are in use
     lens_learned: tuple[float, float, float] | None = None
     lens_warning: str | None = None
 

@@ -31,6 +31,11 @@ class VoOptions:
         "KLT on images normalised to one mean and contrast (an auto-exposure's changes "
         "removed; companion/vo/frontend.py normalized_grey)",
     )
+    learn_lens: bool = opt(
+        False,
+        "take the focal length and k1 that the in-flight lens check finds (once, when it warns; "
+        "the VO restarts with them) instead of only warning (companion/pipeline/lens_stage.py)",
+    )
     klt_fb_max_px: float = opt(
         0.0,
         "drop a track that KLT back into the previous frame returns farther than this from "

@@ -1,7 +1,7 @@
 """The focal length checked in flight (companion/pipeline/lens_stage.py): a seeded simulated
 figure8 (rolls, pitches and turns) rendered once, fed to pipelines whose camera file says
 fx fy 10 % larger, 10 % smaller than the renderer's, and right, and one whose k1 is 0.02 too
-small, measured and (with [camera] learn_lens) taken in flight."""
+small, measured and (with [vo] learn_lens) taken in flight."""
 
 from __future__ import annotations
 
@@ -79,11 +79,11 @@ def test_a_wrong_k1_is_seen_in_flight_and_not_taken_for_the_focal(
 def test_a_learned_lens_is_taken_once_and_the_vo_goes_on_with_it(
     flight: tuple[Config, list[Any]],
 ) -> None:
-    """[camera] learn_lens: the k1 the check finds replaces the file's in every stage that
+    """[vo] learn_lens: the k1 the check finds replaces the file's in every stage that
     projects or undoes the lens (the VO restarts, once), and the flight goes on tracking."""
     cfg, steps = flight
     true = cfg.camera.model()
-    learning = replace(cfg, camera=replace(cfg.camera, learn_lens=True))
+    learning = replace(cfg, vo=replace(cfg.vo, learn_lens=True))
     pipe = Pipeline(learning, camera=replace(true, k1=true.k1 - 0.02))
     resets_at_take = None
     for step in steps:
