@@ -341,27 +341,45 @@ def lens_findings(
     found = []
     if abs(est.ratio - 1.0) - 2.0 * est.sigma > threshold:
         way = "too small" if est.ratio > 1.0 else "too large"
-        text = (
-            f"camera focal length looks {abs(est.ratio - 1.0) * 100.0:.1f} % {way} (autopilot "
-            f"rotation against the tracked pixels: f_true / f_file = {est.ratio:.3f} +- "
-            f"{est.spread:.3f} over {est.samples} keyframe pairs); check [camera] fx fy"
+        fits = (
+            None
+            if camera is None
+            else f"fx {camera.fx * est.ratio:.1f}, fy {camera.fy * est.ratio:.1f}"
         )
-        if camera is not None:
-            text += (
-                f" (the flight fits fx {camera.fx * est.ratio:.1f}, fy {camera.fy * est.ratio:.1f})"
-            )
+        text = _finding_text(
+            f"focal length looks {abs(est.ratio - 1.0) * 100.0:.1f} % {way}",
+            f"f_true / f_file = {est.ratio:.3f}",
+            est.spread,
+            est.samples,
+            "fx fy",
+            fits,
+        )
         found.append((f"focal x{est.ratio:.3f}", text))
     if abs(est.k1_delta) - 2.0 * est.k1_sigma > k1_threshold:
         way = "too small" if est.k1_delta > 0.0 else "too large"
-        text = (
-            f"camera distortion k1 looks {abs(est.k1_delta):.3f} {way} (autopilot rotation "
-            f"against the tracked pixels: k1_true - k1_file = {est.k1_delta:+.3f} +- "
-            f"{est.k1_spread:.3f} over {est.samples} keyframe pairs); check [camera] dist"
+        fits = None if camera is None else f"k1 {camera.k1 + est.k1_delta:.3f}"
+        text = _finding_text(
+            f"distortion k1 looks {abs(est.k1_delta):.3f} {way}",
+            f"k1_true - k1_file = {est.k1_delta:+.3f}",
+            est.k1_spread,
+            est.samples,
+            "dist",
+            fits,
         )
-        if camera is not None:
-            text += f" (the flight fits k1 {camera.k1 + est.k1_delta:.3f})"
         found.append((f"k1 {est.k1_delta:+.3f}", text))
     return found
+
+
+def _finding_text(
+    looks: str, measured: str, spread: float, samples: int, keys: str, fits: str | None
+) -> str:
+    """One finding's warning: what looks wrong, the measurement and its spread over the
+    pairs, the [camera] keys to check, and the values that fit the flight (if known)."""
+    text = (
+        f"camera {looks} (autopilot rotation against the tracked pixels: {measured} +- "
+        f"{spread:.3f} over {samples} keyframe pairs); check [camera] {keys}"
+    )
+    return text if fits is None else f"{text} (the flight fits {fits})"
 
 
 def focal_warning(
