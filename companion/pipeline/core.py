@@ -205,7 +205,7 @@ class Pipeline:
         out = self._vo_step(frame, R_world_body)
         self.vo_output = out
         if out is not None and self.lens.observe(out, R_world_body, self.vo.resets):
-            self.camera = take_lens(self)
+            self.camera = take_lens(self.lens, self.vo, self.methods, self.dpose_stage.dpose)
         laps.lap("vo")
         if out is None or out.state != VoState.TRACKING:
             return None
@@ -283,7 +283,7 @@ class Pipeline:
             est = method.step(inp)
             self.estimates[name] = est
             if est is not None:
-                cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment, time_us)
+                cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
                 self.metric_positions[name] = cam_m + lever_m
         return {sid: r.range_m for sid, r in readings.items()}
 

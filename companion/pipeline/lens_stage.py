@@ -13,11 +13,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Iterable, Mapping
-from typing import Any, Protocol
+from typing import Any
 
 from companion.dpose.estimator import Dpose
 from companion.geometry.camera import CameraModel
-from companion.scale.methods import Method, MetricTrajectory
+from companion.scale.methods import Method
 from companion.types import F64, VoOutput, VoState
 from companion.vo.focal_check import FocalCheck, FocalRatio, KeyframeView, lens_findings
 from companion.vo.odometry import VisualOdometry
@@ -133,35 +133,12 @@ def give_lens(
         dpose.camera = camera
 
 
-class HasDpose(Protocol):
-    """The d-Pose stage, as far as a learned lens goes (its estimator, if any)."""
-
-    @property
-    def dpose(self) -> Dpose | None: ...
-
-
-class LensUsers(Protocol):
-    """What of the pipeline a learned lens is given to (companion/pipeline/core.py)."""
-
-    @property
-    def lens(self) -> LensStage: ...
-    @property
-    def vo(self) -> VisualOdometry: ...
-    @property
-    def methods(self) -> Mapping[Any, Method]: ...
-    @property
-    def trajectories(self) -> Mapping[Any, MetricTrajectory]: ...
-    @property
-    def dpose_stage(self) -> HasDpose: ...
-
-
-def take_lens(pipe: LensUsers) -> CameraModel:
-    """The lens stage's learned lens given to the pipeline's stages (:func:`give_lens`), the
-    published tracks told to coast over the restart's gap (MetricTrajectory); the camera
-    model in use after it."""
-    camera = pipe.lens.take()
+def take_lens(
+    stage: LensStage, vo: VisualOdometry, methods: Mapping[Any, Method], dpose: Dpose | None
+) -> CameraModel:
+    """The stage's learned lens given to the pipeline's stages (:func:`give_lens`; the scale
+    methods by name); the camera model in use after it."""
+    camera = stage.take()
     if camera is not None:
-        give_lens(camera, pipe.vo, pipe.methods.values(), pipe.dpose_stage.dpose)
-        for track in pipe.trajectories.values():
-            track.coast_next_reset = True
-    return pipe.vo.camera
+        give_lens(camera, vo, methods.values(), dpose)
+    return vo.camera

@@ -68,9 +68,6 @@ def initial_scale(inp: ScaleInput) -> float | None:
     return z_metric / float(np.median(z_vo))
 
 
-COAST_WINDOW_US = 300_000  # the velocity carried over a planned restart: its mean over this
-
-
 @dataclass
 class Method(ABC):
     """Base: state handling common to every method."""
@@ -431,10 +428,7 @@ class MetricTrajectory:
     """Applies a changing scale without position jumps: p += s_k * (p_vo_k - p_vo_{k-1}).
 
     Positions stay in the VO frame's orientation (metres); a VO re-initialisation continues
-    from the last position and raises ``reset_counter``. A restart the pipeline makes on
-    purpose (a learned lens: companion/pipeline/lens_stage.py) sets ``coast_next_reset``: the
-    position is then carried along the velocity of the last COAST_WINDOW_US before it, over
-    the re-initialisation's gap (a few frames), instead of held where it was.
+    from the last position and raises ``reset_counter``.
     """
 
     def __init__(self) -> None:
@@ -442,36 +436,14 @@ class MetricTrajectory:
         self._last_vo: F64 | None = None
         self._segment = -1
         self.reset_counter = 0
-        self.coast_next_reset = False
-        self._recent: deque[tuple[int, F64]] = deque()  # (time [us], position [m]) of a map
 
-    def step(self, p_vo: F64, scale: float, segment: int, time_us: int | None = None) -> F64:
-        """The metric position [m] (3,) of the VO position ``p_vo`` (3,) at ``scale`` in map
-        ``segment`` (at ``time_us``: needed for a coast)."""
+    def step(self, p_vo: F64, scale: float, segment: int) -> F64:
         if self.position_m is None or self._last_vo is None:
             self.position_m = scale * p_vo
         elif segment != self._segment:
             self.reset_counter += 1
-            velocity = self._velocity() if self.coast_next_reset else None
-            if velocity is not None and time_us is not None:
-                gap_s = (time_us - self._recent[-1][0]) * 1e-6
-                self.position_m = self.position_m + velocity * gap_s
-            self.coast_next_reset = False
-            self._recent.clear()
         else:
             self.position_m = self.position_m + scale * (p_vo - self._last_vo)
         self._segment = segment
         self._last_vo = p_vo.copy()
-        if time_us is not None:
-            self._recent.append((time_us, self.position_m.copy()))
-            while time_us - self._recent[0][0] > COAST_WINDOW_US:
-                self._recent.popleft()
         return self.position_m.copy()
-
-    def _velocity(self) -> F64 | None:
-        """The mean velocity [m/s] (3,) over the kept positions of this map, or None."""
-        if len(self._recent) < 2 or self._recent[-1][0] <= self._recent[0][0]:
-            return None
-        (t0, p0), (t1, p1) = self._recent[0], self._recent[-1]
-        velocity: F64 = (p1 - p0) / ((t1 - t0) * 1e-6)
-        return velocity

@@ -176,27 +176,6 @@ def test_applying_a_new_scale_does_not_move_the_position() -> None:
     assert np.array_equal(d, c) and traj.reset_counter == 1
 
 
-def test_a_planned_restart_coasts_along_the_last_velocity() -> None:
-    """A restart the pipeline makes on purpose (a learned lens) carries the position along
-    the velocity before it over the re-initialisation's gap; any other reset holds it."""
-    frame_us = 33_333
-    for planned in (True, False):
-        traj = MetricTrajectory()
-        for k in range(12):  # 1 m/s along x: VO units at scale 2
-            last = traj.step(np.array([k * frame_us * 1e-6 / 2.0, 0.0, 0.0]), 2.0, 0, k * frame_us)
-        traj.coast_next_reset = planned
-        gap_us = 5 * frame_us  # the new map's first pose, five frame periods later
-        after = traj.step(np.array([7.0, 7.0, 7.0]), 3.0, 1, 11 * frame_us + gap_us)
-        step = after - last
-        if planned:
-            assert np.allclose(step, [gap_us * 1e-6, 0.0, 0.0], atol=1e-9)
-        else:
-            assert np.array_equal(step, np.zeros(3))
-        assert traj.reset_counter == 1 and not traj.coast_next_reset
-        nxt = traj.step(np.array([7.1, 7.0, 7.0]), 3.0, 1, 12 * frame_us + gap_us)
-        assert np.allclose(nxt - after, [0.3, 0.0, 0.0])  # the new map goes on as before
-
-
 def test_range_history_alignment() -> None:
     h = RangeHistory()
     assert h.add(RangeSample(1_000, 0, 5.0, 0.1, 40.0, 100))
