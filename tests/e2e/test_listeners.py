@@ -370,6 +370,7 @@ BEFORE_S = (3.0, 7.0)  # flight time: no attack
 STATUS_FLOOD_S = (7.0, 13.0)  # another process floods the status socket
 MQTT_FLOOD_AT_S = 14.0  # the broker starts pushing FLIGHT_FLOOD_BYTES unasked
 DRAIN_WALL_S = 120.0  # the longest wait for the service to have read the whole flood
+STATUS_FLOOD_SHARE = 0.8  # of the pose rate before it, kept in the status socket's flood
 
 
 def rss_kb() -> int:
@@ -386,8 +387,9 @@ def rss_kb() -> int:
 def test_poses_keep_the_camera_rate_through_a_status_flood_and_a_hostile_broker(tmp_path) -> None:
     """The real service in a SITL flight at 30 Hz (the 320x240 camera): from 7 to 13 s of
     flight another process floods the status socket, from 14 s the MQTT broker (a hostile
-    one) pushes 20 MB on topics never subscribed to. The pose rate in each attack stays
-    within READ_SHARE (10 %) of the rate before, the broker's connection is kept, the whole
+    one) pushes 20 MB on topics never subscribed to. The pose rate stays within READ_SHARE
+    (10 %) of the rate before in the broker's flood, and above STATUS_FLOOD_SHARE of it in the
+    status flood (whose process burns a core of its own), the broker's connection is kept, the whole
     flood is counted in the status (the service runs on after the flight until it is read),
     and the memory does not grow by more than 20 MB in it. Before: 5.4 poses/s here in the
     status flood (16-19 in the issue's, the autopilot in another process), 25.9 in the
@@ -487,5 +489,7 @@ def test_poses_keep_the_camera_rate_through_a_status_flood_and_a_hostile_broker(
     # reading the broker may take READ_SHARE of the loop's time by design; the world, the
     # stub and this broker share this process's core with the service, so on a busy box
     # that share comes off the pose rate (27.2-28.6 Hz measured alone on a 2-core AMD EPYC)
-    floor = (1.0 - READ_SHARE) * before
-    assert in_status >= floor and in_mqtt >= floor, (before, in_status, in_mqtt)
+    assert in_mqtt >= (1.0 - READ_SHARE) * before, (before, in_status, in_mqtt)
+    # the flooding process burns a core of its own: with another test beside it on 2 cores
+    # 24.4 of 27.5 poses/s (0.89) were measured; the fault this guards against gave 5.4 of 30
+    assert in_status >= STATUS_FLOOD_SHARE * before, (before, in_status, in_mqtt)
