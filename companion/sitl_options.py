@@ -23,7 +23,14 @@ class GroundOptions:
     surface: SurfaceName = opt(
         "photo",
         "photo (grass and gravel photos), tiles (0.5 m floor tiles with grout), checkerboard "
-        "(0.3 m squares), parking (asphalt with painted bays), concrete or carpet (low texture)",
+        "(squares of checker_m), parking (asphalt with painted bays), concrete or carpet "
+        "(low texture)",
+    )
+    checker_m: float = opt(
+        0.3,
+        "side of a checkerboard square [m] (surface = checkerboard; printed sheets: 0.03-0.1)",
+        gt=0.005,
+        le=2.0,
     )
     specular_patches: float = opt(
         0.0, "share of the ground under water-like specular patches (0 = none)", ge=0, le=0.5

@@ -9,7 +9,8 @@ trilinear texture lookups in [0, 1]. The textures (square, 512 texels, wrapped) 
 
 - ``tiles``: 0.5 m tiles with 1.6 cm dark grout, every tile printed with the same speckle (the
   pattern repeats exactly every 0.5 m), plus a faint non-repeating wear layer;
-- ``checkerboard``: 0.3 m black and white squares (period 0.6 m), a trace of dirt;
+- ``checkerboard``: black and white squares of ``checker_m`` (0.3 m by default; printed
+  sheets on a lab floor: 0.03-0.1 m), a trace of dirt;
 - ``parking``: painted bay lines (2.5 m bays, 5 m deep, 12 cm lines) over asphalt: fine
   aggregate noise and low-frequency stains;
 - ``concrete``: smooth concrete: low-contrast fine and mid-scale noise (a few 8-bit levels);
@@ -39,7 +40,7 @@ SURFACES = ("photo", "tiles", "checkerboard", "parking", "concrete", "carpet")
 TEXTURE_SIZE = 512  # texels, as terrain.py's photos
 FIRST_SURFACE_TEXTURE = 3  # the atlas holds grass, gravel, brick, then the surface's A and B
 TILE_M = 0.5  # floor tile side [m]
-CHECKER_M = 0.3  # checkerboard square side [m]
+CHECKER_M = 0.3  # checkerboard square side [m], by default
 BAY_WIDTH_M = 2.5  # parking bay width [m]
 _PATCH_CELL_M = 0.1  # specular weight grid [m]
 
@@ -70,7 +71,7 @@ def _tiles(rng: np.random.Generator) -> tuple[F64, F64]:
 
 
 def _checkerboard(rng: np.random.Generator) -> tuple[F64, F64]:
-    """8 x 8 squares (A, tile 2.4 m: 0.3 m squares) and dirt (B)."""
+    """8 x 8 squares (A, tile 8 squares: 2.4 m for 0.3 m squares) and dirt (B)."""
     per = TEXTURE_SIZE // 8
     k = np.arange(TEXTURE_SIZE) // per
     a = _soft(np.where((k[:, None] + k[None, :]) % 2 == 0, 0.88, 0.12), 0.7)
@@ -122,15 +123,24 @@ _DESIGNS = {
 
 
 def surface_ground(
-    surface: str, seed: int, field_shape: tuple[int, int], field_res_m: float
+    surface: str,
+    seed: int,
+    field_shape: tuple[int, int],
+    field_res_m: float,
+    checker_m: float = CHECKER_M,
 ) -> tuple[list[F32], F64, F64]:
     """The ground of ``surface`` (not ``photo``): its two textures (512, 512) float32 in [0, 1]
     (atlas ids FIRST_SURFACE_TEXTURE, +1), the two ground rows of the layer table (2, 9: tex,
     tile_m, cos, sin, off_u, off_v, tint b g r) and the fields (Ny, Nx, 4: weight of B, albedo,
-    warp u, warp v) on terrain.py's field grid (cell ``field_res_m`` [m])."""
+    warp u, warp v) on terrain.py's field grid (cell ``field_res_m`` [m]); ``checker_m``: the
+    checkerboard's square side [m]."""
     if surface not in _DESIGNS:
         raise SitlError(f"unknown surface {surface!r}; choose one of {', '.join(SURFACES)}")
     draw, (tile_a, tile_b), w_b, tint_a, tint_b, albedo_std = _DESIGNS[surface]
+    if surface == "checkerboard":
+        if not 0.0 < checker_m <= 2.0:
+            raise SitlError(f"checker_m: a square side in (0, 2] m, got {checker_m}")
+        tile_a = 8 * checker_m
     rng = np.random.default_rng([seed, 808, SURFACES.index(surface)])
     a, b = draw(rng)
     textures = [np.clip(t, 0.0, 1.0).astype(np.float32) for t in (a, b)]

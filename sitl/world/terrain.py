@@ -190,7 +190,11 @@ class World:
         if self.ground.surface != "photo":
             shape = self.fields.shape[:2]
             self.surface_textures, rows, fields = surface_ground(
-                self.ground.surface, seed, (shape[0], shape[1]), _FIELD_RES_M
+                self.ground.surface,
+                seed,
+                (shape[0], shape[1]),
+                _FIELD_RES_M,
+                self.ground.checker_m,
             )
             self.fields = np.ascontiguousarray(fields)
             self.layers[:2, :9] = rows

@@ -25,13 +25,19 @@ from companion.geometry import se3
 from companion.sitl.world.terrain import World
 from companion.types import F64
 
-TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad")
+TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad", "bob")
 GRAVITY_M_S2 = 9.80665
 LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
 _SMOOTH_SIGMA_S = 1.0
 _GROUND_REST_S = 3.5  # on the ground before take-off and after landing (> 3 sigma)
 _CLIMB_RATE_M_S = 1.5  # take-off and landing
+# "bob": a small multirotor indoors, low over its floor (the real downward flight of
+# docs/RESULTS.md, "Real sequences": 0.3-1.2 m, up and down every 6-10 s, within a 0.3 x 0.7 m
+# patch); the 1 s smoothing takes the swing to 73 %: 0.35-1.15 m
+BOB_LOW_M, BOB_HIGH_M = 0.2, 1.3
+BOB_PERIOD_S = 8.0
+BOB_SPEED_M_S = 0.1
 PAD_HOVER_S = 6.0  # "pad": the hover over the start before and after the square [s]
 
 
@@ -81,6 +87,9 @@ def _polyline_xy(name: str, speed: float) -> F64:
     if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
+    if name == "bob":  # an indoor hover's wander: a 0.3 x 0.6 m loop (heights: _height_agl)
+        a = np.linspace(0.0, 2 * np.pi, 73)
+        return np.stack([0.3 * (1 - np.cos(a)), 0.15 * np.sin(a)], axis=1)
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
 
 
@@ -140,6 +149,8 @@ def _horizontal(name: str, speed_m_s: float, ph: _Phases) -> F64:
         return _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / ph.duration, ph.tp)
     if name == "spiral":
         return _walk(poly, 0.3, ph.tp)
+    if name == "bob":
+        return _walk(poly, BOB_SPEED_M_S, ph.tp)
     return _walk(poly, speed_m_s, ph.tp, repeat=name != "pad")
 
 
@@ -157,6 +168,11 @@ def _height_agl(name: str, alt: float, ph: _Phases) -> F64:
         agl = 5.0 - 3.0 * np.cos(2 * np.pi * phase)
         agl = np.where(ph.tc < ph.start, 3.0, np.clip(agl, 2.0, 8.0))
         return np.where(ph.tc > ph.end, 2.0, agl)
+    if name == "bob":  # up and down between BOB_LOW_M and BOB_HIGH_M every BOB_PERIOD_S,
+        # from the middle (held there before the pattern)
+        mid, amp = 0.5 * (BOB_HIGH_M + BOB_LOW_M), 0.5 * (BOB_HIGH_M - BOB_LOW_M)
+        agl = mid - amp * np.sin(2 * np.pi * ph.tp / BOB_PERIOD_S)
+        return np.asarray(agl, dtype=np.float64)
     return np.full(ph.t.shape, alt)
 
 
@@ -220,6 +236,8 @@ class Trajectory:
         self.name = name
         self.seconds = float(seconds)
         alt = altitude_m if altitude_m > 0 else world.default_altitude_m
+        if name == "bob":  # its own heights; the take-off climbs to its top
+            alt = BOB_HIGH_M
         self.altitude_m = alt
         # over the pad the vehicle hovers 6 s before it leaves (the marks are left then)
         ph = _phases(self.seconds, alt, takeoff_landing, PAD_HOVER_S if name == "pad" else 2.0)

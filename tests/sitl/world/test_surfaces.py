@@ -26,9 +26,10 @@ T_WORLD_CAM = np.array(
 
 
 @cache
-def nadir_grey(surface: str) -> np.ndarray:
+def nadir_grey(surface: str, checker_m: float = CHECKER_M) -> np.ndarray:
     """The grey image (H, W) float64 looking straight down at ``surface`` (no pixel noise)."""
-    world = make_world("flat", 1, 40.0, 0.05, GroundOptions(surface=surface))  # type: ignore[arg-type]
+    ground = GroundOptions(surface=surface, checker_m=checker_m)  # type: ignore[arg-type]
+    world = make_world("flat", 1, 40.0, 0.05, ground)
     renderer = Renderer(world, PINHOLE, RenderConfig(noise_sigma_dn=0.0, laser_marks="off"))
     image = renderer.render_pose(T_WORLD_CAM, 0).image_bgr
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float64)
@@ -63,6 +64,18 @@ def test_a_repeating_floor_shows_its_period_in_the_autocorrelation(
     assert ac.max() > 0.8
     # the photo ground has no such period
     assert autocorrelation_x(nadir_grey("photo"), lags).max() < 0.4
+
+
+def test_the_checkerboard_takes_its_square_size() -> None:
+    """Printed sheets of 8 cm squares (the real downward flight's floor): the period follows
+    ``checker_m``; a size out of range is refused."""
+    lags = range(20, 60)  # one period (a multiple of it correlates as well)
+    ac = autocorrelation_x(nadir_grey("checkerboard", 0.12), lags)
+    peak = lags[int(np.argmax(ac))]
+    expected_px = 2 * 0.12 * PINHOLE.fx / ALTITUDE_M
+    assert abs(peak - expected_px) <= 2.0 and ac.max() > 0.8
+    with pytest.raises(SitlError, match="checker_m"):
+        surface_ground("checkerboard", 1, (8, 8), 0.5, checker_m=0.0)
 
 
 @pytest.mark.parametrize(("surface", "share"), [("concrete", 0.1), ("carpet", 0.03)])

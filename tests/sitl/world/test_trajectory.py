@@ -9,7 +9,13 @@ import pytest
 
 from companion.geometry import so3
 from companion.sitl.world.terrain import World
-from companion.sitl.world.trajectory import GRAVITY_M_S2, LANDED_HEIGHT_M, TRAJECTORIES, Trajectory
+from companion.sitl.world.trajectory import (
+    BOB_HIGH_M,
+    GRAVITY_M_S2,
+    LANDED_HEIGHT_M,
+    TRAJECTORIES,
+    Trajectory,
+)
 
 
 @pytest.mark.parametrize("name", TRAJECTORIES)
@@ -36,9 +42,9 @@ def test_smooth_bounded_and_multirotor_consistent(
     for i in range(0, len(s.time_s) - 10, 4000):
         R_next = s.R_world_body[i] @ so3.exp(s.omega_body_rad_s[i] * 10 * dt)
         assert so3.angle_between(R_next, s.R_world_body[i + 10]) < 1e-4
-    # stays above the ground
+    # stays above the ground (bob: low indoors by design)
     agl = -s.position_m[:, 2] - w.surface_height(s.position_m[:, 0], s.position_m[:, 1])
-    assert agl.min() > 1.5
+    assert agl.min() > (0.3 if name == "bob" else 1.5)
 
 
 def test_moving_patterns_reach_cruise_speed_and_head_along_track(
@@ -82,3 +88,22 @@ def test_takeoff_and_landing(world: Callable[[str, int], World]) -> None:
     assert abs(agl[-1] - LANDED_HEIGHT_M) < 0.1
     assert 4.5 < agl.max() < 5.5
     assert np.linalg.norm(s.velocity_m_s[0]) < 0.05 and np.linalg.norm(s.velocity_m_s[-1]) < 0.05
+
+
+def test_bob_goes_up_and_down_low_over_a_small_patch(world: Callable[[str, int], World]) -> None:
+    """The real downward flight's motion (docs/RESULTS.md, "Real sequences"): 0.3-1.2 m, up
+    and down every 6-10 s, within a 0.3 x 0.7 m patch."""
+    w = world("flat", 1)
+    traj = Trajectory("bob", w, 60.0, altitude_m=6.0, takeoff_landing=True)  # altitude ignored
+    s = traj.sample(np.arange(0, 60.0 + 1e-9, 0.05))
+    agl = -s.position_m[:, 2]
+    flying = (s.time_s > 8.0) & (s.time_s < 50.0)
+    assert 0.3 < agl[flying].min() < 0.45 and 1.05 < agl[flying].max() < 1.2
+    assert agl.max() <= BOB_HIGH_M
+    # several swings: the height crosses its middle at least 8 times while flying
+    mid = agl[flying] - 0.75
+    assert np.count_nonzero(np.diff(np.sign(mid)) != 0) >= 8
+    assert np.ptp(s.position_m[:, 0]) < 0.65 and np.ptp(s.position_m[:, 1]) < 0.35
+    # on the ground at both ends, off it within 5 s (the take-off climbs to bob's top only)
+    assert abs(agl[0] - LANDED_HEIGHT_M) < 0.05 and abs(agl[-1] - LANDED_HEIGHT_M) < 0.1
+    assert agl[s.time_s <= 5.0].max() > 0.3
