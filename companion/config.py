@@ -222,7 +222,9 @@ def dpose_rangefinders(sigma_m: float = 0.01) -> tuple[RangefinderConfig, ...]:
 
 
 TerrainName = Literal["flat", "hills", "urban", "slope"]
-TrajectoryName = Literal["hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad", "bob"]
+TrajectoryName = Literal[
+    "hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad", "bob", "handheld"
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,7 +234,8 @@ class SitlConfig:
     terrain: TerrainName = opt("hills", "terrain: flat, hills, urban or slope")
     trajectory: TrajectoryName = opt(
         "lawnmower",
-        "hover, circle, lawnmower, figure8, climb, spiral, pad or bob (low indoors, up and down)",
+        "hover, circle, lawnmower, figure8, climb, spiral, pad, bob (low indoors, up and down) "
+        "or handheld (a camera turned by hand: not a multirotor's attitude)",
     )
     seed: int = opt(1, "seed of terrain, noise and faults", ge=0)
     seconds: float = opt(60.0, "flight duration [s]", gt=0, le=36000)

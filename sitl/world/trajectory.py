@@ -25,7 +25,17 @@ from companion.geometry import se3
 from companion.sitl.world.terrain import World
 from companion.types import F64
 
-TRAJECTORIES = ("hover", "circle", "lawnmower", "figure8", "climb", "spiral", "pad", "bob")
+TRAJECTORIES = (
+    "hover",
+    "circle",
+    "lawnmower",
+    "figure8",
+    "climb",
+    "spiral",
+    "pad",
+    "bob",
+    "handheld",
+)
 GRAVITY_M_S2 = 9.80665
 LANDED_HEIGHT_M = 0.25  # body origin above ground when landed (landing gear)
 _SAMPLE_HZ = 100.0
@@ -38,6 +48,12 @@ _CLIMB_RATE_M_S = 1.5  # take-off and landing
 BOB_LOW_M, BOB_HIGH_M = 0.2, 1.3
 BOB_PERIOD_S = 8.0
 BOB_SPEED_M_S = 0.1
+# "handheld": a camera turned by hand (the real hand-held sequence of docs/RESULTS.md, "Real
+# sequences": 64 deg/s median, 119 deg/s p95, within a 0.15 x 0.19 x 0.19 m box): roll, pitch
+# and yaw each a sine of its own amplitude [rad] and period [s], faded in and out over
+# HAND_FADE_S at the pattern's ends; not a multirotor's attitude (no thrust axis to follow)
+HAND_SINES = ((0.6, 4.1), (0.45, 5.3), (1.0, 6.7))  # roll, pitch, yaw
+HAND_FADE_S = 2.0
 PAD_HOVER_S = 6.0  # "pad": the hover over the start before and after the square [s]
 
 
@@ -87,6 +103,9 @@ def _polyline_xy(name: str, speed: float) -> F64:
     if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
+    if name == "handheld":  # the hand's drift: a 0.12 m circle
+        a = np.linspace(0.0, 2 * np.pi, 73)
+        return np.stack([0.06 * np.sin(a), 0.06 * (1 - np.cos(a))], axis=1)
     if name == "bob":  # an indoor hover's wander: a 0.3 x 0.6 m loop (heights: _height_agl)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.3 * (1 - np.cos(a)), 0.15 * np.sin(a)], axis=1)
@@ -151,6 +170,8 @@ def _horizontal(name: str, speed_m_s: float, ph: _Phases) -> F64:
         return _walk(poly, 0.3, ph.tp)
     if name == "bob":
         return _walk(poly, BOB_SPEED_M_S, ph.tp)
+    if name == "handheld":
+        return _walk(poly, 0.05, ph.tp)
     return _walk(poly, speed_m_s, ph.tp, repeat=name != "pad")
 
 
@@ -210,7 +231,7 @@ def _heading(name: str, vel: F64, ph: _Phases) -> F64:
         idx[:first] = first
         yaw = yaw[idx]
     yaw = np.unwrap(yaw)
-    if name == "climb":
+    if name in ("climb", "handheld"):
         yaw = np.zeros_like(yaw)
     if name == "spiral":  # one full turn of the heading over the pattern phase
         yaw = 2 * np.pi * np.clip((ph.tc - ph.start) / ph.duration, 0.0, 1.0)
@@ -257,8 +278,40 @@ class Trajectory:
         self._yaw = make_interp_spline(t, yaw, k=5)
         self._pos_d1 = self._pos.derivative(1)
         self._pos_d2 = self._pos.derivative(2)
+        self._hand = (ph.start, ph.end) if name == "handheld" else None
 
-    def _rotation(self, accel: F64, yaw: F64) -> F64:
+    def _hand_rotation(self, t: F64) -> F64:
+        """(N, 3, 3) the hand-held camera's body attitude at times (N,): ZYX Euler angles of
+        HAND_SINES, faded in and out (smoothstep) over HAND_FADE_S at the pattern's ends."""
+        assert self._hand is not None
+        start, end = self._hand
+        fade = np.clip(np.minimum(t - start, end - t) / HAND_FADE_S, 0.0, 1.0)
+        fade = fade * fade * (3.0 - 2.0 * fade)
+        roll, pitch, yaw = (
+            fade * amp * np.sin(2 * np.pi * (t - start) / period) for amp, period in HAND_SINES
+        )
+        cr, sr, cp, sp, cy, sy = (
+            np.cos(roll),
+            np.sin(roll),
+            np.cos(pitch),
+            np.sin(pitch),
+            np.cos(yaw),
+            np.sin(yaw),
+        )
+        return np.stack(
+            [
+                np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=1),
+                np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=1),
+                np.stack([-sp, cp * sr, cp * cr], axis=1),
+            ],
+            axis=1,
+        )
+
+    def _rotation(self, accel: F64, yaw: F64, t: F64) -> F64:
+        """(N, 3, 3) R_world_body: the thrust axis along the specific force, the nose at
+        ``yaw`` (a multirotor), or the hand's attitude at times ``t`` (handheld)."""
+        if self._hand is not None:
+            return self._hand_rotation(t)
         f = accel - np.array([0.0, 0.0, GRAVITY_M_S2])
         z_b = -f / np.linalg.norm(f, axis=1, keepdims=True)
         x_c = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1)
@@ -272,7 +325,7 @@ class Trajectory:
         t = np.clip(np.atleast_1d(np.asarray(times_s, dtype=np.float64)), 0.0, self.seconds)
         p = np.asarray(self._pos(t), dtype=np.float64)
         a = np.asarray(self._pos_d2(t), dtype=np.float64)
-        return t, p, a, self._rotation(a, np.asarray(self._yaw(t)))
+        return t, p, a, self._rotation(a, np.asarray(self._yaw(t)), t)
 
     def sample(self, times_s: ArrayLike) -> TrajectorySample:
         """State at times (N,) [s] (clamped to [0, seconds])."""
@@ -280,8 +333,8 @@ class Trajectory:
         v = np.asarray(self._pos_d1(t), dtype=np.float64)
         # body rates from the rotation's time derivative: [w]x = R^T dR/dt (central difference)
         h = 1e-4
-        Rp = self._rotation(np.asarray(self._pos_d2(t + h)), np.asarray(self._yaw(t + h)))
-        Rm = self._rotation(np.asarray(self._pos_d2(t - h)), np.asarray(self._yaw(t - h)))
+        Rp = self._rotation(np.asarray(self._pos_d2(t + h)), np.asarray(self._yaw(t + h)), t + h)
+        Rm = self._rotation(np.asarray(self._pos_d2(t - h)), np.asarray(self._yaw(t - h)), t - h)
         W = np.einsum("nji,njk->nik", R, (Rp - Rm) / (2 * h))
         omega = (
             np.stack(
