@@ -42,12 +42,14 @@ _SAMPLE_HZ = 100.0
 _SMOOTH_SIGMA_S = 1.0
 _GROUND_REST_S = 3.5  # on the ground before take-off and after landing (> 3 sigma)
 _CLIMB_RATE_M_S = 1.5  # take-off and landing
-# "bob": a small multirotor indoors, low over its floor (the real downward flight of
-# docs/RESULTS.md, "Real sequences": 0.3-1.2 m, up and down every 6-10 s, within a 0.3 x 0.7 m
-# patch); the 1 s smoothing takes the swing to 73 %: 0.35-1.15 m
-BOB_LOW_M, BOB_HIGH_M = 0.2, 1.3
-BOB_PERIOD_S = 8.0
-BOB_SPEED_M_S = 0.1
+# "bob": a small multirotor flown by hand indoors, low over its floor (the real downward flight
+# of docs/RESULTS.md, "Real sequences": 0.13-1.31 m, within a 0.3 x 0.7 m patch, 22 m of path
+# in about 45 s of flight): a hover at BOB_MID_M plus sines in north, east and down, each
+# (amplitude [m], period [s]), faded in and out over BOB_FADE_S at the pattern's ends; added
+# after the 1 s smoothing, which would flatten them. 0.28-1.22 m, ~0.5 m/s.
+BOB_MID_M = 0.75
+BOB_SINES = ((0.16, 3.1), (0.35, 4.3), (0.35, 7.0), (0.12, 2.3))  # north, east, down, down
+BOB_FADE_S = 2.0
 # "handheld": a camera turned by hand (the real hand-held sequence of docs/RESULTS.md, "Real
 # sequences": 64 deg/s median, 119 deg/s p95, within a 0.15 x 0.19 x 0.19 m box): roll, pitch
 # and yaw each a sine of its own amplitude [rad] and period [s], faded in and out over
@@ -106,9 +108,8 @@ def _polyline_xy(name: str, speed: float) -> F64:
     if name == "handheld":  # the hand's drift: a 0.12 m circle
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.06 * np.sin(a), 0.06 * (1 - np.cos(a))], axis=1)
-    if name == "bob":  # an indoor hover's wander: a 0.3 x 0.6 m loop (heights: _height_agl)
-        a = np.linspace(0.0, 2 * np.pi, 73)
-        return np.stack([0.3 * (1 - np.cos(a)), 0.15 * np.sin(a)], axis=1)
+    if name == "bob":  # a hover; its motion is added after the smoothing (_bob_offsets)
+        return np.zeros((1, 2))
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
 
 
@@ -168,8 +169,6 @@ def _horizontal(name: str, speed_m_s: float, ph: _Phases) -> F64:
         return _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / ph.duration, ph.tp)
     if name == "spiral":
         return _walk(poly, 0.3, ph.tp)
-    if name == "bob":
-        return _walk(poly, BOB_SPEED_M_S, ph.tp)
     if name == "handheld":
         return _walk(poly, 0.05, ph.tp)
     return _walk(poly, speed_m_s, ph.tp, repeat=name != "pad")
@@ -189,12 +188,18 @@ def _height_agl(name: str, alt: float, ph: _Phases) -> F64:
         agl = 5.0 - 3.0 * np.cos(2 * np.pi * phase)
         agl = np.where(ph.tc < ph.start, 3.0, np.clip(agl, 2.0, 8.0))
         return np.where(ph.tc > ph.end, 2.0, agl)
-    if name == "bob":  # up and down between BOB_LOW_M and BOB_HIGH_M every BOB_PERIOD_S,
-        # from the middle (held there before the pattern)
-        mid, amp = 0.5 * (BOB_HIGH_M + BOB_LOW_M), 0.5 * (BOB_HIGH_M - BOB_LOW_M)
-        agl = mid - amp * np.sin(2 * np.pi * ph.tp / BOB_PERIOD_S)
-        return np.asarray(agl, dtype=np.float64)
     return np.full(ph.t.shape, alt)
+
+
+def _bob_offsets(ph: _Phases) -> F64:
+    """(N, 3) bob's motion about its hover [m] (NED): BOB_SINES faded in and out (a C3 smoothstep)
+    over BOB_FADE_S at the pattern's ends."""
+    fade = np.clip(np.minimum(ph.tc - ph.start, ph.end - ph.tc) / BOB_FADE_S, 0.0, 1.0)
+    fade = fade**4 * (35.0 - 84.0 * fade + 70.0 * fade**2 - 20.0 * fade**3)  # C3: smooth jerk
+    north, east, down, down2 = (
+        fade * amp * np.sin(2 * np.pi * (ph.tc - ph.start) / period) for amp, period in BOB_SINES
+    )
+    return np.stack([north, east, down + down2], axis=1)
 
 
 def _with_takeoff_landing(agl: F64, tc: F64, seconds: float) -> F64:
@@ -231,7 +236,7 @@ def _heading(name: str, vel: F64, ph: _Phases) -> F64:
         idx[:first] = first
         yaw = yaw[idx]
     yaw = np.unwrap(yaw)
-    if name in ("climb", "handheld"):
+    if name in ("climb", "handheld", "bob"):
         yaw = np.zeros_like(yaw)
     if name == "spiral":  # one full turn of the heading over the pattern phase
         yaw = 2 * np.pi * np.clip((ph.tc - ph.start) / ph.duration, 0.0, 1.0)
@@ -257,8 +262,8 @@ class Trajectory:
         self.name = name
         self.seconds = float(seconds)
         alt = altitude_m if altitude_m > 0 else world.default_altitude_m
-        if name == "bob":  # its own heights; the take-off climbs to its top
-            alt = BOB_HIGH_M
+        if name == "bob":  # its own heights; the take-off climbs to its middle
+            alt = BOB_MID_M
         self.altitude_m = alt
         # over the pad the vehicle hovers 6 s before it leaves (the marks are left then)
         ph = _phases(self.seconds, alt, takeoff_landing, PAD_HOVER_S if name == "pad" else 2.0)
@@ -272,6 +277,8 @@ class Trajectory:
 
         pos = np.stack([xy[:, 0], xy[:, 1], z], axis=1)
         pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
+        if name == "bob":
+            pos = pos + _bob_offsets(ph)
         self._pos = make_interp_spline(t, pos, k=5)
         yaw = _heading(name, self._pos.derivative(1)(t), ph)
         yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
@@ -282,11 +289,11 @@ class Trajectory:
 
     def _hand_rotation(self, t: F64) -> F64:
         """(N, 3, 3) the hand-held camera's body attitude at times (N,): ZYX Euler angles of
-        HAND_SINES, faded in and out (smoothstep) over HAND_FADE_S at the pattern's ends."""
+        HAND_SINES, faded in and out (a C3 smoothstep) over HAND_FADE_S at the pattern's ends."""
         assert self._hand is not None
         start, end = self._hand
         fade = np.clip(np.minimum(t - start, end - t) / HAND_FADE_S, 0.0, 1.0)
-        fade = fade * fade * (3.0 - 2.0 * fade)
+        fade = fade**4 * (35.0 - 84.0 * fade + 70.0 * fade**2 - 20.0 * fade**3)  # C3: smooth jerk
         roll, pitch, yaw = (
             fade * amp * np.sin(2 * np.pi * (t - start) / period) for amp, period in HAND_SINES
         )
