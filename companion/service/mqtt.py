@@ -48,6 +48,7 @@ MAX_TOPIC_SHOWN = 80  # characters of an unasked topic quoted in the log (the br
 MAX_PACKET_BYTES = 256 * 1024  # the largest packet read from the broker (it owes us none)
 READ_SHARE = 0.1  # of the event loop's time that reading the broker's socket may take
 READ_WINDOW_S = 0.1  # the window that share is held over [s]
+READ_PAUSE_KEEPALIVE_SHARE = 0.25  # the longest pause in reading, of the keepalive
 
 
 log = logging.getLogger("companion.mqtt")
@@ -242,23 +243,30 @@ class MqttPublisher:
 
 
 class ReadBudget:
-    """How long reading may go on: at most ``share`` of the time in each ``window_s`` [s]."""
+    """How long reading may go on: at most ``share`` of the time in each ``window_s`` [s],
+    counted in the reading thread's CPU time (a read preempted by another process costs the
+    loop nothing: counted in wall time, one read stretched to 0.3 s by a loaded machine paused
+    the socket for 2.7 s, and paho closed the connection for a PINGRESP it could not read).
+    No pause is longer than ``max_pause_s``, so the keepalive always hears from the broker."""
 
-    def __init__(self, share: float, window_s: float) -> None:
+    def __init__(self, share: float, window_s: float, max_pause_s: float) -> None:
         self.share = share
         self.window_s = window_s
+        self.max_pause_s = max_pause_s
         self.window_start_s = -math.inf
         self.busy_s = 0.0
 
-    def spend(self, start_s: float, end_s: float) -> float:
-        """Count a read from ``start_s`` to ``end_s`` (perf_counter [s]); the seconds to stop
-        reading for now (0: none), so that the share holds over the window."""
+    def spend(self, start_s: float, end_s: float, busy_s: float) -> float:
+        """Count a read from ``start_s`` to ``end_s`` (perf_counter [s]) that took ``busy_s``
+        of CPU [s]; the seconds to stop reading for now (0: none), so that the share holds
+        over the window, at most ``max_pause_s``."""
         if start_s - self.window_start_s >= self.window_s:
             self.window_start_s, self.busy_s = start_s, 0.0
-        self.busy_s += end_s - start_s
+        self.busy_s += busy_s
         if self.busy_s <= self.share * self.window_s:
             return 0.0
-        return max(0.0, self.window_start_s + self.busy_s / self.share - end_s)
+        pause_s = self.window_start_s + self.busy_s / self.share - end_s
+        return min(self.max_pause_s, max(0.0, pause_s))
 
 
 @functools.cache
@@ -291,7 +299,8 @@ def _client_class() -> type[Any]:
         def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
             loop = self._loop
             fd = sock.fileno()
-            budget = ReadBudget(READ_SHARE, READ_WINDOW_S)
+            max_pause_s = READ_PAUSE_KEEPALIVE_SHARE * max(1, int(client.keepalive))
+            budget = ReadBudget(READ_SHARE, READ_WINDOW_S, max_pause_s)
             recv = client._sock_recv
 
             def bounded_recv(bufsize: int) -> bytes:
@@ -305,7 +314,7 @@ def _client_class() -> type[Any]:
             client._sock_recv = bounded_recv
 
             def read() -> None:
-                start_s = time.perf_counter()
+                start_s, start_cpu_s = time.perf_counter(), time.thread_time()
                 try:
                     while True:
                         client.loop_read()
@@ -321,7 +330,8 @@ def _client_class() -> type[Any]:
                 for message in held.values():
                     self._unasked(message._topic, len(message.payload))
                 held.clear()  # (a PUBREL for one of them is then ignored)
-                pause_s = budget.spend(start_s, time.perf_counter())
+                busy_s = time.thread_time() - start_cpu_s
+                pause_s = budget.spend(start_s, time.perf_counter(), busy_s)
                 if pause_s > 0.0 and client._sock is sock:
                     loop.remove_reader(fd)
                     loop.call_later(pause_s, resume)
