@@ -136,19 +136,34 @@ def _runs(side: Errors) -> str:
 
 
 def comparison_plot(pairs: list[tuple[str, Errors, Errors]], path: Path) -> Path:
-    """A PNG of the pairs side by side: the ATE as % of the path (log scale) and the resets."""
+    """A PNG of the pairs side by side: the ATE as % of the path, with the real one's WITHIN x
+    band (log scale when the values span more than 20x), and the resets."""
     from companion.reporting.figures import pyplot, save
 
     plt = pyplot()
-    fig, (ax_ate, ax_resets) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax_ate, ax_resets) = plt.subplots(1, 2, figsize=(10, 4.4))
     x = np.arange(len(pairs))
     width = 0.38
-    labels = [p[0] for p in pairs]
-    sim_pct = [p[1].ate_pct for p in pairs]
-    real_pct = [p[2].ate_pct for p in pairs]
+    labels = [p[0].replace(" / ", "\n") for p in pairs]
+    sim_pct = np.array([p[1].ate_pct for p in pairs])
+    real_pct = np.array([p[2].ate_pct for p in pairs])
     ax_ate.bar(x - width / 2, sim_pct, width, label="simulated (realistic)", color="tab:blue")
     ax_ate.bar(x + width / 2, real_pct, width, label="real", color="tab:orange")
-    ax_ate.set_yscale("log")
+    band = [real_pct - real_pct / WITHIN, real_pct * WITHIN - real_pct]
+    ax_ate.errorbar(
+        x + width / 2,
+        real_pct,
+        yerr=band,
+        fmt="none",
+        ecolor="black",
+        capsize=5,
+        label=f"real / {WITHIN:g} .. real x {WITHIN:g}",
+    )
+    values = np.concatenate([sim_pct, real_pct])
+    if values.min() > 0 and values.max() / values.min() > 20:
+        ax_ate.set_yscale("log")
+    else:
+        ax_ate.set_ylim(0, 1.5 * max(values.max(), (real_pct * WITHIN).max()))  # room: legend
     ax_ate.set_ylabel(f"{PUBLISHED} metric ATE, % of path")
     ax_resets.bar(x - width / 2, [p[1].resets or 0.0 for p in pairs], width, color="tab:blue")
     ax_resets.bar(x + width / 2, [p[2].resets or 0.0 for p in pairs], width, color="tab:orange")
@@ -156,7 +171,7 @@ def comparison_plot(pairs: list[tuple[str, Errors, Errors]], path: Path) -> Path
     for ax in (ax_ate, ax_resets):
         ax.set_xticks(x, labels, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    ax_ate.legend(fontsize=8)
+    ax_ate.legend(fontsize=8, loc="upper left")
     fig.suptitle("The simulator against reality: each real sequence beside its look-alike")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

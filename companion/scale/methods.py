@@ -81,6 +81,21 @@ class Method(ABC):
     segment: int = -1
     # per sensor: did its MSC match succeed, over the last MATCH_WINDOW attempts (status)
     match_history: dict[int, deque[bool]] = field(default_factory=dict)
+    # the frame's laser pixels by sensor id, projected once for all the sensors (_laser_uv)
+    _uv_of: tuple[ScaleInput | None, dict[int, F64]] = field(
+        default=(None, {}), repr=False, compare=False
+    )
+
+    def _laser_uv(self, inp: ScaleInput, sensor_id: int) -> F64:
+        """(2,) the pixel of a sensor's laser point at this frame (NaN: not in the image): every
+        sensor's projected in one call at the frame's first ask."""
+        frame, uv_of = self._uv_of
+        if frame is not inp:
+            ids = list(inp.lasers)
+            points = np.array([inp.lasers[i][1] for i in ids], dtype=np.float64)
+            uv_of = dict(zip(ids, msc.laser_pixels(self.camera, points), strict=True))
+            self._uv_of = (inp, uv_of)
+        return uv_of[sensor_id]
 
     def first_laser_pixel(self, inp: ScaleInput) -> tuple[F64, F64] | None:
         """The first sensor's laser point (3,) [m, camera frame] and its pixel (2,), or None
@@ -140,6 +155,7 @@ class Method(ABC):
             self.opts.slope_factor,
             self.opts.edge_radius_px,
             self.opts.edge_depth_rel,
+            self._laser_uv(inp, sensor_id),
         )
         history = self.match_history.setdefault(sensor_id, deque(maxlen=MATCH_WINDOW))
         history.append(m is not None)

@@ -54,6 +54,16 @@ def laser_pixel(camera: CameraModel, laser_cam: F64) -> F64 | None:
     return out
 
 
+def laser_pixels(camera: CameraModel, lasers_cam: F64) -> F64:
+    """Pixels (K, 2) of K laser points (K, 3) in the camera frame, NaN rows for those behind
+    the camera or outside the image: :func:`laser_pixel` of each, in one projection (the same
+    arithmetic, row by row, so the same bits)."""
+    uv, ok = camera.project(np.asarray(lasers_cam, dtype=np.float64).reshape(-1, 3))
+    ok &= camera.in_image(uv)
+    uv[~ok] = np.nan
+    return uv
+
+
 def spans_depth_step(
     features: VoFeatures, T_cam_vo: F64, uv: F64, radius_px: float, depth_rel: float
 ) -> bool:
@@ -82,11 +92,14 @@ def measure(
     slope_factor: float,
     edge_radius_px: float = 0.0,
     edge_depth_rel: float = 0.0,
+    laser_uv: F64 | None = None,
 ) -> MscMeasurement | None:
     """The MSC measurement of one sensor at one frame, or None when nothing matches (or the
-    laser pixel's neighbourhood spans a depth step, see ``spans_depth_step``)."""
-    uv = laser_pixel(camera, laser_cam)
-    if uv is None:
+    laser pixel's neighbourhood spans a depth step, see ``spans_depth_step``). ``laser_uv``
+    (2,): the laser's pixel when the caller projected it (:func:`laser_pixels`; NaN: not in
+    the image), else it is projected here."""
+    uv = laser_pixel(camera, laser_cam) if laser_uv is None else laser_uv
+    if uv is None or not np.isfinite(uv).all():
         return None
     has = features.point_ids >= 0
     if not has.any():

@@ -55,6 +55,10 @@ BOB_FADE_S = 2.0
 # and yaw each a sine of its own amplitude [rad] and period [s], faded in and out over
 # HAND_FADE_S at the pattern's ends; not a multirotor's attitude (no thrust axis to follow)
 HAND_SINES = ((0.6, 4.1), (0.45, 5.3), (1.0, 6.7))  # roll, pitch, yaw
+# and the hand's drift: north, east and down sines (amplitude [m], period [s]) about a hover,
+# added after the smoothing like bob's: ~0.1 m/s in a 0.16 x 0.18 m box (the real: 1.6-2.2 m
+# of path in 24 s within 0.15 x 0.18 x 0.19 m)
+HAND_SHIFTS = ((0.07, 6.1), (0.08, 7.3), (0.09, 5.5))
 HAND_FADE_S = 2.0
 PAD_HOVER_S = 6.0  # "pad": the hover over the start before and after the square [s]
 
@@ -105,9 +109,8 @@ def _polyline_xy(name: str, speed: float) -> F64:
     if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
-    if name == "handheld":  # the hand's drift: a 0.12 m circle
-        a = np.linspace(0.0, 2 * np.pi, 73)
-        return np.stack([0.06 * np.sin(a), 0.06 * (1 - np.cos(a))], axis=1)
+    if name == "handheld":  # a hover; the hand's drift is added after the smoothing
+        return np.zeros((1, 2))
     if name == "bob":  # a hover; its motion is added after the smoothing (_bob_offsets)
         return np.zeros((1, 2))
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
@@ -169,8 +172,6 @@ def _horizontal(name: str, speed_m_s: float, ph: _Phases) -> F64:
         return _walk(poly, 2.0 * float(np.linalg.norm(poly[1] - poly[0])) / ph.duration, ph.tp)
     if name == "spiral":
         return _walk(poly, 0.3, ph.tp)
-    if name == "handheld":
-        return _walk(poly, 0.05, ph.tp)
     return _walk(poly, speed_m_s, ph.tp, repeat=name != "pad")
 
 
@@ -191,15 +192,24 @@ def _height_agl(name: str, alt: float, ph: _Phases) -> F64:
     return np.full(ph.t.shape, alt)
 
 
+def _fade(t: F64, start: float, end: float, fade_s: float) -> F64:
+    """(N,) 0 before ``start``, 1 from ``fade_s`` after it to ``fade_s`` before ``end``, 0 after
+    it: a C3 smoothstep between (its jerk does not jump, so the splines do not ring)."""
+    x = np.clip(np.minimum(t - start, end - t) / fade_s, 0.0, 1.0)
+    return np.asarray(x**4 * (35.0 - 84.0 * x + 70.0 * x**2 - 20.0 * x**3), dtype=np.float64)
+
+
+def _sines(t: F64, start: float, fade: F64, sines: tuple[tuple[float, float], ...]) -> F64:
+    """(N, len(sines)) each (amplitude, period [s]) sine from ``start``, times ``fade``."""
+    cols = [fade * amp * np.sin(2 * np.pi * (t - start) / period) for amp, period in sines]
+    return np.stack(cols, axis=1)
+
+
 def _bob_offsets(ph: _Phases) -> F64:
-    """(N, 3) bob's motion about its hover [m] (NED): BOB_SINES faded in and out (a C3 smoothstep)
-    over BOB_FADE_S at the pattern's ends."""
-    fade = np.clip(np.minimum(ph.tc - ph.start, ph.end - ph.tc) / BOB_FADE_S, 0.0, 1.0)
-    fade = fade**4 * (35.0 - 84.0 * fade + 70.0 * fade**2 - 20.0 * fade**3)  # C3: smooth jerk
-    north, east, down, down2 = (
-        fade * amp * np.sin(2 * np.pi * (ph.tc - ph.start) / period) for amp, period in BOB_SINES
-    )
-    return np.stack([north, east, down + down2], axis=1)
+    """(N, 3) bob's motion about its hover [m] (NED): BOB_SINES faded in and out over
+    BOB_FADE_S at the pattern's ends."""
+    s = _sines(ph.tc, ph.start, _fade(ph.tc, ph.start, ph.end, BOB_FADE_S), BOB_SINES)
+    return np.stack([s[:, 0], s[:, 1], s[:, 2] + s[:, 3]], axis=1)
 
 
 def _with_takeoff_landing(agl: F64, tc: F64, seconds: float) -> F64:
@@ -279,6 +289,9 @@ class Trajectory:
         pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
         if name == "bob":
             pos = pos + _bob_offsets(ph)
+        if name == "handheld":
+            fade = _fade(ph.tc, ph.start, ph.end, HAND_FADE_S)
+            pos = pos + _sines(ph.tc, ph.start, fade, HAND_SHIFTS)
         self._pos = make_interp_spline(t, pos, k=5)
         yaw = _heading(name, self._pos.derivative(1)(t), ph)
         yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
@@ -292,11 +305,7 @@ class Trajectory:
         HAND_SINES, faded in and out (a C3 smoothstep) over HAND_FADE_S at the pattern's ends."""
         assert self._hand is not None
         start, end = self._hand
-        fade = np.clip(np.minimum(t - start, end - t) / HAND_FADE_S, 0.0, 1.0)
-        fade = fade**4 * (35.0 - 84.0 * fade + 70.0 * fade**2 - 20.0 * fade**3)  # C3: smooth jerk
-        roll, pitch, yaw = (
-            fade * amp * np.sin(2 * np.pi * (t - start) / period) for amp, period in HAND_SINES
-        )
+        roll, pitch, yaw = _sines(t, start, _fade(t, start, end, HAND_FADE_S), HAND_SINES).T
         cr, sr, cp, sp, cy, sy = (
             np.cos(roll),
             np.sin(roll),

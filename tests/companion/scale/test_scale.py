@@ -366,3 +366,30 @@ def test_the_range_history_window_and_lookup_agree_with_a_scan_of_every_reading(
         want = [v for s, v in kept if t0 <= s <= t1]
         assert hist.window(0, t0, t1).tolist() == want
     assert hist.window(1, 0, t).size == 0  # a sensor never seen
+
+
+def test_the_lasers_projected_together_are_each_one_projected_alone() -> None:
+    """laser_pixels: every sensor's pixel in one projection, bit for bit laser_pixel's, NaN
+    for a point behind the camera or outside the image; measure takes it as it is."""
+    rng = np.random.default_rng(7)
+    rays = CAM.pixels_to_rays(rng.uniform([0.0, 0.0], [640.0, 480.0], (40, 2)))
+    points = np.concatenate(
+        [rays * rng.uniform(0.5, 12.0, (40, 1)), [[0.0, 0.0, -2.0], [30.0, 0.0, 1.0]]]
+    )
+    together = msc.laser_pixels(CAM, points)
+    for point, uv in zip(points, together, strict=True):
+        alone = msc.laser_pixel(CAM, point)
+        if alone is None:
+            assert np.isnan(uv).all()
+        else:
+            assert np.array_equal(uv, alone)
+    assert np.isnan(together[-2:]).all() and np.isfinite(together[:40]).all()
+    s_true = 3.0
+    T_cam_vo = se3.make(np.eye(3), [0.2, 0.1, -0.3])
+    feats = scene_features(lambda r: np.full(len(r), 8.0), T_cam_vo, s_true)
+    laser = _laser_at((318.0, 236.0), 8.0)
+    args = (feats, T_cam_vo, CAM, laser, 0.01, 6.0, 1.0, 0.0, 0.0)
+    own = msc.measure(0, *args)
+    given = msc.measure(0, *args, msc.laser_pixels(CAM, laser[None])[0])
+    assert own is not None and own == given
+    assert msc.measure(0, *args, np.array([np.nan, np.nan])) is None

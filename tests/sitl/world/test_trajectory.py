@@ -125,5 +125,7 @@ def test_handheld_turns_like_a_hand_in_place(world: Callable[[str, int], World])
     rpy = np.degrees(np.array([so3.matrix_to_rpy(R) for R in s.R_world_body]))
     assert (np.ptp(rpy, axis=0) > [50.0, 40.0, 90.0]).all()  # every axis turns
     assert np.ptp(s.position_m, axis=0).max() < 0.2
+    speed = np.linalg.norm(s.velocity_m_s[turning], axis=1)
+    assert 0.06 < speed.mean() < 0.14  # the real: 1.6-2.2 m of path in 24 s
     # still at both ends (the sines fade in and out)
     assert rate[0] < 1.0 and rate[-1] < 1.0
