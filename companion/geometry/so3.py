@@ -140,6 +140,20 @@ def rpy_to_matrix(roll_rad: float, pitch_rad: float, yaw_rad: float) -> F64:
     return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
 
 
+def rpy_to_matrices(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> F64:
+    """(N, 3, 3) :func:`rpy_to_matrix` of N angle triples (each (N,)), in closed form."""
+    r, p, y = (np.asarray(a, dtype=np.float64) for a in (roll_rad, pitch_rad, yaw_rad))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
+            np.stack([-sp, cp * sr, cp * cr], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
 def matrix_to_rpy(R: ArrayLike) -> tuple[float, float, float]:
     """Inverse of :func:`rpy_to_matrix`: (roll_rad, pitch_rad, yaw_rad), pitch in [-pi/2, pi/2]."""
     M = np.asarray(R, dtype=np.float64)

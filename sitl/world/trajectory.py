@@ -21,7 +21,7 @@ from scipy import ndimage
 from scipy.interpolate import make_interp_spline
 
 from companion.errors import SitlError
-from companion.geometry import se3
+from companion.geometry import se3, so3
 from companion.sitl.world.terrain import World
 from companion.types import F64
 
@@ -45,20 +45,20 @@ _CLIMB_RATE_M_S = 1.5  # take-off and landing
 # "bob": a small multirotor flown by hand indoors, low over its floor (the real downward flight
 # of docs/RESULTS.md, "Real sequences": 0.13-1.31 m, within a 0.3 x 0.7 m patch, 22 m of path
 # in about 45 s of flight): a hover at BOB_MID_M plus sines in north, east and down, each
-# (amplitude [m], period [s]), faded in and out over BOB_FADE_S at the pattern's ends; added
+# (axis, amplitude [m], period [s]), faded in and out over BOB_FADE_S at the pattern's ends; added
 # after the 1 s smoothing, which would flatten them. 0.28-1.22 m, ~0.5 m/s.
 BOB_MID_M = 0.75
-BOB_SINES = ((0.16, 3.1), (0.35, 4.3), (0.35, 7.0), (0.12, 2.3))  # north, east, down, down
+BOB_SINES = ((0, 0.16, 3.1), (1, 0.35, 4.3), (2, 0.35, 7.0), (2, 0.12, 2.3))  # (axis, m, s)
 BOB_FADE_S = 2.0
 # "handheld": a camera turned by hand (the real hand-held sequence of docs/RESULTS.md, "Real
 # sequences": 64 deg/s median, 119 deg/s p95, within a 0.15 x 0.19 x 0.19 m box): roll, pitch
 # and yaw each a sine of its own amplitude [rad] and period [s], faded in and out over
 # HAND_FADE_S at the pattern's ends; not a multirotor's attitude (no thrust axis to follow)
-HAND_SINES = ((0.6, 4.1), (0.45, 5.3), (1.0, 6.7))  # roll, pitch, yaw
+HAND_SINES = ((0.6, 4.1), (0.45, 5.3), (1.0, 6.7))  # roll, pitch, yaw: (rad, s)
 # and the hand's drift: north, east and down sines (amplitude [m], period [s]) about a hover,
 # added after the smoothing like bob's: ~0.1 m/s in a 0.16 x 0.18 m box (the real: 1.6-2.2 m
 # of path in 24 s within 0.15 x 0.18 x 0.19 m)
-HAND_SHIFTS = ((0.07, 6.1), (0.08, 7.3), (0.09, 5.5))
+HAND_SHIFTS = ((0, 0.07, 6.1), (1, 0.08, 7.3), (2, 0.09, 5.5))  # (axis, m, s)
 HAND_FADE_S = 2.0
 PAD_HOVER_S = 6.0  # "pad": the hover over the start before and after the square [s]
 
@@ -109,9 +109,7 @@ def _polyline_xy(name: str, speed: float) -> F64:
     if name == "spiral":  # a slow 0.4 m circle over the start point (d-Pose evaluation)
         a = np.linspace(0.0, 2 * np.pi, 73)
         return np.stack([0.4 * np.sin(a), 0.4 * (1 - np.cos(a))], axis=1)
-    if name == "handheld":  # a hover; the hand's drift is added after the smoothing
-        return np.zeros((1, 2))
-    if name == "bob":  # a hover; its motion is added after the smoothing (_bob_offsets)
+    if name in _DRIFTS:  # a hover; the motion is added after the smoothing (_drift)
         return np.zeros((1, 2))
     raise SitlError(f"unknown trajectory {name!r}; choose one of {', '.join(TRAJECTORIES)}")
 
@@ -205,11 +203,19 @@ def _sines(t: F64, start: float, fade: F64, sines: tuple[tuple[float, float], ..
     return np.stack(cols, axis=1)
 
 
-def _bob_offsets(ph: _Phases) -> F64:
-    """(N, 3) bob's motion about its hover [m] (NED): BOB_SINES faded in and out over
-    BOB_FADE_S at the pattern's ends."""
-    s = _sines(ph.tc, ph.start, _fade(ph.tc, ph.start, ph.end, BOB_FADE_S), BOB_SINES)
-    return np.stack([s[:, 0], s[:, 1], s[:, 2] + s[:, 3]], axis=1)
+def _drift(ph: _Phases, terms: tuple[tuple[int, float, float], ...], fade_s: float) -> F64:
+    """(N, 3) a motion about a hover [m] (NED): each (axis, amplitude [m], period [s]) sine
+    added on its axis, faded in and out over ``fade_s`` at the pattern's ends."""
+    out = np.zeros((len(ph.tc), 3))
+    sines = tuple((amp, period) for _, amp, period in terms)
+    columns = _sines(ph.tc, ph.start, _fade(ph.tc, ph.start, ph.end, fade_s), sines)
+    for k, (axis, _, _) in enumerate(terms):
+        out[:, axis] += columns[:, k]
+    return out
+
+
+# the trajectories whose motion is sines about a hover, added after the 1 s smoothing
+_DRIFTS = {"bob": (BOB_SINES, BOB_FADE_S), "handheld": (HAND_SHIFTS, HAND_FADE_S)}
 
 
 def _with_takeoff_landing(agl: F64, tc: F64, seconds: float) -> F64:
@@ -287,11 +293,8 @@ class Trajectory:
 
         pos = np.stack([xy[:, 0], xy[:, 1], z], axis=1)
         pos = ndimage.gaussian_filter1d(pos, sig, axis=0, mode="nearest")
-        if name == "bob":
-            pos = pos + _bob_offsets(ph)
-        if name == "handheld":
-            fade = _fade(ph.tc, ph.start, ph.end, HAND_FADE_S)
-            pos = pos + _sines(ph.tc, ph.start, fade, HAND_SHIFTS)
+        if name in _DRIFTS:
+            pos = pos + _drift(ph, *_DRIFTS[name])
         self._pos = make_interp_spline(t, pos, k=5)
         yaw = _heading(name, self._pos.derivative(1)(t), ph)
         yaw = ndimage.gaussian_filter1d(yaw, sig, mode="nearest")
@@ -306,22 +309,7 @@ class Trajectory:
         assert self._hand is not None
         start, end = self._hand
         roll, pitch, yaw = _sines(t, start, _fade(t, start, end, HAND_FADE_S), HAND_SINES).T
-        cr, sr, cp, sp, cy, sy = (
-            np.cos(roll),
-            np.sin(roll),
-            np.cos(pitch),
-            np.sin(pitch),
-            np.cos(yaw),
-            np.sin(yaw),
-        )
-        return np.stack(
-            [
-                np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=1),
-                np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=1),
-                np.stack([-sp, cp * sr, cp * cr], axis=1),
-            ],
-            axis=1,
-        )
+        return so3.rpy_to_matrices(roll, pitch, yaw)
 
     def _rotation(self, accel: F64, yaw: F64, t: F64) -> F64:
         """(N, 3, 3) R_world_body: the thrust axis along the specific force, the nose at

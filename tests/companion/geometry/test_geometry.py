@@ -181,3 +181,14 @@ def test_pixel_rays_grid_and_behind_camera() -> None:
         True,
         False,
     ]
+
+
+def test_rpy_to_matrices_is_rpy_to_matrix_of_each_triple() -> None:
+    rng = np.random.default_rng(3)
+    roll, pitch, yaw = rng.uniform(-3.0, 3.0, (3, 50))
+    pitch = pitch / 2.5  # within (-pi/2, pi/2)
+    R = so3.rpy_to_matrices(roll, pitch, yaw)
+    assert R.shape == (50, 3, 3)
+    for k in range(50):
+        assert np.allclose(R[k], so3.rpy_to_matrix(roll[k], pitch[k], yaw[k]), atol=1e-14)
+    assert np.allclose(so3.rpy_to_matrices(0.1, -0.2, 0.3), so3.rpy_to_matrix(0.1, -0.2, 0.3))
