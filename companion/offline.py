@@ -245,6 +245,7 @@ def run_scale(
     T_body_cam = pipe.T_body_cam
     for step in steps:
         feed_step(pipe, step)
+        pipe.finish_frame()  # the frame's own scale (after its pose)
         out = pipe.vo_output  # None: the frame check rejected the frame
         tracking = out is not None and out.state == VoState.TRACKING
         run.time_us.append(step.frame.time_us)
@@ -343,6 +344,7 @@ def run_attitude(
     nan2 = (float("nan"), float("nan"))
     for step in steps:
         feed_step(pipe, step)
+        pipe.finish_frame()  # the frame's own roll/pitch (after its pose)
         run.time_us.append(step.frame.time_us)
         row: dict[str, tuple[float, float]] = dict.fromkeys(SERIES, nan2)
         row["truth"] = _tilt_of(step.T_world_body[:3, :3])

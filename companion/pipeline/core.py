@@ -5,7 +5,9 @@ deterministic (same inputs, same outputs) and does no I/O. Inputs must arrive in
 per stream; attitude and ranges are buffered and looked up at each frame's capture time.
 Every per-frame decision is the Pipeline's: the frame check (:meth:`Pipeline.check_frame`),
 whether a frame waits for the autopilot's attitude (:meth:`Pipeline.hold_for_attitude`), the
-VO, the metric scale, roll/pitch, the compass heading, the published pose and d-Pose.
+VO, the metric scale, roll/pitch, the compass heading, the published pose and d-Pose. A pose
+goes out with the scale and roll/pitch of the frame before (of the same VO map); the frame's
+own update of them is work after the pose (:meth:`Pipeline.finish_frame`), with the keyframe.
 """
 
 from __future__ import annotations
@@ -25,10 +27,10 @@ from companion.pipeline.heading import CompassHeading
 from companion.pipeline.inputs import AttitudeHistory, Sample
 from companion.pipeline.lens_stage import LensStage, take_lens
 from companion.pipeline.output import PoseOutput
-from companion.pipeline.scale_stage import TiltInput, ground_prior, laser_readings, scaled_cloud
+from companion.pipeline.scale_stage import ScaleStage, TiltInput, frame_input, roll_pitch
 from companion.pipeline.status import PipelineStatus, status_of
 from companion.scale.laser import RangeHistory
-from companion.scale.methods import MetricTrajectory, ScaleInput, make_methods
+from companion.scale.methods import ScaleInput
 from companion.types import (
     F64,
     AttitudeSample,
@@ -36,7 +38,6 @@ from companion.types import (
     ImuSample,
     PoseEstimate,
     RangeSample,
-    ScaleEstimate,
     VoOutput,
     VoState,
 )
@@ -44,6 +45,8 @@ from companion.vo.frame_check import FrameCheck, FrameProblem
 from companion.vo.frame_clock import FrameClock
 from companion.vo.odometry import VisualOdometry
 from companion.vo.stage_times import Laps
+
+AFTER_POSE = ("scale update", "roll/pitch update", "keyframe", "lens check")  # background_work
 
 
 class Pipeline:
@@ -88,12 +91,10 @@ class Pipeline:
         self.specs = self.ground.specs
         self.pad = PadGravity(config, self.ground)
         self.compass = CompassHeading(config.vo)
-        methods = make_methods(self.camera, config.scale, sensor_study)
-        self.method_name = config.scale.method
-        self.methods = methods if all_methods else {self.method_name: methods[self.method_name]}
-        self.trajectories = {name: MetricTrajectory() for name in self.methods}
-        self.estimates: dict[str, ScaleEstimate | None] = dict.fromkeys(self.methods)
-        self.metric_positions: dict[str, F64 | None] = dict.fromkeys(self.methods)
+        self.scale = ScaleStage(self.camera, config.scale, all_methods, sensor_study)
+        self.method_name = self.scale.method_name
+        self.methods, self.trajectories = self.scale.methods, self.scale.trajectories
+        self.estimates, self.metric_positions = self.scale.estimates, self.scale.metric_positions
         self.scale_input: ScaleInput | None = None
         self.vo_output: VoOutput | None = None
         self.output = PoseOutput()
@@ -101,8 +102,10 @@ class Pipeline:
         n_sensors = len(config.attitude.sensor_ids or self.specs)
         if config.attitude.enabled and n_sensors >= 3:
             self.attitude = RollPitch(self.specs, config.attitude)
-        self.tilt: TiltStep | None = None  # the roll/pitch result of the last frame
+        self.tilt: TiltStep | None = None  # the roll/pitch update of the last frame
         self.tilt_input: TiltInput | None = None  # its input
+        self.pose_tilt: TiltStep | None = None  # the last update's: the next pose's roll/pitch
+        self._pending: tuple[ScaleInput, dict[int, float], F64 | None] | None = None
         # the wall time [ms] of each stage of the last frame, to its pose and after it
         self.laps = Laps()
         self.background_laps = Laps()
@@ -179,6 +182,7 @@ class Pipeline:
         one, the VO drops its map and initialises anew, so the poses after a camera fault
         carry a new reset_counter. ``checked``: :meth:`check_frame` already ran on this frame
         (the service's camera reader runs it on every delivered frame)."""
+        self.finish_frame()  # if background_work did not
         laps = self.laps
         laps.start()
         if self._first_frame_us is None:
@@ -209,9 +213,19 @@ class Pipeline:
         laps.lap("vo")
         if out is None or out.state != VoState.TRACKING:
             return None
-        range_m = self._scale_step(frame.time_us, out)
+        inp, range_m = frame_input(
+            self.specs, self.ranges, self.T_cam_body, out, self.vo, self.config.scale
+        )
+        self.scale_input = inp
+        first = not self.scale.ready(inp.segment)  # a map's first frame: its update first
+        if first:
+            self.scale.update(inp)
+        self.scale.positions(inp, self.lever_m(out))
         laps.lap("scale")
-        self.tilt = self._tilt(frame.time_us, range_m, R_world_body)
+        if first:
+            self._update_tilt(inp, range_m, R_world_body)
+        else:
+            self._pending = (inp, range_m, R_world_body)
         laps.lap("roll/pitch")
         position_vo_m = self.metric_positions.get(self.method_name)
         R_vo_body = self.R_vo_body()
@@ -264,41 +278,30 @@ class Pipeline:
         )
         return vo.process(frame, R_world_body, plane, g, down)
 
-    def _scale_step(self, time_us: int, out: VoOutput) -> dict[int, float]:
-        """Every scale method on a tracked frame: ``estimates`` and ``metric_positions``;
-        returns the ranges [m] at the frame by sensor id."""
-        T_cam_vo = se3.inverse(out.T_vo_cam)
-        readings = laser_readings(
-            self.specs, self.ranges, self.T_cam_body, time_us, self.config.scale
-        )
-        lasers: dict[int, tuple[float, F64, float]] = dict(readings)
-        prior = ground_prior(self.vo.metric_sigma_rel)
-        inp = ScaleInput(time_us, out, T_cam_vo, lasers, self.vo.resets, prior)
-        self.scale_input = inp
-        # The camera's VO position is what the scale multiplies; the body sits a metric lever
-        # arm away from it (see lever_m)
-        c_vo = out.T_vo_cam[:3, 3]
-        lever_m = self.lever_m(out)
-        for name, method in self.methods.items():
-            est = method.step(inp)
-            self.estimates[name] = est
-            if est is not None:
-                cam_m = self.trajectories[name].step(c_vo, est.scale, inp.segment)
-                self.metric_positions[name] = cam_m + lever_m
-        return {sid: r.range_m for sid, r in readings.items()}
+    def finish_frame(self, laps: Laps | None = None) -> None:
+        """The scale and roll/pitch update of the last tracked frame (``_pending``), when its
+        pose went out before it (ScaleStage): :meth:`background_work` runs it, else the next
+        :meth:`feed_frame` first. Read ``estimates``, ``tilt`` of a frame after it."""
+        if self._pending is None:
+            return
+        inp, range_m, R_world_body = self._pending
+        self._pending = None
+        self.scale.update(inp)
+        if laps is not None:
+            laps.lap("scale update")
+        self._update_tilt(inp, range_m, R_world_body)
+        if laps is not None:
+            laps.lap("roll/pitch update")
 
-    def _tilt(
-        self, time_us: int, range_m: dict[int, float], R_world_body: F64 | None
-    ) -> TiltStep | None:
-        """Roll/pitch from the ranges at the frame, compensated with the scaled VO cloud."""
-        out = self.vo_output
-        R_vo_body = self.R_vo_body()
-        if self.attitude is None or out is None or R_vo_body is None:
-            return None
+    def _update_tilt(
+        self, inp: ScaleInput, range_m: dict[int, float], R_world_body: F64 | None
+    ) -> None:
+        """Roll/pitch at the frame of ``inp`` (``tilt``, ``tilt_input``; ``pose_tilt``)."""
         est = self.estimates.get(self.method_name)
-        cloud = scaled_cloud(out, R_vo_body, est, self.lever_m(out))
-        self.tilt_input = TiltInput(range_m, cloud)
-        return self.attitude.step(time_us, range_m, cloud, self.vo.resets, R_world_body)
+        self.tilt, self.tilt_input = roll_pitch(
+            self.attitude, inp, range_m, est, self.T_cam_body, R_world_body
+        )
+        self.pose_tilt = self.tilt
 
     def _pose(self, time_us: int) -> PoseEstimate | None:
         """The published pose of the frame (companion/pipeline/output.py), before d-Pose."""
@@ -309,15 +312,12 @@ class Pipeline:
             return None
         reset_counter = self.trajectories[self.method_name].reset_counter
         tilt_error = self.attitude.filter.tilt_error if self.attitude is not None else None
-        return self.output.pose(
-            time_us, est, p, R_vo_body, self.vo.yaw_vo_rad, reset_counter, self.tilt, tilt_error
-        )
+        yaw, tilt = self.vo.yaw_vo_rad, self.pose_tilt  # the tilt: the last update's
+        return self.output.pose(time_us, est, p, R_vo_body, yaw, reset_counter, tilt, tilt_error)
 
     def R_vo_body(self) -> F64 | None:
-        """(3, 3) the body's orientation in the VO frame at the last frame, or None. (No
-        T_vo_body: the body sits a metric lever arm from the camera, which has no place in
-        unscaled VO units; the metric body position is the scaled camera position plus
-        :meth:`lever_m`.)"""
+        """(3, 3) the body's orientation in the VO frame at the last frame, or None (no
+        T_vo_body: the metric body position is the scaled camera's plus :meth:`lever_m`)."""
         out = self.vo_output
         if out is None or not np.all(np.isfinite(out.T_vo_cam)):
             return None
@@ -337,6 +337,7 @@ class Pipeline:
         it, the next feed_frame does it first. Returns whether there was any."""
         laps = self.background_laps
         laps.start()
+        self.finish_frame(laps)
         built = self.vo.finish_pending()
         laps.lap("keyframe")
         lens = self.lens.work()

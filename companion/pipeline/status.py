@@ -73,7 +73,8 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
     out = pipe.vo_output
     vo = pipe.vo
     est = pipe.estimates.get(pipe.method_name)
-    fused = pipe.tilt.fused if pipe.tilt is not None else None
+    tilt = pipe.pose_tilt  # the roll/pitch the last pose went out with
+    fused = tilt.fused if tilt is not None else None
     sigma_deg = None
     if fused is not None:
         sigma_deg = float(np.degrees(np.sqrt(np.max(np.diag(fused.cov_rad2)))))
@@ -101,7 +102,7 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         roll_deg=float(np.degrees(fused.roll_rad)) if fused is not None else None,
         pitch_deg=float(np.degrees(fused.pitch_rad)) if fused is not None else None,
         tilt_sigma_deg=sigma_deg,
-        tilt_reasons=tuple(pipe.tilt.reasons) if pipe.tilt is not None else (),
+        tilt_reasons=tuple(tilt.reasons) if tilt is not None else (),
         waited_for_attitude=pipe.waited_for_attitude,
         gravity_frames=pipe.imu_gravity.frames,
         dpose_armed=pipe.dpose_stage.armed,

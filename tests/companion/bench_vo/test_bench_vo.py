@@ -37,13 +37,21 @@ def test_floor_ratios_are_the_medians_over_the_floor_and_the_line_reads_back() -
 
 
 def test_stage_table_nests_the_vo_stages_and_puts_the_work_after_the_pose_last() -> None:
+    after = {"scale update": 1.0, "keyframe": 0.0}  # the pipeline's work after the pose
     stages = [
-        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, "keyframe": 0.0},
-        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, "keyframe": 20.0},
+        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, **after},
+        {"frame check": 1.0, "vo": 6.0, "scale": 1.0, "vo: track": 4.0, **after, "keyframe": 20.0},
     ]
     rows = stage_table(stages, [8.0, 8.0])
     names = [r.split("|")[1].strip() for r in rows[2:]]
-    assert names == ["frame check", "vo", "vo: track", "scale", "keyframe (after the pose)"]
+    assert names == [
+        "frame check",
+        "vo",
+        "vo: track",
+        "scale",
+        "scale update (after the pose)",
+        "keyframe (after the pose)",
+    ]
     cells = {n: r.split("|") for n, r in zip(names, rows[2:], strict=True)}
     assert cells["vo"][2].strip() == "2" and cells["vo"][5].strip() == "75.0 %"
     kf = cells["keyframe (after the pose)"]

@@ -373,3 +373,45 @@ def test_the_pipeline_holds_frames_for_the_autopilots_attitude_then_goes_without
 
     off = Pipeline(load_config(None, {"service": {"attitude_wait_s": 0.0}}))
     assert off.hold_for_attitude(frames[0], autopilot_seen=True) is False
+
+
+def test_a_pose_goes_out_on_the_frame_befores_scale_and_tilt_and_its_own_update_follows() -> None:
+    """The frame's own scale and roll/pitch update is work after its pose: at a map's first
+    tracked frame it runs before the pose (the estimate is the frame's); on every later
+    frame of the map the pose takes the frame before's estimate and roll/pitch, and the
+    frame's update comes with background_work (or, without it, first in the next frame);
+    the published position moves by the VO's motion at the scale of the frame before."""
+    cfg, sc = _ground_flight(3.0)
+    p = Pipeline(cfg)
+    first, deferred, by_next_frame = 0, 0, 0
+    last = None  # (time_us, the pose's metric position, camera VO position, lever arm)
+    for k, st in enumerate(sc.steps()):
+        pose = feed_step(p, st)
+        out = p.vo_output
+        if out is None or out.state != VoState.TRACKING:
+            continue
+        est = p.estimates[p.method_name]
+        position = p.metric_positions[p.method_name]
+        lever = out.T_vo_cam[:3, :3] @ p.T_cam_body[:3, 3]
+        assert est is not None and pose is not None and position is not None
+        if last is None:  # the map's first frame: its update ran before the pose
+            first += 1
+            assert est.time_us == st.frame.time_us and p.tilt is not None
+            assert p.pose_tilt is p.tilt
+        else:
+            deferred += 1
+            time_us, position_before, c_vo_before, lever_before = last
+            assert est.time_us == time_us  # the frame before's
+            assert p.tilt is None and p.pose_tilt is not None
+            moved = est.scale * (out.T_vo_cam[:3, 3] - c_vo_before) + lever - lever_before
+            assert np.allclose(position - position_before, moved, rtol=0, atol=1e-12)
+        if k % 2:  # the service's order: the update after the pose
+            p.background_work()
+            assert p.background_laps.ms.keys() >= {"scale update", "roll/pitch update"}
+            new = p.estimates[p.method_name]
+            assert new is not None and new.time_us == st.frame.time_us
+            assert p.tilt is not None and p.pose_tilt is p.tilt
+        elif last is not None:
+            by_next_frame += 1  # the next feed_frame runs this frame's update first
+        last = (st.frame.time_us, position.copy(), out.T_vo_cam[:3, 3].copy(), lever)
+    assert first == 1 and deferred >= 60 and by_next_frame >= 30
