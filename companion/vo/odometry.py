@@ -126,18 +126,11 @@ class VisualOdometry:
         rolling shutter (companion/vo/rolling_shutter.py).
 
         Computed once for all the tracks and kept in ``tr.xy`` (each point's undistortion
-        stops on its own: a subset's values are those of the whole set), starting from the
-        frame before's coordinates moved by the distorted motion; GeometryError when a
-        selected point is outside the lens model."""
+        stops on its own: a subset's values are those of the whole set); GeometryError when
+        a selected point is outside the lens model."""
         if tr.xy is None or len(tr.xy) != len(tr):
             px = tr.px if self.shutter is None else self.shutter.at_frame_time(tr.px, tr.prev_px)
-            start = None
-            if tr.prev_xy is not None and tr.prev_px is not None and len(tr.prev_xy) == len(tr):
-                cam = self.camera
-                start = (
-                    tr.prev_xy + cam.pixels_to_distorted(px) - cam.pixels_to_distorted(tr.prev_px)
-                )
-            tr.xy = self.camera.pixels_to_normalized(px, start=start, nan_where_unconverged=True)
+            tr.xy = self.camera.pixels_to_normalized(px, nan_where_unconverged=True)
         xy = tr.xy if sel is None else tr.xy[sel]
         if not np.isfinite(xy).all():
             raise GeometryError("undistortion did not converge (point outside the lens model)")
