@@ -113,9 +113,9 @@ class CameraModel:
         points against 0.66 ms for the NumPy Newton loop below, the same to 1e-15. With ``k1``
         (N,), which replaces the model's k1 point by point (the lens check's candidate lenses,
         companion/vo/focal_check.py): Newton's method, ``iterations`` at most, each point
-        stopping on its own once its step is below 1e-15. Either way a point's result does not depend on the
-        other points of the call, so the VO undistorts a frame's tracks once and hands each
-        stage its subset.
+        stopping on its own once its step is below 1e-15. Either way a point's result does
+        not depend on the other points of the call, so the VO undistorts a frame's tracks
+        once and hands each stage its subset.
 
         Converges to ~1e-14 for the distortion of real lenses within their image; raises
         GeometryError when it does not converge (a reprojection more than 1e-9 off: the

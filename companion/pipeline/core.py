@@ -46,7 +46,7 @@ from companion.vo.frame_clock import FrameClock
 from companion.vo.odometry import VisualOdometry
 from companion.vo.stage_times import Laps
 
-AFTER_POSE = ("scale update", "roll/pitch update", "keyframe", "lens check")  # background_work
+AFTER_POSE = ("scale update", "roll/pitch update", "keyframe decision", "keyframe", "lens check")
 
 
 class Pipeline:
@@ -82,8 +82,7 @@ class Pipeline:
         # frames held by hold_for_attitude (an autopilot but no attitude stream yet)
         self.waited_for_attitude = 0
         self._first_held_us: int | None = None
-        # maps dropped because they had started without the autopilot's heading and its
-        # attitude stream began later (ArduPilot's, asked for after its first HEARTBEAT)
+        # maps dropped: begun before the autopilot's attitude stream (ArduPilot's comes late)
         self.heading_restarts = 0
         self.imu_gravity = MotionGravity(config.vo.imu_gravity_window_s)
         self.ranges = RangeHistory()
@@ -279,9 +278,8 @@ class Pipeline:
         return vo.process(frame, R_world_body, plane, g, down)
 
     def finish_frame(self, laps: Laps | None = None) -> None:
-        """The scale and roll/pitch update of the last tracked frame (``_pending``), when its
-        pose went out before it (ScaleStage): :meth:`background_work` runs it, else the next
-        :meth:`feed_frame` first. Read ``estimates``, ``tilt`` of a frame after it."""
+        """The last tracked frame's scale and roll/pitch update (``_pending``), after its pose
+        (ScaleStage): in :meth:`background_work`, else first in the next :meth:`feed_frame`."""
         if self._pending is None:
             return
         inp, range_m, R_world_body = self._pending
@@ -332,12 +330,14 @@ class Pipeline:
         return lever
 
     def background_work(self) -> bool:
-        """Work that the last frame's pose did not need (building a keyframe: triangulation
-        and local bundle adjustment). The service runs it after publishing; if nobody calls
-        it, the next feed_frame does it first. Returns whether there was any."""
+        """Work that the last frame's pose did not need (AFTER_POSE), run by the service after
+        publishing, else by the next feed_frame first. Returns whether a keyframe or a lens
+        check ran."""
         laps = self.background_laps
         laps.start()
         self.finish_frame(laps)
+        self.vo.decide_keyframe()  # (else in finish_pending)
+        laps.lap("keyframe decision")
         built = self.vo.finish_pending()
         laps.lap("keyframe")
         lens = self.lens.work()

@@ -100,6 +100,7 @@ class VisualOdometry:
         self.rotation_frames = 0  # frames in a row whose pose is a rotation held in place
         self.rotation_held = 0  # frames whose pose was held on a rotation (all maps)
         self._pending_keyframe: PendingKeyframe | None = None  # built by finish_pending
+        self._keyframe_question: PendingKeyframe | None = None  # asked by decide_keyframe
         self._keyframe_added = False  # a keyframe was built since the last output
         self.ref = Reference()  # the frame a new map would start from
         self.last_keyframe_time_us = -1
@@ -390,16 +391,10 @@ class VisualOdometry:
         else:
             self._check_candidates()
             self.frames_since_kf += 1
-            depth = self.map.median_depth(self.tracks, self.T_cam_vo)
-            last = self.map.keyframes[-1]
-            o = self.opts
-            held = self.rotation_frames > 0
-            if (held and len(self.tracks) < 0.5 * o.max_features) or policy.need_keyframe(
-                last, self.T_cam_vo, self.tracks, depth, self.frames_since_kf, self.camera, o
-            ):  # built after this frame's output (finish_pending)
-                self._pending_keyframe = PendingKeyframe(
-                    gray, frame.time_us, R_world_body, gravity, down, held
-                )
+            held = self.rotation_frames > 0  # whether it becomes a keyframe: after the pose
+            self._keyframe_question = PendingKeyframe(
+                gray, frame.time_us, R_world_body, gravity, down, held
+            )
         self._prev_gray = gray
         self._T_pred = None
         if self.state == VoState.TRACKING and self._prev_time_us is not None:
@@ -418,13 +413,30 @@ class VisualOdometry:
         self.rotation_frames = 0
         self.tracks = Tracks.empty()
         self._pending_keyframe = None
+        self._keyframe_question = None
         self._prev_gray = None
+
+    def decide_keyframe(self) -> None:
+        """Whether the last tracked frame becomes a keyframe (the keyframe policy on its
+        tracks and pose, companion/vo/keyframes.py), decided after its pose is out: nothing
+        changes the tracks or the pose between the two. :meth:`finish_pending` builds it."""
+        asked, self._keyframe_question = self._keyframe_question, None
+        if asked is None or self.state != VoState.TRACKING:
+            return
+        depth = self.map.median_depth(self.tracks, self.T_cam_vo)
+        last = self.map.keyframes[-1]
+        o = self.opts
+        if (asked.held and len(self.tracks) < 0.5 * o.max_features) or policy.need_keyframe(
+            last, self.T_cam_vo, self.tracks, depth, self.frames_since_kf, self.camera, o
+        ):
+            self._pending_keyframe = asked
 
     def finish_pending(self) -> bool:
         """Build the keyframe the last frame asked for (new points, triangulation, local BA),
         off the latency-critical path: the service calls this after publishing; otherwise
         the next ``process`` does. The next output has is_keyframe = True. Returns whether
         a keyframe was built."""
+        self.decide_keyframe()
         pending, self._pending_keyframe = self._pending_keyframe, None
         if pending is None or self.state != VoState.TRACKING:
             return False
