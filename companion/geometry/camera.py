@@ -101,17 +101,11 @@ class CameraModel:
         iterations: int = 20,
         k1: F64 | None = None,
         nan_where_unconverged: bool = False,
-        start: F64 | None = None,
     ) -> F64:
         """Distorted normalised (N, 2) -> undistorted normalised (N, 2) by Newton's method;
         ``k1`` (N,), when given, replaces the model's k1 point by point (the lens check's
-        candidate lenses, companion/vo/focal_check.py); ``start`` (N, 2): where each point's
-        search begins (a close guess saves iterations; NaN rows: the distorted coordinates),
-        else the distorted coordinates.
+        candidate lenses, companion/vo/focal_check.py).
 
-        Each point stops on its own, once its Newton step is below 1e-15, and keeps the value
-        that step gave: a point's result does not depend on the other points of the call, so
-        the VO undistorts a frame's tracks once and hands each stage its subset.
         Converges to ~1e-14 for the distortion of real lenses within their image; raises
         GeometryError when it does not converge (distortion model not invertible there), or
         with ``nan_where_unconverged`` gives NaN rows for those points.
@@ -119,16 +113,12 @@ class CameraModel:
         d = np.asarray(xy_dist, dtype=np.float64).reshape(-1, 2)
         if not self.has_distortion and k1 is None:
             return d.copy()
-        # x and y as their own contiguous arrays (a tenth less time than columns of (N, 2))
+        # x and y as their own contiguous arrays (a tenth less time than columns of (N, 2));
+        # the arithmetic is the same, term by term
         d_x, d_y = d[:, 0].copy(), d[:, 1].copy()
         x, y = d_x.copy(), d_y.copy()
-        if start is not None:
-            s0 = np.asarray(start, dtype=np.float64).reshape(-1, 2)
-            ok = np.isfinite(s0).all(axis=1)
-            x[ok], y[ok] = s0[ok, 0], s0[ok, 1]
         k1_: float | F64 = self.k1 if k1 is None else k1
         k2, k3, p1, p2 = self.k2, self.k3, self.p1, self.p2
-        done = np.zeros(len(d), dtype=bool)
         for _ in range(iterations if len(d) else 0):
             r2 = x * x + y * y
             radial = 1.0 + r2 * (k1_ + r2 * (k2 + r2 * k3))
@@ -142,13 +132,10 @@ class CameraModel:
             det = j11 * j22 - j12 * j21
             step_x = (j22 * fx_ - j12 * fy_) / det
             step_y = (-j21 * fx_ + j11 * fy_) / det
-            step_x[done] = 0.0  # a converged point keeps its value
-            step_y[done] = 0.0
             x -= step_x
             y -= step_y
-            with np.errstate(invalid="ignore"):  # a NaN step never converges
-                done |= np.maximum(np.abs(step_x), np.abs(step_y)) < 1e-15
-            if done.all():
+            # the largest step (NaN if any is: then no convergence is claimed)
+            if float(np.maximum(np.abs(step_x).max(), np.abs(step_y).max())) < 1e-15:
                 break
         p = np.column_stack([x, y])
         residual = self.distort(p, k1) - d
@@ -160,19 +147,11 @@ class CameraModel:
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return p
 
-    def pixels_to_distorted(self, uv: ArrayLike) -> F64:
-        """Pixels (N, 2) -> distorted normalised coordinates (N, 2): the intrinsics undone."""
+    def pixels_to_normalized(self, uv: ArrayLike) -> F64:
+        """Pixels (N, 2) -> undistorted normalised coordinates (N, 2)."""
         p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        return np.stack([(p[:, 0] - self.cx) / self.fx, (p[:, 1] - self.cy) / self.fy], axis=1)
-
-    def pixels_to_normalized(
-        self, uv: ArrayLike, start: F64 | None = None, nan_where_unconverged: bool = False
-    ) -> F64:
-        """Pixels (N, 2) -> undistorted normalised coordinates (N, 2); ``start`` and
-        ``nan_where_unconverged`` as in :meth:`undistort_normalized`."""
-        return self.undistort_normalized(
-            self.pixels_to_distorted(uv), start=start, nan_where_unconverged=nan_where_unconverged
-        )
+        xd = np.stack([(p[:, 0] - self.cx) / self.fx, (p[:, 1] - self.cy) / self.fy], axis=1)
+        return self.undistort_normalized(xd)
 
     def pixels_to_rays(self, uv: ArrayLike) -> F64:
         """Pixels (N, 2) -> unit ray directions in the camera frame (N, 3)."""

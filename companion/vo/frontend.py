@@ -31,9 +31,6 @@ class Tracks:
     anchor: (N,) keyframe id where a candidate was first seen (-1 = the init reference);
     anchor_xy: (N, 2) its normalised coordinates there; prev_px: (N, 2) float32 pixels in the
     frame before, right after :func:`track` (None once the tracks were re-made: a new map).
-    xy: (N, 2) the normalised coordinates of px at the frame's stamp, once the VO computed them
-    (None: not yet; ``VisualOdometry.frame_xy`` fills it, a selection keeps it); prev_xy: the
-    frame before's, right after :func:`track` (where the undistortion of xy starts).
     """
 
     px: F32
@@ -41,8 +38,6 @@ class Tracks:
     anchor: I64
     anchor_xy: F64
     prev_px: F32 | None = None
-    xy: F64 | None = None
-    prev_xy: F64 | None = None
 
     @staticmethod
     def empty() -> Tracks:
@@ -58,17 +53,7 @@ class Tracks:
 
     def select(self, keep: NDArray[np.bool_]) -> Tracks:
         prev = None if self.prev_px is None else self.prev_px[keep]
-        xy = None if self.xy is None else self.xy[keep]
-        prev_xy = None if self.prev_xy is None else self.prev_xy[keep]
-        return Tracks(
-            self.px[keep],
-            self.pid[keep],
-            self.anchor[keep],
-            self.anchor_xy[keep],
-            prev,
-            xy,
-            prev_xy,
-        )
+        return Tracks(self.px[keep], self.pid[keep], self.anchor[keep], self.anchor_xy[keep], prev)
 
     def extend(self, px: F32, anchor: int, anchor_xy: F64) -> Tracks:
         n = len(px)
@@ -167,7 +152,6 @@ def track(
         ok &= _forward_backward_ok(prev_gray, gray, tracks.px, nxt, opts)
     kept = tracks.select(ok)
     kept.prev_px = tracks.px[ok]
-    kept.prev_xy, kept.xy = kept.xy, None  # the new pixels' coordinates are not known yet
     kept.px = nxt[ok].astype(np.float32)
     return thin(kept, opts.min_distance_px)
 

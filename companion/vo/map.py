@@ -116,9 +116,7 @@ class VoMap:
             kf.obs[p] = xy[i].copy()
             pid[i] = p
             anchor[i] = kf.kf_id
-        return Tracks(
-            tracks.px, pid, anchor, tracks.anchor_xy, tracks.prev_px, tracks.xy, tracks.prev_xy
-        )
+        return Tracks(tracks.px, pid, anchor, tracks.anchor_xy, tracks.prev_px)
 
     def triangulate_candidates(
         self, tracks: Tracks, kf: Keyframe, xy: F64, focal_px: float, opts: VoOptions

@@ -123,25 +123,12 @@ class VisualOdometry:
     def frame_xy(self, tr: Tracks, sel: NDArray[np.bool_] | None = None) -> F64:
         """(N, 2) normalised coordinates of the tracks (those of ``sel``) at the frame's stamp:
         their pixels, moved along their image motion to the middle of the readout under a
-        rolling shutter (companion/vo/rolling_shutter.py).
-
-        Computed once for all the tracks and kept in ``tr.xy`` (each point's undistortion
-        stops on its own: a subset's values are those of the whole set), starting from the
-        frame before's coordinates moved by the distorted motion; GeometryError when a
-        selected point is outside the lens model."""
-        if tr.xy is None or len(tr.xy) != len(tr):
-            px = tr.px if self.shutter is None else self.shutter.at_frame_time(tr.px, tr.prev_px)
-            start = None
-            if tr.prev_xy is not None and tr.prev_px is not None and len(tr.prev_xy) == len(tr):
-                cam = self.camera
-                start = (
-                    tr.prev_xy + cam.pixels_to_distorted(px) - cam.pixels_to_distorted(tr.prev_px)
-                )
-            tr.xy = self.camera.pixels_to_normalized(px, start=start, nan_where_unconverged=True)
-        xy = tr.xy if sel is None else tr.xy[sel]
-        if not np.isfinite(xy).all():
-            raise GeometryError("undistortion did not converge (point outside the lens model)")
-        return xy
+        rolling shutter (companion/vo/rolling_shutter.py)."""
+        px = tr.px if sel is None else tr.px[sel]
+        if self.shutter is None:
+            return self.normalized(px)
+        prev = tr.prev_px if tr.prev_px is None or sel is None else tr.prev_px[sel]
+        return self.normalized(self.shutter.at_frame_time(px, prev))
 
     def _output(self, time_us: int, is_kf: bool) -> VoOutput:
         tr = self.tracks
@@ -190,26 +177,23 @@ class VisualOdometry:
         ratio = (time_us - last) / dt_v
         regular = 0.5 <= ratio <= 1.5
         T_rel = self.T_cam_vo @ se3.inverse(self.T_prev)  # motion over dt_v
-        if regular:  # the guess only: the motion of the last interval, as it was
-            T_new_old, pose = T_rel, None  # current camera -> predicted camera
-        else:
-            try:
-                T_pred = se3.exp(ratio * se3.log(T_rel)) @ self.T_cam_vo
-            except GeometryError:  # not rigid (numerically): keep the plain prediction
-                return None, None
-            T_new_old, pose = T_pred @ se3.inverse(self.T_cam_vo), T_pred
+        try:
+            T_pred = se3.exp(ratio * se3.log(T_rel)) @ self.T_cam_vo
+        except GeometryError:  # not rigid (numerically): keep the plain prediction
+            return None, None
+        pose = None if regular else T_pred
         if (ratio < 1.0 and not regular) or len(self.tracks) == 0:
             return pose, None
         tr = self.tracks
-        xy = self.frame_xy(tr) if self.shutter is None else self.normalized(tr.px)
-        rays = np.column_stack([xy, np.ones(len(tr))])
+        T_new_old = T_pred @ se3.inverse(self.T_cam_vo)  # current camera -> predicted camera
+        rays = np.column_stack([self.normalized(tr.px), np.ones(len(tr))])
         has = tr.pid >= 0
-        if has.any():  # the points in the camera; the others at their median depth
-            P_cam = se3.transform(self.T_cam_vo, self.map.points_of(tr.pid[has]))
-            p_cur = rays * float(np.median(P_cam[:, 2]))
-            p_cur[has] = P_cam
-        else:
-            p_cur = rays  # no depth known: 1, as VoMap.median_depth says
+        p_cur = rays * self.map.median_depth(
+            self.tracks, self.T_cam_vo
+        )  # features without a 3D point: at median depth
+        if has.any():
+            X = self.map.points_of(tr.pid[has])
+            p_cur[has] = se3.transform(self.T_cam_vo, X)
         uv, ok = self.camera.project(se3.transform(T_new_old, p_cur))
         ok &= np.all(np.isfinite(uv), axis=1)
         if not ok.any():

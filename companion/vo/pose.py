@@ -1,10 +1,9 @@
 """Camera pose from 2D-3D correspondences (motion-only estimation).
 
 Iterative PnP (Levenberg-Marquardt on the reprojection error, cv2.SOLVEPNP_ITERATIVE) from a
-prediction, re-solved on the inliers up to twice (not when they did not change); EPnP inside
-RANSAC (Lepetit et al., IJCV 2009; Fischler & Bolles 1981) only when the prediction fails.
-Observations are undistorted normalised coordinates; thresholds are in pixels through the focal
-length.
+prediction, re-solved on the inliers twice; EPnP inside RANSAC (Lepetit et al., IJCV 2009;
+Fischler & Bolles 1981) only when the prediction fails. Observations are undistorted
+normalised coordinates; thresholds are in pixels through the focal length.
 """
 
 from __future__ import annotations
@@ -87,10 +86,7 @@ def estimate_pose(
         if step is None:
             break
         solved = True
-        used = inl
         T, inl, err, rvec, tvec = step
-        if np.array_equal(inl, used):  # the same points again: the solver already converged
-            break
     if not solved or inl.sum() < min_inliers:
         ok, rvec, tvec, idx = cv2.solvePnPRansac(
             X,

@@ -158,26 +158,6 @@ def test_a_k1_per_point_is_the_lens_with_that_k1(cam: CameraModel) -> None:
     assert not np.allclose(ours[:100], xy[:100])  # k1 -0.05 moved them, distortion or not
 
 
-@pytest.mark.parametrize("cam", CAMERAS)
-def test_a_points_undistortion_does_not_depend_on_the_other_points_of_the_call(
-    cam: CameraModel,
-) -> None:
-    """The VO undistorts a frame's tracks once and hands each stage its subset: every
-    point's result is the same to the bit alone, in any subset, and among points that need
-    more iterations (the image's corners) or that do not converge (NaN rows)."""
-    uv = np.column_stack([RNG.uniform(0, cam.width - 1, 200), RNG.uniform(0, cam.height - 1, 200)])
-    corners = np.array([[0.0, 0.0], [cam.width - 1.0, cam.height - 1.0], [np.nan, 3.0]])
-    every = np.vstack([uv, corners])
-    whole = cam.pixels_to_normalized(every, nan_where_unconverged=True)
-    for rows in (np.arange(0, 200, 7), np.arange(200), np.array([5, 201])):
-        part = cam.pixels_to_normalized(every[rows], nan_where_unconverged=True)
-        assert np.array_equal(part, whole[rows])
-    for k in (0, 77, 200, 201):
-        alone = cam.pixels_to_normalized(every[k : k + 1], nan_where_unconverged=True)
-        assert np.array_equal(alone, whole[k : k + 1])
-    assert np.isnan(whole[202]).any() and np.isfinite(whole[:202]).all()
-
-
 def test_undistortion_of_no_point_and_of_a_nan_pixel() -> None:
     """An empty set is an empty answer (no iteration); a set with a NaN pixel raises instead
     of returning coordinates (a folding lens: companion/geometry/lens_check.py)."""
