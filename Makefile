@@ -10,7 +10,7 @@ STAMP   := $(VENV)/.installed
 OUT     ?= out
 
 .PHONY: all venv sysdeps demo demo-px4 test lint typecheck unit bench results results-attitude results-real \
-	results-dpose results-ground dist install uninstall check-arm64 clean
+	results-dpose results-ground results-sim dist install uninstall check-arm64 clean
 
 all: test
 
@@ -117,6 +117,11 @@ results-dpose: venv
 
 results-ground: venv
 	$(RESULTS_RUN) --only ground pad
+
+# the simulator's effects one at a time and its look-alikes of the real sequences (issue "A
+# simulator as hard as reality"): 63 + 6 flights
+results-sim: venv
+	$(RESULTS_RUN) --only effects sim-vs-real
 
 # the wheel (companion, drivers, sitl; runtime dependencies, extras sim/eval/dev) and the sdist
 # (also the Makefile, configs, unit, docs and tests) in dist/

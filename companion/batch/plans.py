@@ -28,6 +28,35 @@ PAD_CONFIG = "config/pad.toml"
 PAD_SEEDS = (1, 2, 3, 4, 5)
 TAKEOFF = ("--phases", "--takeoff-landing")
 HARSH = "config/harsh.toml"
+# the simulator's effects one at a time, then all of them (issue "A simulator as hard as
+# reality"): (the flight's name, the row's label); the config file: effect_config(name)
+EFFECT_ROWS = (
+    ("ideal", "none (ideal)"),
+    ("rolling_shutter", "rolling shutter 20 ms, the VO not told"),
+    ("rolling_shutter_vo", "rolling shutter 20 ms, the VO told the readout"),
+    ("exposure", "auto-exposure, drift, clouds, vignetting; raw KLT"),
+    ("exposure_vo", "the same, KLT on normalised images"),
+    ("lens", "lens: f +1 %, pp (3, -2) px, k1 +0.02, not learned"),
+    ("lens_k1_checked", "the same, the file's k1 raised by the lens check's +0.021"),
+    ("lens_learn", "the same, learned in flight (`[vo] learn_lens`)"),
+    ("motion_blur", "motion blur, 8 ms exposure"),
+    ("mount", "mount 1 deg, not learned"),
+    ("tiles", "floor tiles, 0.5 m period"),
+    ("checkerboard", "checkerboard, 0.3 m squares"),
+    ("concrete", "concrete, low texture"),
+    ("specular", "water over 15 % of the ground"),
+    ("carpet", "carpet, low texture"),
+    ("parking", "parking lot lines"),
+    ("shadow", "the vehicle's shadow"),
+    ("downwash", "downwash 0.01 m"),
+    ("rangefinder", "TFmini-class sensors"),
+    ("realistic", "**all of config/realistic.toml**"),
+    ("realistic_learn", "all of it, the lens learned in flight (`[vo] learn_lens`)"),
+)
+NEEDS_REAL = ("real", "real-fb", "sim-vs-real")  # the tables made of the real sequences
+EFFECTS_FLIGHT = ("hills", "lawnmower")
+# each real sequence beside its simulated look-alike (config/like_real/): (real, look-alike)
+LIKE_PAIRS = (("tum_fr1_rpy", "handheld_pan"), ("rislab_downward", "downward_checkerboard"))
 
 
 class GroundRow(NamedTuple):
@@ -148,7 +177,49 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
         sim_eval(f"pad-{s}", ("--phases", "--seed", str(s)), config=PAD_CONFIG) for s in PAD_SEEDS
     )
     out.append(TablePlan("pad", "Return over the pad (issue 18)", pad, "pad"))
+    out.append(TablePlan("effects", "Each effect alone, and all of them", effect_tasks(), "rows"))
+    like = tuple(
+        sim_eval(f"like/{sim}-{s}", ("--methods", "all", "--seed", str(s)), config=like_config(sim))
+        for _, sim in LIKE_PAIRS
+        for s in SEEDS
+    )
+    their_real = tuple(t for t in real if t.name in {f"real/{r}" for r, _ in LIKE_PAIRS})
+    missing = [r for r, _ in LIKE_PAIRS if real_data and r not in names]
+    like_why = why or (f"{', '.join(missing)} not among the rebuilt sequences" if missing else "")
+    out.append(
+        TablePlan(
+            "sim-vs-real",
+            "The simulator against reality",
+            like + their_real,
+            "sim-vs-real",
+            like_why,
+        )
+    )
     return {p.name: p for p in out}
+
+
+def like_config(sim: str) -> str:
+    """The config file of a look-alike flight."""
+    return f"config/like_real/{sim}.toml"
+
+
+def effect_config(name: str) -> str | None:
+    """The config file of an effect's flight: none for the ideal world, realistic.toml for
+    all of them, else config/effects/NAME.toml."""
+    if name == "ideal":
+        return None
+    return "config/realistic.toml" if name == "realistic" else f"config/effects/{name}.toml"
+
+
+def effect_tasks() -> tuple[Task, ...]:
+    """The flights of EFFECT_ROWS, named ``effects/<name>-<seed>``: hills lawnmower, 60 s,
+    every method."""
+    t, tr = EFFECTS_FLIGHT
+    return tuple(
+        flight(f"effects/{name}-{s}", t, tr, s, SECONDS, ("--methods", "all"), effect_config(name))
+        for name, _ in EFFECT_ROWS
+        for s in SEEDS
+    )
 
 
 def ground_tasks() -> tuple[Task, ...]:

@@ -72,7 +72,7 @@ def cmd_results(args: argparse.Namespace) -> int:
         return _refused(f"--write {args.write}: no such file")
     out: Path = args.out
     data, why = (None, "")
-    if any(n.startswith("real") for n in chosen):
+    if any(n in plans_mod.NEEDS_REAL for n in chosen):
         data, why = real_data(out, args.snapshots)
     tables = {n: p for n, p in plans_mod.plans(data, why).items() if n in chosen}
     for p in tables.values():
@@ -287,6 +287,30 @@ def render_pad(p: TablePlan, report: BatchReport) -> str:
     return "\n".join(lines)
 
 
+def render_rows(p: TablePlan, report: BatchReport) -> str:
+    """One row per flight over its seeds (`companion report --rows`), labelled by
+    plans.EFFECT_ROWS with the flight's config file."""
+    from companion.reporting.rows import read_rows, rows_table
+
+    labels = {}
+    for name, label in plans_mod.EFFECT_ROWS:
+        config = plans_mod.effect_config(name)
+        labels[name] = f"{label} ({config.rpartition('/')[2] if config else 'no --config'})"
+    return rows_table(read_rows(_linked(p, report)), labels)
+
+
+def render_sim_vs_real(p: TablePlan, report: BatchReport) -> str:
+    """Each real sequence beside its look-alike's seeds (`companion report --sim-vs-real`)."""
+    from companion.reporting.sim_vs_real import comparison_table, real_errors, sim_errors
+
+    folders = dict(zip((t.name for t in p.tasks), _linked(p, report), strict=True))
+    rows = []
+    for real, sim in plans_mod.LIKE_PAIRS:
+        sims = [folders[f"like/{sim}-{s}"] for s in plans_mod.SEEDS]
+        rows.append((f"{real} / {sim}", sim_errors(sims), real_errors(folders[f"real/{real}"])))
+    return comparison_table(rows)
+
+
 RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "vo": render_vo,
     "scale": render_scale,
@@ -299,6 +323,8 @@ RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "attitude-long": render_attitude_long,
     "ground": render_ground,
     "pad": render_pad,
+    "rows": render_rows,
+    "sim-vs-real": render_sim_vs_real,
 }
 
 

@@ -233,3 +233,67 @@ def test_the_long_attitude_table_shows_the_first_and_last_minute(tmp_path: Path)
     files = {"attitude-circle": {"attitude_metrics.json": json.dumps([row])}}
     rows = RENDERERS["attitude-long"](plan, _report(tmp_path, plan, files)).splitlines()
     assert rows[2] == "| published | 0.046 / 0.050° | 100.0 % | 0.052° | 0.038° |"
+
+
+def _sim_files(ate_pct: float, resets: int) -> dict[str, str]:
+    """A simulated flight's scale_metrics.json and eval.json, as `companion eval --methods all`
+    writes them (the fields the rows and the comparison read)."""
+    methods = [
+        {"method": m, "ate_m": ate_pct * 0.01 * 150.0, "ate_pct": ate_pct + i}
+        for i, m in enumerate(("M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane"))
+    ]
+    honest = {"vo_resets": resets, "tracks": {"M-MSCwK": {"ratio_to_mean": 0.5}}}
+    return {"scale_metrics.json": json.dumps(methods), "eval.json": json.dumps(honest)}
+
+
+def test_the_effects_table_is_a_row_per_effect_over_three_seeds(tmp_path: Path) -> None:
+    plan = plans.plans(None)["effects"]
+    assert len({t.name for t in plan.tasks}) == len(plan.tasks) == 3 * len(plans.EFFECT_ROWS)
+    for t in plan.tasks:
+        assert t.config is None or (REPO / t.config).is_file(), t.config
+        assert t.argv[:5] == ("eval", "--terrain", "hills", "--trajectory", "lawnmower")
+    assert [t.config for t in plan.tasks[:3]] == [None] * 3  # the ideal world first
+    files = {t.name: _sim_files(0.02 * (1 + i % 3), i % 2) for i, t in enumerate(plan.tasks)}
+    rows = RENDERERS["rows"](plan, _report(tmp_path, plan, files)).splitlines()
+    assert len(rows) == 2 + len(plans.EFFECT_ROWS)
+    assert rows[2] == (
+        "| none (ideal) (no --config) | 1, 2, 3 | 0.020 / 0.040 / 0.060 | 0.040 % | 0 / 1 / 0 "
+        "| 1.040 / 2.040 / 3.040 | yes, yes, yes |"
+    )
+    assert rows[3].startswith("| rolling shutter 20 ms, the VO not told (rolling_shutter.toml) |")
+
+
+def test_the_simulator_against_reality_pairs_each_real_sequence_with_its_look_alike(
+    tmp_path: Path,
+) -> None:
+    assert plans.plans(None)["sim-vs-real"].skipped  # no real sequence rebuilt
+    data = tmp_path / "data"
+    (data / "tum_fr1_rpy").mkdir(parents=True)
+    (data / "tum_fr3_teddy").mkdir()
+    assert "rislab_downward" in plans.plans(data)["sim-vs-real"].skipped
+    (data / "rislab_downward").mkdir()
+    plan = plans.plans(data)["sim-vs-real"]
+    assert not plan.skipped
+    names = [t.name for t in plan.tasks]
+    assert names == [
+        *(f"like/handheld_pan-{s}" for s in (1, 2, 3)),
+        *(f"like/downward_checkerboard-{s}" for s in (1, 2, 3)),
+        "real/rislab_downward",
+        "real/tum_fr1_rpy",
+    ]
+    assert all((REPO / t.config).is_file() for t in plan.tasks if t.name.startswith("like/"))
+    real = {
+        "methods": [{"method": "M-MSCwK", "ate_se3_m": 0.05, "ate_se3_pct": 2.5}],
+        "tracks": {"M-MSCwK": {"ratio_to_mean": 0.9}},
+        "vo": {"resets": 2},
+    }
+    files = {n: _sim_files(5.0 if "handheld" in n else 6.0, 1) for n in names if "like/" in n}
+    files |= {n: {"scale_metrics.json": json.dumps(real)} for n in names if n.startswith("real/")}
+    rows = RENDERERS["sim-vs-real"](plan, _report(tmp_path / "r", plan, files)).splitlines()
+    assert len(rows) == 4
+    assert rows[2] == (  # 5.0 % against 2.5 %: within 2x
+        "| tum_fr1_rpy / handheld_pan | 7.500 m = 5.000 % (3) | 0.050 m = 2.500 % | 2 | yes "
+        "| 0.500 / 0.900 | 1.0 / 2 |"
+    )
+    assert rows[3].startswith("| rislab_downward / downward_checkerboard | 9.000 m = 6.000 % (3)")
+    assert "| 2.4 | NO |" in rows[3]
