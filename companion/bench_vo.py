@@ -3,9 +3,9 @@
 Absolute times do not carry from one machine to another (the same code ran 3x slower on one
 host than on another), so the frame is measured against a floor measured in the same run, on
 the same frames: OpenCV's own pyramidal KLT (``cv2.calcOpticalFlowPyrLK``) of the features the
-VO tracked in the frame before, into this frame, with the VO's window, levels and stop
-criteria and no initial flow: the one call no monocular KLT VO can skip. The pose solve is
-not in the floor.
+VO tracks from the frame before (its tracks once that frame's work is done), into this frame,
+with the VO's window, levels and stop criteria and no initial flow: the one call no monocular
+KLT VO can skip. The pose solve is not in the floor.
 """
 
 from __future__ import annotations
@@ -60,13 +60,11 @@ class KltFloor:
             )
             self.ms.append((cv2.getTickCount() - t0) * 1e3 / cv2.getTickFrequency())
             self.features.append(len(self._prev_px))
-        out = pipe.vo_output
+        # what the VO's KLT tracks into the next frame: its tracks after this frame's work
+        # (the candidates' check and a keyframe's new corners run after the pose)
         self._prev_gray = gray
-        self._prev_px = (
-            None
-            if out is None
-            else np.ascontiguousarray(out.features.pixels, dtype=np.float32).reshape(-1, 1, 2)
-        )
+        px = pipe.vo.tracks.px
+        self._prev_px = np.ascontiguousarray(px, dtype=np.float32).reshape(-1, 1, 2)
 
 
 @dataclass(frozen=True)

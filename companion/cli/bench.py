@@ -85,7 +85,7 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
         print("(under cProfile: every time below is inflated by the profiler)")
     print(ratios.line())
     print(
-        f"floor: OpenCV's pyramidal KLT of the VO's features of the frame before (median "
+        f"floor: OpenCV's pyramidal KLT of the VO's tracks after the frame before (median "
         f"{np.median(floor.features):.0f}), window {floor.window_px} px, {floor.levels} levels, "
         "no initial flow, pose solve not counted"
     )

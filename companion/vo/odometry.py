@@ -144,9 +144,8 @@ class VisualOdometry:
         sig = np.full(n, np.nan)
         has = tr.pid >= 0
         if has.any():
-            ids = tr.pid[has].tolist()
-            pts[has] = [self.map.points[p] for p in ids]
-            sig[has] = [self.map.point_sigma[p] for p in ids]
+            pts[has] = self.map.points_of(tr.pid[has])
+            sig[has] = [self.map.point_sigma[p] for p in tr.pid[has].tolist()]
         feats = VoFeatures(tr.px.astype(np.float64), tr.pid.copy(), pts, sig)
         tracking = self.state == VoState.TRACKING
         T_vo_cam = se3.inverse(self.T_cam_vo) if tracking else np.full((4, 4), np.nan)
@@ -389,7 +388,6 @@ class VisualOdometry:
             # it may be this frame's nearest sample, up to the caller's gap old
             restart_reference(self, gray, frame.time_us, R_world_body)
         else:
-            self._check_candidates()
             self.frames_since_kf += 1
             held = self.rotation_frames > 0  # whether it becomes a keyframe: after the pose
             self._keyframe_question = PendingKeyframe(
@@ -417,12 +415,15 @@ class VisualOdometry:
         self._prev_gray = None
 
     def decide_keyframe(self) -> None:
-        """Whether the last tracked frame becomes a keyframe (the keyframe policy on its
-        tracks and pose, companion/vo/keyframes.py), decided after its pose is out: nothing
-        changes the tracks or the pose between the two. :meth:`finish_pending` builds it."""
+        """The last tracked frame's work on its tracks after its pose is out: the candidates'
+        epipolar check, then whether it becomes a keyframe (the keyframe policy on its tracks
+        and pose, companion/vo/keyframes.py). Nothing changes the tracks or the pose between
+        the pose and this, and the next frame tracks what it leaves: the same poses as when it
+        ran before the output. :meth:`finish_pending` builds the keyframe."""
         asked, self._keyframe_question = self._keyframe_question, None
         if asked is None or self.state != VoState.TRACKING:
             return
+        self._check_candidates()
         depth = self.map.median_depth(self.tracks, self.T_cam_vo)
         last = self.map.keyframes[-1]
         o = self.opts

@@ -69,22 +69,30 @@ def test_worker_delays_show_the_frame_after_a_long_keyframe_wait_and_a_skip() ->
     np.testing.assert_allclose(d.delay_ms, [0.0, 0.0, 113.333 - 100.0, 0.0, 0.0], atol=1e-3)
 
 
-def test_klt_floor_times_the_features_of_the_frame_before_into_this_one() -> None:
+def test_klt_floor_times_the_vos_tracks_after_the_frame_before_into_this_one() -> None:
+    """The floor tracks what the VO's own KLT tracks next: its tracks once the frame's work is
+    done (the candidates' check and a keyframe's corners come after the output)."""
     rng = np.random.default_rng(3)
     img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320), dtype=np.uint8), (5, 5), 0)
     shifted = np.roll(img, 2, axis=1)
     px = cv2.goodFeaturesToTrack(img, 50, 0.01, 8).reshape(-1, 2)
     floor = KltFloor(15, 3)
 
-    def pipe(pixels: Any) -> Any:
-        return SimpleNamespace(vo_output=SimpleNamespace(features=SimpleNamespace(pixels=pixels)))
+    def pipe(tracks_px: Any) -> Any:
+        features = SimpleNamespace(pixels=px)  # the output's: not what the floor tracks
+        return SimpleNamespace(
+            vo=SimpleNamespace(tracks=SimpleNamespace(px=tracks_px)),
+            vo_output=SimpleNamespace(features=features),
+        )
 
     floor(CameraFrame(0, 0, cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)), pipe(px))
     assert floor.ms == []  # nothing to track into the first frame
     floor(CameraFrame(33_333, 1, shifted), pipe(px[:10]))
     assert len(floor.ms) == 1 and floor.ms[0] > 0 and floor.features == [len(px)]
-    floor(CameraFrame(66_666, 2, shifted), SimpleNamespace(vo_output=None))  # 10 features
+    floor(CameraFrame(66_666, 2, shifted), pipe(np.zeros((0, 2))))  # the 10 of the frame before
     assert floor.features == [len(px), 10]
+    floor(CameraFrame(99_999, 3, shifted), pipe(px))  # no track in the frame before: no floor
+    assert floor.features == [len(px), 10] and len(floor.ms) == 2
 
 
 @pytest.mark.skipif(not CLIP.is_dir(), reason=f"the committed clip {CLIP} is missing")

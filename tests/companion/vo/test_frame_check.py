@@ -12,7 +12,7 @@ from companion.offline import feed_step
 from companion.pipeline import Pipeline
 from companion.sitl.world.scenario import Scenario
 from companion.types import CameraFrame
-from companion.vo.frame_check import FrameCheck, FrameProblem
+from companion.vo.frame_check import FrameCheck, FrameProblem, _channel_mean
 
 
 @pytest.fixture(scope="module")
@@ -136,3 +136,17 @@ def test_skipped_frames_do_not_lose_tracking(steps: list[object]) -> None:
     assert pipe.vo.resets == 0 and pipe.gaps == 0
     tracked = [k for k in range(100, len(steps)) if k not in lost]
     assert all(poses[k] is not None for k in tracked)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_the_channel_mean_is_numpys_to_the_bit(channels: int) -> None:
+    """The check's grey level is the channels' mean, the same bits as NumPy's (its verdicts
+    then cannot move): random levels, a saturated band and a black one."""
+    rng = np.random.default_rng(channels)
+    sample = rng.integers(0, 256, (60, 80, channels), dtype=np.uint8)
+    sample[:5] = 255
+    sample[5:10] = 0
+    got = _channel_mean(sample)
+    assert got.dtype == np.float64
+    assert np.array_equal(got, sample.mean(axis=2))
+    assert float(got.std()) == float(sample.mean(axis=2).std())
