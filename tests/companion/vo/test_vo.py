@@ -266,3 +266,48 @@ def test_vo_keeps_tracking_at_twelve_metres_per_second() -> None:
     assert path_length(gt) > 40.0
     ate, _ = ate_rmse(est, gt, "sim3")
     assert ate / path_length(gt) < 0.01, ate
+
+
+def test_the_work_after_the_pose_leaves_the_same_poses_whoever_runs_it() -> None:
+    """The candidates' epipolar check, the keyframe decision and the keyframe run after the
+    pose (finish_pending, as the service calls it after publishing) or else first in the
+    next frame: the poses are the same to the bit either way. The output carries the tracks
+    as KLT left them; the check then drops the candidates that fail it before the next frame
+    (here one moved 65 px off its place in both VOs)."""
+    from companion.config import load_config
+
+    cfg = load_config(
+        overrides={"sitl": {"terrain": "hills", "trajectory": "lawnmower", "seconds": 6.0}}
+    )
+    steps = list(Scenario(cfg).steps(workers=2))
+    by_service = VisualOdometry(cfg.camera.model(), cfg.camera.T_body_cam(), cfg.vo)
+    by_next_frame = VisualOdometry(cfg.camera.model(), cfg.camera.T_body_cam(), cfg.vo)
+    tracked, moved = 0, None
+    for s in steps:
+        R = s.T_world_body[:3, :3]
+        a = by_service.process(s.frame, R)
+        b = by_next_frame.process(s.frame, R)
+        assert a.state == b.state
+        np.testing.assert_array_equal(a.T_vo_cam, b.T_vo_cam)
+        np.testing.assert_array_equal(a.features.pixels, b.features.pixels)
+        if a.state != VoState.TRACKING:
+            by_service.finish_pending()
+            continue
+        tracked += 1
+        assert len(by_service.tracks) == len(a.features.pixels)  # before the check
+        tr = by_service.tracks
+        cand = [i for i in np.flatnonzero(tr.pid < 0) if by_service.map.keyframe(tr.anchor[i])]
+        if moved is None and tracked >= 60 and len(cand):
+            i = int(cand[0])
+            moved = by_service.tracks.px[i].copy()
+            for vo in (by_service, by_next_frame):
+                assert vo.tracks.xy is not None  # the frame's coordinates, kept by the pose
+                vo.tracks.xy[i] += 0.1  # 65 px at f = 460, across any epipolar line
+        before = by_service.tracks
+        if not by_service.finish_pending():  # no keyframe: no new corners among the tracks
+            left = len(before) - len(by_service.tracks)
+            assert 0 <= left <= int((before.pid < 0).sum())  # only candidates leave
+        if moved is not None and len(before) and (before.px == moved).all(axis=1).any():
+            assert not (by_service.tracks.px == moved).all(axis=1).any()  # checked out
+            moved = np.full(2, np.nan)  # done: nothing matches NaN
+    assert tracked > 120 and moved is not None and np.isnan(moved).all()
