@@ -27,7 +27,14 @@ from companion.pipeline.heading import CompassHeading
 from companion.pipeline.inputs import AttitudeHistory, Sample
 from companion.pipeline.lens_stage import LensStage, take_lens
 from companion.pipeline.output import PoseOutput
-from companion.pipeline.scale_stage import ScaleStage, TiltInput, frame_input, roll_pitch
+from companion.pipeline.scale_stage import (
+    ScaleStage,
+    TiltInput,
+    body_rotation_in_vo,
+    frame_input,
+    lever_arm_m,
+    roll_pitch,
+)
 from companion.pipeline.status import PipelineStatus, status_of
 from companion.scale.laser import RangeHistory
 from companion.scale.methods import ScaleInput
@@ -121,16 +128,14 @@ class Pipeline:
         self.imu_gravity.imu.add(sample)
 
     def feed_range(self, sample: RangeSample) -> None:
-        """Buffer a distance-sensor sample (invalid, unknown or out-of-order ones are counted
-        and dropped)."""
+        """Buffer a distance-sensor sample (invalid, unknown or late ones: counted, dropped)."""
         if sample.sensor_id not in self.specs:
             self.ranges.rejected += 1
             return
         self.ranges.add(sample)
 
     def feed(self, sample: Sample) -> None:
-        """Buffer a sample of any stream (each stream in time order): the one way in for
-        everything but frames, for the service and the offline runs alike."""
+        """Buffer a sample of any stream (each in time order): the way in for all but frames."""
         if isinstance(sample, AttitudeSample):
             self.feed_attitude(sample)
         elif isinstance(sample, ImuSample):
@@ -314,20 +319,15 @@ class Pipeline:
         return self.output.pose(time_us, est, p, R_vo_body, yaw, reset_counter, tilt, tilt_error)
 
     def R_vo_body(self) -> F64 | None:
-        """(3, 3) the body's orientation in the VO frame at the last frame, or None (no
-        T_vo_body: the metric body position is the scaled camera's plus :meth:`lever_m`)."""
+        """(3, 3) the body's orientation in the VO frame at the last frame, or None."""
         out = self.vo_output
         if out is None or not np.all(np.isfinite(out.T_vo_cam)):
             return None
-        R: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, :3]
-        return R
+        return body_rotation_in_vo(out.T_vo_cam, self.T_cam_body)
 
     def lever_m(self, out: VoOutput) -> F64:
-        """(3,) camera -> body lever arm [m] in the VO frame's axes: R_vo_cam @ t_cam_body
-        (T_cam_body's translation is metric). The metric body position in the VO frame is
-        ``scale * t_vo_cam + lever_m``."""
-        lever: F64 = out.T_vo_cam[:3, :3] @ self.T_cam_body[:3, 3]
-        return lever
+        """(3,) camera -> body lever arm [m] in the VO frame's axes (``lever_arm_m``)."""
+        return lever_arm_m(out.T_vo_cam, self.T_cam_body)
 
     def background_work(self) -> bool:
         """Work that the last frame's pose did not need (AFTER_POSE), run by the service after

@@ -82,11 +82,26 @@ def roll_pitch(
     out = inp.vo
     if attitude is None or not np.all(np.isfinite(out.T_vo_cam)):
         return None, None
-    R_vo_body: F64 = out.T_vo_cam[:3, :3] @ T_cam_body[:3, :3]
-    lever_m: F64 = out.T_vo_cam[:3, :3] @ T_cam_body[:3, 3]
-    cloud = scaled_cloud(out, R_vo_body, est, lever_m)
+    R_vo_body = body_rotation_in_vo(out.T_vo_cam, T_cam_body)
+    cloud = scaled_cloud(out, R_vo_body, est, lever_arm_m(out.T_vo_cam, T_cam_body))
     tilt = attitude.step(inp.time_us, range_m, cloud, inp.segment, R_world_body)
     return tilt, TiltInput(range_m, cloud)
+
+
+def body_rotation_in_vo(T_vo_cam: F64, T_cam_body: F64) -> F64:
+    """(3, 3) R_vo_body: the body's orientation in the VO frame, from the camera's pose (4, 4)
+    and the camera mount (4, 4). (No T_vo_body: the body sits a metric lever arm from the
+    camera, which has no place in unscaled VO units; see :func:`lever_arm_m`.)"""
+    R: F64 = T_vo_cam[:3, :3] @ T_cam_body[:3, :3]
+    return R
+
+
+def lever_arm_m(T_vo_cam: F64, T_cam_body: F64) -> F64:
+    """(3,) camera -> body lever arm [m] in the VO frame's axes: R_vo_cam @ t_cam_body
+    (T_cam_body's translation is metric). The metric body position in the VO frame is
+    ``scale * t_vo_cam + lever_arm_m``."""
+    lever: F64 = T_vo_cam[:3, :3] @ T_cam_body[:3, 3]
+    return lever
 
 
 def ground_prior(metric_sigma_rel: float | None) -> tuple[float, float] | None:
