@@ -343,12 +343,17 @@ def test_real_px4_vpe_without_magnetometer_needs_ev_yaw_and_configure_sets_it(
 
 
 @real
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)
 def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
     vision_px4: RealPx4,
 ) -> None:
     """PX4's time sync converged (it moves our stamps into its clock: timestamp_sample !=
-    timestamp): check says converged and no longer warns."""
+    timestamp): check says converged and no longer warns.
+
+    One converted sample is not proof: PX4 stamps an unconverted sample at arrival and
+    publishes it a moment later, and on a loaded host its lockstep clock can step in between;
+    its filter also resets after a run of slow round trips. So PX4 must convert five reads in
+    a row before and one after the check, and a check whose window PX4 left is taken again."""
     r = vision_px4
     set_up(r, Scenario(VPE, fused=True))
 
@@ -356,10 +361,31 @@ def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
         o = r.px4.listener("vehicle_visual_odometry") or {}
         return bool(o) and o.get("timestamp") != o.get("timestamp_sample")
 
-    wait_for(r.px4, "time sync converged", converted, 180.0)
-    later = r.check(VPE)
-    assert later.verdict is not None and later.verdict.timesync_converged is True, explain(later)
-    assert not any("has not converged" in w for w in later.verdict.warnings), explain(later)
+    def steadily_converted() -> bool:
+        for _ in range(5):
+            if not converted():
+                return False
+            time.sleep(0.5)
+        return True
+
+    end = time.monotonic() + 190.0
+    windows_left = 0
+    while time.monotonic() < end:
+        if not steadily_converted():
+            time.sleep(0.5)
+            continue
+        later = r.check(VPE)
+        if not converted():
+            windows_left += 1
+            continue
+        v = later.verdict
+        assert v is not None and v.timesync_converged is True, explain(later)
+        assert not any("has not converged" in w for w in v.warnings), explain(later)
+        return
+    raise AssertionError(
+        f"PX4's time sync never converted our stamps through a whole check in 190 s "
+        f"({windows_left} checks saw it stop converting)"
+    )
 
 
 @real
