@@ -21,12 +21,21 @@ from companion.types import F64, CameraFrame, PoseEstimate, RangeSensorSpec
 
 @dataclass
 class ArmWindow:
-    """The hover that arms d-Pose: where it started and the four ranges of every frame."""
+    """The hover that arms d-Pose: where it started, and the four ranges and the autopilot's
+    attitude of every frame."""
 
     start_us: int
     pose: PoseEstimate  # the published pose at the window's start
-    R_world_body: F64  # (3, 3) the autopilot's attitude then
     range_m: list[dict[int, float]] = field(default_factory=list)  # per frame since
+    R_world_body: list[F64] = field(default_factory=list)  # (3, 3) per frame since
+
+    def mean_attitude(self) -> F64:
+        """(3, 3) the mean of the window's attitudes: the first times exp of the mean of
+        their rotation vectors from it (the attitudes of a hover are within a degree, where
+        this is the chordal mean to ~1e-5 rad)."""
+        R0 = self.R_world_body[0]
+        omega = np.mean([so3.log(R0.T @ R) for R in self.R_world_body], axis=0)
+        return np.asarray(R0 @ so3.exp(omega), dtype=np.float64)
 
 
 class DposeStage:
@@ -99,8 +108,9 @@ class DposeStage:
         position within ``dpose.arm_max_motion_m`` of the window's start): the pattern from
         the four ranges averaged over the window (each reading's noise divided by about the
         square root of the frames in it: the pattern's error is the bias of every later
-        d-Pose pose), the world reference the published pose at the window's start (when the
-        marks are left). A window where the vehicle moved starts again."""
+        d-Pose pose) and the autopilot's attitude averaged over it likewise, the world
+        reference the published pose at the window's start (when the marks are left). A
+        window where the vehicle moved starts again."""
         assert self.dpose is not None
         o = self.options
         w = self._window
@@ -108,18 +118,22 @@ class DposeStage:
             float(np.linalg.norm(pose.position_ned_m - w.pose.position_ned_m)) > o.arm_max_motion_m
         )
         if w is None or moved:
-            w = self._window = ArmWindow(time_us, pose, R_world_body)
+            w = self._window = ArmWindow(time_us, pose)
         w.range_m.append(range_m)
+        w.R_world_body.append(R_world_body)
         if (time_us - w.start_us) * 1e-6 < o.arm_window_s:
             return
         mean_range_m = {s: float(np.mean([r[s] for r in w.range_m])) for s in range_m}
         # the pattern's place: the published position and heading, the autopilot's roll and
         # pitch (drift-free; the published tilt carries the VO frame's, 0.76 deg in
         # config/pad.toml's seed 1, which tilted every d-Pose displacement from the pad's
-        # centre: 1.6 cm of height 1.2 m off it; docs/decisions.md, "d-Pose's pattern tilt")
-        roll, pitch, _ = so3.matrix_to_rpy(w.R_world_body)
+        # centre: 1.6 cm of height 1.2 m off it; docs/decisions.md, "d-Pose's pattern tilt"),
+        # averaged over the window as the ranges are: one attitude sample's noise (~0.1 deg)
+        # is a bias of every later d-Pose position (0.5 cm at 3 m)
+        R_arm = w.mean_attitude()
+        roll, pitch, _ = so3.matrix_to_rpy(R_arm)
         _, _, yaw = so3.matrix_to_rpy(so3.quat_to_matrix(w.pose.quat_wxyz_ned_frd))
         T_world_body = se3.make(so3.rpy_to_matrix(roll, pitch, yaw), w.pose.position_ned_m)
-        self.dpose.arm(mean_range_m, T_world_body, w.R_world_body)
+        self.dpose.arm(mean_range_m, T_world_body, R_arm)
         self.offset.arm(w.pose.time_us, w.pose.position_ned_m)
         self._window = None
