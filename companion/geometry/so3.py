@@ -7,6 +7,8 @@ Roll-pitch-yaw are aerospace ZYX angles: R = Rz(yaw) @ Ry(pitch) @ Rx(roll) [rad
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -168,3 +170,13 @@ def angle_between(R_a: ArrayLike, R_b: ArrayLike) -> float:
     R = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def mean(Rs: Sequence[F64]) -> F64:
+    """(3, 3) the mean of rotations (each (3, 3), the same frames): the first times exp of the
+    mean of their rotation vectors from it. For rotations within a degree of each other (a
+    hover's attitudes) this is the chordal L2 mean to ~1e-5 rad (Hartley et al., "Rotation
+    Averaging", IJCV 2013, section 5)."""
+    R0 = np.asarray(Rs[0], dtype=np.float64)
+    omega = np.mean([log(R0.T @ R) for R in Rs], axis=0)
+    return np.asarray(R0 @ exp(omega), dtype=np.float64)

@@ -29,14 +29,6 @@ class ArmWindow:
     range_m: list[dict[int, float]] = field(default_factory=list)  # per frame since
     R_world_body: list[F64] = field(default_factory=list)  # (3, 3) per frame since
 
-    def mean_attitude(self) -> F64:
-        """(3, 3) the mean of the window's attitudes: the first times exp of the mean of
-        their rotation vectors from it (the attitudes of a hover are within a degree, where
-        this is the chordal mean to ~1e-5 rad)."""
-        R0 = self.R_world_body[0]
-        omega = np.mean([so3.log(R0.T @ R) for R in self.R_world_body], axis=0)
-        return np.asarray(R0 @ so3.exp(omega), dtype=np.float64)
-
 
 class DposeStage:
     """d-Pose and the offset it keeps on the published position (``dpose`` None: off)."""
@@ -130,10 +122,10 @@ class DposeStage:
         # centre: 1.6 cm of height 1.2 m off it; docs/decisions.md, "d-Pose's pattern tilt"),
         # averaged over the window as the ranges are: one attitude sample's noise (~0.1 deg)
         # is a bias of every later d-Pose position (0.5 cm at 3 m)
-        R_arm = w.mean_attitude()
-        roll, pitch, _ = so3.matrix_to_rpy(R_arm)
+        R_world_body_arm = so3.mean(w.R_world_body)
+        roll, pitch, _ = so3.matrix_to_rpy(R_world_body_arm)
         _, _, yaw = so3.matrix_to_rpy(so3.quat_to_matrix(w.pose.quat_wxyz_ned_frd))
         T_world_body = se3.make(so3.rpy_to_matrix(roll, pitch, yaw), w.pose.position_ned_m)
-        self.dpose.arm(mean_range_m, T_world_body, R_arm)
+        self.dpose.arm(mean_range_m, T_world_body, R_world_body_arm)
         self.offset.arm(w.pose.time_us, w.pose.position_ned_m)
         self._window = None

@@ -140,13 +140,12 @@ def test_timesync_round_trips_over_a_serial_link_stay_within_px4s_limit() -> Non
     answers = np.array(asyncio.run(main())) * 1e-6
     assert len(answers) >= 490, len(answers)  # every answer came back (a few may be cut)
     rtt_ms, answered_ms = answers[:, 0], answers[:, 1]
-    p50, p99 = np.percentile(answered_ms, [50, 99])
+    p50, p90, p99 = np.percentile(answered_ms, [50, 90, 99])
     rtt_p50, rtt_p99 = np.percentile(rtt_ms, [50, 99])
     print(
         f"serial TIMESYNC: answered p50 {p50:.2f} ms, p99 {p99:.2f} ms after the request; "
         f"round trip p50 {rtt_p50:.2f} ms, p99 {rtt_p99:.2f} ms, max {rtt_ms.max():.1f} ms"
     )
-    p90 = float(np.percentile(answered_ms, 90))
     assert p50 <= 2.0 and p90 <= 5.0, (p50, p90, p99)  # our share: the reader and the loop
     assert p99 < 50.0, (p50, p90, p99)  # no answer waits for a read's time-out
     # the whole round trip also counts the peer's own wake-up on this shared machine: PX4's

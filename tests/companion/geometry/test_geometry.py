@@ -212,3 +212,15 @@ def test_rpy_to_matrices_is_rpy_to_matrix_of_each_triple() -> None:
     for k in range(50):
         assert np.allclose(R[k], so3.rpy_to_matrix(roll[k], pitch[k], yaw[k]), atol=1e-14)
     assert np.allclose(so3.rpy_to_matrices(0.1, -0.2, 0.3), so3.rpy_to_matrix(0.1, -0.2, 0.3))
+
+
+def test_the_mean_of_rotations_scattered_around_one_is_that_one() -> None:
+    """so3.mean (d-Pose's arming attitude over its window): samples scattered symmetrically
+    around an attitude average back to it, and the mean of one rotation is that rotation."""
+    R_true = so3.rpy_to_matrix(0.02, -0.03, 1.2)
+    rng = np.random.default_rng(4)
+    noise = rng.normal(0.0, np.radians(0.15), (20, 3))
+    Rs = [R_true @ so3.exp(n) for n in (*noise, *(-noise))]
+    assert so3.angle_between(so3.mean(Rs), R_true) < 1e-6
+    assert so3.angle_between(Rs[0], R_true) > np.radians(0.05)
+    assert so3.angle_between(so3.mean([Rs[3]]), Rs[3]) < 1e-12

@@ -238,24 +238,6 @@ def test_dpose_pins_the_published_position_to_the_pad_when_it_is_back_in_view() 
     assert 1 <= p.dpose_stage.offset.resets <= 5 and len(resets) == p.dpose_stage.offset.resets + 1
 
 
-def test_the_arming_attitude_is_the_mean_of_the_window() -> None:
-    """d-Pose's pattern takes the mean of the autopilot's attitudes over the arming window:
-    samples scattered symmetrically around an attitude average back to it, and a window of
-    one sample is that sample."""
-    from companion.pipeline.dpose_stage import ArmWindow
-
-    R_true = so3.rpy_to_matrix(0.02, -0.03, 1.2)
-    rng = np.random.default_rng(4)
-    noise = rng.normal(0.0, np.radians(0.15), (20, 3))
-    window = ArmWindow(0, None)  # type: ignore[arg-type]  # the pose is not read here
-    window.R_world_body = [R_true @ so3.exp(n) for n in (*noise, *(-noise))]
-    assert so3.angle_between(window.mean_attitude(), R_true) < 1e-6
-    assert so3.angle_between(window.R_world_body[0], R_true) > np.radians(0.05)
-    one = ArmWindow(0, None)  # type: ignore[arg-type]
-    one.R_world_body = [window.R_world_body[3]]
-    assert so3.angle_between(one.mean_attitude(), window.R_world_body[3]) < 1e-12
-
-
 def test_the_attitude_at_a_time_is_the_slerp_of_the_samples_around_it() -> None:
     """Pipeline.attitude_at searches from the newest sample: at, between, before and after the
     samples it gives the rotation between the bracketing two (the geodesic at the time's
