@@ -22,8 +22,8 @@
 #    ones): a simulated flight recorded on the host (`companion sitl record`, SIM_SECONDS of
 #    hills lawnmower), which decides the check, and the committed real clip (CLIP), whose
 #    comparison is printed but does not decide it: a camera turned in place by hand, on which
-#    round-off alone moves the published ATE by 2x (docs/decisions.md, "The local BA stops
-#    when it has converged"), so arm64's other rounding gives another draw, not an error.
+#    round-off alone moves the published ATE by 2x (docs/decisions.md, "Round-off decides
+#    the hand-held real sequences"), so arm64's other rounding gives another draw, not an error.
 #
 # Environment: ARM64_ROOT (/var/tmp/companion-arm64), MIRROR (http://deb.debian.org/debian),
 # SUITE (bookworm), HOST_PY (the x86 Python with the project's dependencies: .venv/bin/python),
