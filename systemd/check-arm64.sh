@@ -296,6 +296,14 @@ print("check-arm64: numba: not installed, not imported by the service or eval (n
 '
 }
 
+# the libraries both replays run on, once
+versions() {
+	"$HOST_PY" -c 'import cv2, numpy, scipy, platform
+print(f"check-arm64: x86   {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
+	arm "$(dirname "$COMPANION")/python" -c 'import cv2, numpy, scipy, platform
+print(f"check-arm64: arm64 {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
+}
+
 # replay NAME: `companion eval $CHECK/NAME` on arm64 and on x86, the poses compared; the
 # compare's code (0 equal, 3 different but equally accurate, 1 not, 2 a file missing)
 replay() {
@@ -309,10 +317,6 @@ replay() {
 	(cd "$SRC" && PYTHONPATH=$SRC "$HOST_PY" -m companion.cli eval "$HOST_CHECK/$name" \
 		--out "$HOST_CHECK/eval-x86-$name" --no-progress | tail -1)
 	say "x86 replay took $(($(date +%s) - t0)) s"
-	"$HOST_PY" -c 'import cv2, numpy, scipy, platform
-print(f"check-arm64: x86   {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
-	arm "$(dirname "$COMPANION")/python" -c 'import cv2, numpy, scipy, platform
-print(f"check-arm64: arm64 {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
 	say "poses of $name, x86 against arm64:"
 	local code=0
 	"$HOST_PY" "$SRC/systemd/compare_replays.py" "$HOST_CHECK/eval-x86-$name" \
@@ -339,6 +343,7 @@ build_wheel
 pip_install
 make_install
 first_start
+versions
 set +e
 replay sim
 code=$?
