@@ -298,10 +298,10 @@ print("check-arm64: numba: not installed, not imported by the service or eval (n
 
 # the libraries both replays run on, once
 versions() {
-	"$HOST_PY" -c 'import cv2, numpy, scipy, platform
-print(f"check-arm64: x86   {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
-	arm "$(dirname "$COMPANION")/python" -c 'import cv2, numpy, scipy, platform
-print(f"check-arm64: arm64 {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
+	local show='import cv2, numpy, scipy, platform, sys
+print(f"check-arm64: {sys.argv[1]:5} {platform.machine()}: numpy {numpy.__version__}, scipy {scipy.__version__}, opencv {cv2.__version__}")'
+	"$HOST_PY" -c "$show" x86
+	arm "$(dirname "$COMPANION")/python" -c "$show" arm64
 }
 
 # replay NAME: `companion eval $CHECK/NAME` on arm64 and on x86, the poses compared; the
