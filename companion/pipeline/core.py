@@ -53,7 +53,8 @@ from companion.vo.frame_clock import FrameClock
 from companion.vo.odometry import VisualOdometry
 from companion.vo.stage_times import Laps
 
-AFTER_POSE = ("scale update", "roll/pitch update", "keyframe decision", "keyframe", "lens check")
+AFTER_POSE: tuple[str, ...] = ("scale update", "roll/pitch update", "keyframe decision")
+AFTER_POSE += ("keyframe", "local BA", "lens check")  # Pipeline.background_work's, in order
 
 
 class Pipeline:
@@ -83,8 +84,7 @@ class Pipeline:
         self._last_good_us: int | None = None
         self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
         self.attitudes = AttitudeHistory()
-        # frames kept from a VO that is not tracking because no attitude was at hand for them
-        # once an attitude stream exists (a map's north is the autopilot's, never the camera's)
+        # frames kept from a VO not tracking for want of an attitude once a stream exists
         self.held_for_attitude = 0
         # frames held by hold_for_attitude (an autopilot but no attitude stream yet)
         self.waited_for_attitude = 0
@@ -154,13 +154,12 @@ class Pipeline:
         return self.frame_check.check(frame)
 
     def hold_for_attitude(self, frame: CameraFrame, autopilot_seen: bool) -> bool:
-        """Whether to hold this frame from a VO that has not started: the heading of the VO's
-        frame is the autopilot's attitude at its start (else 0, the camera's first heading,
-        and the autopilot's frame and ours are turned by its heading for the whole flight).
-        ArduPilot streams ATTITUDE only once asked, some time after its first HEARTBEAT;
-        after ``service.attitude_wait_s`` from the first frame held the VO starts without
-        one. Without an autopilot (``autopilot_seen`` False: a replay, a bench test) nothing
-        is held. Held frames are counted in ``waited_for_attitude``."""
+        """Whether to hold this frame from a VO that has not started: its frame's heading is
+        the autopilot's attitude at its start (else the camera's first heading, turning the
+        two frames by it for the whole flight). ArduPilot streams ATTITUDE only once asked,
+        after its first HEARTBEAT; after ``service.attitude_wait_s`` from the first frame
+        held the VO starts without one. Without an autopilot (``autopilot_seen`` False: a
+        replay, a bench test) nothing is held. Held frames: ``waited_for_attitude``."""
         if (
             not autopilot_seen
             or self.vo.state == VoState.TRACKING
@@ -331,8 +330,7 @@ class Pipeline:
 
     def background_work(self) -> bool:
         """Work that the last frame's pose did not need (AFTER_POSE), run by the service after
-        publishing, else by the next feed_frame first. Returns whether a keyframe or a lens
-        check ran."""
+        publishing, else by the next feed_frame first. Whether a keyframe or a lens check ran."""
         laps = self.background_laps
         laps.start()
         self.finish_frame(laps)
@@ -340,6 +338,8 @@ class Pipeline:
         laps.lap("keyframe decision")
         built = self.vo.finish_pending()
         laps.lap("keyframe")
+        if self.vo.refine_map():
+            laps.lap("local BA")
         lens = self.lens.work()
         laps.lap("lens check")
         return lens or built

@@ -308,6 +308,67 @@ def _damped_step(
             return state, lam
 
 
+class BundleAdjustment:
+    """One local BA problem, advanced one Levenberg-Marquardt iteration at a time
+    (:meth:`step`), so that a caller can spread it over the frames after its keyframe;
+    :meth:`run` takes every iteration at once, as :func:`bundle_adjust` does. The arguments
+    are :func:`bundle_adjust`'s (the arrays are copied). Stepped or run, the iterations and
+    their arithmetic are the same, and so is the result, to the bit."""
+
+    def __init__(
+        self,
+        T_cam_vo: F64,
+        points_vo: F64,
+        obs_cam: I64,
+        obs_pt: I64,
+        obs_xy: F64,
+        fixed_cams: B,
+        focal_px: float,
+        huber_px: float = 2.0,
+        iterations: int = 5,
+        gravity_cam: F64 | None = None,
+        gravity_weight: float | F64 = 0.0,
+    ) -> None:
+        self._win = _window(obs_cam, obs_pt, obs_xy, fixed_cams, focal_px, len(points_vo))
+        self._prior = _gravity_prior(gravity_cam, gravity_weight, fixed_cams)
+        self._huber_px = huber_px
+        self._iterations = iterations
+        T = T_cam_vo.copy()
+        X = points_vo.copy()
+        r, p_c = self._win.residuals(T, X)
+        self._cost0 = _total_cost(r, T, huber_px, self._prior)
+        self._state = _State(T, X, r, p_c, self._cost0)
+        self._lam = 1e-4
+        self.iterations_done = 0
+
+    @property
+    def done(self) -> bool:
+        """Whether no iteration is left: all taken, or the damping gave up (over 1e6)."""
+        return self.iterations_done >= self._iterations or self._lam > 1e6
+
+    def step(self) -> bool:
+        """One iteration (none when :attr:`done`); returns whether one is left after it."""
+        if not self.done:
+            self.iterations_done += 1
+            ne = _normal_equations(self._state, self._win, self._prior, self._huber_px)
+            self._state, self._lam = _damped_step(
+                self._state, self._lam, ne, self._win, self._prior, self._huber_px
+            )
+        return not self.done
+
+    def run(self) -> BaResult:
+        """Every iteration left, then the result."""
+        while self.step():
+            pass
+        return self.result()
+
+    def result(self) -> BaResult:
+        """The cameras and points as the iterations so far left them."""
+        st = self._state
+        residual_px = np.linalg.norm(st.r, axis=1)
+        return BaResult(st.T, st.X, residual_px, self._cost0, st.cost, self.iterations_done)
+
+
 def bundle_adjust(
     T_cam_vo: F64,
     points_vo: F64,
@@ -330,19 +391,16 @@ def bundle_adjust(
     sigma over the gravity direction's sigma in radians), one for all or (K,) per camera;
     0 = no prior.
     """
-    win = _window(obs_cam, obs_pt, obs_xy, fixed_cams, focal_px, len(points_vo))
-    prior = _gravity_prior(gravity_cam, gravity_weight, fixed_cams)
-    T = T_cam_vo.copy()
-    X = points_vo.copy()
-    r, p_c = win.residuals(T, X)
-    cost0 = _total_cost(r, T, huber_px, prior)
-    state = _State(T, X, r, p_c, cost0)
-    lam = 1e-4
-    done = 0
-    for it in range(1, iterations + 1):
-        done = it
-        ne = _normal_equations(state, win, prior, huber_px)
-        state, lam = _damped_step(state, lam, ne, win, prior, huber_px)
-        if lam > 1e6:
-            break
-    return BaResult(state.T, state.X, np.linalg.norm(state.r, axis=1), cost0, state.cost, done)
+    return BundleAdjustment(
+        T_cam_vo,
+        points_vo,
+        obs_cam,
+        obs_pt,
+        obs_xy,
+        fixed_cams,
+        focal_px,
+        huber_px,
+        iterations,
+        gravity_cam,
+        gravity_weight,
+    ).run()

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from companion.geometry import se3
 from companion.types import F64
-from companion.vo.ba import bundle_adjust
+from companion.vo.ba import BundleAdjustment
 from companion.vo.frontend import Tracks
 from companion.vo.options import VoOptions
 from companion.vo.triangulation import triangulate
@@ -34,21 +34,38 @@ class Keyframe:
     gravity_sigma_rad: float = 0.0  # its direction's sigma [rad] (0: gravity_cam is None)
 
 
+@dataclass
+class LocalBa:
+    """A local bundle adjustment under way (:meth:`VoMap.begin_local_ba`): the window's
+    keyframes (oldest first), the ids of its points, its observations' camera (index into
+    ``window``) and point (index into ``pids``), and the problem itself."""
+
+    window: list[Keyframe]
+    pids: list[int]
+    obs_cam: list[int]
+    obs_pt: list[int]
+    problem: BundleAdjustment
+
+
 class VoMap:
-    """Keyframes (oldest first) and points by id, with each point's depth sigma."""
+    """Keyframes (oldest first) and points by id, with each point's depth sigma, and the
+    local BA under way (``ba_job``) when it is spread over frames."""
 
     def __init__(self) -> None:
         self.keyframes: list[Keyframe] = []
         self.points: dict[int, F64] = {}
         self.point_sigma: dict[int, float] = {}
+        self.ba_job: LocalBa | None = None
         self._next_pid = 0  # ids are never reused, across maps
         self._next_kf = 0
 
     def clear(self) -> None:
-        """Drop every keyframe and point (a new map; ids go on counting)."""
+        """Drop every keyframe and point, and a local BA under way (a new map; ids go on
+        counting)."""
         self.points.clear()
         self.point_sigma.clear()
         self.keyframes = []
+        self.ba_job = None
 
     def add_point(self, point_vo: F64, sigma: float) -> int:
         """A new point (3,) with its depth sigma; returns its id."""
@@ -162,9 +179,19 @@ class VoMap:
 
     def local_ba(self, opts: VoOptions, focal_px: float) -> F64 | None:
         """Bundle adjustment of the last ``window_keyframes`` keyframes (the first two fixed)
-        and the points two of them see, with the keyframes' gravity priors; observations
-        left over 3 ``inlier_px`` off are removed. Returns the newest keyframe's refined
-        T_cam_vo (4, 4), or None when there was too little to adjust."""
+        and the points two of them see, at once (:meth:`begin_local_ba`, every iteration,
+        :meth:`end_local_ba`). Returns the newest keyframe's refined T_cam_vo (4, 4), or
+        None when there was too little to adjust."""
+        job = self.begin_local_ba(opts, focal_px)
+        if job is None:
+            return None
+        job.problem.run()
+        return self.end_local_ba(job, opts.inlier_px)
+
+    def begin_local_ba(self, opts: VoOptions, focal_px: float) -> LocalBa | None:
+        """The local BA of the last ``window_keyframes`` keyframes (the first two fixed) and
+        the points two of them see, with the keyframes' gravity priors, set up and not yet
+        iterated; None when there is too little to adjust."""
         window = self.keyframes[-opts.window_keyframes :]
         if len(window) < 3 or opts.ba_iterations == 0:
             return None
@@ -193,7 +220,7 @@ class VoMap:
         sigma_rad = np.array([kf.gravity_sigma_rad for kf in window])
         weight = np.zeros(len(window))
         weight[sigma_rad > 0] = opts.pixel_sigma_px / sigma_rad[sigma_rad > 0]
-        res = bundle_adjust(
+        problem = BundleAdjustment(
             T,
             X,
             np.asarray(obs_cam),
@@ -206,14 +233,23 @@ class VoMap:
             gravity_cam=gravity,
             gravity_weight=weight,
         )
+        return LocalBa(window, pids, obs_cam, obs_pt, problem)
+
+    def end_local_ba(self, job: LocalBa, inlier_px: float) -> F64:
+        """The job's cameras and points written into the map (a point the map dropped
+        meanwhile stays dropped), and the observations left over 3 ``inlier_px`` off
+        removed; returns the newest keyframe's refined T_cam_vo (4, 4)."""
+        res = job.problem.result()
+        window, pids = job.window, job.pids
         for k, kf in enumerate(window):
             kf.T_cam_vo = res.T_cam_vo[k]
         for i, p in enumerate(pids):
-            self.points[p] = res.points_vo[i]
+            if p in self.points:
+                self.points[p] = res.points_vo[i]
         # observations that stay far off after BA are removed
-        bad = res.residual_px > 3.0 * opts.inlier_px
+        bad = res.residual_px > 3.0 * inlier_px
         for o in np.flatnonzero(bad):
-            window[obs_cam[o]].obs.pop(pids[obs_pt[o]], None)
+            window[job.obs_cam[o]].obs.pop(pids[job.obs_pt[o]], None)
         refined: F64 = window[-1].T_cam_vo.copy()
         return refined
 

@@ -102,6 +102,7 @@ class VisualOdometry:
         self._pending_keyframe: PendingKeyframe | None = None  # built by finish_pending
         self._keyframe_question: PendingKeyframe | None = None  # asked by decide_keyframe
         self._keyframe_added = False  # a keyframe was built since the last output
+        self._ba_step_due = False  # refine_map has not yet run since the last pose
         self.ref = Reference()  # the frame a new map would start from
         self.last_keyframe_time_us = -1
         self.yaw_vo_rad = 0.0
@@ -309,6 +310,7 @@ class VisualOdometry:
         bounded."""
         gray, time_us, R_world_body, gravity, down, held = pending
         o = self.opts
+        self._end_local_ba()  # the last keyframe's BA, if still under way: finished first
         axial = False
         if o.axial_gravity_sigma_deg > 0:  # off: not worked out
             last = self.map.keyframes[-1] if self.map.keyframes else None
@@ -333,9 +335,13 @@ class VisualOdometry:
             self.tracks = self.map.seed_candidates(
                 self.tracks, kf, xy, depth, o.rotation_depth_prior
             )
-        T_refined = self.map.local_ba(o, self.focal_px)
-        if T_refined is not None:
-            self.T_cam_vo = T_refined
+        if o.ba_iterations_per_frame == 0:
+            T_refined = self.map.local_ba(o, self.focal_px)
+            if T_refined is not None:
+                self.T_cam_vo = T_refined
+        else:  # iterated by refine_map in the frames' work after this one
+            self.map.ba_job = self.map.begin_local_ba(o, self.focal_px)
+            self._ba_step_due = False
         tracks = self.tracks
         self.map.bound(tracks, o.max_keyframes, lambda lost: self.frame_xy(tracks, lost))
         self.frames_since_kf = 0
@@ -363,6 +369,8 @@ class VisualOdometry:
         laps.start()
         if self.finish_pending():  # the previous frame's keyframe, if the caller did not run it
             laps.lap("keyframe")
+        if self.refine_map():  # and the local BA's iterations of its work
+            laps.lap("local BA")
         self.n_frames += 1
         img = frame.image_bgr
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
@@ -398,6 +406,7 @@ class VisualOdometry:
         if self.state == VoState.TRACKING and self._prev_time_us is not None:
             self._velocity_dt_us = frame.time_us - self._prev_time_us
         self._prev_time_us = frame.time_us
+        self._ba_step_due = True
         laps.lap("pose")
         out = self._output(frame.time_us, is_kf)
         laps.lap("vo output")
@@ -444,3 +453,33 @@ class VisualOdometry:
         self._add_keyframe(pending)
         self._keyframe_added = True
         return True
+
+    def refine_map(self) -> bool:
+        """The ``ba_iterations_per_frame`` iterations of the local BA under way that the last
+        frame's work takes (once a frame, after its pose: the service calls this after
+        publishing, else the next ``process`` does); the BA's result applied once it ends
+        (:meth:`_end_local_ba`). Returns whether an iteration ran."""
+        job = self.map.ba_job
+        if job is None or not self._ba_step_due or self.state != VoState.TRACKING:
+            return False
+        self._ba_step_due = False
+        for _ in range(self.opts.ba_iterations_per_frame):
+            if not job.problem.step():
+                self._end_local_ba()
+                break
+        return True
+
+    def _end_local_ba(self) -> None:
+        """The local BA under way finished (its iterations left taken) and written into the
+        map; the current pose and the one before moved with its newest keyframe, T <- T
+        T_kf^-1 T_kf' (the motion since that keyframe kept: the frames since tracked the
+        unrefined map), as the BA at the keyframe itself sets the pose to T_kf'."""
+        job, self.map.ba_job = self.map.ba_job, None
+        if job is None:
+            return
+        job.problem.run()
+        T_kf = job.window[-1].T_cam_vo
+        T_kf_refined = self.map.end_local_ba(job, self.opts.inlier_px)
+        correction = se3.inverse(T_kf) @ T_kf_refined
+        self.T_cam_vo = self.T_cam_vo @ correction
+        self.T_prev = self.T_prev @ correction

@@ -129,6 +129,14 @@ class VoOptions:
     window_keyframes: int = opt(6, "keyframes optimised by the local bundle adjustment", ge=2)
     max_keyframes: int = opt(10, "keyframes kept in the map (older ones dropped)", ge=2)
     ba_iterations: int = opt(4, "Levenberg-Marquardt iterations of the local BA", ge=0, le=50)
+    ba_iterations_per_frame: int = opt(
+        0,
+        "0: the local BA runs all its iterations in its keyframe's work; N: it starts there "
+        "and takes N iterations in each frame's work after it, its result applied when it "
+        "ends (the keyframe's work shorter; companion/vo/odometry.py refine_map)",
+        ge=0,
+        le=50,
+    )
     max_rotation_deg_per_frame: float = opt(
         25.0, "a larger rotation between frames is a failure (LOST)", gt=0
     )
