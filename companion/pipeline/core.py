@@ -338,9 +338,9 @@ class Pipeline:
         laps.lap("keyframe decision")
         built = self.vo.finish_pending()
         laps.lap("keyframe")
-        if self.vo.refine_map():
-            laps.lap("local BA")
-        lens = self.lens.work()
+        busy = self.vo.refine_map() or built
+        laps.lap("local BA")
+        lens = self.lens.work(busy)
         laps.lap("lens check")
         return lens or built
 

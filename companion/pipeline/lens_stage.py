@@ -59,9 +59,16 @@ class LensStage:
             self.work()
         return self.learned is not None
 
-    def work(self) -> bool:
-        """Pair the keyframes kept since the last call; whether there were any."""
-        if not self._waiting:
+    def work(self, busy: bool = False) -> bool:
+        """Pair the keyframes kept since the last call; whether there were any.
+
+        ``busy``: the frame's work already built a keyframe or iterated the local BA; the
+        pairing then waits for a frame without (at most ``MAX_WAITING`` keyframes: observe
+        pairs them then), so that one frame does not carry both and the pose after it waits
+        for less. The check reads its keyframes' own copies and finds the same, a frame or
+        two later. Not with ``learn``: a lens found is taken the frame after the work that
+        finds it, and the VO restarts with it as soon as it can."""
+        if not self._waiting or (busy and not self.learn):
             return False
         for view in self._waiting:
             self.check.add(view)

@@ -114,3 +114,40 @@ def test_the_fitted_lens_takes_what_was_found_and_nothing_else() -> None:
     assert both is not None and both.fy == pytest.approx(camera.fy * 1.1)
     assert both.k1 == pytest.approx(camera.k1 + 0.021)
     assert fitted_lens(camera, est, ["fits no lens model"]) is None
+
+
+def test_the_lens_check_waits_for_a_frame_without_keyframe_or_ba_work(
+    flight: tuple[Config, list[Any]],
+) -> None:
+    """With the local BA spread over frames, the lens check's pairing never shares a frame's
+    work with a keyframe or a BA iteration, and finds what it finds when it never waits: the
+    same ratio and k1 error, from the same keyframe pairs."""
+    cfg, steps = flight
+    cfg = replace(cfg, vo=replace(cfg.vo, ba_iterations_per_frame=1))
+    results = []
+    for wait in (True, False):
+        pipe = Pipeline(cfg)
+        lens_work = pipe.lens.work
+        calls: list[tuple[bool, bool]] = []
+
+        def work(
+            busy: bool = False, lens_work: Any = lens_work, calls: Any = calls, wait: bool = wait
+        ) -> bool:
+            paired = bool(lens_work(busy and wait))
+            calls.append((busy, paired))
+            return paired
+
+        pipe.lens.work = work  # type: ignore[method-assign]
+        for step in steps:
+            feed_step(pipe, step)
+            pipe.background_work()
+        assert pipe.vo.resets == 0
+        busy = [b for b, _ in calls]
+        paired = [p for _, p in calls]
+        assert sum(busy) >= 20 and sum(paired) >= 10
+        if wait:
+            assert not any(b and p for b, p in calls)  # never on a busy frame
+        else:
+            assert any(b and p for b, p in calls)  # without waiting, it would share some
+        results.append(pipe.lens.result())
+    assert results[0] is not None and results[0] == results[1]
