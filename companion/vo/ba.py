@@ -309,11 +309,17 @@ def _damped_step(
 
 
 class BundleAdjustment:
-    """One local BA problem, advanced one Levenberg-Marquardt iteration at a time
-    (:meth:`step`), so that a caller can spread it over the frames after its keyframe;
-    :meth:`run` takes every iteration at once, as :func:`bundle_adjust` does. The arguments
-    are :func:`bundle_adjust`'s (the arrays are copied). Stepped or run, the iterations and
-    their arithmetic are the same, and so is the result, to the bit."""
+    """Refine cameras and points, one Levenberg-Marquardt iteration per :meth:`step` (a
+    caller can spread them over the frames after a keyframe) or all of them in :meth:`run`:
+    stepped or run, the iterations and their arithmetic are the same, and so is the result,
+    to the bit. Cameras with ``fixed_cams`` True stay put (gauge and scale: fix at least two
+    cameras of a monocular window).
+
+    obs_cam, obs_pt: (M,) indices into the cameras (K, 4, 4) and points (P, 3); obs_xy: (M, 2)
+    observations. gravity_cam: (K, 3) measured gravity direction in each camera frame (rows
+    of NaN where unknown); gravity_weight: its residual's weight (pixel units per unit
+    vector: a pixel sigma over the gravity direction's sigma in radians), one for all or
+    (K,) per camera; 0 = no prior. The arrays are copied."""
 
     def __init__(
         self,
@@ -367,40 +373,3 @@ class BundleAdjustment:
         st = self._state
         residual_px = np.linalg.norm(st.r, axis=1)
         return BaResult(st.T, st.X, residual_px, self._cost0, st.cost, self.iterations_done)
-
-
-def bundle_adjust(
-    T_cam_vo: F64,
-    points_vo: F64,
-    obs_cam: I64,
-    obs_pt: I64,
-    obs_xy: F64,
-    fixed_cams: B,
-    focal_px: float,
-    huber_px: float = 2.0,
-    iterations: int = 5,
-    gravity_cam: F64 | None = None,
-    gravity_weight: float | F64 = 0.0,
-) -> BaResult:
-    """Refine cameras and points; cameras with ``fixed_cams`` True stay put (gauge and scale:
-    fix at least two cameras of a monocular window).
-
-    obs_cam, obs_pt: (M,) indices into the cameras and points; obs_xy: (M, 2) observations.
-    gravity_cam: (K, 3) measured gravity direction in each camera frame (rows of NaN where
-    unknown); gravity_weight: its residual's weight (pixel units per unit vector: a pixel
-    sigma over the gravity direction's sigma in radians), one for all or (K,) per camera;
-    0 = no prior.
-    """
-    return BundleAdjustment(
-        T_cam_vo,
-        points_vo,
-        obs_cam,
-        obs_pt,
-        obs_xy,
-        fixed_cams,
-        focal_px,
-        huber_px,
-        iterations,
-        gravity_cam,
-        gravity_weight,
-    ).run()

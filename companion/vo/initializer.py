@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from companion.geometry import se3
 from companion.types import F64
-from companion.vo.ba import bundle_adjust
+from companion.vo.ba import BundleAdjustment
 from companion.vo.triangulation import triangulate
 
 B = NDArray[np.bool_]
@@ -143,7 +143,7 @@ def _refine(view: TwoView, x0: F64, x1: F64, focal_px: float) -> TwoView:
     obs_pt = np.concatenate([np.arange(m), np.arange(m)])
     obs_xy = np.concatenate([x0[good], x1[good]])
     T = np.stack([np.eye(4), view.T_c1_c0])
-    res = bundle_adjust(
+    res = BundleAdjustment(
         T,
         view.points_c0[good],
         obs_cam,
@@ -153,7 +153,7 @@ def _refine(view: TwoView, x0: F64, x1: F64, focal_px: float) -> TwoView:
         focal_px,
         huber_px=2.0,
         iterations=8,
-    )
+    ).run()
     T1 = res.T_cam_vo[1].copy()
     s = float(np.linalg.norm(T1[:3, 3]))
     if not np.isfinite(s) or s < 1e-9:

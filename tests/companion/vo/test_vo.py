@@ -15,7 +15,7 @@ from companion.sitl.world.render import Renderer
 from companion.sitl.world.scenario import Scenario
 from companion.sitl.world.terrain import World
 from companion.types import CameraFrame, VoState
-from companion.vo.ba import bundle_adjust, residuals
+from companion.vo.ba import BundleAdjustment, residuals
 from companion.vo.initializer import initialize
 from companion.vo.odometry import VisualOdometry
 from companion.vo.pose import estimate_pose
@@ -105,7 +105,7 @@ def test_bundle_adjustment_reduces_reprojection_error() -> None:
         T0[k] = se3.exp(rng.normal(0, [0.03, 0.03, 0.03, 0.01, 0.01, 0.01])) @ T_true[k]
     X0 = X + rng.normal(0, 0.05, X.shape)
     fixed = np.array([True, True, False, False, False])
-    res = bundle_adjust(T0, X0, oc, op, ox, fixed, F, huber_px=2.0, iterations=10)
+    res = BundleAdjustment(T0, X0, oc, op, ox, fixed, F, huber_px=2.0, iterations=10).run()
     r0, _ = residuals(T0, X0, oc, op, ox, F)
     rms0 = np.sqrt(np.mean(np.sum(r0**2, axis=1)))
     rms1 = np.sqrt(np.mean(res.residual_px**2))
