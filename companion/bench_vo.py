@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from companion.gc_pacing import GC_STAGE
 from companion.pipeline import AFTER_POSE, Pipeline
 from companion.types import CameraFrame
 
@@ -120,7 +121,7 @@ def stage_table(stage_ms: Sequence[dict[str, float]], frame_ms: Sequence[float])
     names: list[str] = []
     for stages in stage_ms:
         names += [n for n in stages if n not in names]
-    after = set(AFTER_POSE)
+    after = {*AFTER_POSE, GC_STAGE}
     total_to_pose = float(np.sum(frame_ms)) or 1.0
     total_after = sum(s.get(n, 0.0) for s in stage_ms for n in after) or 1.0
     rows = [

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from companion.config import Config
 from companion.evaluation.scale import ScaleMetrics, methods_metrics
 from companion.evaluation.vo import VoMetrics, vo_metrics
+from companion.gc_pacing import GC_STAGE, GcPacing
 from companion.geometry.camera import CameraModel
 from companion.pipeline import Event, Pipeline
 from companion.types import F64, CameraFrame, PoseEstimate, VoState
@@ -63,6 +64,7 @@ class VoRun:
     gaps: int = 0  # new VO maps after more than vo.max_gap_ms without a usable frame
     lens_focal: FocalRatio | None = None  # the focal length checked in flight (LensStage)
     lens_warning: str | None = None
+    gc: str = ""  # the garbage collector's work, paced between frames (GcPacing.summary)
 
     def tracking_mask(self) -> NDArray[np.bool_]:
         return np.array([s == VoState.TRACKING for s in self.state], dtype=bool)
@@ -127,6 +129,28 @@ def run_vo(
     called after each frame's work, outside the timed span (a benchmark's floor)."""
     pipe = Pipeline(config, camera, T_body_cam)
     run = VoRun()
+    with GcPacing() as pacer:
+        _run_frames(pipe, run, pacer, events, progress, checked, observe)
+    run.gc = pacer.summary()
+    run.resets = pipe.vo.resets
+    run.peak_rss_mb = peak_rss_mb()
+    run.dropped = dropped_frames(pipe, run.errors)
+    run.gaps = pipe.gaps
+    run.clock = pipe.clock.report() if pipe.clock is not None else None
+    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
+    return run
+
+
+def _run_frames(
+    pipe: Pipeline,
+    run: VoRun,
+    pacer: GcPacing,
+    events: Iterable[Event],
+    progress: Iterator[None] | None,
+    checked: bool,
+    observe: Callable[[CameraFrame, Pipeline], None] | None,
+) -> None:
+    """``run_vo``'s loop: each event into ``pipe``, each frame's results into ``run``."""
     for ev in events:
         if not isinstance(ev, CameraFrame):
             pipe.feed(ev)
@@ -144,12 +168,16 @@ def run_vo(
                 run.poses.append(pose)
             t1 = time.perf_counter()
             pipe.background_work()  # as the service does: after the pose is out
+            t2 = time.perf_counter()
+            pacer.after_frame()  # as the service does: after the frame's work
+            t3 = time.perf_counter()
             run.frame_ms.append((t1 - t0) * 1e3)
-            run.total_ms.append((time.perf_counter() - t0) * 1e3)
+            run.total_ms.append((t3 - t0) * 1e3)
             stages = dict(pipe.laps.ms)
             if "vo" in stages:  # the VO ran on this frame
                 stages.update({f"vo: {k}": v for k, v in pipe.vo.laps.ms.items()})
             stages.update(pipe.background_laps.ms)
+            stages[GC_STAGE] = (t3 - t2) * 1e3
             run.stage_ms.append(stages)
             if observe is not None:
                 observe(ev, pipe)
@@ -166,13 +194,6 @@ def run_vo(
             run.segment.append(seg)
             if progress is not None:
                 next(progress, None)
-    run.resets = pipe.vo.resets
-    run.peak_rss_mb = peak_rss_mb()
-    run.dropped = dropped_frames(pipe, run.errors)
-    run.gaps = pipe.gaps
-    run.clock = pipe.clock.report() if pipe.clock is not None else None
-    run.lens_focal, run.lens_warning = pipe.lens.result(), pipe.lens.warning
-    return run
 
 
 @dataclass

@@ -106,6 +106,7 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
         f"{np.percentile(delays.delay_ms, 99):.1f} ms; {delays.dropped} frames skipped"
     )
     print(f"tracking: {tracked.mean():.3f} of frames, resets {run.resets}")
+    print(run.gc)
     print(f"peak RSS (this process, the simulator's world included): {run.peak_rss_mb:.0f} MB")
     print()
     print("\n".join(stage_table(run.stage_ms, run.frame_ms)))

@@ -245,6 +245,7 @@ class Service:
             # let the event loop in often while the worker computes; restored on exit
             stack.callback(sys.setswitchinterval, sys.getswitchinterval())
             sys.setswitchinterval(0.0005)
+            stack.callback(self.worker.gc.close)  # the collector as it was
             for drv in self.tfminis:
                 drv.start()
                 stack.callback(drv.close)

@@ -10,7 +10,9 @@ watches, each frame's view into its 1-slot holder (``LatestView.offer``: referen
 each pose sent to ``on_sent`` (on the loop).
 
 Threads: the worker thread (``asyncio.to_thread``; OpenCV and numpy release the GIL) owns the
-Pipeline and replaces ``status`` (a reference swap, atomic in CPython) after each frame.
+Pipeline and replaces ``status`` (a reference swap, atomic in CPython) after each frame. The
+process's garbage collections run there too, after each frame's work (``GcPacing``): one
+started by an allocation on another thread would stop the worker mid-frame.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 
+from companion.gc_pacing import GcPacing
 from companion.pipeline import Pipeline, PipelineStatus, Sample
 from companion.service.autopilot_session import AutopilotSession
 from companion.service.frame_intake import FrameIntake
@@ -68,6 +71,8 @@ class PipelineWorker:
         self._vo_start_logged = -1  # vo_resets of the last initialisation logged
         self._compass_logged = (False, False)  # (first fix logged, final one logged)
         self._jitter_logged = False  # the camera clock's jitter was logged
+        # Python's garbage collector after each frame's work, not inside it (closed by the app)
+        self.gc = GcPacing()
 
     async def loop(self) -> None:
         """Each frame, as the intake picks it, through the pipeline; a failure on one frame
@@ -134,9 +139,11 @@ class PipelineWorker:
         return pose
 
     def _background(self) -> None:
-        """Worker thread: the keyframe work the pose did not need, then a new snapshot."""
+        """Worker thread: the keyframe work the pose did not need, then a new snapshot; then
+        the garbage collector's due work (companion/gc_pacing.py)."""
         if self.pipeline.background_work():
             self.status = self.pipeline.status()
+        self.gc.after_frame()
 
     def _after_frame(self) -> None:
         """On the loop, after a frame: the VO's state kept; its start and heading logged;
