@@ -5,7 +5,9 @@ host than on another), so the frame is measured against a floor measured in the 
 the same frames: OpenCV's own pyramidal KLT (``cv2.calcOpticalFlowPyrLK``) of the features the
 VO tracks from the frame before (its tracks once that frame's work is done), into this frame,
 with the VO's window, levels and stop criteria and no initial flow: the one call no monocular
-KLT VO can skip. The pose solve is not in the floor.
+KLT VO can skip. The pose solve is not in that floor; a second one adds it: OpenCV's iterative
+PnP (``cv2.solvePnP``, Levenberg-Marquardt from the pose of the frame before) on the frame's
+own 2D-3D inliers, the least pose solve a map-based VO makes.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from companion.gc_pacing import GC_STAGE
 from companion.pipeline import AFTER_POSE, Pipeline
-from companion.types import CameraFrame
+from companion.types import CameraFrame, VoState
 
 # The planning factors of a board's core against a laptop's for OpenCV work (a Raspberry
 # Pi 4's Cortex-A72 about 5x slower, a Pi 5's Cortex-A76 about 2.5x): an estimate from
@@ -35,12 +37,15 @@ class KltFloor:
     """The floor of every frame, measured beside the pipeline (``run_vo``'s ``observe``).
 
     ms: the KLT's wall time [ms] of each frame that had features in the frame before;
-    features: how many it tracked."""
+    features: how many it tracked; pnp_ms: the pose solve's wall time [ms] of each tracked
+    frame whose tracks kept their normalised coordinates (not a keyframe's: its new corners
+    have none yet)."""
 
     window_px: int
     levels: int
     ms: list[float] = field(default_factory=list)
     features: list[int] = field(default_factory=list)
+    pnp_ms: list[float] = field(default_factory=list)
     _prev_gray: NDArray[np.uint8] | None = None
     _prev_px: NDArray[np.float32] | None = None
 
@@ -61,11 +66,31 @@ class KltFloor:
             )
             self.ms.append((cv2.getTickCount() - t0) * 1e3 / cv2.getTickFrequency())
             self.features.append(len(self._prev_px))
+        self._time_pnp(pipe)
         # what the VO's KLT tracks into the next frame: its tracks after this frame's work
         # (the candidates' check and a keyframe's new corners run after the pose)
         self._prev_gray = gray
         px = pipe.vo.tracks.px
         self._prev_px = np.ascontiguousarray(px, dtype=np.float32).reshape(-1, 1, 2)
+
+    def _time_pnp(self, pipe: Pipeline) -> None:
+        """OpenCV's iterative PnP of this frame's map points and their normalised
+        coordinates (its inliers), from the pose of the frame before."""
+        vo = pipe.vo
+        out = pipe.vo_output
+        tr = vo.tracks
+        if out is None or out.state != VoState.TRACKING or tr.xy is None or len(tr.xy) != len(tr):
+            return
+        has = tr.pid >= 0
+        if has.sum() < 6:
+            return
+        X = np.ascontiguousarray(vo.map.points_of(tr.pid[has]), dtype=np.float64)
+        xy = np.ascontiguousarray(tr.xy[has], dtype=np.float64)
+        rvec, _ = cv2.Rodrigues(vo.T_prev[:3, :3])
+        tvec = vo.T_prev[:3, 3].reshape(3, 1).copy()
+        t0 = cv2.getTickCount()
+        cv2.solvePnP(X, xy, np.eye(3), None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
+        self.pnp_ms.append((cv2.getTickCount() - t0) * 1e3 / cv2.getTickFrequency())
 
 
 @dataclass(frozen=True)

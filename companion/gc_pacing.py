@@ -92,7 +92,11 @@ class GcPacing:
             _active.append(self)
             self.active = True
             self._thresholds = gc.get_threshold()
-            gc.collect()
+            self._in_pace = True
+            try:
+                gc.collect()
+            finally:
+                self._in_pace = False
             self._froze = gc.get_freeze_count() == 0  # else another part of the process froze
             if self._froze:
                 gc.freeze()

@@ -89,6 +89,15 @@ def cmd_bench_vo(args: argparse.Namespace) -> int:
         f"{np.median(floor.features):.0f}), window {floor.window_px} px, {floor.levels} levels, "
         "no initial flow, pose solve not counted"
     )
+    if floor.pnp_ms:  # the floor with the least pose solve added (companion/bench_vo.py)
+        pnp_ms = float(np.median(floor.pnp_ms))
+        posed = floor_ratios([ratios.floor_ms + pnp_ms], ms[tracked], total_ms[built & tracked])
+        print(
+            f"floor with the pose solve: KLT + OpenCV's iterative PnP of the frame's inliers "
+            f"(median {pnp_ms:.2f} ms over {len(floor.pnp_ms)} frames) = {posed.floor_ms:.2f} "
+            f"ms; frame median {posed.frame_ratio:.2f}x; p99 {posed.p99_ratio:.2f}x; keyframe "
+            f"{posed.keyframe_ratio:.2f}x"
+        )
     print(
         f"frame time (tracked frames, to the pose): median {ratios.frame_ms:.2f} ms "
         f"({1000 / ratios.frame_ms:.0f} fps), p99 {ratios.p99_ms:.2f} ms, max {ms.max():.1f} ms"

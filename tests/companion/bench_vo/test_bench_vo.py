@@ -16,12 +16,17 @@ import numpy as np
 import pytest
 
 from companion.bench_vo import KltFloor, floor_ratios, stage_table, worker_delays
-from companion.types import CameraFrame
+from companion.types import CameraFrame, VoState
 
 CLIP = Path(__file__).parents[2] / "data" / "real" / "tum_fr1_rpy_clip"
 FLOOR_LINE = re.compile(
     r"^floor: KLT (\d+\.\d+) ms; frame median (\d+\.\d+) ms = (\d+\.\d+)x floor; "
     r"p99 (\d+\.\d+)x; keyframe (\d+\.\d+|nan)x$"
+)
+POSED_LINE = re.compile(
+    r"^floor with the pose solve: KLT \+ OpenCV's iterative PnP of the frame's inliers "
+    r"\(median (\d+\.\d+) ms over (\d+) frames\) = (\d+\.\d+) ms; frame median "
+    r"(\d+\.\d+)x; p99 (\d+\.\d+)x; keyframe (\d+\.\d+|nan)x$"
 )
 
 
@@ -82,7 +87,7 @@ def test_klt_floor_times_the_vos_tracks_after_the_frame_before_into_this_one() -
         features = SimpleNamespace(pixels=px)  # the output's: not what the floor tracks
         return SimpleNamespace(
             vo=SimpleNamespace(tracks=SimpleNamespace(px=tracks_px)),
-            vo_output=SimpleNamespace(features=features),
+            vo_output=SimpleNamespace(features=features, state=VoState.INITIALIZING),
         )
 
     floor(CameraFrame(0, 0, cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)), pipe(px))
@@ -116,6 +121,12 @@ def test_bench_vo_on_the_real_clip_prints_the_floor_line_the_stages_and_a_board_
     rounding = 0.005 + ratio * 0.005 * (1 / klt_ms + 1 / frame_ms)
     assert klt_ms > 0 and ratio == pytest.approx(frame_ms / klt_ms, abs=rounding)
     assert ratio > 1.0  # a frame does at least its KLT
+    posed = [m for line in lines if (m := POSED_LINE.match(line))]
+    assert len(posed) == 1
+    pnp_ms, posed_floor_ms, posed_ratio = (float(posed[0].group(i)) for i in (1, 3, 4))
+    assert int(posed[0].group(2)) >= 100  # of the clip's 240 frames, most are tracked
+    assert 0 < pnp_ms < frame_ms and posed_floor_ms == pytest.approx(klt_ms + pnp_ms, abs=0.011)
+    assert posed_ratio == pytest.approx(frame_ms / posed_floor_ms, abs=rounding + 0.01)
     stage_names = [line.split("|")[1].strip() for line in lines if line.startswith("| ")]
     for stage in ("vo", "vo: track", "vo: pose", "scale", "roll/pitch"):
         assert stage in stage_names
