@@ -1,12 +1,12 @@
 """Python's cyclic garbage collector run between frames, not inside them.
 
 CPython collects its youngest generation after ``threshold0`` (700) net allocations of
-container objects, the middle one every ``threshold1`` (10) of those and the oldest every
-``threshold2`` (10) of those: wherever the allocation that crosses the line happens, that
-thread stops and every other one waits on the GIL. In ``companion bench vo`` (640 x 480, hills
-lawnmower, 20 s, with the simulator's world in the process) the oldest generation's 3
-collections took 37-46 ms each and the middle one's up to 5 ms: a 33 ms frame period lost, at
-random frames (docs/decisions.md, "The garbage collector between frames").
+container objects, the middle one after ``threshold1 + 1`` (11) of those and the oldest after
+``threshold2 + 1`` of those: wherever the allocation that crosses the line happens, that thread
+stops and every other one waits on the GIL, the worker in the middle of a frame's pose too.
+Measured (docs/decisions.md, "The garbage collector between frames"): the oldest generation
+takes 15 ms in the service, 34-54 ms in the SITL autopilot's process, 37-46 ms in ``companion
+bench vo``'s (the simulated world in it); the middle one about 1 ms.
 
 :class:`GcPacing` keeps CPython's own schedule and moves it to a safe moment: at its first
 :meth:`~GcPacing.after_frame` one full collection, then ``gc.freeze()`` (everything built at
