@@ -11,9 +11,10 @@ bench vo``'s (the simulated world in it); the middle one about 1 ms.
 :class:`GcPacing` keeps CPython's own schedule and moves it to a safe moment: at its first
 :meth:`~GcPacing.after_frame` one full collection, then ``gc.freeze()`` (everything built at
 start-up, the config, the pipeline, a simulated world, goes to the permanent generation that no
-later collection scans); the automatic thresholds are raised ``NET`` times, a net that still
-collects in a process whose frames stopped; after each frame's work the collections the old
-thresholds would have made by then (``gc.get_count()`` against them), oldest first.
+later collection scans); the youngest generation's automatic threshold is raised ``NET`` times
+(the older ones count its collections), a net that still collects in a process whose frames
+stopped; after each frame's work the collections the old thresholds would have made by then
+(``gc.get_count()`` against them), oldest first.
 :meth:`~GcPacing.close` gives the thresholds back and unfreezes. One pacer is active at a time
 in a process (a second one does nothing): the collector and its thresholds are the process's.
 
@@ -84,7 +85,8 @@ class GcPacing:
 
     def start(self) -> None:
         """Take the collector (the first :meth:`after_frame` does, if not called before):
-        one full collection, the survivors frozen, the automatic thresholds raised."""
+        one full collection, the survivors frozen, the youngest generation's automatic
+        threshold raised."""
         self._started = True
         with _active_lock:
             if _active or not gc.isenabled():
