@@ -60,8 +60,9 @@ class GcPacing:
         # CPython's order (Modules/gcmodule.c, collect_generations): the oldest generation
         # whose count passed its threshold; a generation's count is the collections of the
         # one below it since its own last (generation 0's: net allocations)
+        counts = gc.get_count()
         for generation in (2, 1, 0):
-            if gc.get_count()[generation] > self._thresholds[generation] > 0:
+            if counts[generation] > self._thresholds[generation] > 0:
                 self._collect(generation)
                 return
 
