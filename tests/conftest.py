@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
@@ -17,6 +18,7 @@ from peers import (
     hold_machine,
     release_autopilots,
     release_machine,
+    waited_s,
 )
 
 # matplotlib's FreeType module is loaded before anything in this process can load GStreamer:
@@ -136,6 +138,10 @@ def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> 
         release_machine()
         if nextitem is None or xdist_unit(nextitem.nodeid) != _AUTOPILOTS:
             release_autopilots()  # the autopilots' module fixtures were torn down above
+        if log := os.environ.get("COMPANION_TEST_WAIT_LOG"):  # where the suite's time goes
+            with open(log, "a") as fh:  # one line per test: worker, test, seconds waited
+                worker = os.environ.get("PYTEST_XDIST_WORKER", "-")
+                fh.write(f"{worker}\t{item.nodeid}\t{waited_s():.2f}\t{time.time():.2f}\n")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

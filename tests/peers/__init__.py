@@ -39,6 +39,15 @@ MACHINE_LOCK_ENV = "COMPANION_TEST_MACHINE_LOCK"
 AUTOPILOTS_LOCK_ENV = "COMPANION_TEST_AUTOPILOTS_LOCK"
 _machine: list[int] = []  # this process's descriptor of the lock while it holds it
 _autopilots: list[int] = []  # the same for the autopilots' lock
+# seconds this process waited for the locks since the last waited_s() call: the suite's
+# idle time (tests/conftest.py writes it per test to COMPANION_TEST_WAIT_LOG when set)
+_waited_s: list[float] = [0.0]
+
+
+def waited_s() -> float:
+    """The seconds waited for the machine or the autopilots since the last call (then 0)."""
+    out, _waited_s[0] = _waited_s[0], 0.0
+    return out
 
 
 def _try_lock(path: str, mode: int = fcntl.LOCK_EX) -> int | None:
@@ -64,6 +73,7 @@ def _not_counted(since: float) -> float:
     off while it waits (2026-11-27: with two runs on the machine, three autopilot tests
     timed out in their wait for the other run's autopilots, 60-300 s)."""
     now = time.monotonic()
+    _waited_s[0] += now - since
     remaining_s, interval_s = signal.getitimer(signal.ITIMER_REAL)
     if remaining_s > 0:
         signal.setitimer(signal.ITIMER_REAL, remaining_s + now - since, interval_s)
