@@ -19,13 +19,16 @@ import socket
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.drivers.timesync import RequesterModel
+
+T = TypeVar("T")
 
 REPO = Path(__file__).resolve().parents[2]
 PX4_SITL = REPO.parent / "shared" / "px4-sitl" / "px4-sitl"
@@ -320,3 +323,31 @@ class VisionSender:
                 if self.sending:
                     self._send(self._message(now))
                     self.sent += 1
+
+
+def ev_pos(px4: Px4Sitl) -> bool | None:
+    """EKF2's cs_ev_pos (fusing our position), None when the topic did not say."""
+    f = px4.listener("estimator_status_flags")
+    v = f.get("cs_ev_pos") if f else None
+    return v if isinstance(v, bool) else None
+
+
+def ev_pos_while(px4: Px4Sitl, work: Callable[[], T]) -> tuple[set[bool | None], T]:
+    """Run ``work`` while another thread samples :func:`ev_pos` (before, every 0.2 s during,
+    after): the states EKF2 was seen in, and what ``work`` returned."""
+    seen: set[bool | None] = {ev_pos(px4)}
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.2):
+            seen.add(ev_pos(px4))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        out = work()
+    finally:
+        done.set()
+        sampler.join()
+    seen.add(ev_pos(px4))
+    return seen, out
