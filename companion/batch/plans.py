@@ -28,6 +28,11 @@ PAD_CONFIG = "config/pad.toml"
 PAD_SEEDS = (1, 2, 3, 4, 5)
 TAKEOFF = ("--phases", "--takeoff-landing")
 HARSH = "config/harsh.toml"
+REALISTIC = "config/realistic.toml"
+# the from-the-ground-up rows flown again under realistic.toml, 3 seeds each (issue "A
+# simulator as hard as reality"): the harsh-sensor rows are left out, realistic.toml's own
+# distance sensors are TFmini-class (outliers on edges and water, a bias, the blind zone)
+REALISTIC_GROUND_ROWS = (0, 2, 4, 5, 6, 7)
 # the simulator's effects one at a time, then all of them (issue "A simulator as hard as
 # reality"): (the flight's name, the row's label); the config file: effect_config(name)
 EFFECT_ROWS = (
@@ -178,6 +183,17 @@ def plans(real_data: Path | None, real_why: str = "") -> dict[str, TablePlan]:
     )
     out.append(TablePlan("pad", "Return over the pad (issue 18)", pad, "pad"))
     out.append(TablePlan("effects", "Each effect alone, and all of them", effect_tasks(), "rows"))
+    out.append(
+        TablePlan("air-realistic", "From the air, realistic.toml", air_realistic_tasks(), "air")
+    )
+    out.append(
+        TablePlan(
+            "ground-realistic",
+            "From the ground up, realistic.toml",
+            ground_realistic_tasks(),
+            "ground",
+        )
+    )
     like = tuple(
         sim_eval(f"like/{sim}-{s}", ("--methods", "all", "--seed", str(s)), config=like_config(sim))
         for _, sim in LIKE_PAIRS
@@ -228,6 +244,43 @@ def ground_tasks() -> tuple[Task, ...]:
         flight(f"ground-{i}-{s}", g.terrain, g.trajectory, s, SECONDS, g.flags, g.config)
         for i, g in enumerate(GROUND_FLIGHTS)
         for s in g.seeds
+    )
+
+
+def air_realistic_tasks() -> tuple[Task, ...]:
+    """The metric-scale flights of every terrain and trajectory under realistic.toml, named
+    ``air-realistic/TERRAIN-TRAJECTORY-SEED``: 60 s, every method."""
+    return tuple(
+        flight(
+            f"air-realistic/{scale_name(t, tr, s)}",
+            t,
+            tr,
+            s,
+            SECONDS,
+            ("--methods", "all"),
+            REALISTIC,
+        )
+        for t in TERRAINS
+        for tr in TRAJECTORIES
+        for s in SEEDS
+    )
+
+
+def ground_realistic_tasks() -> tuple[Task, ...]:
+    """The GROUND_FLIGHTS rows of REALISTIC_GROUND_ROWS under realistic.toml, 3 seeds each,
+    named ``ground-realistic/ground-<row>-<seed>`` (row: its index in GROUND_FLIGHTS)."""
+    return tuple(
+        flight(
+            f"ground-realistic/ground-{i}-{s}",
+            GROUND_FLIGHTS[i].terrain,
+            GROUND_FLIGHTS[i].trajectory,
+            s,
+            SECONDS,
+            GROUND_FLIGHTS[i].flags,
+            REALISTIC,
+        )
+        for i in REALISTIC_GROUND_ROWS
+        for s in SEEDS
     )
 
 

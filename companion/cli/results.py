@@ -251,7 +251,7 @@ def render_ground(p: TablePlan, report: BatchReport) -> str:
     lines = [head + " | ".join(PHASES) + " | end error |", "|---" * 12 + "|"]
     shown = set()
     for t, d in zip(p.tasks, _linked(p, report), strict=True):
-        _, row, seed = t.name.split("-")
+        _, row, seed = t.name.rpartition("/")[2].split("-")
         label = "" if row in shown else plans_mod.GROUND_FLIGHTS[int(row)].label
         shown.add(row)
         m = _json(d / "phases.json")
@@ -299,6 +299,17 @@ def render_rows(p: TablePlan, report: BatchReport) -> str:
     return rows_table(read_rows(_linked(p, report)), labels)
 
 
+def render_air(p: TablePlan, report: BatchReport) -> str:
+    """One row per terrain / trajectory over its seeds, with the share of frames posed and
+    the scale's error (`companion report --rows` in detail)."""
+    from companion.reporting.rows import read_rows, rows_table
+
+    labels = {
+        f"{t}-{tr}": f"{t} / {tr}" for t in plans_mod.TERRAINS for tr in plans_mod.TRAJECTORIES
+    }
+    return rows_table(read_rows(_linked(p, report)), labels, detail=True)
+
+
 def render_sim_vs_real(p: TablePlan, report: BatchReport) -> str:
     """Each real sequence beside its look-alike's seeds (`companion report --sim-vs-real`)."""
     from companion.reporting.sim_vs_real import comparison_table, real_errors, sim_errors
@@ -324,6 +335,7 @@ RENDERERS: dict[str, Callable[[TablePlan, BatchReport], str]] = {
     "ground": render_ground,
     "pad": render_pad,
     "rows": render_rows,
+    "air": render_air,
     "sim-vs-real": render_sim_vs_real,
 }
 

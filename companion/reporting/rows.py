@@ -5,7 +5,9 @@ as reality"), or any other set of flights compared on the published method.
 A row: the published method's (M-MSCwK) metric ATE as % of the path per seed and their mean,
 the VO's resets per seed (eval.json ``vo_resets``; "?" for a folder written before it was
 kept), the baselines' mean ATE % of the path, and whether the mean beats each baseline's; a
-seed whose VO never gave a pose shows "no pose" and is left out of the means.
+seed whose VO never gave a pose shows "no pose" and is left out of the means. The detailed
+table (``rows_table(..., detail=True)``) adds the share of the frames given to the VO that
+got a published metric pose and the published scale's mean error [%].
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ class FlightRow:
     ate_pct: list[float] = field(default_factory=list)
     resets: list[int | None] = field(default_factory=list)
     baseline_pct: dict[str, list[float]] = field(default_factory=dict)
+    posed: list[float] = field(default_factory=list)  # share of the frames with a pose, 0..1
+    scale_err_pct: list[float] = field(default_factory=list)  # published scale's mean error
 
     @property
     def mean_pct(self) -> float:
@@ -75,10 +79,15 @@ def read_rows(dirs: list[Path]) -> list[FlightRow]:
     for (name, seed), d, methods in sorted(found, key=lambda x: x[0][1]):
         row = rows.setdefault(name, FlightRow(name))
         row.seeds.append(seed)
-        row.ate_pct.append(float(methods[PUBLISHED]["ate_pct"]) if methods else float("nan"))
+        pub = methods.get(PUBLISHED, {})
+        row.ate_pct.append(float(pub.get("ate_pct", "nan")))
+        row.scale_err_pct.append(float(pub.get("scale_mean_abs_rel_pct", "nan")))
         honest = d / "eval.json"
-        resets = json.loads(honest.read_text()).get("vo_resets") if honest.exists() else None
+        doc = json.loads(honest.read_text()) if honest.exists() else {}
+        resets = doc.get("vo_resets")
         row.resets.append(None if resets is None else int(resets))
+        given = (doc.get("frames") or {}).get("given_to_vo")
+        row.posed.append(int(pub.get("frames", 0)) / given if given else float("nan"))
         for b in BASELINES:
             pct = float(methods[b]["ate_pct"]) if b in methods else float("nan")
             row.baseline_pct.setdefault(b, []).append(pct)
@@ -87,14 +96,19 @@ def read_rows(dirs: list[Path]) -> list[FlightRow]:
     return [rows[n] for n in names]
 
 
-def rows_table(rows: list[FlightRow], labels: dict[str, str] | None = None) -> str:
-    """Markdown: one line per row, ``labels`` naming a row instead of its folder name."""
+def rows_table(
+    rows: list[FlightRow], labels: dict[str, str] | None = None, detail: bool = False
+) -> str:
+    """Markdown: one line per row, ``labels`` naming a row instead of its folder name;
+    ``detail``: with the share of frames posed (the lowest seed's) and the scale's error."""
     labels = labels or {}
     head = (
         f"| flight | seeds | {PUBLISHED} metric ATE, % of path, by seed | mean | VO resets "
         "| B7 / B8 / B9 mean ATE % | better than B7, B8, B9 |"
     )
-    out = [head, "|---|---|---|---|---|---|---|"]
+    if detail:
+        head += " frames posed, lowest seed | scale error, mean |"
+    out = [head, "|---" * (9 if detail else 7) + "|"]
     for r in rows:
         per_seed = " / ".join(_pct(v) for v in r.ate_pct)
         resets = " / ".join("?" if n is None else str(n) for n in r.resets)
@@ -102,7 +116,12 @@ def rows_table(rows: list[FlightRow], labels: dict[str, str] | None = None) -> s
         beats = ", ".join("yes" if r.beats(b) else "NO" for b in BASELINES)
         seeds = ", ".join(str(s) for s in r.seeds)
         label = labels.get(r.name, r.name)
-        out.append(
+        line = (
             f"| {label} | {seeds} | {per_seed} | {r.mean_pct:.3f} % | {resets} | {base} | {beats} |"
         )
+        if detail:
+            posed = [v for v in r.posed if np.isfinite(v)]
+            line += f" {100 * min(posed):.1f} % |" if posed else " ? |"
+            line += f" {_mean(r.scale_err_pct):.2f} % |"
+        out.append(line)
     return "\n".join(out)

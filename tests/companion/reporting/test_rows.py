@@ -67,3 +67,24 @@ def test_the_cli_prints_the_rows_or_exits_when_there_are_none(
     assert "| ideal | 1 | 0.036 | 0.036 % | 0 |" in capsys.readouterr().out
     assert main(["report", "--rows", str(tmp_path / "nothing")]) != 0
     assert "no NAME-SEED folder" in capsys.readouterr().err
+
+
+def test_the_detailed_table_gives_the_lowest_share_posed_and_the_mean_scale_error(
+    tmp_path: Path,
+) -> None:
+    dirs = []
+    for seed, (posed, given, scale_pct) in enumerate(((1700, 1800, 0.2), (1500, 1800, 0.4)), 1):
+        folder = _flight(tmp_path, f"hills-lawnmower-{seed}", {"M-MSCwK": 0.3}, 0)
+        rows = json.loads((folder / "scale_metrics.json").read_text())
+        for r in rows:
+            r.update(frames=posed, scale_mean_abs_rel_pct=scale_pct)
+        (folder / "scale_metrics.json").write_text(json.dumps(rows))
+        doc = {"frames": {"given_to_vo": given}, "vo_resets": 0}
+        (folder / "eval.json").write_text(json.dumps(doc))
+        dirs.append(folder)
+    (row,) = read_rows(dirs)
+    assert row.posed == pytest.approx([1700 / 1800, 1500 / 1800])
+    text = rows_table([row], {"hills-lawnmower": "hills / lawnmower"}, detail=True)
+    assert text.splitlines()[1].count("|") == 10  # nine columns
+    assert text.splitlines()[2].endswith("| yes, yes, yes | 83.3 % | 0.30 % |")
+    assert "83.3 %" not in rows_table([row])  # the plain table keeps its seven columns
