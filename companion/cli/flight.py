@@ -18,12 +18,14 @@ from companion.errors import CompanionError
 if TYPE_CHECKING:
     from companion.offline import PublishedRun
 from companion.evaluation.phases import (
+    MIN_PATH_FOR_PCT_M,
     by_phase,
     flight_ate,
     phase_labels,
     published_errors,
     relative_errors,
 )
+from companion.evaluation.trajectory import path_length
 
 
 def eval_phases(args: argparse.Namespace) -> int:
@@ -42,6 +44,7 @@ def eval_phases(args: argparse.Namespace) -> int:
     err = published_errors(est, gt)
     phases = by_phase(err, phase_labels(t, run.array("height_m")))
     ate_m, ate_pct = flight_ate(est, gt)
+    path_m = path_length(gt)
     summary: dict[str, Any] = {
         "flight": name,
         "first_pose_s": float(t[0]),
@@ -50,7 +53,8 @@ def eval_phases(args: argparse.Namespace) -> int:
         "published": len(t),
         "frames": run.frames,
         "ate_m": ate_m,
-        "ate_pct_of_path": ate_pct,
+        "ate_pct_of_path": ate_pct if np.isfinite(ate_pct) else None,  # JSON has no NaN
+        "path_m": path_m,
         "end_error_m": float(err[-1]),
         "phases": {
             p.phase: {"frames": p.frames, "rmse_m": p.rmse_m, "max_m": p.max_m} for p in phases
@@ -64,9 +68,14 @@ def eval_phases(args: argparse.Namespace) -> int:
         for p in phases
         if p.frames
     ]
+    pct = (
+        f"{ate_pct:.3f} % of the path"
+        if np.isfinite(ate_pct)
+        else f"no % of a {path_m:.2f} m path (under {MIN_PATH_FOR_PCT_M:g} m)"
+    )
     print(
         f"{name}: first pose {t[0]:.2f} s, VO resets {run.vo_resets}, metric ATE "
-        f"{ate_m:.3f} m = {ate_pct:.3f} % of the path, end error {100 * err[-1]:.1f} cm"
+        f"{ate_m:.3f} m = {pct}, end error {100 * err[-1]:.1f} cm"
     )
     print("\n".join(["| phase | poses | RMSE [cm] | max [cm] |", "|---|---|---|---|", *rows]))
     if "dpose" in summary:

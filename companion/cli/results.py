@@ -263,10 +263,15 @@ def render_ground(p: TablePlan, report: BatchReport) -> str:
             )
         lines.append(
             f"| {label} | {seed} | {m['first_pose_s']:.2f} s | {m['vo_resets']} | "
-            f"{m['ate_m']:.3f} m | {m['ate_pct_of_path']:.3f} % | {' | '.join(cells)} | "
+            f"{m['ate_m']:.3f} m | {_pct_of_path(m['ate_pct_of_path'])} | {' | '.join(cells)} | "
             f"{100 * m['end_error_m']:.1f} cm |"
         )
     return "\n".join(lines)
+
+
+def _pct_of_path(value: float | None) -> str:
+    """A phases.json ``ate_pct_of_path``: "-" for a path too short for one (null)."""
+    return "-" if value is None else f"{value:.3f} %"
 
 
 def render_pad(p: TablePlan, report: BatchReport) -> str:

@@ -21,6 +21,9 @@ from companion.evaluation.trajectory import ate_rmse, path_length
 from companion.types import F64
 
 PHASES = ("ground", "climb", "cruise", "descent", "landed")
+# a whole-flight ATE as % of a path shorter than this says nothing: a flight that stayed on the
+# ground has a path of the truth's millimetres, and its centimetre errors came out as 1e14 %
+MIN_PATH_FOR_PCT_M = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,7 +81,8 @@ def by_phase(errors_m: F64, labels: NDArray[np.str_]) -> list[PhaseErrors]:
 
 
 def flight_ate(est_m: F64, gt_m: F64) -> tuple[float, float]:
-    """Whole-flight metric ATE [m] (SE(3) alignment, no scale) and as % of the true path."""
+    """Whole-flight metric ATE [m] (SE(3) alignment, no scale) and as % of the true path
+    (NaN for a path shorter than MIN_PATH_FOR_PCT_M); est_m, gt_m: (N, 3) positions [m]."""
     ate, _ = ate_rmse(est_m, gt_m, "se3")
     length = path_length(gt_m)
-    return ate, 100.0 * ate / length if length > 0 else float("nan")
+    return ate, 100.0 * ate / length if length >= MIN_PATH_FOR_PCT_M else float("nan")

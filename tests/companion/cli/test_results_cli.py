@@ -217,6 +217,42 @@ def test_the_ground_and_pad_tables_come_from_phases_json(tmp_path: Path) -> None
     assert rows[3] == "| 2 | not armed | 0 | - | - | - |"
 
 
+def test_the_realistic_tables_fly_realistic_toml_and_show_what_the_issue_asks(
+    tmp_path: Path,
+) -> None:
+    every = plans.plans(None)
+    air, ground = every["air-realistic"], every["ground-realistic"]
+    assert len(air.tasks) == 24 and len(ground.tasks) == 18
+    assert {t.config for t in (*air.tasks, *ground.tasks)} == {"config/realistic.toml"}
+    assert (REPO / "config" / "realistic.toml").is_file()
+    assert air.tasks[0].name == "air-realistic/hills-lawnmower-1"
+    assert all("--phases" in t.argv for t in ground.tasks)
+    files = {}
+    for t in ground.tasks:
+        doc = json.loads(_phases(air="--takeoff-landing" not in t.argv))
+        if t.name.endswith("ground-0-1"):
+            doc["ate_pct_of_path"] = None  # a path under 1 m (companion eval --phases)
+        files[t.name] = {"phases.json": json.dumps(doc)}
+    rows = RENDERERS["ground"](ground, _report(tmp_path / "g", ground, files)).splitlines()
+    assert len(rows) == 20 and rows[2].startswith("| hills lawnmower, take-off & landing | 1 |")
+    assert rows[2].split(" | ")[5] == "-" and rows[3].split(" | ")[5] == "0.026 %"
+    methods = ("MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane")
+    files = {}
+    for t in air.tasks:
+        rows_doc = [
+            {"method": m, "ate_pct": 0.3 if m == "M-MSCwK" else 0.5, "frames": 1710}
+            | {"scale_mean_abs_rel_pct": 0.25}
+            for m in methods
+        ]
+        files[t.name] = {
+            "scale_metrics.json": json.dumps(rows_doc),
+            "eval.json": json.dumps({"frames": {"given_to_vo": 1800}, "vo_resets": 0}),
+        }
+    rows = RENDERERS["air"](air, _report(tmp_path / "a", air, files)).splitlines()
+    assert len(rows) == 10 and rows[2].startswith("| hills / lawnmower | 1, 2, 3 | 0.300 / ")
+    assert rows[2].endswith("| yes, yes, yes | 95.0 % | 0.25 % |")
+
+
 def test_the_long_attitude_table_shows_the_first_and_last_minute(tmp_path: Path) -> None:
     plan = plans.plans(None)["attitude-circle"]
     assert plan.tasks[0].argv[:9] == (
