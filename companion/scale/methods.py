@@ -224,7 +224,10 @@ class MSCwK(Method):
 
     def reset(self) -> None:
         super().reset()
-        self.kf = ScaleKalman(self.opts.random_walk_per_s, self.opts.gate_chi2)
+        o = self.opts
+        self.kf = ScaleKalman(
+            o.random_walk_per_s, o.gate_chi2, o.gate_recover_s, o.gate_recover_spread
+        )
         self.reuse = None  # a new map's points: counted afresh (_reuse)
 
     def _reuse(self) -> ReuseCounter:

@@ -44,6 +44,17 @@ class ScaleOptions:
     gate_chi2: float = opt(
         6.63, "chi-square gate (1 dof) on a scale measurement's innovation", gt=0
     )
+    gate_recover_s: float = opt(
+        0.0,
+        "MSCwK / M-MSCwK: after this long [s] with every measurement outside the gate, and "
+        "90 % of those of that time within gate_recover_spread of their median, restart the "
+        "filter at their median (companion/scale/kalman.py); 0 = never (the default until "
+        "the tables are regenerated with it)",
+        ge=0,
+    )
+    gate_recover_spread: float = opt(
+        0.1, "gate_recover_s: the gated-out measurements' largest relative spread", gt=0
+    )
     init_sigma_rel: float = opt(0.2, "relative sigma of the initial scale", gt=0)
     reuse_memory_s: float = opt(
         30.0,
