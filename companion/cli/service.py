@@ -264,6 +264,18 @@ def _camera_check(vo: dict[str, Any]) -> str:
     return f"{clock}  {focal}" + (f"  {vo['lens_warning']}" if vo.get("lens_warning") else "")
 
 
+def _gate_rows(sc: dict[str, Any]) -> list[tuple[str, str]]:
+    """The scale filter's row when it has been gated out for over a second or restarted (a
+    status from a service without these keys: none)."""
+    outside_s, restarts = sc.get("outside_gate_s") or 0.0, sc.get("recoveries") or 0
+    if outside_s < 1.0 and not restarts:
+        return []
+    text = f"every measurement outside its gate for {outside_s:.1f} s" if outside_s >= 1.0 else ""
+    if restarts:
+        text += f"{'; ' if text else ''}restarted at them {restarts} time(s)"
+    return [("  filter", text)]
+
+
 def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
     vo, sc, att, out = st["vo"], st["scale"], st["attitude"], st["output"]
     matches = (sc.get("match_rate") or {}).items()
@@ -280,6 +292,7 @@ def _estimate_rows(st: dict[str, Any]) -> list[tuple[str, str]]:
             f"{sc['ranges_rejected']} rejected",
         ),
         ("  matches", "  ".join(f"sensor {k} {100 * v:.0f} %" for k, v in matches) or "-"),
+        *_gate_rows(sc),
         ("camera check", _camera_check(vo)),
         (
             "roll/pitch",

@@ -66,6 +66,10 @@ class PipelineStatus:
     # [vo] learn_lens: the (fx, fy, k1) taken in flight, None while the file's are in use
     lens_learned: tuple[float, float, float] | None = None
     lens_warning: str | None = None
+    # the published method's scale filter: how long it has gated out every measurement [s] (a
+    # scale held while the VO's unit moved) and its restarts at them ([scale] gate_recover_s)
+    scale_outside_gate_s: float = 0.0
+    scale_recoveries: int = 0
 
 
 def status_of(pipe: Pipeline) -> PipelineStatus:
@@ -81,6 +85,7 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
     fix = pipe.compass.fix
     offset = pipe.dpose_stage.offset
     focal = pipe.lens.estimate()
+    outside_gate_s, recoveries = pipe.methods[pipe.method_name].filter_state()
     return PipelineStatus(
         vo_state=out.state.name if out is not None else "INITIALIZING",
         features=int(len(out.features.pixels)) if out is not None else 0,
@@ -117,4 +122,6 @@ def status_of(pipe: Pipeline) -> PipelineStatus:
         lens_brief=pipe.lens.brief,
         lens_learned=(pipe.camera.fx, pipe.camera.fy, pipe.camera.k1) if pipe.lens.taken else None,
         lens_warning=pipe.lens.warning,
+        scale_outside_gate_s=outside_gate_s,
+        scale_recoveries=recoveries,
     )

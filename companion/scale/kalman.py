@@ -53,6 +53,7 @@ class ScaleKalman:
         self.recoveries = 0  # restarts at the gated-out measurements (recover_s)
         self._gated_since_us: int | None = None  # the first gated-out since the last accepted
         self._gated: deque[tuple[int, float, float]] = deque()  # the last recover_s: t, z, sigma
+        self._last_gated_us = 0
 
     @property
     def scale(self) -> float:
@@ -61,6 +62,15 @@ class ScaleKalman:
     @property
     def sigma(self) -> float:
         return float(np.sqrt(self.kf.P[0, 0]))
+
+    @property
+    def outside_gate_s(self) -> float:
+        """How long every measurement has been gated out [s]: from the first of the current
+        run to its last; 0 when the last measurement passed (a status shows it: a filter held
+        at an old scale)."""
+        if self._gated_since_us is None:
+            return 0.0
+        return (self._last_gated_us - self._gated_since_us) * 1e-6
 
     def initialize(self, time_us: int, scale: float, sigma: float) -> None:
         """Start at ``scale`` with standard deviation ``sigma``."""
@@ -91,6 +101,9 @@ class ScaleKalman:
         y = z - self.scale
         if y * y / S > self.gate:
             self.rejected += 1
+            if self._gated_since_us is None:
+                self._gated_since_us = time_us
+            self._last_gated_us = time_us
             return self._recover(time_us, z, sigma)
         self.kf.update(np.array([[z]]), np.array([[sigma**2]]))
         self.accepted += 1
@@ -103,10 +116,8 @@ class ScaleKalman:
         gated-out measurements and those of the last ``recover_s`` agree (the filter then
         restarts at their median, sigma their spread or their median sigma over sqrt(n),
         whichever is larger); else False."""
-        if self.recover_us <= 0:
+        if self.recover_us <= 0 or self._gated_since_us is None:
             return False
-        if self._gated_since_us is None:
-            self._gated_since_us = time_us
         gated = self._gated
         gated.append((time_us, z, sigma))
         while time_us - gated[0][0] > self.recover_us:

@@ -106,6 +106,14 @@ class Method(ABC):
         uv = msc.laser_pixel(self.camera, p_cam)
         return None if uv is None else (p_cam, uv)
 
+    def filter_state(self) -> tuple[float, int]:
+        """(how long its scale filter has gated out every measurement [s], its restarts at
+        them: companion/scale/kalman.py); (0, 0) for a method without a filter."""
+        kf = getattr(self, "kf", None)
+        if not isinstance(kf, ScaleKalman):
+            return 0.0, 0
+        return kf.outside_gate_s, kf.recoveries
+
     def match_rates(self) -> dict[int, float]:
         """Per sensor id: the share of recent frames with a reading whose MSC match (a
         consistent VO patch around the laser pixel) succeeded."""

@@ -170,6 +170,9 @@ class Report:
                 "ranges_in": s.ranges_in,
                 "ranges_rejected": s.ranges_rejected + p.ranges_rejected,
                 "rejected_by": dict(s.ranges_rejected_by),
+                # the filter held at its scale while every measurement fell outside its gate
+                "outside_gate_s": p.scale_outside_gate_s,
+                "recoveries": p.scale_recoveries,
             },
             "attitude": {
                 "roll_deg": p.roll_deg,

@@ -70,3 +70,15 @@ def test_outliers_that_disagree_or_stop_in_time_never_restart_it(
             k += 1
     assert kf.recoveries == 1 and kf.scale == pytest.approx(2.0)
     assert "restarted there" in caplog.text and "agree on 2.0000 (it held 1.0" in caplog.text
+
+
+def test_the_time_outside_the_gate_is_reported_until_a_measurement_passes() -> None:
+    kf = ScaleKalman(0.01, 6.63)
+    kf.initialize(0, 1.0, 0.01)
+    kf.update(0, 1.0, 0.01)
+    assert kf.outside_gate_s == 0.0
+    for k in range(1, 61):  # 2 s of a scale 40 % off
+        kf.update(k * FRAME_US, 1.4, 0.01)
+    assert kf.outside_gate_s == pytest.approx(59 * FRAME_US * 1e-6)
+    kf.update(61 * FRAME_US, 1.0, 0.01)
+    assert kf.outside_gate_s == 0.0 and kf.recoveries == 0

@@ -249,3 +249,13 @@ def test_the_frame_line_says_state_agreement_alignment_and_gps() -> None:
     for text in ("held", "agree -", "yaw 36.94°", "(5.01, -2.98, 0.00) m", "fit age 4.2 s"):
         assert text in line, line
     assert "GPS bad: fix type 1 < 3; 3 satellites < 6" in line
+
+
+def test_a_scale_filter_held_outside_its_gate_gets_its_own_row() -> None:
+    assert not [x for x in format_status(SAMPLE).splitlines() if x.lstrip().startswith("filter")]
+    held = {**SAMPLE, "scale": {**SAMPLE["scale"], "outside_gate_s": 37.2, "recoveries": 0}}
+    (row,) = [x for x in format_status(held).splitlines() if x.lstrip().startswith("filter")]
+    assert row.split(None, 1)[1] == "every measurement outside its gate for 37.2 s"
+    held["scale"] = {**SAMPLE["scale"], "outside_gate_s": 0.4, "recoveries": 2}
+    (row,) = [x for x in format_status(held).splitlines() if x.lstrip().startswith("filter")]
+    assert row.split(None, 1)[1] == "restarted at them 2 time(s)"
