@@ -48,8 +48,8 @@ class ScaleOptions:
         0.0,
         "MSCwK / M-MSCwK: after this long [s] with every measurement outside the gate, and "
         "90 % of those of that time within gate_recover_spread of their median, restart the "
-        "filter at their median (companion/scale/kalman.py); 0 = never (the default until "
-        "the tables are regenerated with it)",
+        "filter at their median (companion/scale/kalman.py); 0 = never (the default: on a "
+        "real camera it also followed matches that agreed and were wrong, docs/methods.md)",
         ge=0,
     )
     gate_recover_spread: float = opt(
