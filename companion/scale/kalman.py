@@ -12,7 +12,8 @@ a 40 % step takes ~4 minutes of (1 %/sqrt(s))^2 to come within the gate, all tha
 old scale. With ``recover_s`` > 0 the filter restarts at the median of the gated-out
 measurements once nothing has passed the gate for that long and those of the last
 ``recover_s`` (at least RECOVER_MIN) agree: 90 % of them within ``recover_spread`` of their
-median (relative). They are then what is right, not outliers. Measured on 2026-12-01: in ideal
+median (relative): then they are usually what is right, not outliers (not always: on a real
+camera they also agreed on a wrong scale, hence off by default). Measured on 2026-12-01: in ideal
 60 s flights (hills lawnmower, urban figure8, urban lawnmower, seed 1) the longest run of
 gated-out measurements was 0.23 s; the ground-up table's urban lawnmower at 12 m/s, 4 m over
 the roofs, held M-MSCwK outside its gate for 37 s (docs/methods.md, "MSCwK").
