@@ -6,8 +6,9 @@ A row: the published method's (M-MSCwK) metric ATE as % of the path per seed and
 the VO's resets per seed (eval.json ``vo_resets``; "?" for a folder written before it was
 kept), the baselines' mean ATE % of the path, and whether the mean beats each baseline's; a
 seed whose VO never gave a pose shows "no pose" and is left out of the means. The detailed
-table (``rows_table(..., detail=True)``) adds the share of the frames given to the VO that
-got a published metric pose and the published scale's mean error [%].
+table (``rows_table(..., detail=True)``) adds the tracking, the share of the frames from the
+published method's first pose on that have one (its TUM trajectory against groundtruth.tum's
+frames), and the published scale's mean error [%].
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ class FlightRow:
     ate_pct: list[float] = field(default_factory=list)
     resets: list[int | None] = field(default_factory=list)
     baseline_pct: dict[str, list[float]] = field(default_factory=dict)
-    posed: list[float] = field(default_factory=list)  # share of the frames with a pose, 0..1
+    tracked: list[float] = field(default_factory=list)  # frames posed from the first pose, 0..1
     scale_err_pct: list[float] = field(default_factory=list)  # published scale's mean error
 
     @property
@@ -61,6 +62,26 @@ def name_and_seed(folder: Path) -> tuple[str, int] | None:
     return (name, int(seed)) if name and seed.isdigit() else None
 
 
+def _tum_times(path: Path) -> np.ndarray:
+    """The timestamps [s] (N,) of a TUM trajectory file (empty when it has no pose)."""
+    rows = [ln.split(None, 1)[0] for ln in path.read_text().splitlines() if ln.strip()]
+    return np.array([float(t) for t in rows if not t.startswith("#")])
+
+
+def tracked_share(folder: Path) -> float:
+    """The share of the frames from the published method's first pose on that have one: its
+    TUM trajectory (one line per pose) against groundtruth.tum (one line per frame); NaN
+    without the files, 0 without a pose."""
+    pub, truth = folder / f"{PUBLISHED}.tum", folder / "groundtruth.tum"
+    if not (pub.exists() and truth.exists()):
+        return float("nan")
+    poses, frames = _tum_times(pub), _tum_times(truth)
+    if len(poses) == 0:
+        return 0.0
+    after = int(np.sum(frames >= poses[0] - 1e-6))
+    return min(len(poses) / after, 1.0) if after else float("nan")
+
+
 def read_rows(dirs: list[Path]) -> list[FlightRow]:
     """The rows of the NAME-SEED folders among ``dirs`` that hold a simulated flight's
     scale_metrics.json (a list of methods), in the order of their names' first appearance,
@@ -86,8 +107,7 @@ def read_rows(dirs: list[Path]) -> list[FlightRow]:
         doc = json.loads(honest.read_text()) if honest.exists() else {}
         resets = doc.get("vo_resets")
         row.resets.append(None if resets is None else int(resets))
-        given = (doc.get("frames") or {}).get("given_to_vo")
-        row.posed.append(int(pub.get("frames", 0)) / given if given else float("nan"))
+        row.tracked.append(tracked_share(d))
         for b in BASELINES:
             pct = float(methods[b]["ate_pct"]) if b in methods else float("nan")
             row.baseline_pct.setdefault(b, []).append(pct)
@@ -100,14 +120,14 @@ def rows_table(
     rows: list[FlightRow], labels: dict[str, str] | None = None, detail: bool = False
 ) -> str:
     """Markdown: one line per row, ``labels`` naming a row instead of its folder name;
-    ``detail``: with the share of frames posed (the lowest seed's) and the scale's error."""
+    ``detail``: with the tracking (the lowest seed's) and the scale's error."""
     labels = labels or {}
     head = (
         f"| flight | seeds | {PUBLISHED} metric ATE, % of path, by seed | mean | VO resets "
         "| B7 / B8 / B9 mean ATE % | better than B7, B8, B9 |"
     )
     if detail:
-        head += " frames posed, lowest seed | scale error, mean |"
+        head += " tracked after the first pose, lowest seed | scale error, mean |"
     out = [head, "|---" * (9 if detail else 7) + "|"]
     for r in rows:
         per_seed = " / ".join(_pct(v) for v in r.ate_pct)
@@ -120,8 +140,8 @@ def rows_table(
             f"| {label} | {seeds} | {per_seed} | {r.mean_pct:.3f} % | {resets} | {base} | {beats} |"
         )
         if detail:
-            posed = [v for v in r.posed if np.isfinite(v)]
-            line += f" {100 * min(posed):.1f} % |" if posed else " ? |"
+            tracked = [v for v in r.tracked if np.isfinite(v)]
+            line += f" {100 * min(tracked):.1f} % |" if tracked else " ? |"
             line += f" {_mean(r.scale_err_pct):.2f} % |"
         out.append(line)
     return "\n".join(out)

@@ -6,10 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from companion.cli import main
-from companion.reporting.rows import name_and_seed, read_rows, rows_table
+from companion.reporting.rows import name_and_seed, read_rows, rows_table, tracked_share
 
 METHODS = ("MSC", "MSCwK", "M-MSC", "M-MSCwK", "B7 window-ML", "B8 per-frame", "B9 plane")
 
@@ -69,22 +70,30 @@ def test_the_cli_prints_the_rows_or_exits_when_there_are_none(
     assert "no NAME-SEED folder" in capsys.readouterr().err
 
 
-def test_the_detailed_table_gives_the_lowest_share_posed_and_the_mean_scale_error(
+def test_the_detailed_table_gives_the_lowest_tracking_and_the_mean_scale_error(
     tmp_path: Path,
 ) -> None:
     dirs = []
-    for seed, (posed, given, scale_pct) in enumerate(((1700, 1800, 0.2), (1500, 1800, 0.4)), 1):
+    head = "# timestamp tx ty tz qx qy qz qw\n"
+    for seed, (skip, scale_pct) in enumerate(((0, 0.2), (30, 0.4)), 1):
         folder = _flight(tmp_path, f"hills-lawnmower-{seed}", {"M-MSCwK": 0.3}, 0)
         rows = json.loads((folder / "scale_metrics.json").read_text())
         for r in rows:
-            r.update(frames=posed, scale_mean_abs_rel_pct=scale_pct)
+            r["scale_mean_abs_rel_pct"] = scale_pct
         (folder / "scale_metrics.json").write_text(json.dumps(rows))
-        doc = {"frames": {"given_to_vo": given}, "vo_resets": 0}
-        (folder / "eval.json").write_text(json.dumps(doc))
+        t = np.arange(300) / 30.0  # 10 s of frames; the first pose at 2 s
+        (folder / "groundtruth.tum").write_text(
+            head + "".join(f"{x:.6f} 0 0 0 0 0 0 1\n" for x in t)
+        )
+        posed = np.delete(t[60:], np.arange(50, 50 + skip))  # seed 2: 30 of 240 without one
+        (folder / "M-MSCwK.tum").write_text(
+            head + "".join(f"{x:.6f} 0 0 0 0 0 0 1\n" for x in posed)
+        )
         dirs.append(folder)
     (row,) = read_rows(dirs)
-    assert row.posed == pytest.approx([1700 / 1800, 1500 / 1800])
+    assert row.tracked == pytest.approx([1.0, 210 / 240])
+    assert tracked_share(tmp_path) != tracked_share(tmp_path)  # no files: NaN
     text = rows_table([row], {"hills-lawnmower": "hills / lawnmower"}, detail=True)
     assert text.splitlines()[1].count("|") == 10  # nine columns
-    assert text.splitlines()[2].endswith("| yes, yes, yes | 83.3 % | 0.30 % |")
-    assert "83.3 %" not in rows_table([row])  # the plain table keeps its seven columns
+    assert text.splitlines()[2].endswith("| yes, yes, yes | 87.5 % | 0.30 % |")
+    assert "87.5 %" not in rows_table([row])  # the plain table keeps its seven columns
