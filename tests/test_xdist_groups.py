@@ -57,6 +57,15 @@ def test_closed_loop_flights_have_the_machine_alone() -> None:
     assert flying <= conftest._MACHINE_EXCLUSIVE, flying - conftest._MACHINE_EXCLUSIVE
 
 
+def test_the_single_tests_that_hold_the_machine_alone_exist() -> None:
+    for name in conftest._MACHINE_EXCLUSIVE_TESTS:
+        file, test = name.split("::")
+        (path,) = TESTS.rglob(file)
+        assert re.search(rf"^def {test}\(", path.read_text(), flags=re.M), name
+        assert conftest.machine_alone(f"{path.relative_to(TESTS.parent).as_posix()}::{test}")
+    assert not conftest.machine_alone("tests/e2e/test_px4_real.py::test_stub_gives_the_reason")
+
+
 def _body(source: str, test: str) -> str:
     """The text of one top-level test function (up to the next top-level statement)."""
     start = re.search(rf"^(?:async )?def {test}\b", source, flags=re.M)
