@@ -269,17 +269,18 @@ def air_realistic_tasks() -> tuple[Task, ...]:
 def ground_realistic_tasks() -> tuple[Task, ...]:
     """The GROUND_FLIGHTS rows of REALISTIC_GROUND_ROWS under realistic.toml, 3 seeds each,
     named ``ground-realistic/ground-<row>-<seed>`` (row: its index in GROUND_FLIGHTS)."""
+    rows = [(i, GROUND_FLIGHTS[i]) for i in REALISTIC_GROUND_ROWS]
     return tuple(
         flight(
             f"ground-realistic/ground-{i}-{s}",
-            GROUND_FLIGHTS[i].terrain,
-            GROUND_FLIGHTS[i].trajectory,
+            g.terrain,
+            g.trajectory,
             s,
             SECONDS,
-            GROUND_FLIGHTS[i].flags,
+            g.flags,
             REALISTIC,
         )
-        for i in REALISTIC_GROUND_ROWS
+        for i, g in rows
         for s in SEEDS
     )
 

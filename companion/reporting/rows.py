@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.drivers.dataset import read_tum
+
 PUBLISHED = "M-MSCwK"
 BASELINES = ("B7 window-ML", "B8 per-frame", "B9 plane")
 
@@ -62,12 +64,6 @@ def name_and_seed(folder: Path) -> tuple[str, int] | None:
     return (name, int(seed)) if name and seed.isdigit() else None
 
 
-def _tum_times(path: Path) -> np.ndarray:
-    """The timestamps [s] (N,) of a TUM trajectory file (empty when it has no pose)."""
-    rows = [ln.split(None, 1)[0] for ln in path.read_text().splitlines() if ln.strip()]
-    return np.array([float(t) for t in rows if not t.startswith("#")])
-
-
 def tracked_share(folder: Path) -> float:
     """The share of the frames from the published method's first pose on that have one: its
     TUM trajectory (one line per pose) against groundtruth.tum (one line per frame); NaN
@@ -75,7 +71,7 @@ def tracked_share(folder: Path) -> float:
     pub, truth = folder / f"{PUBLISHED}.tum", folder / "groundtruth.tum"
     if not (pub.exists() and truth.exists()):
         return float("nan")
-    poses, frames = _tum_times(pub), _tum_times(truth)
+    poses, frames = read_tum(pub)[0], read_tum(truth)[0]
     if len(poses) == 0:
         return 0.0
     after = int(np.sum(frames >= poses[0] - 1e-6))
