@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import copy
 
+import cv2
 import numpy as np
 
 from companion.config import CameraConfig, RenderConfig
 from companion.geometry import se3
 from companion.sitl.world import ground_effects
+from companion.sitl.world._ground_kernel import downwash_offsets
 from companion.sitl.world.render import RenderedFrame, Renderer
 from companion.sitl.world.terrain import make_world
 from companion.sitl_options import GroundOptions
@@ -38,13 +40,6 @@ def world_points(renderer: Renderer, frame: RenderedFrame) -> np.ndarray:
     return se3.transform(frame.T_world_cam, p_cam)
 
 
-class Everywhere:
-    """A specular patch over the whole ground."""
-
-    def weight(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
-        return np.ones(np.atleast_1d(x_m).size)
-
-
 def glint_centre(renderer: Renderer, T_world_cam: np.ndarray) -> np.ndarray:
     """World (north, east) [m] of the highlight's brightest part (the top 2 % of pixels)."""
     frame = renderer.render_pose(T_world_cam, 0)
@@ -56,7 +51,8 @@ def glint_centre(renderer: Renderer, T_world_cam: np.ndarray) -> np.ndarray:
 
 def test_the_specular_highlight_sits_at_the_suns_mirror_point_and_moves_with_the_camera() -> None:
     world = make_world("flat", 1, 40.0, ground=GroundOptions(specular_patches=0.1))
-    world.specular = Everywhere()  # type: ignore[assignment]
+    assert world.specular is not None
+    world.specular.grid[:] = 1.0  # water over the whole ground
     renderer = Renderer(world, PINHOLE, SUN)
     up = np.array([0.0, 0.0, -1.0])
     mirror = 2.0 * float(up @ renderer.sun_ned) * up - renderer.sun_ned
@@ -114,8 +110,9 @@ def test_the_downwash_stirs_the_grass_under_the_vehicle_only_and_over_time() -> 
     assert np.all(untouched[r > 3.0] == 0)
     # the displacement's size: at most the amplitude
     pts = world_points(renderer, base)[r < 3.0]
-    d = ground_effects.downwash_offset(pts, T_cam[:3, 3], 0.3, 0.04, 1.0)
+    d = downwash_offsets(pts, T_cam[:3, 3], 0.3, 0.04, 1.0)
     assert np.linalg.norm(d, axis=1).max() <= 0.04 * 1.3 + 1e-9
+    assert np.linalg.norm(d, axis=1).max() > 0.04 * 0.5
     assert np.all(d[:, 2] == 0.0)
 
 
@@ -127,3 +124,73 @@ def test_no_effect_leaves_the_frame_alone() -> None:
     ground_effects.apply(renderer, frame, nadir(0.0, 0.0, 3.0), 1.0)
     assert not ground_effects.any_on(renderer)
     assert np.array_equal(before, frame.image_bgr)
+
+
+def reference_apply(
+    renderer: Renderer, frame: RenderedFrame, vehicle: np.ndarray, t: float
+) -> None:
+    """The module docstring's model as whole-frame array passes (what the compiled pass
+    replaced), in place on frame.image_bgr."""
+    world, g = renderer.world, renderer.world.ground
+    h, w = frame.depth_m.shape
+    depth = frame.depth_m.ravel().astype(np.float64)
+    ok = np.isfinite(depth)
+    rays = renderer.rays_cam
+    p = se3.transform(frame.T_world_cam, rays * np.where(ok, depth / rays[:, 2], 0.0)[:, None])
+    ground_h = np.full(h * w, np.nan)
+    ground_h[ok] = world.height(p[ok, 0], p[ok, 1])
+    on_ground = ok & (np.abs(p[:, 2] + ground_h) < 0.03)
+    out = frame.image_bgr.reshape(-1, 3).astype(np.float64)
+    near = on_ground & (np.linalg.norm(p[:, :2] - vehicle[None, :2], axis=1) < 3.0 * 1.0)
+    src = p[near] - downwash_offsets(p[near], vehicle, t, g.downwash_m, g.downwash_radius_m)
+    uv, _ = renderer.model.project(se3.transform(se3.inverse(frame.T_world_cam), src))
+    n = len(uv)
+    maps = np.zeros((2, -(-n // 512) * 512), dtype=np.float32)  # remap takes <= 32767 columns
+    maps[:, :n] = uv.T
+    rows = maps.reshape(2, -1, 512)
+    sampled = cv2.remap(
+        frame.image_bgr, rows[0], rows[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    out[near] = sampled.reshape(-1, 3)[:n]
+    q = vehicle[None, :] - p[ok]
+    along = q @ renderer.sun_ned
+    d = np.linalg.norm(q - along[:, None] * renderer.sun_ned[None, :], axis=1)
+    soft = 0.08 + 0.01 * np.maximum(along, 0.0)
+    x = np.clip((g.shadow_radius_m + soft - d) / (2.0 * soft), 0.0, 1.0)
+    cover = np.where(along > 0.0, x * x * (3.0 - 2.0 * x), 0.0)
+    out[ok] *= (1.0 - ground_effects.SHADOW_DEPTH * cover)[:, None]
+    assert world.specular is not None
+    wgt = np.zeros(h * w)
+    wgt[on_ground] = world.specular.weight(p[on_ground, 0], p[on_ground, 1])
+    lit = wgt > 0.0
+    v = frame.T_world_cam[None, :3, 3] - p[lit]
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    sun = renderer.sun_ned
+    mirror = np.array([-sun[0], -sun[1], sun[2]])
+    glint = np.maximum(v @ mirror, 0.0) ** g.specular_exponent
+    water = 0.06 * ground_effects.SKY_BGR[None, :] + 255.0 * g.specular_strength * glint[:, None]
+    out[lit] = out[lit] * (1.0 - 0.6 * wgt[lit][:, None]) + wgt[lit][:, None] * water
+    frame.image_bgr[:] = np.clip(np.floor(out + 0.5), 0, 255).astype(np.uint8).reshape(h, w, 3)
+
+
+def test_the_compiled_pass_is_the_models_arrays_bit_for_bit() -> None:
+    # all three effects at once over hills, a distorted lens, the vehicle 1.2 m over the
+    # camera's ground point so that all three land in the frame
+    ground = GroundOptions(
+        specular_patches=0.3, shadow=True, downwash_m=0.05, downwash_radius_m=1.0
+    )
+    world = make_world("hills", 2, 60.0, ground=ground)
+    renderer = Renderer(world, CameraConfig(), SUN)
+    for north_m, t in ((0.0, 0.0), (3.0, 0.41), (-7.0, 1.3)):
+        T_cam = nadir(north_m, 2.0, 5.0)
+        T_cam[2, 3] -= float(world.height(north_m, 2.0)[0])
+        vehicle = T_cam.copy()
+        vehicle[0, 3] += 0.6
+        base = renderer.render_pose(T_cam, 0)
+        ours, reference = copy.deepcopy(base), copy.deepcopy(base)
+        ground_effects.apply(renderer, ours, vehicle, t)
+        reference_apply(renderer, reference, vehicle[:3, 3], t)
+        changed = (reference.image_bgr != base.image_bgr).any(axis=2)
+        assert changed.mean() > 0.05  # the effects are in the frame
+        differ = (ours.image_bgr != reference.image_bgr).any(axis=2)
+        assert not differ.any(), (north_m, int(differ.sum()), np.argwhere(differ)[:5])
