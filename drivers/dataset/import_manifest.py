@@ -6,7 +6,7 @@ An entry (``[[sequence]]``) names where the raw files are (``repository`` owner/
 the importer reads), the ``licence``, whether the sequence may be committed (``commit``), the
 ``importer`` (one of ``IMPORTERS``: a format of ``import_sources.FORMATS``, or ``rislab``)
 with its ``args`` (``camera``, ``sequence``, ``frames``, ``seed``, ``image_format``,
-``jpg_quality``; ``focal_px``, ``k1`` for rislab) and the checksums:
+``jpg_quality``; ``focal_px``, ``k1``, ``k2`` for rislab) and the checksums:
 ``sha256``, the SHA-256 of every file keyed by its path under ``path``, or (for thousands of files)
 ``tree_sha256``, the SHA-256 of the sorted lines "path sha256\n" of them all. A rebuild
 extracts those files from the snapshot (``git --git-dir SNAPSHOT archive REVISION``), checks
@@ -39,7 +39,17 @@ from companion.toml_files import read_toml
 
 # every importer a manifest entry (or `companion dataset import`) may name
 IMPORTERS = (*FORMATS, "rislab")
-ARG_KEYS = ("camera", "sequence", "frames", "seed", "image_format", "jpg_quality", "focal_px", "k1")
+ARG_KEYS = (
+    "camera",
+    "sequence",
+    "frames",
+    "seed",
+    "image_format",
+    "jpg_quality",
+    "focal_px",
+    "k1",
+    "k2",
+)
 _STR_KEYS = ("name", "repository", "revision", "path", "licence", "importer")
 
 
@@ -211,14 +221,14 @@ def run_importer(
         from companion.config import load_config
         from companion.drivers.dataset.rislab import import_rislab
 
-        k1 = float(a.get("k1", 0.0))
+        k1, k2 = float(a.get("k1", 0.0)), float(a.get("k2", 0.0))
         first, _, last = str(a.get("frames", "")).partition(":")
         return import_rislab(
             src,
             out,
             load_config(),
             focal_px=float(a.get("focal_px", 235.5)),
-            dist=(k1, 0.0, 0.0, 0.0, 0.0),
+            dist=(k1, k2, 0.0, 0.0, 0.0),
             frames=(int(first), int(last)) if last else None,
             seed=int(a.get("seed", 1)),
         )

@@ -11,25 +11,31 @@ omitted: recovered as ``sqrt(1 - |q|^2)``)). Paper: Chirarattananon, Bioinspir. 
 What the source gives and what this importer makes of it:
 
 - **Frame stamps**: a frame's stamp is the time of the first motion-capture sample tagged with
-  it, minus the camera-to-capture latency (42 samples, 84 ms, from the source's own
-  ``flow_comparison.m``). These stamps jitter as a real driver's do (intervals of 2 ms to
-  130 ms around the camera's 16.6 ms) and are written as they are: the service must cope.
-  Frames no sample was tagged with have no stamp, and frames exposed before the record began
-  have no truth: both are left out (counted).
+  it, minus the camera-to-capture latency ``LATENCY_S`` (26 ms, measured below; the source's
+  ``flow_comparison.m`` uses 42 samples, 84 ms, which put the truth 3-4 frames early). These
+  stamps jitter as a real driver's do (intervals of 2 ms to 130 ms around the camera's
+  16.6 ms) and are written as they are: the service must cope. Frames no sample was tagged
+  with have no stamp, and frames exposed before the record began have no truth: both are
+  left out (counted).
 - **Ground truth** is taken at each frame's *exposure* time: the stamps' local line over the
   frame index (least squares over the neighbouring +-``GT_HALF_WINDOW`` frames, refitted on
   the earlier half of them: deliveries are late, never early), so the truth does not
   inherit the stamps' jitter.
 - **Frames**: the capture's world is z-up and its quaternion turns the world into the body
-  (``R_capturebody_captureworld``: the transpose of what the source's ``flow_comparison.m``
-  assumes); the camera looks down the body's -z with its image axes along the body's +x and
-  -y. Both were measured, not taken from the source: over frames 1300-2000 the VO's own
-  relative rotations (15 frames apart, no attitude given) correlate with the truth's by
-  0.73 / 0.56 / 0.96 about the camera's x / y / z for this reading, against at best
-  0.73 / 0.72 / 0.14 for every one of the 24 mounts with the source's reading (and -0.96
-  about the optical axis for the mount its flow code implies). Written here as our
-  conventions: world z down (the capture's world turned 180 deg about x), body FRD, the
-  camera mounted like the built-in one (``rpy_deg = [0, 0, 90]``) at the body's origin.
+  (``R_capturebody_captureworld``), but in a world turned 90 deg about z from the one of its
+  positions (``R_CAPTUREWORLD_ATTITUDEWORLD``); the camera looks down the body's -z with its
+  image axes along the body's -x and +y (``R_CAPTUREBODY_CAM``). Measured, not taken from the
+  source (2026-12-01, docs/decisions.md "rislab's truth, reconciled with its images"): for
+  pairs of frames 3 apart, KLT tracks of the floor against where the truth's two poses put
+  the same floor points. Every axis order of the camera in the body with the positions and
+  attitudes in one world (384 readings) left 8.3 px of a 11.0 px flow unexplained (the
+  earlier reading included); attitudes turned 90 deg about z from the positions, 1.3 px at
+  the best focal (a simulated look-alike, whose conventions are known: 2.7 of 10.5 px).
+  The earlier reading (camera axes +x and -y of the body, one world) came from the VO's own
+  relative rotations correlating with the truth's by 0.73 / 0.56 / 0.96 about the camera's
+  x / y / z: the yaw alone was right. Written here as our conventions: world z down (the
+  capture's world turned 180 deg about x), body FRD, the camera mounted like the built-in
+  one (``rpy_deg = [0, 0, 90]``) at the body's origin.
 - **Distance sensors** are *synthesised* from the ground truth and the floor (the plane
   ``z = FLOOR_Z_M`` of the capture's world, from the source's ``Z - 0.013``): the configured
   ``[[rangefinders]]`` (their mounts, limits and noise model), sampled at their ``rate_hz``,
@@ -39,9 +45,9 @@ What the source gives and what this importer makes of it:
   truth at 100 Hz with 0.1 deg of noise, as the simulator's autopilot sends it, so the
   pipeline gets what it would get in flight (the gravity priors, the north of its frame, the
   focal check). meta.toml says so (``attitude_source``).
-- **Camera**: no calibration ships. The focal length is one of 235.5 or 471 px by the
-  source's code, and the lens has a strong barrel distortion: both are arguments
-  (``focal_px``, ``dist``), written into calibration.toml.
+- **Camera**: no calibration ships (the source's code implies 235.5 or 471 px). The lens is
+  an argument (``focal_px``, ``dist``), written into calibration.toml; config/
+  real_sequences.toml gives the one fitted to the floor's flow against the truth.
 """
 
 from __future__ import annotations
@@ -68,13 +74,15 @@ from companion.errors import DatasetError
 from companion.geometry import se3, so3
 from companion.types import F64
 
-LATENCY_S = 0.084  # camera -> capture latency (flow_comparison.m: 42 samples at 500 Hz)
+LATENCY_S = 0.026  # camera -> capture latency (measured: the module's docstring, "Frames")
 FLOOR_Z_M = 0.013  # the floor in the capture's world (flow_comparison.m: Z - 0.013)
 GT_HALF_WINDOW = 30  # frames either side of the local line that times the exposures
 WIDTH, HEIGHT = 320, 240
-# the camera's axes in the capture's body: x = x_body, y = -y_body, z = -z_body (measured)
-R_CAPTUREBODY_CAM = np.diag([1.0, -1.0, -1.0])
+# the camera's axes in the capture's body: x = -x_body, y = y_body, z = -z_body (measured)
+R_CAPTUREBODY_CAM = np.diag([-1.0, 1.0, -1.0])
 R_WORLD_CAPTUREWORLD = np.diag([1.0, -1.0, -1.0])  # z up -> z down
+# the attitudes' world is the positions' turned -90 deg about z (measured: the docstring)
+R_CAPTUREWORLD_ATTITUDEWORLD = so3.rot_z(np.radians(-90.0))
 
 
 def _beam(
@@ -168,7 +176,8 @@ def body_poses(capture: Capture, times_s: F64) -> F64:
     R_cb_body = R_CAPTUREBODY_CAM @ R_cam_body
     poses = np.empty((len(times_s), 4, 4))
     for n, i in enumerate(idx):
-        R = R_WORLD_CAPTUREWORLD @ capture.R_capturebody_captureworld[i].T @ R_cb_body
+        R_cw_cb = R_CAPTUREWORLD_ATTITUDEWORLD @ capture.R_capturebody_captureworld[i].T
+        R = R_WORLD_CAPTUREWORLD @ R_cw_cb @ R_cb_body
         poses[n] = se3.make(R, R_WORLD_CAPTUREWORLD @ capture.position_m[i])
     return poses
 
@@ -267,7 +276,7 @@ def import_rislab(
             "synthesised from the ground truth over a flat floor (not a real sensor's readings)"
         ),
         "stamps": (
-            "first capture sample tagged with the frame minus 84 ms (as delivered: jittery); "
+            "first capture sample tagged with the frame minus 26 ms (as delivered: jittery); "
             "ground truth at the stamps' local line (the exposure)"
         ),
         "frames_without_stamp": span - len(ids),

@@ -17,7 +17,9 @@ from companion.drivers.dataset.rislab import (
     FLOOR_Z_M,
     LATENCY_S,
     RISLAB_BEAMS,
+    Capture,
     beam_range_m,
+    body_poses,
     exposure_times,
     import_rislab,
     read_capture,
@@ -132,3 +134,26 @@ def test_a_broken_capture_record_is_refused_by_name(tmp_path: Path) -> None:
     scipy.io.savemat(str(bad), {"other": np.zeros(3)})
     with pytest.raises(DatasetError, match=r"mocap_data\.mat"):
         read_capture(bad)
+
+
+def test_the_attitudes_world_is_the_positions_turned_about_the_vertical() -> None:
+    """The record's attitudes are in a world turned 90 deg about z from its positions' (the
+    module's "Frames", measured from the floor's flow): a body tilted about the attitudes'
+    x axis comes out tilted about our world's y axis, and a level body's camera looks down
+    with its image x along the body's y."""
+    tilt = np.radians(10.0)
+    R_body_world = so3.rot_x(tilt).T  # the record's quaternion turns the world into the body
+    capture = Capture(
+        np.array([0.0, 0.002]),
+        np.array([1, 1]),
+        np.zeros((2, 3)),
+        np.stack([R_body_world, np.eye(3)]),
+    )
+    poses = body_poses(capture, np.array([0.0, 0.002]))
+    cam = poses @ se3.make(so3.rot_z(np.radians(90.0)), [0, 0, 0])  # the mount, rpy 0 0 90
+    # level: the camera's optical axis down (+z of our world), its image x along body y
+    assert np.allclose(cam[1, :3, 2], [0.0, 0.0, 1.0], atol=1e-9)
+    assert np.allclose(poses[1, :3, :3] @ [0.0, 1.0, 0.0], cam[1, :3, 0], atol=1e-9)
+    # tilted about the attitudes' x axis: the optical axis leans along our world's x
+    axis = cam[0, :3, 2]
+    assert abs(axis[1]) < 1e-9 and abs(abs(axis[0]) - np.sin(tilt)) < 1e-9
