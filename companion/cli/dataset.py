@@ -6,6 +6,8 @@
                              [--jpg-quality Q]
     companion dataset rebuild NAME... | --all --snapshots DIR --out DIR [--manifest FILE]
     companion dataset convert SRC DST
+    companion dataset truth-check DIR --floor-z Z [--frames A:B] [--gap N] [--step N]
+                                  [--offsets-ms MS,...] [--fit-lens]
 
 FORMAT: tum-rgbd (also its keyframe variant), eth3d, 7scenes, kitti; rislab (the RIS lab's
 downward flight: images60fps/ and mocap_data.mat; ``--focal-px``, ``--k1``: its lens). The
@@ -15,8 +17,10 @@ optical axis. ``rebuild``
 reads config/real_sequences.toml, extracts each sequence from its git snapshot, checks its
 checksums and imports it into DIR/NAME. ``convert`` turns a flight recording folder into one
 MCAP file (DST ending in ``.mcap``) or an MCAP recording into a folder, losslessly (the replay
-is the same, bit for bit). Exit codes: 0 done, 2 bad input (a malformed list line,
-a checksum that differs, a bad config: the message names the file, line or key).
+is the same, bit for bit). ``truth-check`` scores how much of the floor's image motion a
+downward dataset's truth explains (a wrong mount, clock or lens shows). Exit codes: 0 done,
+2 bad input (a malformed list line, a checksum that differs, a bad config: the message names
+the file, line or key).
 """
 
 from __future__ import annotations
@@ -96,7 +100,7 @@ def _import_rislab(args: argparse.Namespace) -> int:
         load_config(),
         beams,
         focal_px=args.focal_px,
-        dist=(args.k1, 0.0, 0.0, 0.0, 0.0),
+        dist=(args.k1, args.k2, 0.0, 0.0, 0.0),
         frames=(int(first), int(last)) if last else None,
         seed=args.seed,
     )
@@ -116,6 +120,34 @@ def cmd_rebuild(args: argparse.Namespace) -> int:
             raise DatasetError(f"rebuild: {name!r} is not in {args.manifest} ({sorted(by_name)})")
         out = args.out / name
         print(_summary_line(out, rebuild(by_name[name], args.snapshots, out)))
+    return 0
+
+
+def cmd_truth_check(args: argparse.Namespace) -> int:
+    """The floor's flow against the truth (drivers/dataset/truth_check.py)."""
+    from companion.drivers.dataset import open_dataset
+    from companion.drivers.dataset.truth_check import check_truth, report_lines
+
+    first, _, last = args.frames.partition(":")
+    try:
+        offsets = tuple(1e-3 * float(v) for v in args.offsets_ms.split(","))
+        frames = (int(first), int(last)) if last else None
+    except ValueError:
+        raise DatasetError(
+            f"--offsets-ms {args.offsets_ms!r} / --frames {args.frames!r}: numbers, as 0,33 / A:B"
+        ) from None
+    if args.gap < 1 or args.step < 1:
+        raise DatasetError("--gap and --step: at least 1")
+    check = check_truth(
+        open_dataset(args.dataset),
+        args.floor_z,
+        frames,
+        args.gap,
+        args.step,
+        offsets,
+        args.fit_lens,
+    )
+    print("\n".join(report_lines(check)))
     return 0
 
 
@@ -140,7 +172,7 @@ def add_parser(sub: Any) -> None:
     """``companion dataset``."""
     p = sub.add_parser("dataset", help="import real sequences into our dataset format")
     dsub = p.add_subparsers(
-        dest="dataset_command", required=True, metavar="{import,rebuild,convert}"
+        dest="dataset_command", required=True, metavar="{import,rebuild,convert,truth-check}"
     )
     pi = dsub.add_parser("import", help="a real-sequence folder into our format")
     pi.add_argument("format", choices=IMPORTERS, help="the source's format")
@@ -169,6 +201,7 @@ def add_parser(sub: Any) -> None:
     )
     pi.add_argument("--focal-px", type=float, default=235.5, help="rislab: focal length [px]")
     pi.add_argument("--k1", type=float, default=0.0, help="rislab: radial distortion k1")
+    pi.add_argument("--k2", type=float, default=0.0, help="rislab: radial distortion k2")
     pi.set_defaults(func=cmd_import)
     pr = dsub.add_parser("rebuild", help="manifest sequences from their git snapshots")
     pr.add_argument("names", nargs="*", metavar="NAME", help="manifest entries to rebuild")
@@ -186,3 +219,22 @@ def add_parser(sub: Any) -> None:
     pc.add_argument("src", type=Path, help="a recording: a folder, or an .mcap file")
     pc.add_argument("dst", type=Path, help="a new .mcap file, or a new folder")
     pc.set_defaults(func=cmd_convert)
+    pt = dsub.add_parser(
+        "truth-check", help="does a downward dataset's truth move like its images (floor flow)"
+    )
+    pt.add_argument("dataset", type=Path, help="a dataset folder with groundtruth.txt")
+    pt.add_argument(
+        "--floor-z", type=float, required=True, help="the floor: the plane z = Z [m] of its world"
+    )
+    pt.add_argument("--frames", default="", help="A:B: frame indices to use (default all)")
+    pt.add_argument("--gap", type=int, default=3, help="frames between the two of a pair")
+    pt.add_argument("--step", type=int, default=5, help="a pair every STEP frames")
+    pt.add_argument(
+        "--offsets-ms",
+        default="0",
+        help="comma-separated offsets of the truth against the stamps to score [ms]",
+    )
+    pt.add_argument(
+        "--fit-lens", action="store_true", help="also fit focal, k1, k2 at the best offset"
+    )
+    pt.set_defaults(func=cmd_truth_check)

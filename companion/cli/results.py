@@ -7,7 +7,9 @@ metric). The batch itself is ``companion.batch``; the tables are drawn here with
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -25,6 +27,7 @@ from companion.errors import BatchError
 
 DEFAULT_OUT = Path("out") / "results"
 DEFAULT_SNAPSHOTS = Path("..") / ".mirror"  # the Makefile's SNAPSHOTS
+DEFAULT_MANIFEST = Path("config/real_sequences.toml")
 
 
 def _refused(message: str) -> int:
@@ -41,19 +44,40 @@ def _executor(args: argparse.Namespace) -> Executor | int:
 
 
 # ------------------------------------------------------------------------------ results
+BUILT_BY = ".built_by"  # in out/real/data: the hash of what built it (real_data)
+
+
+def importers_sha256() -> str:
+    """SHA-256 of what a rebuild of the real sequences depends on: the manifest and the
+    importers' sources (the package's drivers/dataset/)."""
+    from companion.batch.cache import package_root, sources_sha256
+
+    h = hashlib.sha256(sources_sha256(package_root() / "drivers" / "dataset").encode())
+    if DEFAULT_MANIFEST.is_file():
+        h.update(DEFAULT_MANIFEST.read_bytes())
+    return h.hexdigest()
+
+
 def real_data(out: Path, snapshots: Path) -> tuple[Path | None, str]:
-    """The rebuilt real sequences (``out/real/data``): rebuilt from ``snapshots`` when absent
-    (``companion dataset rebuild --all``); (None, why) when there is nothing to build from."""
+    """The rebuilt real sequences (``out/real/data``): rebuilt from ``snapshots`` (``companion
+    dataset rebuild --all``) when absent or built by another manifest or importer; (None, why)
+    when there is nothing to build from."""
     data = out / "real" / "data"
-    if data.is_dir() and any(p.is_dir() for p in data.iterdir()):
+    stamp = importers_sha256()
+    built = data / BUILT_BY
+    if data.is_dir() and built.is_file() and built.read_text().strip() == stamp:
         return data, ""
     if not snapshots.is_dir():
         return None, f"no snapshots folder {snapshots} (--snapshots DIR: the git snapshots)"
+    if data.is_dir():
+        print(f"results: {data} was built by another importer: rebuilding", file=sys.stderr)
+        shutil.rmtree(data)
     print(f"results: rebuilding the real sequences from {snapshots} into {data}", file=sys.stderr)
     cmd = [sys.executable, "-m", "companion.cli", "dataset", "rebuild", "--all"]
     proc = subprocess.run([*cmd, "--snapshots", str(snapshots), "--out", str(data)], check=False)
     if proc.returncode != 0:
         return None, f"companion dataset rebuild failed (exit {proc.returncode})"
+    built.write_text(stamp + "\n")
     return data, ""
 
 

@@ -336,3 +336,19 @@ def test_the_simulator_against_reality_pairs_each_real_sequence_with_its_look_al
     )
     assert rows[3].startswith("| rislab_downward / downward_checkerboard | 9.000 m = 6.000 % (3)")
     assert "| 2.4 | NO |" in rows[3]
+
+
+def test_real_data_built_by_another_importer_is_not_reused(tmp_path: Path) -> None:
+    """out/real/data is reused only when the manifest and importers that built it are these:
+    a folder stamped by others (or by none) is rebuilt, here refused for want of snapshots."""
+    from companion.cli.results import BUILT_BY, importers_sha256, real_data
+
+    data = tmp_path / "real" / "data"
+    (data / "rislab_downward").mkdir(parents=True)
+    no_snapshots = tmp_path / "none"
+    assert real_data(tmp_path, no_snapshots)[0] is None  # unstamped: not trusted
+    (data / BUILT_BY).write_text("0" * 64 + "\n")
+    got, why = real_data(tmp_path, no_snapshots)
+    assert got is None and "snapshots" in why
+    (data / BUILT_BY).write_text(importers_sha256() + "\n")
+    assert real_data(tmp_path, no_snapshots) == (data, "")
