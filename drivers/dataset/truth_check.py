@@ -100,19 +100,19 @@ def check_truth(
             "floor tracks"
         )
     model = ds.camera
+    pairs = {offset: pairs_at(ds, tracks, offset) for offset in offsets_s}
     scored = []
-    for offset in offsets_s:
-        errors = pair_errors(model, pairs_at(ds, tracks, offset), floor_z_m)
+    for offset, at_offset in pairs.items():
+        errors = pair_errors(model, at_offset, floor_z_m)
         scored.append((offset, float(np.median(errors)), trimmed_mean(errors)))
     best = min(scored, key=lambda s: s[1])[0]
-    fitted = fit_lens(model, pairs_at(ds, tracks, best), floor_z_m) if lens else None
     return TruthCheck(
         len(tracks),
         sum(len(t.px_a) for t in tracks),
-        float(np.median(no_motion_errors(pairs_at(ds, tracks, 0.0)))),
+        float(np.median(no_motion_errors(pairs[best]))),  # the tracks alone: any offset's
         tuple(scored),
         best,
-        fitted,
+        fit_lens(model, pairs[best], floor_z_m) if lens else None,
     )
 
 
