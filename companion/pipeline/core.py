@@ -211,7 +211,9 @@ class Pipeline:
         laps.lap("clock")
         out = self._vo_step(frame, R_world_body)
         self.vo_output = out
-        if out is not None and self.lens.observe(out, R_world_body, self.vo.resets):
+        if out is not None and self.lens.observe(
+            out, R_world_body, self.vo.resets, self.vo.pixels_at_stamp
+        ):
             self.camera = take_lens(self.lens, self.vo, self.methods, self.dpose_stage.dpose)
         laps.lap("vo")
         if out is None or out.state != VoState.TRACKING:

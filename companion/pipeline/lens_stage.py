@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from companion.dpose.estimator import Dpose
@@ -41,18 +41,31 @@ class LensStage:
         self.learned: CameraModel | None = None
         self.taken = 0  # lenses the pipeline took
 
-    def observe(self, out: VoOutput, R_world_body: F64 | None, segment: int) -> bool:
+    def observe(
+        self,
+        out: VoOutput,
+        R_world_body: F64 | None,
+        segment: int,
+        pixels_at_stamp: Callable[[], F64] | None = None,
+    ) -> bool:
         """Keep a tracked keyframe that has the autopilot's attitude at its time; whether a
-        learned lens waits to be taken (:func:`take_lens`)."""
+        learned lens waits to be taken (:func:`take_lens`). ``pixels_at_stamp``: the
+        features' pixels (N, 2) at the frame's stamp, in their order
+        (VisualOdometry.pixels_at_stamp); None: as tracked. Under a rolling shutter each row
+        is seen at its own time and the attitude is the stamp's: the simulated look-alike of
+        rislab_downward (20 ms readout; the renderer's lens x1.01 and k1 +0.02 off the
+        file's) read x1.124 and k1 -0.044, 133 of 200 pairs at an end of the search, from the
+        rows as seen; x1.022 and +0.021 (76) from the features at the stamp (2026-12-01)."""
         if out.state != VoState.TRACKING or not out.is_keyframe or R_world_body is None:
             return self.learned is not None
         has = out.features.point_ids >= 0
+        pixels = out.features.pixels if pixels_at_stamp is None else pixels_at_stamp()
         view = KeyframeView(
             out.time_us,
             segment,
             R_world_body @ self.R_body_cam,
             out.features.point_ids[has].copy(),
-            out.features.pixels[has].copy(),
+            pixels[has].copy(),
         )
         self._waiting.append(view)
         if len(self._waiting) >= MAX_WAITING:  # nobody runs the keyframe work (run_scale)

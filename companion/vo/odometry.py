@@ -138,6 +138,16 @@ class VisualOdometry:
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return xy
 
+    def pixels_at_stamp(self) -> F64:
+        """(N, 2) the current tracks' pixels [px, raw image] at the frame's stamp: as tracked
+        under a global shutter, moved along their image motion to the middle of the readout
+        under a rolling shutter (companion/vo/rolling_shutter.py, equation (2)); in the
+        order of the last output's features."""
+        tr = self.tracks
+        if self.shutter is None:
+            return tr.px.astype(np.float64)
+        return self.shutter.at_frame_time(tr.px, tr.prev_px)
+
     def _output(self, time_us: int, is_kf: bool) -> VoOutput:
         tr = self.tracks
         n = len(tr)
