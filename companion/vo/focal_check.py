@@ -76,6 +76,10 @@ K1_STEPS = 9  # the coarse grid over them, 0.025 apart (0.05 apart missed the va
 # f and k1 trade along: a k1 +0.02 lens read 1.161 and +0.018)
 FINE_STEPS = 3  # the fine grid: 3 x 3 at 1 / FINE_STEPS of the coarse steps, then a parabola
 MAX_POINTS = 60  # points of a pair used (the cost is a mean: more only costs time)
+# a pair rejects the file's lens when its best lens leaves at most this share of the file
+# lens' cost; findings need most pairs to reject it (a flat floor seen with small tilts fits
+# the file's lens nearly as well as any: its pairs' best lenses are weak and biased)
+FILE_REJECT_RATIO = 0.9
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,7 +89,9 @@ class FocalRatio:
     ``spread``, ``k1_spread`` = 1.4826 * their median absolute deviations, ``sigma``,
     ``k1_sigma`` the medians' standard errors (1.2533 * spread / sqrt(samples));
     ``at_edge``: the pairs whose best lens lay at an end of the search (Q_MIN, Q_MAX or
-    +-K1_MAX): no lens in the range fits them, so the lens model or the mount is wrong."""
+    +-K1_MAX): no lens in the range fits them, so the lens model or the mount is wrong;
+    ``rejecting``: the pairs whose best lens costs less than FILE_REJECT_RATIO of the file's
+    lens (None: not counted)."""
 
     ratio: float
     spread: float
@@ -95,6 +101,7 @@ class FocalRatio:
     k1_delta: float = 0.0
     k1_spread: float = 0.0
     k1_sigma: float = 0.0
+    rejecting: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,11 +120,14 @@ class KeyframeView:
 @dataclass(frozen=True, slots=True)
 class PairLens:
     """One keyframe pair's best lens: focal ratio ``q`` = f_true / f_assumed, ``k1_delta`` =
-    k1_true - k1_assumed, ``at_edge`` when either lies at an end of its search."""
+    k1_true - k1_assumed, ``at_edge`` when either lies at an end of its search;
+    ``file_cost_ratio``: its cost over the file's lens' (q = 1, k1_delta = 0), 0 when the
+    file's lens cannot be undone at the pair's pixels."""
 
     q: float
     k1_delta: float
     at_edge: bool
+    file_cost_ratio: float = 1.0
 
 
 def epipolar_costs(x1: F64, x2: F64, R_c2_c1: F64) -> F64:
@@ -209,7 +219,10 @@ def pair_lens(camera: CameraModel, px1: F64, px2: F64, R_c2_c1: F64) -> PairLens
     k1_delta = float(
         np.clip(fine_k[a, b] + _interior_step(fine[a, :], int(b)) * step_k, -K1_MAX, K1_MAX)
     )
-    return PairLens(q, k1_delta, bool(at_edge))
+    best, file = lens_costs(camera, centred, R_c2_c1, np.array([q, 1.0]), np.array([k1_delta, 0.0]))
+    best = min(float(best), float(fine[a, b]))  # the parabola's step may not lower the cost
+    ratio = best / float(file) if np.isfinite(file) and file > 0 else 0.0
+    return PairLens(q, k1_delta, bool(at_edge), ratio)
 
 
 def tilt_angle_rad(R_c2_c1: F64) -> float:
@@ -297,11 +310,14 @@ class FocalCheck:
         q = np.array([p.q for p in self.pairs])
         k1 = np.array([p.k1_delta for p in self.pairs])
         edge = sum(p.at_edge for p in self.pairs)
+        rejecting = sum(p.file_cost_ratio < FILE_REJECT_RATIO for p in self.pairs)
         (ratio, spread, sigma), (k1_delta, k1_spread, k1_sigma) = (
             _median_stats(q),
             _median_stats(k1),
         )
-        return FocalRatio(ratio, spread, sigma, len(q), edge, k1_delta, k1_spread, k1_sigma)
+        return FocalRatio(
+            ratio, spread, sigma, len(q), edge, k1_delta, k1_spread, k1_sigma, rejecting
+        )
 
 
 def _median_stats(values: F64) -> tuple[float, float, float]:
@@ -325,10 +341,13 @@ def lens_findings(
     """What is confidently wrong with the lens, as (brief, text) pairs: the focal ratio off by
     more than ``threshold`` (|ratio - 1| - 2 sigma > threshold), k1 by more than
     ``k1_threshold`` (|k1_delta| - 2 k1_sigma > k1_threshold), or no lens in the search that
-    fits most pairs; nothing before ``min_samples`` pairs. The brief ("k1 +0.021") is for the
-    ground station's STATUSTEXT; the text for the log and the status, with the values that
-    fit the flight when the file's ``camera`` is given."""
+    fits most pairs; nothing before ``min_samples`` pairs, nor while most pairs fit the
+    file's lens nearly as well as their best (``est.rejecting``, FILE_REJECT_RATIO). The brief
+    ("k1 +0.021") is for the ground station's STATUSTEXT; the text for the log and the
+    status, with the values that fit the flight when the file's ``camera`` is given."""
     if est.samples < min_samples:
+        return []
+    if est.rejecting is not None and 2 * est.rejecting <= est.samples:
         return []
     if 2 * est.at_edge > est.samples:
         text = (
@@ -404,5 +423,11 @@ def focal_summary(est: FocalRatio | None, warning: str | None = None) -> str:
             f"+- {est.sigma:.3f}), k1 error (k1_true - k1_file): {est.k1_delta:+.4f} (spread "
             f"{est.k1_spread:.4f}, +- {est.k1_sigma:.4f}) over {est.samples} keyframe pairs"
             + (f", {est.at_edge} at an end of the search" if est.at_edge else "")
+            + (
+                ""
+                if est.rejecting is None
+                else f"; {est.rejecting} fit another lens better than the file's by "
+                f"{(1.0 - FILE_REJECT_RATIO) * 100:.0f} % or more"
+            )
         )
     return line if warning is None else f"{line}\nwarning: {warning}"

@@ -13,6 +13,7 @@ import pytest
 from companion.geometry import so3
 from companion.geometry.camera import CameraModel
 from companion.vo.focal_check import (
+    FILE_REJECT_RATIO,
     FocalCheck,
     FocalRatio,
     KeyframeView,
@@ -65,6 +66,12 @@ def test_a_pair_recovers_the_focal_ratio_and_the_k1_error(
     k1_delta = np.median([e.k1_delta for e in estimates if e is not None])
     assert q == pytest.approx(1.0 / file_over_true, rel=0.02)
     assert k1_delta == pytest.approx(-k1_file_minus_true, abs=0.005)
+    # the file's lens fits a pair nearly as well as its best when it is right, not otherwise
+    rejects = [e.file_cost_ratio < FILE_REJECT_RATIO for e in estimates if e is not None]
+    if file_over_true == 1.0 and k1_file_minus_true == 0.0:
+        assert not any(rejects)
+    else:
+        assert sum(rejects) >= 6
 
 
 def test_rotation_about_the_optical_axis_is_no_tilt() -> None:
@@ -113,6 +120,19 @@ def test_the_warning_needs_a_confident_estimate() -> None:
     assert focal_warning(FocalRatio(1.0, 0.05, 0.007, 84, 0, 0.012, 0.01, 0.002)) is None
     assert "no keyframe pairs" in focal_summary(None)
     assert "1.103 (spread 0.050" in focal_summary(FocalRatio(1.103, 0.05, 0.007, 84))
+
+
+def test_no_finding_while_most_pairs_fit_the_files_lens_nearly_as_well() -> None:
+    """A flat floor seen with small tilts: the pairs' best lenses are weak and biased (a
+    simulated look-alike of rislab_downward, its lens within 1 % of the file's, read f x1.17
+    with most pairs at an end of the search) while the file's lens costs them little more."""
+    weak = FocalRatio(1.17, 0.25, 0.02, 200, 130, -0.06, 0.06, 0.005, rejecting=99)
+    assert lens_findings(weak) == []
+    assert "99 fit another lens better than the file's by 10 % or more" in focal_summary(weak)
+    strong = FocalRatio(1.17, 0.25, 0.02, 200, 0, 0.0, 0.06, 0.005, rejecting=150)
+    assert [brief for brief, _ in lens_findings(strong)] == ["focal x1.170"]
+    edges = FocalRatio(0.81, 0.16, 0.014, 200, 147, -0.05, 0.07, 0.006, rejecting=155)
+    assert [brief for brief, _ in lens_findings(edges)] == ["fits no lens model"]
 
 
 def test_pairs_that_no_focal_fits_say_the_lens_or_mount_is_wrong() -> None:
