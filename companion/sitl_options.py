@@ -12,7 +12,9 @@ from typing import Literal
 
 from companion.options import opt
 
-SurfaceName = Literal["photo", "tiles", "checkerboard", "parking", "concrete", "carpet"]
+SurfaceName = Literal[
+    "photo", "tiles", "checkerboard", "checker_sheets", "parking", "concrete", "carpet"
+]
 BelowMinReading = Literal["min", "zero", "saturated"]
 
 
@@ -23,12 +25,12 @@ class GroundOptions:
     surface: SurfaceName = opt(
         "photo",
         "photo (grass and gravel photos), tiles (0.5 m floor tiles with grout), checkerboard "
-        "(squares of checker_m), parking (asphalt with painted bays), concrete or carpet "
-        "(low texture)",
+        "(squares of checker_m), checker_sheets (those squares printed on overlapping sheets "
+        "of paper), parking (asphalt with painted bays), concrete or carpet (low texture)",
     )
     checker_m: float = opt(
         0.3,
-        "side of a checkerboard square [m] (surface = checkerboard; printed sheets: 0.03-0.1)",
+        "side of a checkerboard square [m] (checkerboard, checker_sheets; printed: 0.03-0.1)",
         gt=0.005,
         le=2.0,
     )

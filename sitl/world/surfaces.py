@@ -11,6 +11,11 @@ trilinear texture lookups in [0, 1]. The textures (square, 512 texels, wrapped) 
   pattern repeats exactly every 0.5 m), plus a faint non-repeating wear layer;
 - ``checkerboard``: black and white squares of ``checker_m`` (0.3 m by default; printed
   sheets on a lab floor: 0.03-0.1 m), a trace of dirt;
+- ``checker_sheets``: the same squares printed on sheets of paper laid overlapping on a floor,
+  as a lab's printed targets are: each sheet 8 x 6 squares in a white margin of a third of a
+  square, its own phase and a turn of up to 4 deg, a printed label strip along one edge, a
+  faint shadow at the edge of the sheet on top; 3 x 4 sheets in a texture that repeats every
+  20 squares (1 m for 5 cm squares), so that no view over the floor sees one endless period;
 - ``parking``: painted bay lines (2.5 m bays, 5 m deep, 12 cm lines) over asphalt: fine
   aggregate noise and low-frequency stains;
 - ``concrete``: smooth concrete: low-contrast fine and mid-scale noise (a few 8-bit levels);
@@ -36,11 +41,13 @@ from companion.types import F64
 
 F32 = NDArray[np.float32]
 
-SURFACES = ("photo", "tiles", "checkerboard", "parking", "concrete", "carpet")
+SURFACES = ("photo", "tiles", "checkerboard", "checker_sheets", "parking", "concrete", "carpet")
 TEXTURE_SIZE = 512  # texels, as terrain.py's photos
 FIRST_SURFACE_TEXTURE = 3  # the atlas holds grass, gravel, brick, then the surface's A and B
 TILE_M = 0.5  # floor tile side [m]
 CHECKER_M = 0.3  # checkerboard square side [m], by default
+SHEETS_SPAN_SQUARES = 20  # checker_sheets: the texture's side in squares
+SHEET_SQUARES = (8, 6)  # checker_sheets: a sheet's squares (along u, along v)
 BAY_WIDTH_M = 2.5  # parking bay width [m]
 _PATCH_CELL_M = 0.1  # specular weight grid [m]
 
@@ -75,6 +82,50 @@ def _checkerboard(rng: np.random.Generator) -> tuple[F64, F64]:
     per = TEXTURE_SIZE // 8
     k = np.arange(TEXTURE_SIZE) // per
     a = _soft(np.where((k[:, None] + k[None, :]) % 2 == 0, 0.88, 0.12), 0.7)
+    b = 0.5 + _noise(rng, 2.0, 0.1)
+    return a, b
+
+
+def _checker_sheets(rng: np.random.Generator) -> tuple[F64, F64]:
+    """Sheets of squares laid overlapping (A, tile SHEETS_SPAN_SQUARES squares) and dirt (B).
+
+    3 x 4 sheets on a jittered grid, drawn one over the other in a random order; texel
+    coordinates are in squares (the texture spans SHEETS_SPAN_SQUARES of them) and wrap, so
+    that sheets cross the texture's edges seamlessly."""
+    n = TEXTURE_SIZE
+    per = n / SHEETS_SPAN_SQUARES  # texels per square
+    c = (np.arange(n) + 0.5) / per  # texel centres [squares]
+    u, v = np.meshgrid(c, c, indexing="xy")  # u along columns, v along rows
+    span = float(SHEETS_SPAN_SQUARES)
+    a = 0.30 + _noise(rng, 6.0, 0.03)  # the floor between the sheets: grey
+    cols, rows = 3, 4
+    pitch_u, pitch_v = span / cols, span / rows
+    half_u = SHEET_SQUARES[0] / 2.0 + 1.0 / 3.0  # half a sheet with its margin [squares]
+    half_v = SHEET_SQUARES[1] / 2.0 + 1.0 / 3.0
+    order = rng.permutation(cols * rows)
+    for k in order.tolist():
+        i, j = divmod(k, rows)
+        cu = (i + 0.5) * pitch_u + rng.uniform(-0.6, 0.6)
+        cv = (j + 0.5) * pitch_v + rng.uniform(-0.6, 0.6)
+        turn = np.radians(rng.uniform(-4.0, 4.0))
+        du = (u - cu + span / 2.0) % span - span / 2.0  # wrapped offsets from the centre
+        dv = (v - cv + span / 2.0) % span - span / 2.0
+        lu = np.cos(turn) * du + np.sin(turn) * dv  # the sheet's own axes [squares]
+        lv = -np.sin(turn) * du + np.cos(turn) * dv
+        on = (np.abs(lu) <= half_u) & (np.abs(lv) <= half_v)
+        shadow = (np.abs(lu) <= half_u + 0.08) & (np.abs(lv) <= half_v + 0.08) & ~on
+        a = np.where(shadow, a * 0.7, a)
+        pu, pv = lu + SHEET_SQUARES[0] / 2.0, lv + SHEET_SQUARES[1] / 2.0  # from its corner
+        printed = (pu >= 0) & (pu < SHEET_SQUARES[0]) & (pv >= 0) & (pv < SHEET_SQUARES[1])
+        phase = int(rng.integers(2))
+        dark = (np.floor(pu).astype(np.int64) + np.floor(pv).astype(np.int64) + phase) % 2 == 1
+        sheet = np.where(printed & dark, 0.12, 0.9)
+        # a label strip in the margin along one long edge: short dark dashes
+        label = (pv > -0.28) & (pv < -0.08) & (pu > 0.5) & (pu < SHEET_SQUARES[0] - 0.5)
+        dashes = rng.random(64) < 0.55
+        sheet = np.where(label & dashes[(np.floor(pu * 8.0).astype(np.int64)) % 64], 0.25, sheet)
+        a = np.where(on, sheet, a)
+    a = _soft(a, 0.7)
     b = 0.5 + _noise(rng, 2.0, 0.1)
     return a, b
 
@@ -116,6 +167,14 @@ _DESIGNS = {
         (90, 95, 100),
         0.01,
     ),
+    "checker_sheets": (
+        _checker_sheets,
+        (SHEETS_SPAN_SQUARES * CHECKER_M, 1.9),
+        0.05,
+        (135, 135, 135),
+        (90, 95, 100),
+        0.01,
+    ),
     "parking": (_parking, (10.0, 1.5), 0.5, (140, 145, 150), (140, 142, 146), 0.06),
     "concrete": (_concrete, (2.3, 3.7), 0.5, (152, 155, 158), (150, 152, 154), 0.04),
     "carpet": (_carpet, (0.6, 2.9), 0.5, (118, 92, 78), (118, 92, 78), 0.015),
@@ -133,14 +192,14 @@ def surface_ground(
     (atlas ids FIRST_SURFACE_TEXTURE, +1), the two ground rows of the layer table (2, 9: tex,
     tile_m, cos, sin, off_u, off_v, tint b g r) and the fields (Ny, Nx, 4: weight of B, albedo,
     warp u, warp v) on terrain.py's field grid (cell ``field_res_m`` [m]); ``checker_m``: the
-    checkerboard's square side [m]."""
+    square side [m] of ``checkerboard`` and ``checker_sheets``."""
     if surface not in _DESIGNS:
         raise SitlError(f"unknown surface {surface!r}; choose one of {', '.join(SURFACES)}")
     draw, (tile_a, tile_b), w_b, tint_a, tint_b, albedo_std = _DESIGNS[surface]
-    if surface == "checkerboard":
+    if surface in ("checkerboard", "checker_sheets"):
         if not 0.0 < checker_m <= 2.0:
             raise SitlError(f"checker_m: a square side in (0, 2] m, got {checker_m}")
-        tile_a = 8 * checker_m
+        tile_a = (8 if surface == "checkerboard" else SHEETS_SPAN_SQUARES) * checker_m
     rng = np.random.default_rng([seed, 808, SURFACES.index(surface)])
     a, b = draw(rng)
     textures = [np.clip(t, 0.0, 1.0).astype(np.float32) for t in (a, b)]

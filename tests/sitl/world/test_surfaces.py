@@ -78,6 +78,26 @@ def test_the_checkerboard_takes_its_square_size() -> None:
         surface_ground("checkerboard", 1, (8, 8), 0.5, checker_m=0.0)
 
 
+def test_checker_sheets_break_the_boards_period_and_keep_its_squares() -> None:
+    """The same squares on overlapping sheets (the real downward flight's floor, where an
+    endless board left a simulated camera 0.3 m over it ~8 corners, all alike): the
+    board's period still dominates a view, but across sheets it slips (each sheet its own
+    phase and turn), so the correlation at one period is clearly below the board's."""
+    checker_m = 0.12
+    lags = range(20, 60)
+    board = autocorrelation_x(nadir_grey("checkerboard", checker_m), lags)
+    sheets = autocorrelation_x(nadir_grey("checker_sheets", checker_m), lags)
+    period_px = 2 * checker_m * PINHOLE.fx / ALTITUDE_M
+    peak = lags[int(np.argmax(sheets))]
+    assert abs(peak - period_px) <= 3.0
+    assert sheets.max() < board.max() - 0.15
+    # dark squares, white paper and its margins: both ends of the range are there
+    grey = nadir_grey("checker_sheets", checker_m)
+    assert (grey < 60).mean() > 0.2 and (grey > 150).mean() > 0.3
+    with pytest.raises(SitlError, match="checker_m"):
+        surface_ground("checker_sheets", 1, (8, 8), 0.5, checker_m=3.0)
+
+
 @pytest.mark.parametrize(("surface", "share"), [("concrete", 0.1), ("carpet", 0.03)])
 def test_low_texture_has_a_small_share_of_the_photos_gradient_energy(
     surface: str, share: float
@@ -103,7 +123,7 @@ def test_the_parking_lot_has_bright_lines_on_dark_asphalt() -> None:
 
 
 def test_every_surface_is_seeded_and_unknown_ones_are_refused() -> None:
-    for surface in ("tiles", "checkerboard", "parking", "concrete", "carpet"):
+    for surface in ("tiles", "checkerboard", "checker_sheets", "parking", "concrete", "carpet"):
         a = surface_ground(surface, 3, (9, 9), 0.5)
         b = surface_ground(surface, 3, (9, 9), 0.5)
         assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0], strict=True))
