@@ -35,7 +35,7 @@ from companion.redact import redact_url
 from companion.render_options import RenderConfig as RenderConfig
 from companion.scale.options import ScaleOptions
 from companion.service_options import GpsOptions, ServiceOptions, WebOptions, check_link_number
-from companion.sitl_options import GroundOptions, RangeEffects
+from companion.sitl_options import DeliveryFaults, GroundOptions, RangeEffects
 from companion.toml_files import merge, read_config_toml
 from companion.types import F64, RangeSensorSpec
 from companion.vo.options import VoOptions
@@ -249,6 +249,7 @@ class SitlConfig:
     render: RenderConfig = opt(RenderConfig(), "camera rendering")
     ground: GroundOptions = opt(GroundOptions(), "the ground's surface and what moves on it")
     rangefinder: RangeEffects = opt(RangeEffects(), "the distance sensors' real-world faults")
+    delivery: DeliveryFaults = opt(DeliveryFaults(), "how the camera delivers its frames")
 
 
 RecordImageFormat = Literal["png", "jpg"]

@@ -93,3 +93,30 @@ class RangeEffects:
         "(TFmini Plus: Dist 0 when the return saturates) or saturated (TFmini-S: Dist -2, "
         "655.34 m as uint16 cm); all flagged invalid",
     )
+
+
+@dataclass(frozen=True, slots=True)
+class DeliveryFaults:
+    """How the simulated camera delivers its frames: a capture that loses frames in bursts (a
+    busy USB bus or driver) and stamps that jitter. A lost frame is never delivered (the
+    samples of its interval come with the next one; its sequence number is skipped); a
+    delivered frame's image is of its capture time, its stamp off it by the jitter."""
+
+    loss_bursts_per_min: float = opt(
+        0.0, "lossy periods begun per minute of flight, at random (0 = none)", ge=0, le=60
+    )
+    loss_burst_s: float = opt(10.0, "a lossy period's mean length [s] (exponential)", gt=0, le=600)
+    loss_from_s: float = opt(
+        0.0, "a lossy period of its own from this time of the flight [s] (a recording's)", ge=0
+    )
+    loss_to_s: float = opt(0.0, "... to this time [s] (<= loss_from_s: none)", ge=0)
+    loss_in_burst: float = opt(
+        0.4, "the probability that a frame is lost within a lossy period", ge=0, le=0.95
+    )
+    stamp_jitter_ms: float = opt(
+        0.0,
+        "each delivered stamp off the capture time by up to +- this, uniformly [ms] (kept "
+        "after the stamp before it)",
+        ge=0,
+        le=200,
+    )

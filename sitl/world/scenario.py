@@ -21,6 +21,7 @@ from companion.sitl.world.render import RenderedFrame, Renderer
 from companion.sitl.world.sensors import AttitudeSimulator, RangeSimulator, TrueRange
 from companion.sitl.world.terrain import World, make_world
 from companion.sitl.world.trajectory import Trajectory
+from companion.sitl_options import DeliveryFaults
 from companion.types import F64, AttitudeSample, CameraFrame
 
 
@@ -60,22 +61,45 @@ class Scenario:
         self.attitude = AttitudeSimulator(self.trajectory, s.seed)
         self.frame_period_s = 1.0 / cfg.camera.rate_hz
         self.n_frames = int(np.floor(s.seconds * cfg.camera.rate_hz + 1e-9))
+        self.lost = lost_frames(s.delivery, self.n_frames, self.frame_period_s, s.seed)
 
     def frame_time_us(self, seq: int) -> int:
         """Capture (mid-exposure) time of frame ``seq`` [us]."""
         return int(round(seq * self.frame_period_s * 1e6))
 
-    def step(self, seq: int) -> Step:
-        """Frame ``seq`` and the samples in (time of frame seq-1, time of frame seq]."""
+    def stamp_us(self, seq: int) -> int:
+        """The stamp frame ``seq`` is delivered with [us]: its capture time off by up to
+        +- ``[sitl.delivery] stamp_jitter_ms``, uniformly (seeded by the frame), and at least
+        1 ms after the stamp of every frame before (a running maximum over the frames whose
+        jitter could reach it)."""
+        jitter_us = self.cfg.sitl.delivery.stamp_jitter_ms * 1e3
+        if jitter_us <= 0:
+            return self.frame_time_us(seq)
+        reach = int(np.ceil(2.0 * jitter_us / (self.frame_period_s * 1e6))) + 1
+        return max(
+            self._jittered_us(q) + 1000 * (seq - q) for q in range(max(0, seq - reach), seq + 1)
+        )
+
+    def _jittered_us(self, seq: int) -> int:
+        """Frame ``seq``'s capture time plus its own jitter [us]."""
+        u = np.random.default_rng([self.cfg.sitl.seed, 812, seq]).uniform(-1.0, 1.0)
+        return int(
+            round(self.frame_time_us(seq) + u * self.cfg.sitl.delivery.stamp_jitter_ms * 1e3)
+        )
+
+    def step(self, seq: int, since: int | None = None) -> Step:
+        """Frame ``seq`` and the samples in (time of frame ``since``, time of frame seq]
+        (``since``: the frame delivered before it; None: seq - 1)."""
         t_us = self.frame_time_us(seq)
-        t_prev_s = self.frame_time_us(seq - 1) * 1e-6 if seq > 0 else -1.0
+        before = seq - 1 if since is None else since
+        t_prev_s = self.frame_time_us(before) * 1e-6 if before >= 0 else -1.0
         t_s = t_us * 1e-6
         # sample windows are half-open [a, b); shift by 1 us to make them (prev, now]
         ranges = self.ranges.between(t_prev_s + 1e-6, t_s + 1e-6)
         atts = self.attitude.between(t_prev_s + 1e-6, t_s + 1e-6)
         rendered = self.renderer.render_at(self.trajectory, t_s, seq)
         T_world_body = self.trajectory.T_world_body(t_s)
-        frame = CameraFrame(t_us, seq, rendered.image_bgr)
+        frame = CameraFrame(self.stamp_us(seq), seq, rendered.image_bgr)
         return Step(frame, rendered, T_world_body, ranges, atts)
 
     def steps(self, start: int = 0, stop: int | None = None, workers: int = 1) -> Iterator[Step]:
@@ -85,9 +109,11 @@ class Scenario:
         its frame or sample time), so the steps are those of one thread
         (tests/sitl/world/test_render.py)."""
         stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        delivered = [q for q in range(start, stop) if q not in self.lost]
+        since = {q: p for p, q in zip([start - 1, *delivered], delivered, strict=False)}
         if workers <= 1:
-            for seq in range(start, stop):
-                yield self.step(seq)
+            for seq in delivered:
+                yield self.step(seq, since[seq])
             return
         _ = self.world.textures  # built once, before the threads share the world
         local = threading.local()
@@ -96,13 +122,40 @@ class Scenario:
             mine: Scenario | None = getattr(local, "scenario", None)
             if mine is None:
                 mine = local.scenario = Scenario(self.cfg, world=self.world)
-            return mine.step(seq)
+            return mine.step(seq, since[seq])
 
         with ThreadPoolExecutor(workers, thread_name_prefix="scenario") as pool:
             ahead: deque[Future[Step]] = deque()
-            seq = start
-            while seq < stop or ahead:
-                while seq < stop and len(ahead) < 2 * workers:
-                    ahead.append(pool.submit(step, seq))
-                    seq += 1
+            todo = iter(delivered)
+            pending = len(delivered)
+            while pending or ahead:
+                while pending and len(ahead) < 2 * workers:
+                    ahead.append(pool.submit(step, next(todo)))
+                    pending -= 1
                 yield ahead.popleft().result()
+
+
+def lost_frames(
+    faults: DeliveryFaults, n_frames: int, frame_period_s: float, seed: int
+) -> frozenset[int]:
+    """The frames (sequence numbers in 0..n_frames-1) a capture with ``faults`` loses: lossy
+    periods begun at random (a Poisson process of ``loss_bursts_per_min``), each of an
+    exponential length of mean ``loss_burst_s``, and the one from ``loss_from_s`` to
+    ``loss_to_s``, in which each frame is lost with probability ``loss_in_burst``; seeded,
+    and the same whatever the frames asked for."""
+    fixed = faults.loss_to_s > faults.loss_from_s
+    if (faults.loss_bursts_per_min <= 0 and not fixed) or faults.loss_in_burst <= 0:
+        return frozenset()
+    rng = np.random.default_rng([seed, 811])
+    flight_s = n_frames * frame_period_s
+    n_bursts = int(rng.poisson(faults.loss_bursts_per_min * flight_s / 60.0))
+    starts_s = rng.uniform(0.0, flight_s, n_bursts)
+    lengths_s = rng.exponential(faults.loss_burst_s, n_bursts)
+    t_s = np.arange(n_frames) * frame_period_s
+    in_burst = (t_s >= faults.loss_from_s) & (t_s < faults.loss_to_s)
+    for a, length in zip(starts_s, lengths_s, strict=True):
+        in_burst |= (t_s >= a) & (t_s < a + length)
+    lose = in_burst & (rng.random(n_frames) < faults.loss_in_burst)
+    if n_frames:
+        lose[0] = False  # the first frame starts the stream
+    return frozenset(np.flatnonzero(lose).tolist())
