@@ -5,6 +5,7 @@ small, measured and (with [vo] learn_lens) taken in flight."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import replace
 from typing import Any
 
@@ -14,6 +15,7 @@ from companion.config import Config, load_config
 from companion.offline import feed_step
 from companion.pipeline import Pipeline
 from companion.pipeline.lens_stage import fitted_lens
+from companion.pipeline.status import PipelineStatus
 from companion.types import VoState
 from companion.vo.focal_check import FocalRatio
 
@@ -30,6 +32,14 @@ def flight() -> tuple[Config, list[Any]]:
     return cfg, list(Scenario(cfg).steps())
 
 
+def _flown(pipe: Pipeline, steps: Iterable[Any]) -> PipelineStatus:
+    """The pipeline's status after the flight's steps, each with its background work."""
+    for step in steps:
+        feed_step(pipe, step)
+        pipe.background_work()
+    return pipe.status()
+
+
 @pytest.mark.parametrize("file_over_true", [1.1, 0.9, 1.0])
 def test_a_wrong_focal_length_is_seen_in_flight(
     flight: tuple[Config, list[Any]], file_over_true: float
@@ -37,11 +47,7 @@ def test_a_wrong_focal_length_is_seen_in_flight(
     cfg, steps = flight
     true = cfg.camera.model()
     camera_file = replace(true, fx=true.fx * file_over_true, fy=true.fy * file_over_true)
-    pipe = Pipeline(cfg, camera=camera_file)
-    for step in steps:
-        feed_step(pipe, step)
-        pipe.background_work()
-    status = pipe.status()
+    status = _flown(Pipeline(cfg, camera=camera_file), steps)
     ratio = status.lens_focal_ratio
     assert ratio is not None and status.lens_focal_spread is not None
     assert status.lens_focal_samples >= 30
@@ -62,11 +68,7 @@ def test_a_wrong_k1_is_seen_in_flight_and_not_taken_for_the_focal(
     (a 40 s hills lawnmower) and warned of the focal length."""
     cfg, steps = flight
     true = cfg.camera.model()
-    pipe = Pipeline(cfg, camera=replace(true, k1=true.k1 - 0.02))
-    for step in steps:
-        feed_step(pipe, step)
-        pipe.background_work()
-    status = pipe.status()
+    status = _flown(Pipeline(cfg, camera=replace(true, k1=true.k1 - 0.02)), steps)
     assert status.lens_focal_samples >= 30
     assert status.lens_focal_ratio == pytest.approx(1.0, abs=0.04)  # 0.982 when written
     assert status.lens_k1_delta == pytest.approx(0.02, abs=0.006)
@@ -171,11 +173,7 @@ def test_a_rolling_shutter_is_not_taken_for_a_wrong_lens() -> None:
         "ground": {"surface": "checkerboard", "checker_m": 0.05},
     }
     cfg = load_config(None, {"camera": camera, "sitl": sitl})
-    pipe = Pipeline(cfg)
-    for step in Scenario(cfg).steps():
-        feed_step(pipe, step)
-        pipe.background_work()
-    status = pipe.status()
+    status = _flown(Pipeline(cfg), Scenario(cfg).steps())
     assert status.lens_focal_samples >= 50
     assert status.lens_focal_ratio == pytest.approx(1.0, abs=0.03)  # 1.001 when written
     assert status.lens_k1_delta == pytest.approx(0.0, abs=0.006)
