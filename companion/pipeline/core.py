@@ -84,10 +84,8 @@ class Pipeline:
         self._last_good_us: int | None = None
         self._first_frame_us: int | None = None  # d-Pose's arming clock starts here
         self.attitudes = AttitudeHistory()
-        # frames kept from a VO not tracking for want of an attitude once a stream exists
-        self.held_for_attitude = 0
-        # frames held by hold_for_attitude (an autopilot but no attitude stream yet)
-        self.waited_for_attitude = 0
+        self.held_for_attitude = 0  # frames kept from a VO not tracking: no attitude yet
+        self.waited_for_attitude = 0  # frames held by hold_for_attitude (no stream yet)
         self._first_held_us: int | None = None
         # maps dropped: begun before the autopilot's attitude stream (ArduPilot's comes late)
         self.heading_restarts = 0

@@ -70,7 +70,8 @@ def segment_errors(
 ) -> np.ndarray:
     """The estimate ``est`` (N, 3) against the truth ``gt`` (N, 3), each stretch of equal
     ``seg`` (N,: between position resets) after its own translation (the median difference;
-    stretches of fewer than 10 samples are left out): ``horizontal_error_m_p95``,
+    stretches of fewer than 10 samples are left out, and so are samples with a NaN in either:
+    one such sample made a whole stretch's median NaN): ``horizontal_error_m_p95``,
     ``vertical_error_m_p95`` and ``horizontal_error_m_max`` into ``s``. Beside them the same
     p95s after one translation for the whole flight (``*_one_translation``): a reset that
     restarts the autopilot's fusion leaves our frame where it was, and a stretch's own offset
@@ -79,8 +80,9 @@ def segment_errors(
     err = np.full_like(est, np.nan)
     offset = np.zeros(3)
     best = 0
+    finite = np.all(np.isfinite(est), axis=1) & np.all(np.isfinite(gt), axis=1)
     for value in np.unique(seg):
-        k = seg == value
+        k = (seg == value) & finite
         if k.sum() >= 10:
             off = np.median(gt[k] - est[k], axis=0)
             err[k] = est[k] + off - gt[k]
