@@ -64,6 +64,20 @@ def test_one_translation_for_the_flight_beside_the_per_stretch_figures() -> None
     assert s["horizontal_error_m_p95_one_translation"] < 1e-9
 
 
+def test_a_nan_sample_leaves_its_stretch_measured() -> None:
+    """A sample with a NaN in the estimate (a CSV row cut short) is left out, not the
+    stretch: a NaN in a stretch's median once made a real PX4 hover's p95 None."""
+    from companion.sitl.loops.loop_results import segment_errors
+
+    gt = _square()
+    est = gt + 0.05
+    est[17, 1] = np.nan
+    s: dict = {}
+    segment_errors(s, est, gt, np.zeros(len(gt), dtype=np.int64))
+    assert s["horizontal_error_m_p95"] is not None and s["horizontal_error_m_p95"] < 1e-9
+    assert s["vertical_error_m_p95_one_translation"] < 1e-9
+
+
 def test_px4_truth_is_read_in_px4s_own_clock() -> None:
     """PX4's estimate is compared with SIH's ground truth at the same PX4 timestamps: a clock
     line that is 35 ms off (SIH's lockstep pace varies) would put 0.1 m of error at 3 m/s into
