@@ -113,6 +113,13 @@ class DeliveryFaults:
     loss_in_burst: float = opt(
         0.4, "the probability that a frame is lost within a lossy period", ge=0, le=0.95
     )
+    loss_run_frames: float = opt(
+        1.0,
+        "the mean number of frames lost in a row within a lossy period (runs of geometric "
+        "length, the share lost still loss_in_burst; 1 = each frame lost on its own)",
+        ge=1,
+        le=100,
+    )
     stamp_jitter_ms: float = opt(
         0.0,
         "each delivered stamp off the capture time by up to +- this, uniformly [ms] (kept "

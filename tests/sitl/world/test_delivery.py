@@ -39,6 +39,32 @@ def test_a_lossy_period_loses_its_share_of_frames_there_only() -> None:
     assert 0.05 < float(np.mean(shares)) < 0.25  # expected 3 x 5 / 60 x 0.5 = 0.125
 
 
+def _runs(lost: frozenset[int]) -> list[int]:
+    """The lengths of the runs of consecutive sequence numbers in ``lost``."""
+    runs: list[int] = []
+    for q in sorted(lost):
+        if runs and q - 1 in lost:
+            runs[-1] += 1
+        else:
+            runs.append(1)
+    return runs
+
+
+def test_a_capture_that_stalls_loses_its_share_in_runs() -> None:
+    """The real downward flight lost 43 % of its frames in runs of 7 on the mean: runs of that
+    mean at that share; one frame at a time (the default) the runs are 1 / (1 - 0.42) = 1.7."""
+    window = {"loss_from_s": 10.0, "loss_to_s": 610.0, "loss_in_burst": 0.42}
+    alone = lost_frames(DeliveryFaults(**window), 40000, 1 / 60, 3)
+    runs = lost_frames(DeliveryFaults(**window, loss_run_frames=7.0), 40000, 1 / 60, 3)
+    assert 1.5 < float(np.mean(_runs(alone))) < 1.9
+    assert 6.0 < float(np.mean(_runs(runs))) < 8.0 and max(_runs(runs)) >= 20
+    for lost in (alone, runs):
+        times_s = np.array(sorted(lost)) / 60
+        assert times_s.min() >= 10.0 and times_s.max() < 610.0
+        assert 0.39 < len(lost) / 36000 < 0.45  # the window's 36,000 frames
+    assert runs == lost_frames(DeliveryFaults(**window, loss_run_frames=7.0), 40000, 1 / 60, 3)
+
+
 def test_lost_frames_are_not_delivered_and_their_samples_come_with_the_next() -> None:
     plain = list(Scenario(_config({})).steps())
     lossy_cfg = _config({"loss_from_s": 0.2, "loss_to_s": 0.8, "loss_in_burst": 0.5})
