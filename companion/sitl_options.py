@@ -120,6 +120,12 @@ class DeliveryFaults:
         ge=1,
         le=100,
     )
+    numbers_lost: bool = opt(
+        True,
+        "a lost frame's sequence number is skipped (the receiver sees the gap); false: the "
+        "delivered frames are numbered 0, 1, 2, ... (a capture that numbers only what it "
+        "delivers, as the real downward flight's image files are)",
+    )
     stamp_jitter_ms: float = opt(
         0.0,
         "each delivered stamp off the capture time by up to +- this, uniformly [ms] (kept "

@@ -99,6 +99,7 @@ class VisualOdometry:
         self.laps = Laps()  # the wall time of each stage of the last frame [ms]
         self.rotation_frames = 0  # frames in a row whose pose is a rotation held in place
         self.rotation_held = 0  # frames whose pose was held on a rotation (all maps)
+        self.outside_lens = 0  # tracks dropped: at the frame's stamp outside the lens model
         self._pending_keyframe: PendingKeyframe | None = None  # built by finish_pending
         self._keyframe_question: PendingKeyframe | None = None  # asked by decide_keyframe
         self._keyframe_added = False  # a keyframe was built since the last output
@@ -137,6 +138,24 @@ class VisualOdometry:
         if not np.isfinite(xy).all():
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return xy
+
+    def _drop_outside_lens(self) -> None:
+        """Under a rolling shutter: drop the tracks whose position at the frame's stamp is
+        outside the lens model (``frame_xy`` would raise). The correction moves each track
+        along its image motion over the frame interval; over a 1 us interval (a clock that
+        keeps its stamps in order by a microsecond) a few pixels of motion carry a track far
+        past the image, where a strong lens does not invert: the look-alike of the real
+        downward flight (k1 -0.33) stopped ``companion eval`` there. The others' coordinates
+        are kept in ``tracks.xy``, the values ``frame_xy`` gives."""
+        tr = self.tracks
+        if self.shutter is None or len(tr) == 0:
+            return
+        px = self.shutter.at_frame_time(tr.px, tr.prev_px)
+        tr.xy = self.camera.pixels_to_normalized(px, nan_where_unconverged=True)
+        ok: NDArray[np.bool_] = np.all(np.isfinite(tr.xy), axis=1)
+        if not ok.all():
+            self.tracks = tr.select(ok)
+            self.outside_lens += int((~ok).sum())
 
     def pixels_at_stamp(self) -> F64:
         """(N, 2) the current tracks' pixels [px, raw image] at the frame's stamp: as tracked
@@ -394,6 +413,7 @@ class VisualOdometry:
             prev_us = self._prev_time_us
             interval_s = 0.0 if prev_us is None else (frame.time_us - prev_us) * 1e-6
             self.shutter.update(self.tracks.px, self.tracks.prev_px, interval_s)
+            self._drop_outside_lens()
         laps.lap("track")
         if self.state != VoState.TRACKING:
             if step_not_tracking(self, gray, frame.time_us, R_world_body, ground):

@@ -62,6 +62,7 @@ class Scenario:
         self.frame_period_s = 1.0 / cfg.camera.rate_hz
         self.n_frames = int(np.floor(s.seconds * cfg.camera.rate_hz + 1e-9))
         self.lost = lost_frames(s.delivery, self.n_frames, self.frame_period_s, s.seed)
+        self._lost_sorted = np.array(sorted(self.lost), dtype=np.int64)
 
     def frame_time_us(self, seq: int) -> int:
         """Capture (mid-exposure) time of frame ``seq`` [us]."""
@@ -99,8 +100,16 @@ class Scenario:
         atts = self.attitude.between(t_prev_s + 1e-6, t_s + 1e-6)
         rendered = self.renderer.render_at(self.trajectory, t_s, seq)
         T_world_body = self.trajectory.T_world_body(t_s)
-        frame = CameraFrame(self.stamp_us(seq), seq, rendered.image_bgr)
+        frame = CameraFrame(self.stamp_us(seq), self.delivered_seq(seq), rendered.image_bgr)
         return Step(frame, rendered, T_world_body, ranges, atts)
+
+    def delivered_seq(self, seq: int) -> int:
+        """The sequence number frame ``seq`` is delivered with: its own, or with
+        ``[sitl.delivery] numbers_lost`` false its place among the delivered frames (the lost
+        frames before it not counted)."""
+        if self.cfg.sitl.delivery.numbers_lost or not len(self._lost_sorted):
+            return seq
+        return seq - int(np.searchsorted(self._lost_sorted, seq))
 
     def steps(self, start: int = 0, stop: int | None = None, workers: int = 1) -> Iterator[Step]:
         """Frames start..stop-1 in order. ``workers`` > 1: rendered ahead (at most 2 x workers

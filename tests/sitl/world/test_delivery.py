@@ -83,6 +83,20 @@ def test_lost_frames_are_not_delivered_and_their_samples_come_with_the_next() ->
         assert np.array_equal(s.T_world_body, by_seq[s.frame.seq].T_world_body)
 
 
+def test_a_capture_that_numbers_only_what_it_delivers() -> None:
+    """With numbers_lost false the delivered frames are numbered 0, 1, 2, ... (the gap is
+    only in the stamps, as in the real downward flight's files); the images are the same."""
+    window = {"loss_from_s": 0.2, "loss_to_s": 0.8, "loss_in_burst": 0.5}
+    skipped = list(Scenario(_config(window)).steps())
+    counted = Scenario(_config({**window, "numbers_lost": False}))
+    got = list(counted.steps(workers=2))
+    assert counted.lost and [s.frame.seq for s in got] == list(range(len(got)))
+    assert [s.frame.seq for s in skipped] != list(range(len(skipped)))
+    for a, b in zip(skipped, got, strict=True):
+        assert a.frame.time_us == b.frame.time_us
+        assert np.array_equal(a.frame.image_bgr, b.frame.image_bgr)
+
+
 def test_jittered_stamps_stay_near_the_capture_and_in_order() -> None:
     sc = Scenario(_config({"stamp_jitter_ms": 14.0}, seconds=20.0))
     capture = np.array([sc.frame_time_us(q) for q in range(sc.n_frames)])
