@@ -337,7 +337,7 @@ def test_real_px4_vpe_without_magnetometer_needs_ev_yaw_and_configure_sets_it(
 
 
 @real
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
     vision_px4: RealPx4,
 ) -> None:
@@ -364,7 +364,7 @@ def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
             time.sleep(0.5)
         return True
 
-    end = time.monotonic() + 190.0
+    end = time.monotonic() + 300.0  # PX4 took 18-124 s, once over 190 s (2026-12-01, -02)
     windows_left = 0
     while time.monotonic() < end:
         if not steadily_converted():
@@ -379,8 +379,8 @@ def test_real_px4_time_sync_reported_converged_once_px4_converts_our_stamps(
         assert not any("has not converged" in w for w in v.warnings), explain(later)
         return
     raise AssertionError(
-        f"PX4's time sync never converted our stamps through a whole check in 190 s "
-        f"({windows_left} checks saw it stop converting)"
+        f"PX4's time sync never converted our stamps through a whole check in 300 s ({windows_left}"
+        f" checks saw it stop; {r.sender.timesync_requests} TIMESYNC requests answered)"
     )
 
 
