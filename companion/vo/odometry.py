@@ -132,12 +132,17 @@ class VisualOdometry:
         stops on its own: a subset's values are those of the whole set); GeometryError when
         a selected point is outside the lens model."""
         if tr.xy is None or len(tr.xy) != len(tr):
-            px = tr.px if self.shutter is None else self.shutter.at_frame_time(tr.px, tr.prev_px)
-            tr.xy = self.camera.pixels_to_normalized(px, nan_where_unconverged=True)
+            tr.xy = self._stamp_xy(tr)
         xy = tr.xy if sel is None else tr.xy[sel]
         if not np.isfinite(xy).all():
             raise GeometryError("undistortion did not converge (point outside the lens model)")
         return xy
+
+    def _stamp_xy(self, tr: Tracks) -> F64:
+        """(N, 2) the tracks' normalised coordinates at the frame's stamp, NaN where the
+        undistortion does not converge (the values ``frame_xy`` keeps in ``tracks.xy``)."""
+        px = tr.px if self.shutter is None else self.shutter.at_frame_time(tr.px, tr.prev_px)
+        return self.camera.pixels_to_normalized(px, nan_where_unconverged=True)
 
     def _drop_outside_lens(self) -> None:
         """Under a rolling shutter: drop the tracks whose position at the frame's stamp is
@@ -150,8 +155,7 @@ class VisualOdometry:
         tr = self.tracks
         if self.shutter is None or len(tr) == 0:
             return
-        px = self.shutter.at_frame_time(tr.px, tr.prev_px)
-        tr.xy = self.camera.pixels_to_normalized(px, nan_where_unconverged=True)
+        tr.xy = self._stamp_xy(tr)
         ok: NDArray[np.bool_] = np.all(np.isfinite(tr.xy), axis=1)
         if not ok.all():
             self.tracks = tr.select(ok)
